@@ -1,0 +1,41 @@
+# splatcli developer entry points. Override the torch pin, e.g. `make setup TORCH=torch` on a CUDA box.
+PYTHON ?= python3
+TORCH ?= torch==2.13.0
+VENV ?= .venv
+BIN := $(VENV)/bin
+DEMO ?= demo-project
+PYTEST_ARGS ?=
+
+.PHONY: setup test demo bench clean
+
+$(BIN)/splatcli: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install -q --upgrade pip
+	# torch first, pinned, so that nothing else drags in the multi-GB CUDA wheels.
+	$(BIN)/pip install -q "$(TORCH)"
+	$(BIN)/pip install -q -e ".[dev,plots]"
+	@touch $@
+
+setup: $(BIN)/splatcli
+
+test: setup
+	$(BIN)/python -m pytest -q $(PYTEST_ARGS)
+
+demo: setup
+	rm -rf $(DEMO)
+	$(BIN)/splatcli process sample_data/scene -o $(DEMO)
+	$(BIN)/splatcli train $(DEMO) --preset demo
+	$(BIN)/splatcli render $(DEMO) --split test
+	$(BIN)/splatcli export $(DEMO)
+	$(BIN)/splatcli eval $(DEMO)
+	@echo ""
+	@echo "splat:  $(DEMO)/exports/scene.ply"
+	@echo "report: $(DEMO)/reports/eval.md ($(DEMO)/reports/eval.json)"
+
+bench: setup
+	$(BIN)/python bench/rasterize.py
+	$(BIN)/python bench/process.py
+	$(BIN)/python bench/train.py
+
+clean:
+	rm -rf $(VENV) $(DEMO) *.egg-info

@@ -1,0 +1,126 @@
+"""What every command shares: options, the console, progress display, summaries.
+
+Human output (progress, notes, tables) goes to stderr; stdout carries only the
+`--json` summary object, so scripts can pipe it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import sys
+import time
+from typing import Any, Iterator
+
+import typer
+from rich.console import Console
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress as RichProgress,
+    SpinnerColumn,
+    TaskID,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
+
+from ..events import Event, EventSink, Note, Progress, Stage, StageDone
+
+DeviceOpt = typer.Option("auto", "--device", help="Where to compute: auto (CUDA if available, else CPU), cpu or cuda.")
+SeedOpt = typer.Option(0, "--seed", help="Random seed; the same seed on CPU gives the same result.")
+QuietOpt = typer.Option(False, "--quiet", "-q", help="Print nothing but errors (and the --json object).")
+JsonOpt = typer.Option(False, "--json", help="Print one JSON summary object on stdout, for scripts and Makefiles.")
+DebugOpt = typer.Option(False, "--debug", help="Show full tracebacks on errors.")
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    if isinstance(v, (list, tuple)) and len(v) > 6:
+        return f"[{len(v)} items]"
+    return str(v)
+
+
+class Ui:
+    """The console of one command run."""
+
+    def __init__(self, *, quiet: bool = False, json_out: bool = False) -> None:
+        self.quiet = quiet
+        self.json_out = json_out
+        self.err = Console(stderr=True, highlight=False, quiet=quiet)
+
+    def note(self, message: str, level: str = "note") -> None:
+        if level == "warning":
+            self.err.print(f"[yellow]warning:[/yellow] {message}")
+        else:
+            self.err.print(f"[dim]note:[/dim] {message}")
+
+    @contextlib.contextmanager
+    def progress(self) -> Iterator[EventSink]:
+        """An EventSink that draws rich progress bars (spinners when the total is unknown)."""
+        bars = RichProgress(
+            SpinnerColumn(),
+            TextColumn("[bold]{task.description}"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TimeElapsedColumn(),
+            TimeRemainingColumn(),
+            TextColumn("{task.fields[info]}"),
+            console=self.err,
+            transient=False,
+            disable=self.quiet,
+        )
+        tasks: dict[str, TaskID] = {}
+
+        def sink(ev: Event) -> None:
+            if isinstance(ev, Stage):
+                tasks[ev.name] = bars.add_task(ev.name, total=ev.total, info="")
+            elif isinstance(ev, Progress):
+                if ev.name not in tasks:
+                    tasks[ev.name] = bars.add_task(ev.name, total=ev.total, info="")
+                info = "  ".join(f"{k} {_fmt(v)}" for k, v in ev.info.items())
+                bars.update(tasks[ev.name], completed=ev.done, total=ev.total, info=info)
+            elif isinstance(ev, StageDone):
+                tid = tasks.get(ev.name)
+                if tid is not None:
+                    t = bars.tasks[tid] if tid < len(bars.tasks) else None
+                    total = t.total if t is not None and t.total is not None else (t.completed if t else 1)
+                    bars.update(tid, total=total, completed=total)
+            elif isinstance(ev, Note):
+                bars.console.print(
+                    ("[yellow]warning:[/yellow] " if ev.level == "warning" else "[dim]note:[/dim] ") + ev.message
+                )
+
+        with bars:
+            yield sink
+
+    def summary(self, data: dict[str, Any], title: str = "", lines: list[str] | None = None) -> None:
+        """Print the command's result: the JSON object on stdout with --json, else
+        a few human lines."""
+        if self.json_out:
+            sys.stdout.write(json.dumps(data, default=_json_default) + "\n")
+            sys.stdout.flush()
+            return
+        if self.quiet:
+            return
+        out = Console(highlight=False)
+        if title:
+            out.print(f"[bold green]{title}[/bold green]")
+        for line in lines or []:
+            out.print(line)
+
+
+def _json_default(o: Any) -> Any:
+    from ..io.atomic import _json_default as d
+
+    return d(o)
+
+
+class Stopwatch:
+    def __init__(self) -> None:
+        self.t0 = time.perf_counter()
+
+    @property
+    def seconds(self) -> float:
+        return time.perf_counter() - self.t0

@@ -1,0 +1,128 @@
+"""The `splatcli` entry point: the Typer app and the exit-code policy.
+
+Exit codes: 0 success; 2 bad input or usage (one line `error: ...` on stderr,
+no traceback unless --debug); 130 interrupted; 1 internal error.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import traceback
+from typing import Any
+
+import typer
+from typer.core import TyperGroup
+
+try:  # recent typer vendors click as typer._click; older ones depend on click
+    from typer._click import exceptions as _cx
+except ImportError:  # pragma: no cover
+    from click import exceptions as _cx  # type: ignore[no-redef]
+
+from .. import __version__
+from ..errors import Interrupted, SplatError
+
+
+def _one_line(msg: str) -> str:
+    return " ".join(str(msg).split())
+
+
+class _Group(TyperGroup):
+    """Runs commands with our exit-code policy, both from the console script and
+    from typer's CliRunner (which calls `main` too)."""
+
+    def main(self, args: Any = None, prog_name: Any = None, complete_var: Any = None,
+             standalone_mode: bool = True, **extra: Any) -> Any:  # noqa: D401
+        argv = list(sys.argv[1:] if args is None else args)
+        debug = "--debug" in argv or os.environ.get("SPLATCLI_DEBUG") == "1"
+        try:
+            return super().main(args=argv, prog_name=prog_name or "splatcli", complete_var=complete_var,
+                                standalone_mode=False, **extra)
+        except typer.Exit as exc:  # --help, --version, typer.Exit
+            code = exc.exit_code
+        except typer.Abort:
+            sys.stderr.write("error: interrupted\n")
+            code = 130
+        except _cx.UsageError as exc:
+            if type(exc).__name__ == "NoArgsIsHelpError":  # bare `splatcli` or `splatcli CMD`: show help
+                sys.stdout.write(exc.format_message() + "\n")
+                code = 0 if exc.ctx is None or exc.ctx.parent is None else 2
+                sys.stdout.flush()
+                if standalone_mode:
+                    sys.exit(code)
+                return code
+            ctx = exc.ctx
+            where = f" (see `{ctx.command_path} --help`)" if ctx is not None else ""
+            sys.stderr.write(f"error: {_one_line(exc.format_message())}{where}\n")
+            code = 2
+        except _cx.ClickException as exc:
+            sys.stderr.write(f"error: {_one_line(exc.format_message())}\n")
+            code = 2
+        except SplatError as exc:
+            if debug:
+                traceback.print_exc()
+            sys.stderr.write(f"error: {_one_line(str(exc))}\n")
+            code = 2
+        except (KeyboardInterrupt, Interrupted) as exc:
+            msg = _one_line(str(exc)) if isinstance(exc, Interrupted) and str(exc) else "interrupted"
+            sys.stderr.write(f"error: {msg}\n")
+            code = 130
+        except Exception as exc:  # a bug: keep the message, hide the traceback unless asked
+            if debug:
+                traceback.print_exc()
+            sys.stderr.write(
+                f"error: internal error: {type(exc).__name__}: {_one_line(str(exc))} (rerun with --debug for the traceback)\n"
+            )
+            code = 1
+        else:
+            code = 0
+        sys.stderr.flush()
+        sys.stdout.flush()
+        if standalone_mode:
+            sys.exit(code)
+        return code
+
+
+app = typer.Typer(
+    cls=_Group,
+    name="splatcli",
+    help="Photographs to 3D Gaussian splats: process -> train -> render / export / eval, over one project directory.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+    context_settings={"help_option_names": ["-h", "--help"]},
+)
+
+
+def _version(value: bool) -> None:
+    if value:
+        typer.echo(f"splatcli {__version__}")
+        raise typer.Exit(0)
+
+
+@app.callback()
+def _root(
+    version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="Print the version and exit."),
+) -> None:
+    """Photographs to 3D Gaussian splats.
+
+    A project directory holds everything: `splatcli process CAPTURE -o PROJ`, then
+    `splatcli train PROJ`, then `render`, `export` and `eval` on the same PROJ.
+    """
+
+
+from . import eval_cmd, export_cmd, process_cmd, render_cmd, train_cmd  # noqa: E402
+
+app.command("process")(process_cmd.process)
+app.command("train")(train_cmd.train)
+app.command("render")(render_cmd.render)
+app.command("export")(export_cmd.export)
+app.command("eval")(eval_cmd.evaluate)
+
+
+def main() -> None:
+    app()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,82 @@
+"""The set of Gaussians, stored raw exactly as in the .ply:
+
+means [N, 3] world units; quats [N, 4] w,x,y,z unnormalised; log_scales [N, 3];
+opacity_logits [N]; sh [N, (d+1)^2, 3], DC first.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+import torch
+from torch import Tensor
+
+SH_C0 = 0.28209479177387814  # Y_0^0; colour = SH_C0 * dc + 0.5
+
+
+def num_sh_bases(degree: int) -> int:
+    return (degree + 1) ** 2
+
+
+def sh_degree_from_bases(k: int) -> int:
+    d = int(round(math.sqrt(k))) - 1
+    if (d + 1) ** 2 != k or d < 0:
+        raise ValueError(f"{k} SH coefficients per channel is not (d+1)^2 for any degree d")
+    return d
+
+
+@dataclass
+class Gaussians:
+    means: Tensor  # [N, 3]
+    quats: Tensor  # [N, 4] w, x, y, z (unnormalised)
+    log_scales: Tensor  # [N, 3]
+    opacity_logits: Tensor  # [N]
+    sh: Tensor  # [N, (d+1)^2, 3]
+
+    PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh")
+
+    def __len__(self) -> int:
+        return int(self.means.shape[0])
+
+    @property
+    def sh_degree(self) -> int:
+        return sh_degree_from_bases(int(self.sh.shape[1]))
+
+    @property
+    def device(self) -> torch.device:
+        return self.means.device
+
+    def as_dict(self) -> dict[str, Tensor]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    def to(self, device: torch.device | str, dtype: torch.dtype | None = None) -> "Gaussians":
+        return Gaussians(**{k: v.to(device=device, dtype=dtype) if dtype else v.to(device) for k, v in self.as_dict().items()})
+
+    def detach(self) -> "Gaussians":
+        return Gaussians(**{k: v.detach() for k, v in self.as_dict().items()})
+
+    def select(self, mask_or_index: Tensor) -> "Gaussians":
+        return Gaussians(**{k: v[mask_or_index] for k, v in self.as_dict().items()})
+
+    def with_sh_degree(self, degree: int) -> "Gaussians":
+        """Truncate (or zero-pad) SH to `degree`."""
+        k = num_sh_bases(degree)
+        sh = self.sh
+        if sh.shape[1] >= k:
+            sh = sh[:, :k]
+        else:
+            pad = sh.new_zeros(sh.shape[0], k - sh.shape[1], 3)
+            sh = torch.cat([sh, pad], dim=1)
+        return Gaussians(self.means, self.quats, self.log_scales, self.opacity_logits, sh.contiguous())
+
+    def finite_mask(self) -> Tensor:  # [N] bool
+        ok = torch.ones(len(self), dtype=torch.bool, device=self.device)
+        for v in self.as_dict().values():
+            ok &= torch.isfinite(v.reshape(v.shape[0], -1)).all(dim=1)
+        return ok
+
+    @staticmethod
+    def empty(sh_degree: int = 0, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32) -> "Gaussians":
+        z = lambda *s: torch.zeros(*s, device=device, dtype=dtype)  # noqa: E731
+        return Gaussians(z(0, 3), z(0, 4), z(0, 3), z(0), z(0, num_sh_bases(sh_degree), 3))

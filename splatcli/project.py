@@ -1,0 +1,262 @@
+"""The project directory: the only module that knows paths and file names.
+
+    PROJECT/
+      splatcli.json    manifest: schema version, source, frame, splits, scene facts,
+                       and each command's resolved config and summary
+      images/          the images training uses (undistorted, RGB)
+      masks/           alpha masks, when the input had them (RGBA captures)
+      sfm/             database.db, sparse/0 (PINHOLE COLMAP model of images/),
+                       distorted/ (the raw model, when undistortion happened)
+      checkpoints/     step-000007000.pt ...
+      renders/<name>/  rendered PNGs and videos
+      exports/         scene.ply, scene.splat
+      reports/         eval.json, eval.md, train_log.jsonl, plots
+
+Everyone else asks a `Project` for paths; no file name appears in two places.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from . import __version__
+from .errors import NotReadyError, SplatError
+from .io.atomic import atomic_write_json
+
+SCHEMA_VERSION = 1
+MANIFEST_NAME = "splatcli.json"
+FRAME_CONVENTION = "opencv"  # x right, y down, z forward; viewmat maps world to camera
+MAX_JSON_BYTES = 64 * 1024 * 1024  # a manifest is kilobytes; refuse absurd files before parsing
+_CKPT_RE = re.compile(r"^step-(\d{9})\.pt$")
+
+
+def read_json_file(path: Path, what: str = "JSON file", max_bytes: int = MAX_JSON_BYTES) -> Any:
+    """Read JSON with a size bound, turning every failure into one-line SplatError."""
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+    except FileNotFoundError:
+        raise SplatError(f"{path}: {what} not found") from None
+    except OSError as exc:
+        raise SplatError(f"{path}: cannot read {what}: {exc.strerror or exc}") from None
+    if size > max_bytes:
+        raise SplatError(f"{path}: {what} is {size} bytes, more than the {max_bytes} allowed")
+    try:
+        text = path.read_text(encoding="utf-8")
+        return json.loads(text)
+    except UnicodeDecodeError:
+        raise SplatError(f"{path}: {what} is not UTF-8 text") from None
+    except json.JSONDecodeError as exc:
+        raise SplatError(f"{path}: {what} is not valid JSON ({exc.msg} at line {exc.lineno})") from None
+    except OSError as exc:
+        raise SplatError(f"{path}: cannot read {what}: {exc.strerror or exc}") from None
+
+
+def now_iso() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+@dataclass(frozen=True)
+class Project:
+    """A project directory. Construct with `Project.create` (process) or
+    `Project.open` (every later command)."""
+
+    root: Path
+
+    # ---- paths -------------------------------------------------------------
+    @property
+    def manifest_path(self) -> Path:
+        return self.root / MANIFEST_NAME
+
+    @property
+    def images_dir(self) -> Path:
+        return self.root / "images"
+
+    @property
+    def masks_dir(self) -> Path:
+        return self.root / "masks"
+
+    @property
+    def sfm_dir(self) -> Path:
+        return self.root / "sfm"
+
+    @property
+    def database_path(self) -> Path:
+        return self.sfm_dir / "database.db"
+
+    @property
+    def sparse_dir(self) -> Path:
+        """The PINHOLE COLMAP model that matches images/."""
+        return self.sfm_dir / "sparse" / "0"
+
+    @property
+    def distorted_dir(self) -> Path:
+        """The raw (distorted) model, kept when undistortion happened."""
+        return self.sfm_dir / "distorted"
+
+    @property
+    def checkpoints_dir(self) -> Path:
+        return self.root / "checkpoints"
+
+    @property
+    def renders_dir(self) -> Path:
+        return self.root / "renders"
+
+    @property
+    def exports_dir(self) -> Path:
+        return self.root / "exports"
+
+    @property
+    def reports_dir(self) -> Path:
+        return self.root / "reports"
+
+    @property
+    def train_log_path(self) -> Path:
+        return self.reports_dir / "train_log.jsonl"
+
+    @property
+    def train_report_path(self) -> Path:
+        return self.reports_dir / "train.json"
+
+    @property
+    def process_report_path(self) -> Path:
+        return self.reports_dir / "process.json"
+
+    @property
+    def eval_json_path(self) -> Path:
+        return self.reports_dir / "eval.json"
+
+    @property
+    def eval_md_path(self) -> Path:
+        return self.reports_dir / "eval.md"
+
+    def plot_path(self, name: str) -> Path:
+        return self.reports_dir / f"{name}.png"
+
+    def render_dir(self, name: str) -> Path:
+        return self.renders_dir / name
+
+    def export_path(self, fmt: str = "ply") -> Path:
+        return self.exports_dir / f"scene.{fmt}"
+
+    def checkpoint_path(self, step: int) -> Path:
+        return self.checkpoints_dir / f"step-{int(step):09d}.pt"
+
+    def checkpoints(self) -> list[tuple[int, Path]]:
+        """All checkpoints, oldest first, as (step, path)."""
+        if not self.checkpoints_dir.is_dir():
+            return []
+        found = []
+        for p in self.checkpoints_dir.iterdir():
+            m = _CKPT_RE.match(p.name)
+            if m and p.is_file():
+                found.append((int(m.group(1)), p))
+        return sorted(found)
+
+    def latest_checkpoint(self) -> Path | None:
+        ck = self.checkpoints()
+        return ck[-1][1] if ck else None
+
+    # ---- lifecycle ---------------------------------------------------------
+    @classmethod
+    def create(cls, root: str | Path, *, source: dict[str, Any], overwrite: bool = False) -> "Project":
+        """Start a new project (used by `process`). Refuses to clobber a folder that
+        holds something other than a project unless `overwrite`."""
+        root = Path(root)
+        if root.exists() and not root.is_dir():
+            raise SplatError(f"{root}: exists and is not a directory")
+        if root.is_dir() and any(root.iterdir()) and not (root / MANIFEST_NAME).exists() and not overwrite:
+            raise SplatError(
+                f"{root}: folder exists, is not empty and is not a splatcli project; choose another -o or pass --overwrite"
+            )
+        root.mkdir(parents=True, exist_ok=True)
+        proj = cls(root)
+        manifest = {
+            "schema_version": SCHEMA_VERSION,
+            "splatcli_version": __version__,
+            "created_at": now_iso(),
+            "frame": FRAME_CONVENTION,
+            "source": source,
+            "splits": {},
+            "scene": {},
+            "steps": {},
+        }
+        proj.write_manifest(manifest)
+        return proj
+
+    @classmethod
+    def open(cls, root: str | Path) -> "Project":
+        """Open an existing project, checking it is one and of a schema we read."""
+        root = Path(root)
+        if not root.exists():
+            raise SplatError(f"{root}: no such project directory; run `splatcli process INPUT -o {root}` first")
+        if not root.is_dir() or not (root / MANIFEST_NAME).is_file():
+            raise SplatError(
+                f"{root}: not a splatcli project (no {MANIFEST_NAME}); run `splatcli process INPUT -o {root}` first"
+            )
+        proj = cls(root)
+        proj.manifest()  # validates
+        return proj
+
+    # ---- manifest ----------------------------------------------------------
+    def manifest(self) -> dict[str, Any]:
+        data = read_json_file(self.manifest_path, "project manifest")
+        if not isinstance(data, dict) or "schema_version" not in data:
+            raise SplatError(f"{self.manifest_path}: not a splatcli manifest (no schema_version)")
+        version = data.get("schema_version")
+        if not isinstance(version, int) or version > SCHEMA_VERSION:
+            raise SplatError(
+                f"{self.manifest_path}: schema version {version} is newer than this splatcli reads "
+                f"({SCHEMA_VERSION}); upgrade splatcli"
+            )
+        return data
+
+    def write_manifest(self, data: dict[str, Any]) -> None:
+        atomic_write_json(self.manifest_path, data)
+
+    def update_manifest(self, **top_level: Any) -> dict[str, Any]:
+        data = self.manifest()
+        data.update(top_level)
+        self.write_manifest(data)
+        return data
+
+    def record_step(self, step: str, *, config: dict[str, Any], summary: dict[str, Any]) -> None:
+        """Record a command's resolved config and summary in the manifest."""
+        data = self.manifest()
+        data.setdefault("steps", {})[step] = {
+            "finished_at": now_iso(),
+            "splatcli_version": __version__,
+            "config": config,
+            "summary": summary,
+        }
+        self.write_manifest(data)
+
+    def step(self, step: str) -> dict[str, Any] | None:
+        return self.manifest().get("steps", {}).get(step)
+
+    # ---- splits ------------------------------------------------------------
+    def splits(self) -> dict[str, list[str]]:
+        """Image names per split: {"train": [...], "test": [...]}."""
+        s = self.manifest().get("splits") or {}
+        return {"train": list(s.get("train", [])), "test": list(s.get("test", []))}
+
+    # ---- readiness ---------------------------------------------------------
+    def require_processed(self) -> None:
+        if self.step("process") is None or not self.sparse_dir.is_dir() or not self.images_dir.is_dir():
+            raise NotReadyError(f"{self.root}: has no processed dataset", "process")
+
+    def require_trained(self) -> Path:
+        self.require_processed()
+        ck = self.latest_checkpoint()
+        if ck is None:
+            raise NotReadyError(f"{self.root}: has no trained model (no checkpoint)", "train")
+        return ck
+
+
+def is_project(path: str | Path) -> bool:
+    return (Path(path) / MANIFEST_NAME).is_file()
