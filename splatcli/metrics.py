@@ -1,0 +1,72 @@
+"""Image metrics: PSNR and SSIM on [0, 1] images, differentiable (SSIM is also the
+training loss's D-SSIM term).
+
+SSIM is Wang et al.'s: an 11x11 Gaussian window with sigma = 1.5, constants
+K1 = 0.01, K2 = 0.03, data range 1, population (not sample) covariance, averaged
+over channels and over the "valid" region (the border of 5 pixels that a
+full-size filter would pad is excluded), which is exactly what
+`skimage.metrics.structural_similarity(gaussian_weights=True, sigma=1.5,
+use_sample_covariance=False, data_range=1.0, channel_axis=-1)` computes.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+SSIM_WINDOW = 11
+SSIM_SIGMA = 1.5
+_C1 = (0.01 * 1.0) ** 2
+_C2 = (0.03 * 1.0) ** 2
+
+
+def psnr(pred: Tensor, gt: Tensor) -> Tensor:  # [..., H, W, C] each -> scalar dB
+    """10 log10(1 / MSE) for images in [0, 1]."""
+    mse = torch.mean((pred.to(torch.float64) - gt.to(torch.float64)) ** 2)
+    return 10.0 * torch.log10(1.0 / mse.clamp_min(1e-20))
+
+
+def _gauss_1d(dtype: torch.dtype, device: torch.device) -> Tensor:  # [11]
+    r = SSIM_WINDOW // 2
+    x = torch.arange(-r, r + 1, dtype=torch.float64)
+    g = torch.exp(-0.5 * (x / SSIM_SIGMA) ** 2)
+    return (g / g.sum()).to(dtype=dtype, device=device)
+
+
+def ssim_map(pred: Tensor, gt: Tensor) -> Tensor:
+    """pred, gt: [H, W, C] in [0, 1]. Returns the SSIM map [C, H-10, W-10]."""
+    if pred.shape != gt.shape or pred.dim() != 3:
+        raise ValueError(f"ssim expects two [H, W, C] images of one shape, got {tuple(pred.shape)} and {tuple(gt.shape)}")
+    H, W, C = pred.shape
+    if H < SSIM_WINDOW or W < SSIM_WINDOW:
+        raise ValueError(f"ssim needs images of at least {SSIM_WINDOW}x{SSIM_WINDOW} pixels, got {W}x{H}")
+    x = pred.permute(2, 0, 1).unsqueeze(1)  # [C, 1, H, W]
+    y = gt.permute(2, 0, 1).unsqueeze(1).to(x.dtype)
+    g = _gauss_1d(x.dtype, x.device)
+    gx = g.view(1, 1, 1, -1)
+    gy = g.view(1, 1, -1, 1)
+
+    def blur(t: Tensor) -> Tensor:  # separable valid filter: two 1D passes
+        return F.conv2d(F.conv2d(t, gx), gy)
+
+    stack = torch.cat([x, y, x * x, y * y, x * y], dim=0)  # one conv call for all five moments
+    m = blur(stack)
+    mu_x, mu_y, e_xx, e_yy, e_xy = m.split(C, dim=0)
+    var_x = e_xx - mu_x * mu_x
+    var_y = e_yy - mu_y * mu_y
+    cov = e_xy - mu_x * mu_y
+    num = (2 * mu_x * mu_y + _C1) * (2 * cov + _C2)
+    den = (mu_x * mu_x + mu_y * mu_y + _C1) * (var_x + var_y + _C2)
+    return (num / den).squeeze(1)
+
+
+def ssim(pred: Tensor, gt: Tensor) -> Tensor:  # [H, W, C] each -> scalar
+    """Mean SSIM over the valid region and the channels."""
+    return ssim_map(pred, gt).mean()
+
+
+def psnr_from_mse(mse: float) -> float:
+    return 10.0 * math.log10(1.0 / max(mse, 1e-20))
