@@ -1,0 +1,117 @@
+"""The CLI's shell: help, version, exit codes and the one-line error policy."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from typer.testing import CliRunner
+
+from splatcli import __version__
+from splatcli.cli.main import app
+
+COMMANDS = ["process", "train", "render", "export", "eval"]
+
+
+@pytest.fixture
+def runner() -> CliRunner:
+    return CliRunner()
+
+
+def test_version(runner):
+    r = runner.invoke(app, ["--version"])
+    assert r.exit_code == 0
+    assert __version__ in r.stdout
+
+
+def test_top_level_help_lists_every_command(runner):
+    r = runner.invoke(app, ["--help"])
+    assert r.exit_code == 0
+    for c in COMMANDS:
+        assert c in r.stdout
+
+
+@pytest.mark.parametrize("cmd", COMMANDS)
+def test_each_command_has_explaining_help(runner, cmd):
+    r = runner.invoke(app, [cmd, "--help"])
+    assert r.exit_code == 0, r.output
+    text = " ".join(r.stdout.split())
+    assert "Usage" in text
+    assert "--json" in text or cmd == "export"
+    assert len(text) > 300  # more than a bare usage line: it explains
+
+
+def test_unknown_command_is_usage_error(runner):
+    r = runner.invoke(app, ["frobnicate"])
+    assert r.exit_code == 2
+    assert r.stderr.startswith("error: ")
+    assert len(r.stderr.strip().splitlines()) == 1
+    assert "Traceback" not in r.output
+
+
+@pytest.mark.parametrize("cmd", COMMANDS)
+def test_unknown_option_is_one_line_usage_error(runner, cmd):
+    r = runner.invoke(app, [cmd, "--no-such-option"])
+    assert r.exit_code == 2
+    assert r.stderr.startswith("error: ")
+    assert len(r.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("cmd", ["train", "render", "eval", "export"])
+def test_not_a_project_exits_2_with_one_line(runner, cmd, tmp_path):
+    r = runner.invoke(app, [cmd, str(tmp_path / "nowhere")])
+    assert r.exit_code == 2, r.output
+    assert r.stderr.startswith("error: ")
+    assert len(r.stderr.strip().splitlines()) == 1
+    assert "splatcli process" in r.stderr
+    assert "Traceback" not in r.output
+
+
+def test_internal_error_exits_1_without_traceback(monkeypatch, runner, tmp_path):
+    import splatcli.project as project
+
+    def boom(*a, **k):
+        raise RuntimeError("kaboom")
+
+    monkeypatch.setattr(project.Project, "open", classmethod(lambda cls, root: boom()))
+    r = runner.invoke(app, ["train", str(tmp_path)])
+    assert r.exit_code == 1
+    assert "internal error" in r.stderr and "kaboom" in r.stderr
+    assert "Traceback" not in r.stderr
+    r = runner.invoke(app, ["train", str(tmp_path), "--debug"])
+    assert r.exit_code == 1
+    assert "Traceback" in r.stderr
+
+
+def test_keyboard_interrupt_exits_130(monkeypatch, runner, tmp_path):
+    import splatcli.project as project
+
+    def interrupt(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(project.Project, "open", classmethod(lambda cls, root: interrupt()))
+    r = runner.invoke(app, ["train", str(tmp_path)])
+    assert r.exit_code == 130
+
+
+def test_device_cuda_without_gpu_is_one_line_error():
+    import torch
+
+    from splatcli.device import resolve_device
+    from splatcli.errors import SplatError
+
+    assert resolve_device("cpu").type == "cpu"
+    with pytest.raises(SplatError, match="allowed values: auto, cpu, cuda"):
+        resolve_device("tpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(SplatError, match="no CUDA GPU"):
+            resolve_device("cuda")
+
+
+def test_json_is_one_object_on_stdout(capsys):
+    from splatcli.cli.common import Ui
+
+    Ui(json_out=True).summary({"a": 1, "b": [1.5]})
+    out = capsys.readouterr().out
+    assert json.loads(out) == {"a": 1, "b": [1.5]}
+    assert out.count("\n") == 1
