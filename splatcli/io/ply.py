@@ -242,7 +242,7 @@ def read_ply_header(path: str | os.PathLike) -> PlyHeader:
                 raise PlyError(f"{path}: PLY header has two format lines")
             fmt = words[1]
         elif key == "element":
-            if len(words) != 3 or not words[2].isdigit():
+            if len(words) != 3 or not words[2].isdigit() or len(words[2]) > 18:
                 raise PlyError(f"{path}: bad PLY element line {raw.strip()!r} (line {lineno})")
             elements.append((words[1], int(words[2]), []))
         elif key == "property":
@@ -275,7 +275,8 @@ def read_ply_header(path: str | os.PathLike) -> PlyHeader:
 
 def _sh_layout(path: Path, names: list[str]) -> int:
     """SH degree from the f_rest_* properties; they must be exactly f_rest_0..M-1."""
-    idx = sorted(int(m.group(1)) for n in names if (m := _F_REST_RE.match(n)))
+    # (an index longer than 6 digits cannot be an SH coefficient; avoid int() of huge strings)
+    idx = sorted(int(m.group(1)) if len(m.group(1)) <= 6 else -1 for n in names if (m := _F_REST_RE.match(n)))
     m = len(idx)
     if idx != list(range(m)):
         raise PlyError(f"{path}: f_rest_* properties are not numbered 0..{m - 1} without gaps")
