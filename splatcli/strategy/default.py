@@ -1,0 +1,185 @@
+"""The 3DGS adaptive density control (Kerbl et al. 2023, sec. 5.2), with a budget.
+
+Hyperparameters are a frozen dataclass; everything that changes during training
+(gradient accumulators, the split RNG) lives in a separate `DefaultStrategyState`
+that checkpoints as plain tensors. The loop calls exactly two methods:
+
+    strategy.step_pre_backward(params, optimizers, state, step, info)
+    stats = strategy.step_post_backward(params, optimizers, state, step, info)
+
+`step_post_backward` runs after the optimiser step of `step`; it accumulates the
+view-space gradient and, on refinement steps, clones, splits, prunes and resets
+through `ops` (the only code that edits parameters and Adam state).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ..render.output import RenderOutput
+from . import ops
+from .ops import Optimizers, Params
+
+
+@dataclass(frozen=True)
+class DefaultStrategyConfig:
+    refine_start: int = 500  # first step that may clone/split/prune (exclusive)
+    refine_stop: int = 15_000  # no refinement (nor accumulation) from here on
+    refine_every: int = 100
+    reset_every: int = 3000  # opacity reset period, while refining
+    grow_grad2d: float = 2e-4  # average |d loss / d mean2d| in NDC units that triggers growth
+    grow_scale3d: float = 0.01  # x extent: larger Gaussians split, smaller ones clone ("percent_dense")
+    split_samples: int = 2
+    prune_opacity: float = 0.005
+    prune_scale3d: float = 0.1  # x extent: world-space size that is "too large" (after the first reset)
+    prune_scale2d: float = 0.15  # screen radius / max(W, H) that is "too large" (after the first reset);
+    # 3DGS's fixed 20 px assumes ~1-1.6k px images; a fraction keeps its meaning at 200 px
+    reset_opacity: float = 0.01  # opacities are clamped to at most this at a reset
+    max_gaussians: int | None = None  # hard budget: growth never takes the count past it
+
+
+@dataclass
+class StepInfo:
+    """What the loop tells the strategy about one step."""
+
+    render: RenderOutput  # means2d [N, 2] (grad retained), radii [N], visible [N]
+    width: int
+    height: int
+    finite: bool = True  # False on a skipped (non-finite) step: accumulate nothing
+
+
+@dataclass
+class RefineStats:
+    step: int
+    before: int
+    cloned: int = 0
+    split: int = 0
+    pruned: int = 0
+    after: int = 0
+    reset_opacity: bool = False
+    held_by_budget: int = 0  # growth candidates refused because of max_gaussians
+
+    @property
+    def changed(self) -> bool:
+        return self.cloned + self.split + self.pruned > 0 or self.reset_opacity
+
+
+@dataclass
+class DefaultStrategyState:
+    grad2d: Tensor  # [N] accumulated view-space gradient norms
+    count: Tensor  # [N] number of views each Gaussian was visible in
+    radii: Tensor  # [N] largest screen radius seen, as a fraction of max(W, H)
+    generator: torch.Generator  # split sampling
+
+    def state_dict(self) -> dict:
+        return {"grad2d": self.grad2d, "count": self.count, "radii": self.radii,
+                "generator": self.generator.get_state()}
+
+    def load_state_dict(self, d: dict) -> None:
+        dev = self.grad2d.device
+        self.grad2d, self.count, self.radii = (d[k].to(dev) for k in ("grad2d", "count", "radii"))
+        self.generator.set_state(d["generator"])
+
+
+class DefaultStrategy:
+    def __init__(self, config: DefaultStrategyConfig, scene_extent: float) -> None:
+        self.config = config
+        self.scene_extent = float(scene_extent)
+
+    def initial_state(self, n: int, device: torch.device, seed: int = 0) -> DefaultStrategyState:
+        gen = torch.Generator(device=device)
+        gen.manual_seed(int(seed) + 0x5EED)  # its own stream: densification never shifts view sampling
+        z = torch.zeros(n, device=device)
+        return DefaultStrategyState(z, z.clone(), z.clone(), gen)
+
+    def active(self, step: int) -> bool:
+        return step < self.config.refine_stop
+
+    # ---- the two calls the loop makes ---------------------------------------
+    def step_pre_backward(
+        self, params: Params, optimizers: Optimizers, state: DefaultStrategyState, step: int, info: StepInfo
+    ) -> None:
+        """Ask autograd to keep the screen-space mean gradient we accumulate."""
+        if self.active(step) and info.render.means2d.requires_grad:
+            info.render.means2d.retain_grad()
+
+    def step_post_backward(
+        self, params: Params, optimizers: Optimizers, state: DefaultStrategyState, step: int, info: StepInfo
+    ) -> RefineStats:
+        n = int(params["means"].shape[0])
+        stats = RefineStats(step=step, before=n, after=n)
+        cfg = self.config
+        if not self.active(step):
+            return stats
+        if info.finite:
+            self._accumulate(state, info)
+        if step > cfg.refine_start and step % cfg.refine_every == 0:
+            self._refine(params, optimizers, state, step, stats)
+        if step % cfg.reset_every == 0:
+            # Clamp every opacity low so that the following densification has to
+            # re-earn each Gaussian's opacity: floaters near cameras fade and get pruned.
+            lim = math.log(cfg.reset_opacity / (1 - cfg.reset_opacity))
+            ops.set_rows(params, optimizers, "opacity_logits", lambda v: v.clamp_max(lim))
+            stats.reset_opacity = True
+        stats.after = int(params["means"].shape[0])
+        return stats
+
+    # ---- internals --------------------------------------------------------------
+    @torch.no_grad()
+    def _accumulate(self, state: DefaultStrategyState, info: StepInfo) -> None:
+        r = info.render
+        g = r.means2d.grad
+        if g is None:
+            return
+        # Pixels -> NDC (x_ndc spans 2 over W pixels): the 2e-4 threshold is in NDC.
+        scale = torch.tensor([info.width / 2.0, info.height / 2.0], device=g.device, dtype=g.dtype)
+        norm = (g * scale).norm(dim=-1)  # [N]
+        vis = r.visible
+        state.grad2d += torch.where(vis, norm, torch.zeros_like(norm))
+        state.count += vis.to(state.count.dtype)
+        rel = r.radii.to(state.radii.dtype) / float(max(info.width, info.height))
+        torch.maximum(state.radii, torch.where(vis, rel, torch.zeros_like(rel)), out=state.radii)
+
+    @torch.no_grad()
+    def _refine(
+        self, params: Params, optimizers: Optimizers, state: DefaultStrategyState, step: int, stats: RefineStats
+    ) -> None:
+        cfg = self.config
+        n = stats.before
+        opacity = torch.sigmoid(params["opacity_logits"])  # [N]
+        max_scale = params["log_scales"].exp().amax(dim=-1)  # [N] world units
+        prune = opacity < cfg.prune_opacity
+        if step > cfg.reset_every:  # 3DGS checks size only once a reset has happened
+            prune |= max_scale > cfg.prune_scale3d * self.scene_extent
+            prune |= state.radii > cfg.prune_scale2d
+        avg = state.grad2d / state.count.clamp_min(1)  # [N]
+        grow = (avg > cfg.grow_grad2d) & ~prune
+        small = max_scale <= cfg.grow_scale3d * self.scene_extent
+        if cfg.max_gaussians is not None:
+            # Every candidate adds one Gaussian (a clone, or a split's net extra one
+            # when split_samples == 2); keep the highest-gradient ones that fit.
+            per = torch.where(small, 1, cfg.split_samples - 1)
+            room = cfg.max_gaussians - (n - int(prune.sum()))
+            cand = grow.nonzero().squeeze(1)
+            if int(per[cand].sum()) > room:
+                order = cand[torch.argsort(avg[cand], descending=True, stable=True)]
+                fits = torch.cumsum(per[order], 0) <= max(room, 0)
+                grow = torch.zeros_like(grow)
+                grow[order[fits]] = True
+                stats.held_by_budget = int((~fits).sum())
+        clone = grow & small
+        split = grow & ~small
+        stats.cloned, stats.split, stats.pruned = int(clone.sum()), int(split.sum()), int(prune.sum())
+        if stats.cloned + stats.split + stats.pruned:
+            rows = ops.cat_rows([ops.clone_rows(params, clone),
+                                 ops.split_rows(params, split, state.generator, cfg.split_samples)])
+            ops.keep(params, optimizers, ~(prune | split))
+            ops.append(params, optimizers, rows)
+        # 3DGS restarts the statistics after every refinement.
+        m = int(params["means"].shape[0])
+        z = state.grad2d.new_zeros(m)
+        state.grad2d, state.count, state.radii = z, z.clone(), z.clone()

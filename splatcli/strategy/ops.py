@@ -1,0 +1,138 @@
+"""Edits of the Gaussian set that keep parameters and Adam state in step.
+
+Training parameters live in `params: dict[str, nn.Parameter]` (rows = Gaussians)
+with one Adam per entry in `optimizers`. Growing, pruning or resetting rows must
+edit the Adam moments (`exp_avg`, `exp_avg_sq`) the same way, or the optimiser
+would apply stale momentum to the wrong Gaussian. `_edit` is the one function
+that replaces parameters and moments together; every public op here is built on
+it and nothing else in splatcli touches either.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Iterable
+
+import torch
+from torch import Tensor, nn
+
+Params = dict[str, nn.Parameter]
+Optimizers = dict[str, torch.optim.Optimizer]
+
+_MOMENTS = ("exp_avg", "exp_avg_sq")
+
+
+@torch.no_grad()
+def _edit(
+    params: Params,
+    optimizers: Optimizers,
+    param_fn: Callable[[str, Tensor], Tensor],  # (name, value [N, ...]) -> new value [M, ...]
+    moment_fn: Callable[[str, Tensor], Tensor],  # (name, moment [N, ...]) -> new moment [M, ...]
+    names: Iterable[str] | None = None,
+) -> None:
+    """Replace each named parameter by `param_fn(name, p)` and each of its Adam
+    moments by `moment_fn(name, m)`, rebinding the optimiser to the new tensor.
+    The Adam `step` counter is kept (it is per tensor, not per row)."""
+    for name in list(params if names is None else names):
+        old = params[name]
+        new = nn.Parameter(param_fn(name, old.detach()), requires_grad=old.requires_grad)
+        opt = optimizers.get(name)
+        if opt is not None:
+            for group in opt.param_groups:
+                for i, p in enumerate(group["params"]):
+                    if p is not old:
+                        continue
+                    state = opt.state.pop(old, None)
+                    if state:
+                        for k in _MOMENTS:
+                            if k in state:
+                                state[k] = moment_fn(name, state[k])
+                        opt.state[new] = state
+                    group["params"][i] = new
+        params[name] = new
+
+
+def append(params: Params, optimizers: Optimizers, rows: dict[str, Tensor]) -> None:
+    """Add Gaussians (`rows[name]` [M, ...] for every parameter) with zero moments."""
+    _edit(
+        params,
+        optimizers,
+        lambda n, p: torch.cat([p, rows[n].to(p)], dim=0),
+        lambda n, m: torch.cat([m, m.new_zeros((rows[n].shape[0], *m.shape[1:]))], dim=0),
+    )
+
+
+def keep(params: Params, optimizers: Optimizers, mask: Tensor) -> None:  # mask [N] bool (or index [M])
+    """Keep only the selected Gaussians (prune the rest), moments included."""
+    _edit(params, optimizers, lambda n, p: p[mask], lambda n, m: m[mask])
+
+
+def clone_rows(params: Params, sel: Tensor) -> dict[str, Tensor]:  # sel [N] bool
+    """Clone: exact copies of the selected Gaussians (3DGS clones in place and lets
+    the gradient pull the pair apart)."""
+    return {n: p.detach()[sel] for n, p in params.items()}
+
+
+@torch.no_grad()
+def split_rows(
+    params: Params,
+    sel: Tensor,  # [N] bool
+    generator: torch.Generator | None,
+    samples: int = 2,
+    scale_div: float = 1.6,  # 3DGS: new scale = old / (0.8 * samples)
+) -> dict[str, Tensor]:
+    """The `samples` Gaussians that replace each selected one: positions drawn from
+    the Gaussian itself, scales divided by `scale_div`, the rest copied."""
+    means = params["means"][sel]  # [M, 3]
+    log_scales = params["log_scales"][sel]  # [M, 3]
+    rot = quat_to_rotmat(params["quats"][sel])  # [M, 3, 3]
+    noise = torch.randn((samples, means.shape[0], 3), generator=generator, device=means.device, dtype=means.dtype)
+    offsets = torch.einsum("mij,smj->smi", rot, noise * log_scales.exp()[None])  # [S, M, 3]
+    rows: dict[str, Tensor] = {}
+    for n, p in params.items():
+        v = p.detach()[sel]
+        if n == "means":
+            rows[n] = (means[None] + offsets).reshape(-1, 3)
+        elif n == "log_scales":
+            rows[n] = (log_scales - torch.log(torch.tensor(scale_div, dtype=v.dtype, device=v.device))).repeat(samples, 1)
+        else:
+            rows[n] = v.repeat(samples, *([1] * (v.dim() - 1)))
+    return rows
+
+
+def duplicate(params: Params, optimizers: Optimizers, sel: Tensor) -> None:  # sel [N] bool
+    """Append clones of the selected Gaussians (fresh moments)."""
+    append(params, optimizers, clone_rows(params, sel))
+
+
+def split(
+    params: Params, optimizers: Optimizers, sel: Tensor, generator: torch.Generator | None, samples: int = 2
+) -> None:  # sel [N] bool
+    """Replace each selected Gaussian by `samples` smaller ones inside it."""
+    rows = split_rows(params, sel, generator, samples)
+    keep(params, optimizers, ~sel)
+    append(params, optimizers, rows)
+
+
+def cat_rows(parts: list[dict[str, Tensor]]) -> dict[str, Tensor]:
+    return {n: torch.cat([p[n] for p in parts], dim=0) for n in parts[0]}
+
+
+def set_rows(
+    params: Params, optimizers: Optimizers, name: str, fn: Callable[[Tensor], Tensor]
+) -> None:
+    """Overwrite one parameter with `fn(value)` (same shape) and zero its moments
+    (the opacity reset: stale momentum would undo it at once)."""
+    _edit(params, optimizers, lambda n, p: fn(p), lambda n, m: torch.zeros_like(m), names=[name])
+
+
+def quat_to_rotmat(q: Tensor) -> Tensor:  # [M, 4] w,x,y,z (unnormalised) -> [M, 3, 3]
+    q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(q.shape[:-1] + (3, 3))
