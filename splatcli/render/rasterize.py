@@ -1,7 +1,102 @@
-"""Fast rasterizer (being implemented; see issue 7)."""
+"""The differentiable Gaussian rasterizer: one vectorised PyTorch path for CPU and CUDA.
+
+    out = rasterize(means, quats, log_scales, opacity_logits, sh, viewmat, K, W, H)
+
+Forward model (3DGS, exactly): see `project.py` (per Gaussian) and `composite.py`
+(per pixel). Gradients reach every raw parameter, the returned `means2d` (call
+`out.means2d.retain_grad()` before backward to read it) and the background.
+"""
 
 from __future__ import annotations
 
+import math
 
-def rasterize(*args, **kwargs):  # pragma: no cover - placeholder
-    raise NotImplementedError("rasterize: being implemented")
+import torch
+from torch import Tensor
+
+from .composite import make_plan, composite
+from .output import RenderOutput
+from .project import project, tile_rect
+
+
+def _check(name: str, x: Tensor, shape: tuple, dtype: torch.dtype | None, device: torch.device | None) -> None:
+    if not isinstance(x, Tensor):
+        raise ValueError(f"rasterize: {name} must be a tensor, got {type(x).__name__}")
+    if x.dim() != len(shape) or any(s is not None and s != d for s, d in zip(shape, x.shape)):
+        want = "[" + ", ".join("*" if s is None else str(s) for s in shape) + "]"
+        raise ValueError(f"rasterize: {name} has shape {list(x.shape)}, expected {want}")
+    if dtype is not None and x.dtype != dtype:
+        raise ValueError(f"rasterize: {name} is {x.dtype}, expected {dtype} like means")
+    if device is not None and x.device != device:
+        raise ValueError(f"rasterize: {name} is on {x.device}, expected {device} like means")
+    if not bool(torch.isfinite(x.detach()).all()):
+        raise ValueError(f"rasterize: {name} contains non-finite values (NaN or inf)")
+
+
+def rasterize(
+    means: Tensor,  # [N, 3] world
+    quats: Tensor,  # [N, 4] w, x, y, z, any norm
+    log_scales: Tensor,  # [N, 3]
+    opacity_logits: Tensor,  # [N]
+    sh: Tensor,  # [N, (d+1)^2, 3] DC first
+    viewmat: Tensor,  # [4, 4] world -> camera (OpenCV)
+    K: Tensor,  # [3, 3] intrinsics, px
+    width: int,
+    height: int,
+    background: Tensor | None = None,  # [3] or None (black)
+    *,
+    sh_degree: int | None = None,
+    near: float = 0.2,
+    antialiased: bool = False,
+    block: int = 8,
+) -> RenderOutput:
+    """Render N Gaussians into a width x height image.
+
+    Returns image [H, W, 3] (C + T * background), alpha [H, W] (1 - T), depth [H, W]
+    (sum of blending weight times view depth), and per Gaussian means2d [N, 2] px,
+    radii [N] int32, visible [N] bool, depths [N] view z. `block` (4, 8, 16) is a
+    speed knob only: the picture does not depend on it.
+    Raises ValueError naming the parameter for bad shapes or non-finite values.
+    """
+    if not isinstance(means, Tensor) or means.dim() != 2 or means.shape[1] != 3:
+        raise ValueError(f"rasterize: means must be a [N, 3] tensor, got {getattr(means, 'shape', type(means))}")
+    if not means.is_floating_point():
+        raise ValueError(f"rasterize: means must be floating point, got {means.dtype}")
+    dt, dev, N = means.dtype, means.device, means.shape[0]
+    if int(width) != width or int(height) != height or width < 1 or height < 1:
+        raise ValueError(f"rasterize: width and height must be positive integers, got {width} x {height}")
+    width, height = int(width), int(height)
+    if not (isinstance(near, (int, float)) and math.isfinite(near) and near > 0):
+        raise ValueError(f"rasterize: near must be a positive finite number, got {near}")
+    _check("means", means, (N, 3), dt, dev)
+    _check("quats", quats, (N, 4), dt, dev)
+    _check("log_scales", log_scales, (N, 3), dt, dev)
+    _check("opacity_logits", opacity_logits, (N,), dt, dev)
+    _check("sh", sh, (N, None, 3), dt, dev)
+    _check("viewmat", viewmat, (4, 4), dt, dev)
+    _check("K", K, (3, 3), dt, dev)
+    if background is None:
+        background = torch.zeros(3, dtype=dt, device=dev)
+    _check("background", background, (3,), dt, dev)
+    nb = sh.shape[1]
+    d_have = int(round(math.sqrt(nb))) - 1
+    if (d_have + 1) ** 2 != nb or d_have > 3:
+        raise ValueError(f"rasterize: sh has {nb} coefficients per channel; expected (d+1)^2 for d in 0..3")
+    if sh_degree is None:
+        sh_degree = d_have
+    if not 0 <= sh_degree <= d_have:
+        raise ValueError(f"rasterize: sh_degree {sh_degree} is outside 0..{d_have} (what sh holds)")
+    if not (float(K[0, 0].detach()) > 0 and float(K[1, 1].detach()) > 0):
+        raise ValueError("rasterize: K must have positive focal lengths K[0,0], K[1,1]")
+    if block not in (4, 8, 16):
+        raise ValueError(f"rasterize: block must be 4, 8 or 16, got {block}")
+
+    pr = project(means, quats, log_scales, opacity_logits, sh, viewmat, K, width, height, sh_degree, near, antialiased)
+    rect = tile_rect(pr.means2d, pr.radii, width, height)
+    visible = pr.valid & (rect[:, 2] > rect[:, 0]) & (rect[:, 3] > rect[:, 1])
+    plan = make_plan(pr.means2d, pr.cov2d, pr.opacities, pr.depths, rect, visible, width, height, block)
+    image, alpha, depth = composite(plan, pr.means2d, pr.conics, pr.opacities, pr.colors, pr.depths, background)
+    radii = torch.where(visible, pr.radii, torch.zeros_like(pr.radii))
+    return RenderOutput(
+        image=image, alpha=alpha, depth=depth, means2d=pr.means2d, radii=radii, visible=visible, depths=pr.depths
+    )

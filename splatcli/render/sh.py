@@ -1,0 +1,86 @@
+"""Real spherical harmonics, degrees 0-3, in the convention of 3D Gaussian Splatting.
+
+Coefficients are stored per Gaussian as sh [N, (d+1)^2, 3] (DC first). The basis is
+the standard real SH basis Y_l^m evaluated at a unit direction (x, y, z), with the
+sign convention of the 3DGS reference implementation (so that .ply files exchange
+colour with other tools). colour = sum_k sh[k] * Y_k(dir) + 0.5, clamped at 0 by the
+caller.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+# Normalisation constants of the real SH basis: Y_0^0 = 1 / (2 sqrt(pi)), ...
+SH_C0 = 0.28209479177387814  # 1 / (2 sqrt(pi))
+SH_C1 = 0.4886025119029199  # sqrt(3 / (4 pi))
+SH_C2 = (
+    1.0925484305920792,  # sqrt(15 / pi) / 2    : xy
+    -1.0925484305920792,  # -sqrt(15 / pi) / 2  : yz
+    0.31539156525252005,  # sqrt(5 / pi) / 4    : 2z^2 - x^2 - y^2
+    -1.0925484305920792,  # -sqrt(15 / pi) / 2  : xz
+    0.5462742152960396,  # sqrt(15 / pi) / 4    : x^2 - y^2
+)
+SH_C3 = (
+    -0.5900435899266435,  # -sqrt(35 / (2 pi)) / 4 : y (3x^2 - y^2)
+    2.890611442640554,  # sqrt(105 / pi) / 2       : xyz
+    -0.4570457994644658,  # -sqrt(21 / (2 pi)) / 4 : y (4z^2 - x^2 - y^2)
+    0.3731763325901154,  # sqrt(7 / pi) / 4        : z (2z^2 - 3x^2 - 3y^2)
+    -0.4570457994644658,  # -sqrt(21 / (2 pi)) / 4 : x (4z^2 - x^2 - y^2)
+    1.445305721320277,  # sqrt(105 / pi) / 4       : z (x^2 - y^2)
+    -0.5900435899266435,  # -sqrt(35 / (2 pi)) / 4 : x (x^2 - 3y^2)
+)
+
+assert math.isclose(SH_C0, 0.5 / math.sqrt(math.pi))
+
+
+def sh_basis(dirs: Tensor, degree: int) -> Tensor:  # dirs [N, 3] unit -> [N, (degree+1)^2]
+    """The (degree+1)^2 real SH basis functions at unit directions `dirs`."""
+    if not 0 <= degree <= 3:
+        raise ValueError(f"sh degree {degree} is not supported (0..3)")
+    x, y, z = dirs.unbind(-1)
+    cols = [torch.full_like(x, SH_C0)]
+    if degree >= 1:
+        cols += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
+    if degree >= 2:
+        xx, yy, zz = x * x, y * y, z * z
+        xy, yz, xz = x * y, y * z, x * z
+        cols += [
+            SH_C2[0] * xy,
+            SH_C2[1] * yz,
+            SH_C2[2] * (2.0 * zz - xx - yy),
+            SH_C2[3] * xz,
+            SH_C2[4] * (xx - yy),
+        ]
+    if degree >= 3:
+        cols += [
+            SH_C3[0] * y * (3.0 * xx - yy),
+            SH_C3[1] * xy * z,
+            SH_C3[2] * y * (4.0 * zz - xx - yy),
+            SH_C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy),
+            SH_C3[4] * x * (4.0 * zz - xx - yy),
+            SH_C3[5] * z * (xx - yy),
+            SH_C3[6] * x * (xx - 3.0 * yy),
+        ]
+    return torch.stack(cols, dim=-1)
+
+
+def eval_sh(
+    sh: Tensor,  # [N, K, 3] coefficients, K >= (degree+1)^2, DC first
+    dirs: Tensor,  # [N, 3] unit view directions (camera centre -> mean)
+    degree: int,
+) -> Tensor:  # [N, 3] raw SH radiance (no +0.5, no clamp)
+    k = (degree + 1) ** 2
+    basis = sh_basis(dirs, degree)  # [N, k]
+    return torch.einsum("nk,nkc->nc", basis, sh[:, :k])
+
+
+def sh_to_rgb(
+    sh: Tensor,  # [N, K, 3]
+    dirs: Tensor,  # [N, 3] unit
+    degree: int,
+) -> Tensor:  # [N, 3] colour = SH + 0.5, clamped at 0 (not above: HDR-safe as in 3DGS)
+    return torch.clamp_min(eval_sh(sh, dirs, degree) + 0.5, 0.0)
