@@ -1,10 +1,53 @@
-"""`splatcli render` (stub: being implemented)."""
+"""`splatcli render`: images (and a video) of a trained project or any 3DGS .ply."""
 
 from __future__ import annotations
 
-from ..errors import SplatError
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from ..device import resolve_device
+from ..rendering import RenderConfig, parse_background, plan_render, run_render
+from .common import DebugOpt, DeviceOpt, JsonOpt, QuietOpt, Ui
 
 
-def render() -> None:
-    """Not implemented yet."""
-    raise SplatError("render: not implemented yet")
+def render(
+    source: Path = typer.Argument(..., help="A project directory (latest checkpoint) or a 3DGS .ply file."),
+    split: Optional[str] = typer.Option(None, "--split", help="Dataset cameras: test (default), train or all."),
+    cameras: Optional[Path] = typer.Option(None, "--cameras", help="Cameras from a nerfstudio / instant-ngp transforms.json."),
+    path: Optional[str] = typer.Option(None, "--path", help="A generated path around the cameras: orbit, spiral or interpolate."),
+    frames: int = typer.Option(120, "--frames", help="Frames of a generated --path."),
+    project: Optional[Path] = typer.Option(None, "--project", help="For a .ply: take cameras and background from this project."),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Output folder (default PROJECT/renders/<split|path>/)."),
+    width: Optional[int] = typer.Option(None, "--width", help="Image width in pixels (alone: keeps the aspect)."),
+    height: Optional[int] = typer.Option(None, "--height", help="Image height in pixels (alone: keeps the aspect)."),
+    downscale: float = typer.Option(1.0, "--downscale", help="Divide the cameras' resolution by this."),
+    background: Optional[str] = typer.Option(None, "--background", help="white, black, gray or r,g,b in [0, 1] (default: the scene's)."),
+    depth: bool = typer.Option(False, "--depth", help="Also write depth/<name>.png (colour-mapped)."),
+    alpha: bool = typer.Option(False, "--alpha", help="Also write alpha/<name>.png."),
+    video: Optional[Path] = typer.Option(None, "--video", help="Also encode the frames into this video (.mp4, .avi)."),
+    fps: float = typer.Option(30.0, "--fps", help="Frame rate of the --video."),
+    device: str = DeviceOpt,
+    quiet: bool = QuietOpt,
+    json_out: bool = JsonOpt,
+    debug: bool = DebugOpt,
+) -> None:
+    """Render views to PNGs and report frames per second."""
+    ui = Ui(quiet=quiet, json_out=json_out)
+    cfg = RenderConfig(
+        split=split, cameras=cameras, path=path, frames=frames, project=project, width=width, height=height,
+        downscale=downscale, out=out, background=parse_background(background) if background is not None else None,
+        depth=depth, alpha=alpha, video=video, video_fps=fps,
+    )
+    plan = plan_render(source, cfg, resolve_device(device))  # input errors surface before any output
+    with ui.progress() as sink:
+        r = run_render(plan, on_event=sink)
+    ui.summary(
+        {"out_dir": r.out_dir, "frames": r.num_frames, "width": r.width, "height": r.height, "fps": r.fps,
+         "render_seconds": r.render_seconds, "num_gaussians": r.num_gaussians, "device": r.device_name,
+         "video": r.video, "source": r.source, "cameras": r.cameras},
+        title=f"rendered {r.num_frames} frames ({r.cameras}) of {r.source}",
+        lines=[f"{r.width}x{r.height}, {r.num_gaussians} Gaussians: {r.fps:.2f} frames/s on {r.device_name}",
+               f"images: {r.out_dir}/"] + ([f"video: {r.video}"] if r.video else []),
+    )
