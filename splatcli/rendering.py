@@ -397,8 +397,8 @@ def plan_render(source: str | os.PathLike, config: RenderConfig, device: torch.d
         out_dir = model.path.parent / "renders" / f"{model.path.stem}_{name}"
     if out_dir.exists() and not out_dir.is_dir():
         raise SplatError(f"--out {out_dir}: exists and is not a directory")
-    if config.path:
-        what = f"{config.path} path"
+    if name in ("orbit", "spiral", "interpolate"):
+        what = f"{name} path"
     elif config.cameras:
         what = Path(config.cameras).name
     else:

@@ -1,10 +1,35 @@
-"""`splatcli export` (stub: being implemented)."""
+"""`splatcli export`: the trained model as a 3DGS .ply or a web-viewer .splat."""
 
 from __future__ import annotations
 
-from ..errors import SplatError
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from ..export import ExportConfig, check_export_config, export_project
+from .common import DebugOpt, JsonOpt, QuietOpt, Ui
 
 
-def export() -> None:
-    """Not implemented yet."""
-    raise SplatError("export: not implemented yet")
+def export(
+    project: Path = typer.Argument(..., help="The project directory (its latest checkpoint is exported)."),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Output file (default PROJECT/exports/scene.<format>)."),
+    fmt: str = typer.Option("ply", "--format", "-f",
+                            help="ply: 3DGS layout, lossless. splat: 32-byte web-viewer rows, SH degree 0 only."),
+    quiet: bool = QuietOpt,
+    json_out: bool = JsonOpt,
+    debug: bool = DebugOpt,
+) -> None:
+    """Write the trained Gaussians in a format other tools read."""
+    ui = Ui(quiet=quiet, json_out=json_out)
+    cfg = ExportConfig(format=fmt.strip().lower(), out=out)
+    check_export_config(cfg)
+    with ui.progress() as sink:
+        r = export_project(project, cfg, on_event=sink)
+    ui.summary(
+        {"path": r.path, "format": r.format, "num_gaussians": r.num_gaussians, "num_dropped": r.num_dropped,
+         "sh_degree": r.sh_degree, "bytes": r.bytes, "step": r.step, "lossy": r.lossy},
+        title=f"exported {r.num_gaussians} Gaussians to {r.path}",
+        lines=[f"{r.format}, SH degree {r.sh_degree}, {r.bytes / 1e6:.2f} MB, from checkpoint step {r.step}"]
+        + ([f"dropped {r.num_dropped} Gaussians with NaN/Inf values"] if r.num_dropped else []),
+    )
