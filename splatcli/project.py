@@ -81,6 +81,10 @@ class Project:
     def masks_dir(self) -> Path:
         return self.root / "masks"
 
+    def mask_path(self, image_name: str) -> Path:
+        """The alpha mask of images/<image_name>: masks/<image_name>.png."""
+        return self.masks_dir / f"{image_name}.png"
+
     @property
     def sfm_dir(self) -> Path:
         return self.root / "sfm"

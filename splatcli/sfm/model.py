@@ -16,11 +16,12 @@ def _cam_from_world(image) -> np.ndarray:  # [3, 4]
     return np.asarray(pose.matrix(), dtype=np.float64)
 
 
-def read_scene(sparse_dir: str | Path) -> SceneData:
+def read_scene(sparse_dir: str | Path, *, pinhole_only: bool = True) -> SceneData:
     """Cameras sorted by image name, plus the SfM points and colours.
 
     Only PINHOLE / SIMPLE_PINHOLE cameras are accepted: `process` undistorts
-    everything else before writing the model.
+    everything else before writing the model. `pinhole_only=False` reads any
+    model (K then ignores the distortion), for comparing raw SfM output.
     """
     import pycolmap
 
@@ -35,7 +36,7 @@ def read_scene(sparse_dir: str | Path) -> SceneData:
             continue
         cam = rec.cameras[image.camera_id]
         model = str(cam.model_name if hasattr(cam, "model_name") else cam.model).split(".")[-1]
-        if model not in ("PINHOLE", "SIMPLE_PINHOLE"):
+        if pinhole_only and model not in ("PINHOLE", "SIMPLE_PINHOLE"):
             raise SplatError(f"{sparse_dir}: camera {image.camera_id} is {model}, expected PINHOLE (undistorted)")
         K = np.asarray(cam.calibration_matrix(), dtype=np.float64)
         view = np.eye(4)

@@ -1,0 +1,69 @@
+"""Scene bounds: from SfM points, or from the camera frustums when there are none.
+
+Training initialises Gaussians randomly inside these bounds when the dataset has
+no points (NeRF Blender scenes), so frustum bounds aim at the region most
+cameras see, not at the cameras themselves.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..camera import Camera
+
+
+def points_bounds(points: np.ndarray, lo: float = 0.5, hi: float = 99.5) -> tuple[np.ndarray, np.ndarray]:
+    """Per-axis percentiles of points [P, 3]: robust to the stray far points SfM leaves."""
+    return np.percentile(points, lo, axis=0), np.percentile(points, hi, axis=0)
+
+
+def focus_point(cameras: list[Camera]) -> np.ndarray | None:  # [3]
+    """The point closest (least squares) to every optical axis, or None when the
+    axes are near parallel or the point is behind most cameras."""
+    centers = np.stack([c.center for c in cameras])
+    dirs = np.stack([c.viewmat[2, :3] for c in cameras])  # camera +z in world
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    P = np.eye(3)[None] - dirs[:, :, None] * dirs[:, None, :]  # [N, 3, 3] projectors off each axis
+    A = P.sum(0)
+    b = (P @ centers[:, :, None]).sum(0)[:, 0]
+    ev = np.linalg.eigvalsh(A)
+    if ev[0] < 1e-3 * ev[-1]:
+        return None
+    x = np.linalg.solve(A, b)
+    in_front = ((x - centers) * dirs).sum(1) > 0
+    return x if in_front.mean() > 0.8 else None
+
+
+def _half_fov(c: Camera) -> float:
+    return float(np.arctan(min(c.width / (2 * c.K[0, 0]), c.height / (2 * c.K[1, 1]))))
+
+
+def frustum_bounds(cameras: list[Camera], *, min_fraction: float = 0.5, grid: int = 32) -> tuple[np.ndarray, np.ndarray]:
+    """The box around the points seen by at least `min_fraction` of the cameras,
+    searched near the cameras' common focus."""
+    centers = np.stack([c.center for c in cameras])
+    dirs = np.stack([c.viewmat[2, :3] for c in cameras])
+    focus = focus_point(cameras)
+    spread = float(np.linalg.norm(centers - centers.mean(0), axis=1).max()) if len(cameras) > 1 else 0.0
+    if focus is None:  # forward-facing capture: look ahead of the cameras
+        depth = max(2.0 * spread, 1.0)
+        focus = centers.mean(0) + dirs.mean(0) / max(np.linalg.norm(dirs.mean(0)), 1e-9) * depth
+    dist = np.linalg.norm(centers - focus, axis=1)
+    radius = float(np.median(dist * np.tan([_half_fov(c) for c in cameras])))
+    radius = max(radius, 1e-6)
+    # Sample a grid around the focus and keep the points most cameras see.
+    g = np.linspace(-1.5 * radius, 1.5 * radius, grid)
+    pts = focus + np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)  # [G^3, 3]
+    seen = np.zeros(len(pts))
+    for c in cameras:
+        cam = pts @ c.viewmat[:3, :3].T + c.viewmat[:3, 3]
+        z = cam[:, 2]
+        ok = z > 1e-6
+        u = c.K[0, 0] * cam[:, 0] / np.where(ok, z, 1) + c.K[0, 2]
+        v = c.K[1, 1] * cam[:, 1] / np.where(ok, z, 1) + c.K[1, 2]
+        seen += ok & (u >= 0) & (u <= c.width) & (v >= 0) & (v <= c.height)
+    keep = pts[seen >= min_fraction * len(cameras)]
+    if len(keep) < 8:
+        return focus - radius, focus + radius
+    step = g[1] - g[0]
+    return keep.min(0) - step / 2, keep.max(0) + step / 2

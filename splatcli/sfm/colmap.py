@@ -1,0 +1,444 @@
+"""Every pycolmap call splatcli makes lives here, because pycolmap's API moves
+between versions (frames/rigs in 3.12, option objects renamed in 4.0).
+
+Long calls run in a worker thread with a `CancellationToken`, so Ctrl-C stops
+them cleanly and the main thread can report progress meanwhile. pycolmap
+releases the GIL inside its C++ code.
+
+Never read the SfM database with Python's own `sqlite3` while pycolmap writes
+it: the two SQLite copies in one process corrupt each other's locks (SIGBUS).
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Iterable
+
+import numpy as np
+
+from ..camera import Camera
+from ..errors import SplatError
+
+_VERBOSE = False
+
+
+def set_verbose(verbose: bool) -> None:
+    """Let COLMAP's own log through (for --debug)."""
+    global _VERBOSE
+    _VERBOSE = verbose
+
+
+def _pc() -> Any:
+    import pycolmap
+
+    # glog: 0 INFO, 1 WARNING, 2 ERROR, 3 FATAL. COLMAP is chatty; we report ourselves.
+    pycolmap.logging.minloglevel = 0 if _VERBOSE else 3
+    return pycolmap
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split())[:300]
+
+
+def run_cancellable(fn: Callable[..., Any], *args: Any, poll: Callable[[], None] | None = None,
+                    **kwargs: Any) -> Any:
+    """Call `fn(*args, cancellation_token=token, **kwargs)` in a worker thread.
+
+    `poll` runs every 0.1 s on the calling thread (progress). KeyboardInterrupt
+    cancels the token, waits for the worker, and re-raises."""
+    pycolmap = _pc()
+    token = pycolmap.CancellationToken()
+    box: dict[str, Any] = {}
+
+    def work() -> None:
+        try:
+            box["value"] = fn(*args, cancellation_token=token, **kwargs)
+        except BaseException as exc:  # re-raised on the caller's thread
+            box["error"] = exc
+
+    th = threading.Thread(target=work, name=f"pycolmap-{getattr(fn, '__name__', 'call')}", daemon=True)
+    th.start()
+    try:
+        while th.is_alive():
+            th.join(0.1)
+            if poll is not None:
+                poll()
+    except BaseException:
+        token.cancel()
+        th.join()
+        raise
+    if poll is not None:
+        poll()
+    if "error" in box:
+        raise box["error"]
+    return box.get("value")
+
+
+# ---- database ---------------------------------------------------------------
+
+
+def create_database(path: Path, image_dir: Path, names: list[str], *, single_camera: bool,
+                    camera_model: str = "SIMPLE_RADIAL") -> None:
+    """A fresh database with one camera for all images (`single_camera`) or
+    one per image, and no features yet."""
+    pycolmap = _pc()
+    path = Path(path)
+    if path.exists():
+        path.unlink()  # never extend a stale database from an interrupted run
+    pycolmap.Database.open(str(path)).close()
+    opts = pycolmap.ImageReaderOptions()
+    opts.camera_model = camera_model
+    mode = pycolmap.CameraMode.SINGLE if single_camera else pycolmap.CameraMode.PER_IMAGE
+    try:
+        pycolmap.import_images(str(path), str(image_dir), camera_mode=mode, image_names=list(names), options=opts)
+    except (RuntimeError, ValueError) as exc:
+        raise SplatError(f"{image_dir}: COLMAP could not read the images ({_one_line(exc)})") from None
+
+
+@dataclass(frozen=True)
+class SiftOptions:
+    max_num_features: int = 4096
+    first_octave: int = 0  # -1 upsamples the image twice: ~4x slower, finds small features
+    peak_threshold: float = 0.02 / 3  # COLMAP's default
+    num_threads: int = -1
+
+
+def extract_features(db: Path, image_dir: Path, names: list[str], opts: SiftOptions, *,
+                     single_camera: bool) -> None:
+    """SIFT for `names` (already in the database); call in chunks for progress."""
+    pycolmap = _pc()
+    eo = pycolmap.FeatureExtractionOptions()
+    eo.num_threads = opts.num_threads
+    eo.sift.max_num_features = opts.max_num_features
+    eo.sift.first_octave = opts.first_octave
+    eo.sift.peak_threshold = opts.peak_threshold
+    mode = pycolmap.CameraMode.SINGLE if single_camera else pycolmap.CameraMode.PER_IMAGE
+    run_cancellable(
+        pycolmap.extract_features, str(db), str(image_dir), image_names=list(names), camera_mode=mode,
+        extraction_options=eo, device=pycolmap.Device.cpu,
+    )
+
+
+@dataclass(frozen=True)
+class MatchOptions:
+    num_threads: int = -1
+    max_ratio: float = 0.8
+    min_num_inliers: int = 15
+    seed: int = 0
+
+
+def match_pairs(db: Path, pairs: list[tuple[str, str]], list_file: Path, opts: MatchOptions) -> None:
+    """Match and geometrically verify the given image pairs (names)."""
+    pycolmap = _pc()
+    list_file.write_text("".join(f"{a} {b}\n" for a, b in pairs), encoding="utf-8")
+    mo = pycolmap.FeatureMatchingOptions()
+    mo.num_threads = opts.num_threads
+    mo.sift.max_ratio = opts.max_ratio
+    po = pycolmap.ImportedPairingOptions()
+    po.match_list_path = str(list_file)
+    vo = pycolmap.TwoViewGeometryOptions()
+    vo.min_num_inliers = opts.min_num_inliers
+    vo.ransac.random_seed = opts.seed
+    run_cancellable(
+        pycolmap.match_image_pairs, str(db), matching_options=mo, pairing_options=po,
+        verification_options=vo, device=pycolmap.Device.cpu,
+    )
+
+
+@dataclass(frozen=True)
+class DatabaseStats:
+    keypoints: dict[str, int]  # image name -> keypoints
+    verified_pairs: int  # pairs with a two-view geometry of enough inliers
+    matched_pairs: int
+
+
+def database_stats(db: Path, min_inliers: int = 15) -> DatabaseStats:
+    pycolmap = _pc()
+    with pycolmap.Database.open(str(db)) as d:
+        kp = {im.name: int(d.num_keypoints_for_image(im.image_id)) for im in d.read_all_images()}
+        _, geoms = d.read_two_view_geometries()
+        verified = sum(1 for g in geoms if len(g.inlier_matches) >= min_inliers)
+        matched = int(d.num_matched_image_pairs())
+    return DatabaseStats(keypoints=kp, verified_pairs=verified, matched_pairs=matched)
+
+
+# ---- mapping ----------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class MapperOptions:
+    seed: int = 0
+    num_threads: int = -1
+    min_model_size: int = 3
+    ba_local_max_num_iterations: int = 25  # COLMAP's default is 25 (via -1 = Ceres default)
+    ba_global_max_num_iterations: int = 50
+    ba_global_frames_ratio: float = 1.1  # global BA when the model grew by this factor
+    ba_global_points_ratio: float = 1.1
+    init_min_num_inliers: int = 100
+    abs_pose_min_num_inliers: int = 30
+
+
+class Model:
+    """A COLMAP reconstruction (opaque outside this module)."""
+
+    def __init__(self, rec: Any) -> None:
+        self._rec = rec
+
+    # --- facts
+    @property
+    def num_registered(self) -> int:
+        return int(self._rec.num_reg_images())
+
+    @property
+    def num_points(self) -> int:
+        return int(self._rec.num_points3D())
+
+    def registered_names(self) -> list[str]:
+        return sorted(im.name for im in self._rec.images.values() if im.has_pose)
+
+    def all_names(self) -> list[str]:
+        return sorted(im.name for im in self._rec.images.values())
+
+    def mean_reprojection_error(self) -> float:
+        return float(self._rec.compute_mean_reprojection_error()) if self.num_points else 0.0
+
+    def mean_track_length(self) -> float:
+        return float(self._rec.compute_mean_track_length()) if self.num_points else 0.0
+
+    def camera_models(self) -> set[str]:
+        return {_model_name(c) for c in self._rec.cameras.values()}
+
+    def is_pinhole(self) -> bool:
+        return self.camera_models() <= {"PINHOLE", "SIMPLE_PINHOLE"}
+
+    def camera_sizes(self) -> dict[str, tuple[int, int]]:
+        """Registered image name -> (width, height) of its camera."""
+        out = {}
+        for im in self._rec.images.values():
+            if im.has_pose:
+                cam = self._rec.cameras[im.camera_id]
+                out[im.name] = (int(cam.width), int(cam.height))
+        return out
+
+    def points(self) -> tuple[np.ndarray, np.ndarray]:  # [P, 3] float64, [P, 3] uint8
+        pts = self._rec.points3D
+        if not len(pts):
+            return np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
+        return (np.stack([p.xyz for p in pts.values()]).astype(np.float64),
+                np.stack([p.color for p in pts.values()]).astype(np.uint8))
+
+    # --- edits
+    def keep_images(self, names: Iterable[str]) -> None:
+        """Deregister every image not in `names` (with its observations)."""
+        keep = set(names)
+        for im in list(self._rec.images.values()):
+            if im.has_pose and im.name not in keep:
+                self._rec.deregister_frame(im.frame_id)
+
+    def to_pinhole(self) -> None:
+        """SIMPLE_PINHOLE -> PINHOLE (same geometry) so every project model looks alike."""
+        pycolmap = _pc()
+        for cid, cam in list(self._rec.cameras.items()):
+            if _model_name(cam) == "SIMPLE_PINHOLE":
+                f, cx, cy = [float(v) for v in cam.params]
+                new = pycolmap.Camera(model="PINHOLE", width=cam.width, height=cam.height,
+                                      params=[f, f, cx, cy], camera_id=cid)
+                self._rec.cameras[cid] = new  # replaces in place; images keep their camera_id
+
+    def rescale_images(self, sizes: dict[str, tuple[int, int]]) -> None:
+        """Images were resized to `sizes[name]` (width, height): rescale their
+        cameras and keypoints to match. Images sharing a camera share a size."""
+        target: dict[int, tuple[int, int]] = {}
+        for im in self._rec.images.values():
+            if im.name in sizes:
+                target.setdefault(im.camera_id, sizes[im.name])
+        for cid, (w, h) in target.items():
+            cam = self._rec.cameras[cid]  # a reference: edits apply to the model
+            if (w, h) == (cam.width, cam.height):
+                continue
+            sx, sy = w / cam.width, h / cam.height
+            cam.rescale(int(w), int(h))
+            for im in self._rec.images.values():
+                if im.camera_id == cid:
+                    for p in im.points2D:
+                        p.xy = np.array([p.xy[0] * sx, p.xy[1] * sy])
+        if self.num_points:
+            self._rec.update_point_3d_errors()
+
+    def cameras(self) -> list[Camera]:
+        """Registered cameras as `Camera`, sorted by name (K ignores distortion)."""
+        out = []
+        for im in self._rec.images.values():
+            if not im.has_pose:
+                continue
+            cam = self._rec.cameras[im.camera_id]
+            view = np.eye(4)
+            pose = im.cam_from_world
+            pose = pose() if callable(pose) else pose
+            view[:3, :4] = np.asarray(pose.matrix(), np.float64)
+            out.append(Camera(im.name, int(cam.width), int(cam.height),
+                              np.asarray(cam.calibration_matrix(), np.float64), view))
+        return sorted(out, key=lambda c: c.name)
+
+    def write(self, out_dir: Path) -> None:
+        out_dir = Path(out_dir)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        self._rec.write(str(out_dir))
+
+
+def _model_name(cam: Any) -> str:
+    return str(getattr(cam, "model_name", None) or cam.model).split(".")[-1]
+
+
+def incremental_mapping(db: Path, image_dir: Path, out_dir: Path, opts: MapperOptions,
+                        on_registered: Callable[[int], None] | None = None) -> list[Model]:
+    """COLMAP's incremental mapper. Returns every model, largest first.
+
+    `on_registered(n)` is called from the calling thread with the number of
+    images registered so far in the current model."""
+    pycolmap = _pc()
+    pycolmap.set_random_seed(opts.seed)
+    o = pycolmap.IncrementalPipelineOptions()
+    o.random_seed = opts.seed
+    o.num_threads = opts.num_threads
+    o.min_model_size = opts.min_model_size
+    o.ba_local_max_num_iterations = opts.ba_local_max_num_iterations
+    o.ba_global_max_num_iterations = opts.ba_global_max_num_iterations
+    o.ba_global_frames_ratio = opts.ba_global_frames_ratio
+    o.ba_global_points_ratio = opts.ba_global_points_ratio
+    o.mapper.init_min_num_inliers = opts.init_min_num_inliers
+    o.mapper.abs_pose_min_num_inliers = opts.abs_pose_min_num_inliers
+    o.mapper.random_seed = opts.seed
+    o.triangulation.random_seed = opts.seed
+    counter = {"n": 0, "shown": -1}
+
+    def on_init() -> None:
+        counter["n"] = 2
+
+    def on_next() -> None:
+        counter["n"] += 1
+
+    def poll() -> None:
+        if on_registered is not None and counter["n"] != counter["shown"]:
+            counter["shown"] = counter["n"]
+            on_registered(counter["n"])
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        recs = run_cancellable(
+            pycolmap.incremental_mapping, str(db), str(image_dir), str(out_dir), options=o,
+            initial_image_pair_callback=on_init, next_image_callback=on_next, poll=poll,
+        )
+    except (RuntimeError, ValueError) as exc:
+        raise SplatError(f"{db}: COLMAP's mapper failed ({_one_line(exc)})") from None
+    models = [Model(r) for r in (recs or {}).values()]
+    models.sort(key=lambda m: (-m.num_registered, -m.num_points))
+    return models
+
+
+# ---- reading, building and undistorting models -----------------------------
+
+
+def read_model(model_dir: Path) -> Model:
+    """Read a model whose files were checked by `colmap_files.check_model`."""
+    pycolmap = _pc()
+    try:
+        return Model(pycolmap.Reconstruction(str(model_dir)))
+    except Exception as exc:  # pycolmap raises plain RuntimeError/ValueError on bad files
+        raise SplatError(f"{model_dir}: cannot read the COLMAP model ({_one_line(exc)})") from None
+
+
+@dataclass(frozen=True)
+class CameraSpec:
+    """A posed image to put into a new model."""
+
+    name: str
+    width: int
+    height: int
+    model: str  # COLMAP model name, e.g. "PINHOLE", "OPENCV"
+    params: list[float]
+    viewmat: np.ndarray  # [4, 4] world-to-camera, OpenCV axes
+
+
+def build_model(specs: list[CameraSpec], points: np.ndarray | None = None,
+                colors: np.ndarray | None = None) -> Model:
+    """A model from known poses; cameras with identical intrinsics are shared.
+
+    points: [P, 3] float64 or None; colors: [P, 3] uint8. Points get no tracks
+    (there are no keypoints), which COLMAP reads and writes fine."""
+    pycolmap = _pc()
+    rec = pycolmap.Reconstruction()
+    cam_ids: dict[tuple, int] = {}
+    for i, s in enumerate(specs, start=1):
+        key = (s.model, s.width, s.height, tuple(round(p, 9) for p in s.params))
+        if key not in cam_ids:
+            cid = len(cam_ids) + 1
+            cam = pycolmap.Camera(model=s.model, width=int(s.width), height=int(s.height),
+                                  params=[float(p) for p in s.params], camera_id=cid)
+            rec.add_camera_with_trivial_rig(cam)
+            cam_ids[key] = cid
+        im = pycolmap.Image(name=s.name, camera_id=cam_ids[key], image_id=i)
+        pose = pycolmap.Rigid3d(np.ascontiguousarray(s.viewmat[:3, :4], dtype=np.float64))
+        rec.add_image_with_trivial_frame(im, pose)
+    if points is not None and len(points):
+        cols = colors if colors is not None else np.full((len(points), 3), 128, np.uint8)
+        for xyz, rgb in zip(np.asarray(points, np.float64), np.asarray(cols, np.uint8)):
+            rec.add_point3D(xyz, pycolmap.Track(), rgb)
+    return Model(rec)
+
+
+def undistort(model: Model, image_dir: Path, out_dir: Path, *, max_image_size: int | None = None,
+              jpeg_quality: int = 95, num_threads: int = -1) -> Path:
+    """Undistort the model's registered images to PINHOLE.
+
+    Writes `out_dir/images/<name>` and the model in `out_dir/sparse`; returns
+    the model folder. Images are cropped to the region valid in every direction
+    (no black borders to learn) and capped at `max_image_size` pixels."""
+    pycolmap = _pc()
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    model_in = out_dir / "_in"
+    model.write(model_in)
+    uo = pycolmap.UndistortCameraOptions()
+    uo.blank_pixels = 0.0
+    uo.max_image_size = int(max_image_size or -1)
+    try:
+        run_cancellable(
+            pycolmap.undistort_images, str(out_dir), str(model_in), str(image_dir),
+            output_type="COLMAP", undistort_options=uo, jpeg_quality=jpeg_quality, num_threads=num_threads,
+        )
+    except (RuntimeError, ValueError) as exc:
+        raise SplatError(f"{image_dir}: undistortion failed ({_one_line(exc)})") from None
+    return out_dir / "sparse"
+
+
+def undistort_masks(model: Model, mask_dir: Path, out_dir: Path, *, max_image_size: int | None = None,
+                    num_threads: int = -1) -> Path:
+    """Warp masks (stored under the images' names) exactly like their images;
+    returns the folder holding the results under the same names."""
+    undistort(model, mask_dir, out_dir, max_image_size=max_image_size, jpeg_quality=100, num_threads=num_threads)
+    return out_dir / "images"
+
+
+def synthetic_model(num_images: int = 6, num_points: int = 50, camera_model: str = "SIMPLE_RADIAL",
+                    width: int = 64, height: int = 48, seed: int = 0) -> Model:
+    """A small synthetic model (tests): `num_images` cameras around random points."""
+    pycolmap = _pc()
+    pycolmap.set_random_seed(seed)
+    o = pycolmap.SyntheticDatasetOptions()
+    o.num_rigs = 1
+    o.num_cameras_per_rig = 1
+    o.num_frames_per_rig = num_images
+    o.num_points3D = num_points
+    o.camera_width = width
+    o.camera_height = height
+    o.camera_model_id = getattr(pycolmap.CameraModelId, camera_model)
+    f = 1.2 * max(width, height)
+    params = {"SIMPLE_PINHOLE": [f, width / 2, height / 2], "PINHOLE": [f, f, width / 2, height / 2],
+              "SIMPLE_RADIAL": [f, width / 2, height / 2, 0.05],
+              "OPENCV": [f, f, width / 2, height / 2, 0.05, -0.01, 0.001, 0.001]}[camera_model]
+    o.camera_params = params
+    o.num_points2D_without_point3D = 3
+    return Model(pycolmap.synthesize_dataset(o))

@@ -1,0 +1,183 @@
+"""Reading, checking and staging input images (OpenCV; no pycolmap).
+
+Staging writes the image the rest of the pipeline sees: oriented (EXIF) when
+asked, 8-bit, 3 channels (RGBA composited over the background, the alpha kept
+as a mask), and no larger than `max_size` on its longest side. An image that
+needs none of this is copied byte for byte, so JPEGs are not re-compressed.
+"""
+
+from __future__ import annotations
+
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ..io.atomic import atomic_path
+
+IMAGE_EXTS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
+JPEG_QUALITY = 95
+
+
+class ImageError(Exception):
+    """An image that cannot be used; the message says why (without the path)."""
+
+
+@dataclass(frozen=True)
+class StagedImage:
+    name: str
+    width: int  # pixels, after resizing
+    height: int
+    src_width: int  # pixels in the source file (after orientation)
+    src_height: int
+    has_alpha: bool
+
+
+def is_image_name(path: Path) -> bool:
+    return path.suffix.lower() in IMAGE_EXTS
+
+
+def list_folder(folder: Path) -> tuple[list[Path], list[Path]]:
+    """(image files, other files) directly in `folder`, sorted; hidden files ignored."""
+    images, others = [], []
+    for p in sorted(folder.iterdir()):
+        if p.name.startswith(".") or not p.is_file():
+            continue
+        (images if is_image_name(p) else others).append(p)
+    return images, others
+
+
+def check_complete(data: bytes, suffix: str) -> None:
+    """Refuse truncated JPEG and PNG files, which decoders silently pad with grey."""
+    s = suffix.lower()
+    if s in (".jpg", ".jpeg"):
+        if data[:2] != b"\xff\xd8":
+            raise ImageError("not a JPEG file")
+        # Entropy-coded data stuffs 0xFF bytes, so markers cannot occur by chance:
+        # a complete file has an end-of-image marker after its last start-of-scan.
+        sos = data.rfind(b"\xff\xda")
+        if sos < 0 or data.find(b"\xff\xd9", sos) < 0:
+            raise ImageError("truncated JPEG (no end-of-image marker)")
+    elif s == ".png":
+        if data[:8] != b"\x89PNG\r\n\x1a\n":
+            raise ImageError("not a PNG file")
+        pos = 8
+        while True:
+            if pos + 8 > len(data):
+                raise ImageError("truncated PNG (no IEND chunk)")
+            length = int.from_bytes(data[pos : pos + 4], "big")
+            kind = data[pos + 4 : pos + 8]
+            pos += 12 + length
+            if pos > len(data):
+                raise ImageError("truncated PNG (a chunk runs past the end)")
+            if kind == b"IEND":
+                return
+
+
+def read_image(path: Path, *, orient: bool) -> tuple[np.ndarray, np.ndarray | None, bool]:
+    """(BGR uint8 [H, W, 3], alpha uint8 [H, W] or None, changed).
+
+    `changed` is True when the pixels differ from what the file stores as is
+    (EXIF rotation applied, bit depth or channels converted, alpha present),
+    so the file cannot simply be copied."""
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise ImageError(f"cannot read ({exc.strerror or exc})") from None
+    check_complete(data, path.suffix)
+    buf = np.frombuffer(data, np.uint8)
+    raw = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)  # no EXIF rotation, keeps alpha and 16 bits
+    if raw is None or raw.size == 0:
+        raise ImageError("cannot decode (corrupt or unsupported image)")
+    changed = False
+    if raw.dtype == np.uint16:
+        raw = (raw.astype(np.float32) / 257.0 + 0.5).astype(np.uint8)
+        changed = True
+    elif raw.dtype != np.uint8:
+        raise ImageError(f"unsupported pixel type {raw.dtype}")
+    alpha = None
+    if raw.ndim == 2:
+        img = cv2.cvtColor(raw, cv2.COLOR_GRAY2BGR)
+        changed = True
+    elif raw.shape[2] == 4:
+        img, alpha = np.ascontiguousarray(raw[..., :3]), np.ascontiguousarray(raw[..., 3])
+        changed = True
+        if alpha.min() == 255:  # an opaque alpha channel carries nothing
+            alpha = None
+    elif raw.shape[2] == 3:
+        img = raw
+    else:
+        img = cv2.cvtColor(raw[..., :1], cv2.COLOR_GRAY2BGR)
+        changed = True
+    if orient and path.suffix.lower() in (".jpg", ".jpeg") and b"Exif" in data[:65536]:
+        oriented = cv2.imdecode(buf, cv2.IMREAD_COLOR)
+        if oriented is not None and (oriented.shape != img.shape or not np.array_equal(oriented, img)):
+            img, changed = oriented, True
+    return img, alpha, changed
+
+
+def fit_size(width: int, height: int, max_size: int | None) -> tuple[int, int]:
+    """The size after capping the longest side at `max_size` (never enlarges)."""
+    if not max_size or max(width, height) <= max_size:
+        return width, height
+    s = max_size / max(width, height)
+    return max(1, int(round(width * s))), max(1, int(round(height * s)))
+
+
+def composite(img: np.ndarray, alpha: np.ndarray, background: tuple[float, float, float]) -> np.ndarray:
+    """img [H, W, 3] BGR uint8 over an RGB background in [0, 1] -> BGR uint8."""
+    a = alpha.astype(np.float32)[..., None] / 255.0
+    bg = np.array(background[::-1], np.float32) * 255.0  # RGB -> BGR
+    out = img.astype(np.float32) * a + bg * (1.0 - a)
+    return np.clip(out + 0.5, 0, 255).astype(np.uint8)
+
+
+def write_image(path: Path, img: np.ndarray) -> None:
+    """Atomically encode `img` in the format of `path`'s suffix."""
+    suffix = path.suffix.lower()
+    params = [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY] if suffix in (".jpg", ".jpeg") else []
+    ok, enc = cv2.imencode(suffix, img, params)
+    if not ok:
+        raise ImageError(f"cannot encode as {suffix}")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(enc.tobytes())
+
+
+def stage_image(src: Path, name: str, dst: Path, mask_dst: Path, *, max_size: int | None,
+                background: tuple[float, float, float], orient: bool,
+                expect_size: tuple[int, int] | None = None) -> StagedImage:
+    """Write the usable version of `src` to `dst` (same format), its alpha to
+    `mask_dst` (PNG) if it has one. Raises ImageError."""
+    img, alpha, changed = read_image(src, orient=orient)
+    h0, w0 = img.shape[:2]
+    if expect_size is not None and (w0, h0) != tuple(expect_size):
+        raise ImageError(f"is {w0}x{h0} but its camera says {expect_size[0]}x{expect_size[1]}")
+    w, h = fit_size(w0, h0, max_size)
+    if alpha is not None:
+        img = composite(img, alpha, background)
+    if (w, h) != (w0, h0):
+        img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
+        if alpha is not None:
+            alpha = cv2.resize(alpha, (w, h), interpolation=cv2.INTER_AREA)
+        changed = True
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    if changed:
+        write_image(dst, img)
+    else:
+        shutil.copyfile(src, dst)
+    if alpha is not None:
+        write_image(mask_dst, alpha)
+    return StagedImage(name, w, h, w0, h0, alpha is not None)
+
+
+def sharpness(img: np.ndarray) -> float:
+    """Variance of the Laplacian of the grey image at <= 512 px: higher is sharper."""
+    grey = img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    h, w = grey.shape
+    s = 512 / max(h, w)
+    if s < 1:
+        grey = cv2.resize(grey, (max(1, int(w * s)), max(1, int(h * s))), interpolation=cv2.INTER_AREA)
+    return float(cv2.Laplacian(grey, cv2.CV_64F).var())

@@ -1,0 +1,222 @@
+"""Images to a COLMAP model: SIFT, pair selection, matching, incremental mapping.
+
+Speed on a CPU comes from three choices (measured on the fox capture, 50
+images at 400x711, docs/benchmarks.md):
+  * SIFT at the image's own resolution (`first_octave = 0`) instead of COLMAP's
+    default upsampled octave: about 5x faster extraction, still hundreds of
+    well-localised features per image, which is what matching needs;
+  * at most 4096 features per image, which bounds brute-force matching;
+  * sequential pairs (each image with its next neighbours, plus exponentially
+    spaced ones for loop closure) for video and numbered captures, instead of
+    all N(N-1)/2 pairs, with all remaining pairs matched if that leaves images out.
+"""
+
+from __future__ import annotations
+
+import re
+import statistics
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ..errors import SplatError
+from ..events import EventSink, Note, Progress, Stage, StageDone, emit
+from . import colmap
+from .colmap import MapperOptions, MatchOptions, Model, SiftOptions
+
+MATCHERS = ("auto", "exhaustive", "sequential")
+
+
+@dataclass(frozen=True)
+class SfmOptions:
+    matcher: str = "auto"  # auto | exhaustive | sequential
+    ordered: bool = False  # frames of a video: sequential when auto
+    exhaustive_max_images: int = 40  # auto: below this, all pairs are cheap enough
+    sequential_overlap: int = 10  # neighbours each image is matched with
+    max_features: int = 4096
+    first_octave: int | None = None  # None: 0, or -1 for images under 400 px (too few features otherwise)
+    seed: int = 0
+    num_threads: int = -1
+    chunk: int = 8  # images per extraction call (progress granularity)
+
+
+@dataclass
+class SfmResult:
+    model: Model
+    names: list[str]  # every input image
+    model_sizes: list[int]  # registered images per model, largest first
+    unregistered: list[str]
+    matcher: str  # the pairing used in the end ("sequential+exhaustive" after a fallback)
+    num_pairs: int
+    keypoints_median: float
+    seconds: dict[str, float] = field(default_factory=dict)
+
+
+def natural_key(name: str) -> list:
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
+
+
+def looks_ordered(names: list[str]) -> bool:
+    """Numbered captures (IMG_0001.JPG..., frame_12.png...): one prefix, one
+    suffix, a number between. Such names are usually in capture order."""
+    if len(names) < 3:
+        return False
+    pats = set()
+    for n in names:
+        m = re.fullmatch(r"(.*?)(\d+)(\D*)", n)
+        if m is None:
+            return False
+        pats.add((m.group(1), m.group(3).lower()))
+    return len(pats) == 1
+
+
+def exhaustive_pairs(names: list[str]) -> list[tuple[str, str]]:
+    return [(a, b) for i, a in enumerate(names) for b in names[i + 1 :]]
+
+
+def sequential_pairs(names: list[str], overlap: int) -> list[tuple[str, str]]:
+    """Each image with the next `overlap` ones, plus those 2^k further on
+    (k beyond the overlap), which closes loops of an orbit cheaply."""
+    n = len(names)
+    out = set()
+    for i in range(n):
+        for j in range(i + 1, min(n, i + overlap + 1)):
+            out.add((i, j))
+        step = 1
+        while step <= overlap:
+            step *= 2
+        while i + step < n:
+            out.add((i, i + step))
+            step *= 2
+    return [(names[i], names[j]) for i, j in sorted(out)]
+
+
+def _choose_matcher(opts: SfmOptions, names: list[str]) -> str:
+    if opts.matcher != "auto":
+        return opts.matcher
+    if opts.ordered:
+        return "sequential"
+    if len(names) <= opts.exhaustive_max_images:
+        return "exhaustive"
+    return "sequential" if looks_ordered(names) else "exhaustive"
+
+
+class _Clock:
+    def __init__(self, on_event: EventSink | None) -> None:
+        self.on_event = on_event
+        self.seconds: dict[str, float] = {}
+
+    def start(self, name: str, total: int | None) -> float:
+        emit(self.on_event, Stage(name, total))
+        return time.perf_counter()
+
+    def done(self, name: str, t0: float) -> None:
+        dt = time.perf_counter() - t0
+        self.seconds[name] = self.seconds.get(name, 0.0) + dt
+        emit(self.on_event, StageDone(name, dt))
+
+
+def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions, *,
+            single_camera: bool, min_side: int, where: Path,
+            on_event: EventSink | None = None) -> SfmResult:
+    """Extract, match and map `names` (files in `image_dir`).
+
+    `min_side` is the smallest image side (chooses the SIFT octave); `where`
+    names the input in error messages. Raises SplatError (with the likely
+    cause) when no model comes out."""
+    clock = _Clock(on_event)
+    names = sorted(names, key=natural_key)
+    work_dir.mkdir(parents=True, exist_ok=True)
+    db = work_dir / "database.db"
+
+    # -- features
+    first_octave = opts.first_octave
+    if first_octave is None:
+        first_octave = -1 if min_side < 400 else 0
+    sift = SiftOptions(max_num_features=opts.max_features, first_octave=first_octave, num_threads=opts.num_threads)
+    t = clock.start("extract features", len(names))
+    colmap.create_database(db, image_dir, names, single_camera=single_camera)
+    for i in range(0, len(names), opts.chunk):
+        colmap.extract_features(db, image_dir, names[i : i + opts.chunk], sift, single_camera=single_camera)
+        emit(on_event, Progress("extract features", min(i + opts.chunk, len(names)), len(names)))
+    clock.done("extract features", t)
+    stats = colmap.database_stats(db)
+    kp_median = statistics.median(stats.keypoints.values()) if stats.keypoints else 0
+
+    # -- matching
+    matcher = _choose_matcher(opts, names)
+    mopts = MatchOptions(num_threads=opts.num_threads, seed=opts.seed)
+    if matcher == "sequential":
+        pairs = sequential_pairs(names, opts.sequential_overlap)
+    else:
+        pairs = exhaustive_pairs(names)
+    _match(db, pairs, work_dir, mopts, clock, on_event)
+    matched = set(pairs)
+
+    # -- mapping
+    mapper = MapperOptions(seed=opts.seed, num_threads=opts.num_threads,
+                           min_model_size=min(10, max(2, len(names) // 4)))
+    models = _map(db, image_dir, work_dir / "models", mapper, len(names), clock, on_event)
+    used = matcher
+    if matcher == "sequential" and opts.matcher == "auto" and (not models or models[0].num_registered < len(names)):
+        missing = len(names) - (models[0].num_registered if models else 0)
+        emit(on_event, Note(f"sequential matching left {missing} image(s) out; matching the remaining pairs too"))
+        rest = [p for p in exhaustive_pairs(names) if p not in matched]
+        _match(db, rest, work_dir, mopts, clock, on_event)
+        matched.update(rest)
+        models = _map(db, image_dir, work_dir / "models2", mapper, len(names), clock, on_event)
+        used = "sequential+exhaustive"
+    if not models or models[0].num_registered < 2:
+        raise SplatError(f"{where}: structure from motion found no model: {_diagnose(db, len(names))}")
+    best = models[0]
+    registered = set(best.registered_names())
+    return SfmResult(
+        model=best,
+        names=names,
+        model_sizes=[m.num_registered for m in models],
+        unregistered=[n for n in names if n not in registered],
+        matcher=used,
+        num_pairs=len(matched),
+        keypoints_median=float(kp_median),
+        seconds=clock.seconds,
+    )
+
+
+def _match(db: Path, pairs: list[tuple[str, str]], work_dir: Path, mopts: MatchOptions,
+           clock: _Clock, on_event: EventSink | None) -> None:
+    if not pairs:
+        return
+    t = clock.start("match", len(pairs))
+    step = max(16, len(pairs) // 20)
+    for i in range(0, len(pairs), step):
+        colmap.match_pairs(db, pairs[i : i + step], work_dir / "pairs.txt", mopts)
+        emit(on_event, Progress("match", min(i + step, len(pairs)), len(pairs)))
+    clock.done("match", t)
+
+
+def _map(db: Path, image_dir: Path, out: Path, mapper: MapperOptions, n: int, clock: _Clock,
+         on_event: EventSink | None) -> list[Model]:
+    t = clock.start("map", n)
+    models = colmap.incremental_mapping(
+        db, image_dir, out, mapper,
+        on_registered=lambda k: emit(on_event, Progress("map", min(k, n), n, {"registered": k})),
+    )
+    clock.done("map", t)
+    return models
+
+
+def _diagnose(db: Path, n: int) -> str:
+    """The likely reason mapping failed, from what the database holds."""
+    stats = colmap.database_stats(db)
+    kp = sorted(stats.keypoints.values())
+    med = kp[len(kp) // 2] if kp else 0
+    if med < 100:
+        return (f"too few features (median {med} per image): the images are too small, blurry or "
+                "textureless; try a larger --max-size or sharper photos")
+    if stats.verified_pairs == 0:
+        return "no two images share enough matching features: too little overlap between the photos"
+    if stats.verified_pairs < n - 1:
+        return (f"only {stats.verified_pairs} image pairs match well: too little overlap between the photos "
+                "(take them closer together)")
+    return ("no image pair gives a good starting reconstruction: too little camera motion (parallax) "
+            "or too little overlap")

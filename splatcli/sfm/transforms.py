@@ -1,0 +1,324 @@
+"""Read `transforms.json` (nerfstudio, instant-ngp, NeRF Blender scenes).
+
+The file stores camera-to-world poses in the OpenGL convention (x right, y up,
+z backwards). We convert them to our OpenCV world-to-camera `viewmat`
+(x right, y down, z forward) and keep the world frame as it is.
+
+Intrinsics come per frame or globally (per-frame keys win): `fl_x`, `fl_y`,
+`cx`, `cy`, `w`, `h`, or only `camera_angle_x` (Blender), plus distortion
+`k1 k2 k3 k4 p1 p2`. The image size may be unknown until the image is read,
+so `Intrinsics.resolve(width, height)` finishes the job then.
+
+No pycolmap here: this module only parses and validates.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path, PurePosixPath
+from typing import Any
+
+import numpy as np
+
+from ..errors import SplatError
+from ..project import read_json_file
+
+TRANSFORMS_NAMES = ("transforms.json", "transforms_train.json")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG", ".tif", ".tiff", ".bmp", ".webp")
+# A transforms file is kilobytes per frame; 256 MiB covers ~500k frames.
+MAX_TRANSFORMS_BYTES = 256 * 1024 * 1024
+
+# OpenGL camera axes (y up, z back) -> OpenCV camera axes (y down, z forward).
+_GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Camera intrinsics as written in the file; `None` where the file is silent."""
+
+    fl_x: float | None
+    fl_y: float | None
+    cx: float | None
+    cy: float | None
+    w: float | None
+    h: float | None
+    angle_x: float | None
+    angle_y: float | None
+    k: tuple[float, float, float, float]  # k1..k4
+    p: tuple[float, float]  # p1, p2
+    fisheye: bool
+
+    @property
+    def distorted(self) -> bool:
+        return self.fisheye or any(v != 0.0 for v in self.k + self.p)
+
+    def resolve(self, width: int, height: int, where: str) -> tuple[str, list[float]]:
+        """COLMAP model name and params for an image of `width` x `height` pixels.
+
+        When the file states `w`/`h` and the image is a uniformly rescaled copy
+        (e.g. a downscaled folder), the intrinsics are scaled to match.
+        """
+        sx = sy = 1.0
+        if self.w is not None and self.h is not None:
+            sx, sy = width / self.w, height / self.h
+            if abs(sx - sy) > 0.02 * max(sx, sy):
+                raise SplatError(
+                    f"{where}: image is {width}x{height} but the transforms file says "
+                    f"{self.w:g}x{self.h:g} (not a uniform rescale)"
+                )
+        if self.fl_x is not None:
+            fx = self.fl_x * sx
+            fy = (self.fl_y if self.fl_y is not None else self.fl_x) * sy
+        elif self.angle_x is not None:
+            fx = 0.5 * width / math.tan(0.5 * self.angle_x)
+            fy = 0.5 * height / math.tan(0.5 * self.angle_y) if self.angle_y is not None else fx
+        else:  # checked when parsing; kept for type-checkers
+            raise SplatError(f"{where}: no focal length (fl_x or camera_angle_x)")
+        cx = self.cx * sx if self.cx is not None else width / 2.0
+        cy = self.cy * sy if self.cy is not None else height / 2.0
+        k1, k2, k3, k4 = self.k
+        p1, p2 = self.p
+        if self.fisheye:
+            return "OPENCV_FISHEYE", [fx, fy, cx, cy, k1, k2, k3, k4]
+        if k3 != 0.0 or k4 != 0.0:
+            return "FULL_OPENCV", [fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, 0.0, 0.0]
+        if any(v != 0.0 for v in (k1, k2, p1, p2)):
+            return "OPENCV", [fx, fy, cx, cy, k1, k2, p1, p2]
+        return "PINHOLE", [fx, fy, cx, cy]
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One image listed in a transforms file."""
+
+    source: Path  # the image file (exists)
+    name: str  # name in the project's images/
+    split: str  # "train" or "test"
+    viewmat: np.ndarray  # [4, 4] float64 world-to-camera, OpenCV axes
+    intrinsics: Intrinsics
+
+
+@dataclass
+class TransformsScene:
+    frames: list[Frame]  # sorted by name
+    files: list[Path]  # the JSON files read
+    missing: list[str]  # file_path values whose file does not exist
+    has_test_split: bool  # the input defines its own held-out images
+    ply_path: Path | None  # sparse points shipped with the file (nerfstudio), if any
+    notes: list[str]
+
+
+def find_transforms(path: Path) -> Path | None:
+    """The transforms file `path` names or holds, or None."""
+    if path.is_file():
+        return path if path.suffix.lower() == ".json" and path.name.startswith("transforms") else None
+    if path.is_dir():
+        for name in ("transforms_train.json", "transforms.json"):
+            if (path / name).is_file():
+                return path / name
+    return None
+
+
+def read_transforms(path: Path) -> TransformsScene:
+    """Parse a transforms file (and its test/val siblings for Blender splits).
+
+    Raises SplatError naming the file for anything malformed, and when no
+    listed image exists.
+    """
+    path = Path(path)
+    root = path.parent
+    notes: list[str] = []
+    sources: list[tuple[Path, str]] = [(path, "train")]
+    has_test = False
+    if path.name == "transforms_train.json":
+        test = root / "transforms_test.json"
+        val = root / "transforms_val.json"
+        if test.is_file():
+            sources.append((test, "test"))
+            has_test = True
+            if val.is_file():
+                notes.append(f"{val.name} ignored: {test.name} provides the held-out images")
+        elif val.is_file():
+            sources.append((val, "test"))
+            has_test = True
+
+    raw_frames: list[tuple[Path, int, dict[str, Any], dict[str, Any], str]] = []
+    ply_path: Path | None = None
+    split_lists: dict[str, set[str]] = {}
+    for src, split in sources:
+        data = read_json_file(src, "transforms file", max_bytes=MAX_TRANSFORMS_BYTES)
+        if not isinstance(data, dict):
+            raise SplatError(f"{src}: transforms file must hold a JSON object, not {type(data).__name__}")
+        frames = data.get("frames")
+        if not isinstance(frames, list) or not frames:
+            raise SplatError(f"{src}: transforms file has no `frames` list")
+        for i, fr in enumerate(frames):
+            if not isinstance(fr, dict):
+                raise SplatError(f"{src}: frame {i} is not a JSON object")
+            raw_frames.append((src, i, fr, data, split))
+        if src == path:
+            if isinstance(data.get("ply_file_path"), str):
+                ply_path = _safe_join(root, data["ply_file_path"], src, "ply_file_path")
+                if not ply_path.is_file():
+                    notes.append(f"{src.name}: ply_file_path {data['ply_file_path']} not found; no sparse points")
+                    ply_path = None
+            # nerfstudio may name its own split inside transforms.json
+            for key in ("train_filenames", "test_filenames", "val_filenames"):
+                val_list = data.get(key)
+                if isinstance(val_list, list) and all(isinstance(v, str) for v in val_list):
+                    split_lists[key] = {os.path.normpath(v) for v in val_list}
+
+    test_set = split_lists.get("test_filenames") or split_lists.get("val_filenames")
+    if test_set and len(sources) == 1:
+        has_test = True
+
+    parsed: list[tuple[Path, str, np.ndarray, Intrinsics, str]] = []
+    missing: list[str] = []
+    seen: set[Path] = set()
+    duplicates = 0
+    for src, i, fr, data, split in raw_frames:
+        where = f"{src}: frame {i}"
+        fp = fr.get("file_path")
+        if not isinstance(fp, str) or not fp.strip():
+            raise SplatError(f"{where} has no file_path")
+        image = _resolve_image(root, fp, src, where)
+        if image is None:
+            missing.append(fp)
+            continue
+        if image in seen:
+            duplicates += 1
+            continue
+        seen.add(image)
+        viewmat = _viewmat(fr.get("transform_matrix"), where)
+        intr = _intrinsics(fr, data, where)
+        if test_set is not None and len(sources) == 1:
+            rel = os.path.normpath(os.path.relpath(image, root))
+            split = "test" if rel in test_set or os.path.normpath(fp) in test_set else "train"
+        parsed.append((image, split, viewmat, intr, where))
+    if duplicates:
+        notes.append(f"{duplicates} duplicate frame(s) listed twice were imported once")
+    if not parsed:
+        raise SplatError(
+            f"{path}: none of the {len(raw_frames)} listed images exists (first: {raw_frames[0][2].get('file_path')})"
+        )
+    names = _unique_names([p[0] for p in parsed], root)
+    frames = [
+        Frame(source=img, name=name, split=split, viewmat=vm, intrinsics=intr)
+        for (img, split, vm, intr, _), name in zip(parsed, names)
+    ]
+    frames.sort(key=lambda f: f.name)
+    if has_test and not any(f.split == "test" for f in frames):
+        has_test = False
+        notes.append("the input's test split has no existing images; holding out every 8th image instead")
+    return TransformsScene(
+        frames=frames,
+        files=[s for s, _ in sources],
+        missing=missing,
+        has_test_split=has_test,
+        ply_path=ply_path,
+        notes=notes,
+    )
+
+
+def _safe_join(root: Path, rel: str, src: Path, what: str) -> Path:
+    """root / rel, refusing paths that leave `root` (lexically: symlinks inside
+    the input folder are the user's business)."""
+    p = PurePosixPath(rel.replace("\\", "/"))
+    if p.is_absolute():
+        full = Path(os.path.normpath(str(p)))
+    else:
+        full = Path(os.path.normpath(str(root / p)))
+    root_n = Path(os.path.normpath(str(root.absolute())))
+    full_abs = Path(os.path.normpath(str(full.absolute())))
+    if full_abs != root_n and root_n not in full_abs.parents:
+        raise SplatError(f"{src}: {what} {rel!r} points outside the input folder {root}")
+    return full
+
+
+def _resolve_image(root: Path, file_path: str, src: Path, where: str) -> Path | None:
+    p = _safe_join(root, file_path, src, "file_path")
+    if p.is_file():
+        return p
+    if p.suffix.lower() not in {s.lower() for s in IMAGE_SUFFIXES}:
+        for suf in IMAGE_SUFFIXES:  # Blender scenes omit the extension
+            q = p.with_name(p.name + suf)
+            if q.is_file():
+                return q
+    return None
+
+
+def _num(v: Any, where: str, key: str) -> float | None:
+    if v is None:
+        return None
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise SplatError(f"{where}: `{key}` must be a finite number, got {v!r}")
+    return float(v)
+
+
+def _intrinsics(frame: dict[str, Any], data: dict[str, Any], where: str) -> Intrinsics:
+    def get(key: str) -> float | None:
+        if key in frame:
+            return _num(frame[key], where, key)
+        return _num(data.get(key), where, key)
+
+    fl_x, fl_y, angle_x = get("fl_x"), get("fl_y"), get("camera_angle_x")
+    if fl_x is None and angle_x is None:
+        raise SplatError(f"{where}: no focal length (needs `fl_x` or `camera_angle_x`)")
+    if (fl_x is not None and fl_x <= 0) or (angle_x is not None and not 0 < angle_x < math.pi):
+        raise SplatError(f"{where}: focal length must be positive (fl_x={fl_x}, camera_angle_x={angle_x})")
+    w, h = get("w"), get("h")
+    if (w is None) != (h is None) or (w is not None and (w <= 0 or h <= 0)):
+        raise SplatError(f"{where}: `w` and `h` must both be given and positive")
+    model = frame.get("camera_model", data.get("camera_model", "OPENCV"))
+    if not isinstance(model, str) or model.upper() not in ("OPENCV", "PINHOLE", "OPENCV_FISHEYE", "SIMPLE_PINHOLE"):
+        raise SplatError(f"{where}: camera_model {model!r} is not supported (OPENCV, OPENCV_FISHEYE or PINHOLE)")
+    fisheye = model.upper() == "OPENCV_FISHEYE" or bool(frame.get("is_fisheye", data.get("is_fisheye", False)))
+    k = tuple(get(f"k{i}") or 0.0 for i in range(1, 5))
+    p = tuple(get(f"p{i}") or 0.0 for i in range(1, 3))
+    angle_y = get("camera_angle_y") if fl_x is None else None
+    return Intrinsics(
+        fl_x=fl_x, fl_y=fl_y, cx=get("cx"), cy=get("cy"), w=w, h=h,
+        angle_x=angle_x, angle_y=angle_y, k=k, p=p, fisheye=fisheye,  # type: ignore[arg-type]
+    )
+
+
+def _viewmat(m: Any, where: str) -> np.ndarray:  # [4, 4]
+    """OpenGL camera-to-world (3x4 or 4x4) -> OpenCV world-to-camera 4x4."""
+    try:
+        a = np.asarray(m, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise SplatError(f"{where}: transform_matrix is not a matrix of numbers") from None
+    if m is None or a.shape not in ((4, 4), (3, 4)) or not np.isfinite(a).all():
+        raise SplatError(f"{where}: transform_matrix must be a finite 4x4 (or 3x4) matrix")
+    c2w = np.eye(4)
+    c2w[:3, :4] = a[:3, :4]
+    # Some writers leave a scale in the rotation; keep the closest rotation.
+    U, S, Vt = np.linalg.svd(c2w[:3, :3])
+    if S.min() < 1e-6 * max(S.max(), 1e-300):
+        raise SplatError(f"{where}: transform_matrix has a degenerate rotation")
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        raise SplatError(f"{where}: transform_matrix is a reflection, not a rotation")
+    c2w[:3, :3] = R
+    c2w_cv = c2w @ _GL_TO_CV
+    w2c = np.eye(4)
+    w2c[:3, :3] = c2w_cv[:3, :3].T
+    w2c[:3, 3] = -c2w_cv[:3, :3].T @ c2w_cv[:3, 3]
+    return w2c
+
+
+def _unique_names(images: list[Path], root: Path) -> list[str]:
+    """Base names when they are unique, else the path below `root` with '/' -> '_'."""
+    base = [p.name for p in images]
+    if len(set(base)) == len(base):
+        return base
+    out = []
+    for p in images:
+        try:
+            rel = p.relative_to(root)
+        except ValueError:
+            rel = Path(p.name)
+        out.append("_".join(rel.parts))
+    return out
