@@ -1,10 +1,61 @@
-"""`splatcli eval` (stub: being implemented)."""
+"""`splatcli eval`: held-out PSNR/SSIM, render speed and speed-against-error curves."""
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from ..device import resolve_device
 from ..errors import SplatError
+from ..evaluate import EvalConfig, check_eval_config, compare_folders, evaluate_project
+from ..rendering import parse_background
+from .common import DebugOpt, DeviceOpt, JsonOpt, QuietOpt, Ui
 
 
-def evaluate() -> None:
-    """Not implemented yet."""
-    raise SplatError("eval: not implemented yet")
+def _budgets(text: str) -> tuple[float, ...]:
+    try:
+        return tuple(float(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        raise SplatError(f"--budgets {text!r}: expected fractions in (0, 1] separated by commas, e.g. 1,0.5,0.25,0.1") from None
+
+
+def evaluate(
+    project: Optional[Path] = typer.Argument(None, help="The project directory (omit with --pred/--gt)."),
+    split: str = typer.Option("test", "--split", help="Views to score: test (held out), train or all."),
+    background: Optional[str] = typer.Option(None, "--background", help="white, black, gray or r,g,b in [0, 1] (default: the scene's)."),
+    downscale: Optional[float] = typer.Option(None, "--downscale", help="Score at the stored size divided by this (default: as trained)."),
+    budgets: str = typer.Option("1,0.5,0.25,0.1", "--budgets", help="Fractions of the Gaussians for the render-time curve."),
+    plots: bool = typer.Option(True, "--plots/--no-plots", help="Draw PNG plots beside eval.md (needs matplotlib)."),
+    pred: Optional[Path] = typer.Option(None, "--pred", help="Compare this folder of images ..."),
+    gt: Optional[Path] = typer.Option(None, "--gt", help="... with this one, by file name (no project needed)."),
+    device: str = DeviceOpt,
+    quiet: bool = QuietOpt,
+    json_out: bool = JsonOpt,
+    debug: bool = DebugOpt,
+) -> None:
+    """Score renders against held-out photographs and write reports/eval.json and eval.md."""
+    ui = Ui(quiet=quiet, json_out=json_out)
+    bg = parse_background(background) if background is not None else None
+    if pred is not None or gt is not None:
+        if pred is None or gt is None or project is not None:
+            raise SplatError("--pred and --gt go together, without a project")
+        with ui.progress() as sink:
+            f = compare_folders(pred, gt, background=bg or (0.0, 0.0, 0.0), on_event=sink)
+        ui.summary(f.summary() | {"per_image": f.per_image}, title=f"{len(f.per_image)} images compared",
+                   lines=[f"PSNR {f.psnr:.2f} dB   SSIM {f.ssim:.4f}"])
+        return
+    if project is None:
+        raise SplatError("give a PROJECT, or --pred DIR --gt DIR")
+    cfg = EvalConfig(split=split, background=bg, downscale=downscale, budgets=_budgets(budgets), plots=plots)
+    check_eval_config(cfg)
+    dev = resolve_device(device)
+    with ui.progress() as sink:
+        r = evaluate_project(project, cfg, dev, on_event=sink)
+    ui.summary(r.summary(), title=f"{r.split} split: PSNR {r.psnr:.2f} dB, SSIM {r.ssim:.4f} over {len(r.per_image)} views",
+               lines=[f"{r.num_gaussians:,} Gaussians (SH {r.sh_degree}, {r.ply_bytes / 1e6:.2f} MB): "
+                      f"{r.render_fps:.2f} frames/s at {r.width}x{r.height} on {r.device}"]
+               + [f"  {b.fraction:>4.0%}: {b.num_gaussians:>9,} Gaussians  {b.psnr:6.2f} dB  {b.ms_per_frame:8.1f} ms/frame"
+                  for b in r.budgets]
+               + [f"report: {Path(project) / 'reports' / 'eval.md'}"])

@@ -1,0 +1,73 @@
+"""PSNR and SSIM: against scikit-image and a hand computation."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from skimage.metrics import structural_similarity
+
+from splatcli.metrics import psnr, psnr_from_mse, ssim, ssim_map
+
+
+def _pair(h: int, w: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    a = rng.random((h, w, 3))
+    # a correlated, noisy, clipped copy: SSIM in a realistic range, not ~0 or ~1
+    b = np.clip(a + rng.normal(0, 0.1, a.shape) + 0.05 * np.sin(np.arange(w) / 3.0)[None, :, None], 0, 1)
+    return a, b
+
+
+@pytest.mark.parametrize("shape,seed", [((32, 40), 0), ((11, 11), 1), ((57, 23), 2)])
+def test_ssim_matches_scikit_image(shape: tuple[int, int], seed: int) -> None:
+    a, b = _pair(*shape, seed)
+    ref = structural_similarity(a, b, gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
+                                data_range=1.0, channel_axis=-1)
+    got = float(ssim(torch.from_numpy(a), torch.from_numpy(b)))
+    assert abs(got - ref) < 1e-4  # the issue's bound; in float64 they agree to ~1e-12
+    got32 = float(ssim(torch.from_numpy(a).float(), torch.from_numpy(b).float()))
+    assert abs(got32 - ref) < 1e-4  # float32 accumulation error of the 11x11 blur is ~1e-6
+
+
+def test_ssim_identical_is_one_and_map_shape() -> None:
+    a = torch.rand(20, 30, 3, dtype=torch.float64)
+    assert float(ssim(a, a)) == pytest.approx(1.0, abs=1e-12)
+    assert ssim_map(a, a).shape == (3, 10, 20)  # valid region: 5-pixel border excluded
+
+
+def test_ssim_refuses_bad_input() -> None:
+    with pytest.raises(ValueError, match="at least 11x11"):
+        ssim(torch.rand(10, 30, 3), torch.rand(10, 30, 3))
+    with pytest.raises(ValueError, match="one shape"):
+        ssim(torch.rand(12, 12, 3), torch.rand(12, 13, 3))
+
+
+def test_psnr_hand_computation() -> None:
+    # a 2x2 RGB image; errors 0.1 on 3 of 12 values, 0 elsewhere: MSE = 3 * 0.01 / 12
+    gt = torch.zeros(2, 2, 3)
+    pred = gt.clone()
+    pred[0, 0, 0] = 0.1
+    pred[1, 1, 2] = 0.1
+    pred[0, 1, 1] = 0.1
+    mse = 3 * 0.01 / 12
+    expected = 10 * math.log10(1 / mse)  # 26.0206 dB
+    assert float(psnr(pred, gt)) == pytest.approx(expected, abs=1e-5)  # float32 0.1 is 0.1 + 1.5e-9
+    assert psnr_from_mse(mse) == pytest.approx(expected, abs=1e-12)
+    a, b = _pair(16, 16, 3)
+    ref = 10 * np.log10(1 / np.mean((a - b) ** 2))
+    assert float(psnr(torch.from_numpy(a), torch.from_numpy(b))) == pytest.approx(ref, abs=1e-10)
+
+
+def test_psnr_of_identical_images_is_finite() -> None:
+    a = torch.rand(4, 4, 3)
+    assert math.isfinite(float(psnr(a, a))) and float(psnr(a, a)) >= 100
+
+
+def test_ssim_gradcheck() -> None:
+    # D-SSIM is a training loss: its gradient must be right
+    g = torch.Generator().manual_seed(0)
+    a = torch.rand(12, 13, 2, dtype=torch.float64, generator=g, requires_grad=True)
+    b = torch.rand(12, 13, 2, dtype=torch.float64, generator=g)
+    assert torch.autograd.gradcheck(lambda x: ssim(x, b), (a,), fast_mode=True)  # random projections: 2 passes, not 312
