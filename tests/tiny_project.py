@@ -71,7 +71,9 @@ def render_gt(g: Gaussians, cam: Camera, bg: float = 0.0) -> np.ndarray:  # -> [
     return (out.image.clamp(0, 1) * 255).round().to(torch.uint8).numpy()
 
 
-def make_tiny_project(root: Path, *, trained: bool = True, background: float = 0.0, n: int = 300) -> Project:
+def make_tiny_project(root: Path, *, trained: bool = True, background: float = 0.0, n: int = 300,
+                      photos: bool = True) -> Project:
+    """photos=False writes grey images instead of renders (faster; for error tests)."""
     import cv2
 
     proj = Project.create(root, source={"kind": "test", "path": "tiny"})
@@ -79,7 +81,8 @@ def make_tiny_project(root: Path, *, trained: bool = True, background: float = 0
     truth = tiny_gaussians(n, seed=0)
     proj.images_dir.mkdir(parents=True)
     for cam in cams:
-        cv2.imwrite(str(proj.images_dir / cam.name), render_gt(truth, cam, background)[..., ::-1])
+        img = render_gt(truth, cam, background)[..., ::-1] if photos else np.full((H, W, 3), 128, np.uint8)
+        cv2.imwrite(str(proj.images_dir / cam.name), img)
     _write_colmap_text(proj.sparse_dir, cams)
     names = [c.name for c in cams]
     proj.update_manifest(
@@ -102,3 +105,32 @@ def make_tiny_project(root: Path, *, trained: bool = True, background: float = 0
         proj.reports_dir.mkdir(parents=True, exist_ok=True)
         proj.train_log_path.write_text("".join(json.dumps(x) + "\n" for x in log))
     return proj
+
+
+# ---- CLI helpers ----------------------------------------------------------------
+
+
+def run_cli(*args: object):
+    """Run `splatcli ARGS` in-process; returns typer's Result (stdout and stderr apart)."""
+    from typer.testing import CliRunner
+
+    from splatcli.cli.main import app
+
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+def assert_user_error(result, *fragments: str) -> None:
+    """Exit 2, one line `error: ...` on stderr naming what it should, no traceback."""
+    err = result.stderr.strip()
+    assert result.exit_code == 2, (result.exit_code, result.output)
+    assert err.startswith("error: "), err
+    assert len(err.splitlines()) == 1, err
+    assert "Traceback" not in result.output
+    for f in fragments:
+        assert f in err, (f, err)
+
+
+def snapshot(root: Path) -> dict[str, tuple[int, int]]:
+    """Every file under `root` with its size and mtime: to prove nothing changed."""
+    return {str(p.relative_to(root)): (p.stat().st_size, p.stat().st_mtime_ns)
+            for p in sorted(Path(root).rglob("*")) if p.is_file()}
