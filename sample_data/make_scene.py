@@ -22,6 +22,7 @@ writes out/images/NNN.jpg and out/ground_truth.json (see README.md).
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import os
@@ -41,12 +42,14 @@ WALL_HEIGHT = 4.0
 LOOK_AT = np.array([0.0, 0.0, 0.45])  # every camera looks at this point
 ORBIT_RADIUS = 3.6
 ORBIT_HEIGHT = 1.55  # mean camera height above the ground
-ORBIT_HEIGHT_SWING = 0.3  # +- height variation along the arc
-ARC_DEGREES = 270.0
+ORBIT_HEIGHT_SWING = 0.6  # +- height variation along the arc: varied views pin down the focal length in SfM
+ARC_DEGREES = 270.0  # the longest arc; fewer views get a shorter one (see arc_for_views)
+MAX_STEP_DEGREES = 10.0  # between neighbouring views: SIFT still matches at 160 x 120 pixels
 FOCAL_FACTOR = 1.0  # fx = fy = FOCAL_FACTOR * width
 LIGHT_DIR = np.array([0.45, -0.35, 0.82]) / np.linalg.norm([0.45, -0.35, 0.82])  # towards the light
 AMBIENT = 0.38  # fraction of light that reaches surfaces facing away / in shadow
 EPS = 1e-6
+DOT_FILL = 0.75  # fraction of texture cells that carry a coloured dot
 
 
 @dataclass(frozen=True)
@@ -96,8 +99,15 @@ def look_at_viewmat(center: np.ndarray, target: np.ndarray, up: np.ndarray = np.
     return viewmat
 
 
-def orbit_cameras(num_views: int, width: int, height: int, arc_degrees: float = ARC_DEGREES) -> list[tuple[np.ndarray, np.ndarray]]:
+def arc_for_views(num_views: int) -> float:
+    """Default arc (degrees) for `num_views`: ARC_DEGREES, shortened so neighbours stay <= MAX_STEP_DEGREES apart."""
+    return min(ARC_DEGREES, MAX_STEP_DEGREES * max(num_views - 1, 1))
+
+
+def orbit_cameras(num_views: int, width: int, height: int, arc_degrees: float | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
     """(K [3, 3], viewmat [4, 4]) per view along an arc around LOOK_AT, with a gentle height wave."""
+    if arc_degrees is None:
+        arc_degrees = arc_for_views(num_views)
     f = FOCAL_FACTOR * width
     K = np.array([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]])
     out = []
@@ -212,26 +222,27 @@ def _cast(o: np.ndarray, d: np.ndarray, with_background: bool = True) -> tuple[n
 # Procedural textures (solid: functions of the world position)
 # ---------------------------------------------------------------------------
 
-_M2 = np.uint64(0xBF58476D1CE4E5B9)
-_M3 = np.uint64(0x94D049BB133111EB)
+_TABLE = 4096  # lattice hash period in cells: > 50 world units even for the finest noise octave
 
 
-def _hash(ix: np.ndarray, iy: np.ndarray, iz: np.ndarray, salt: int) -> np.ndarray:
-    """Uniform [0, 1) per integer lattice point [N] (splitmix64 of the packed coordinates)."""
-    h = ix.astype(np.uint64) * np.uint64(0x8DA6B343)
-    h ^= iy.astype(np.uint64) * np.uint64(0xD8163841)
-    h ^= iz.astype(np.uint64) * np.uint64(0xCB1AB31F)
-    h += np.uint64((salt * 0x9E3779B97F4A7C15) & 0xFFFFFFFFFFFFFFFF)  # Python ints: no overflow warning
-    h ^= h >> np.uint64(30)
-    h *= _M2
-    h ^= h >> np.uint64(27)
-    h *= _M3
-    h ^= h >> np.uint64(31)
-    return (h >> np.uint64(11)).astype(np.float64) * (1.0 / 9007199254740992.0)
+@functools.lru_cache(maxsize=None)
+def _tables(salt: int) -> tuple[np.ndarray, np.ndarray]:
+    """Permutation [T] int64 and uniform values [T, 8] for one salt. PCG64 is
+    stable across numpy versions and platforms, so textures are too."""
+    rng = np.random.default_rng(salt & 0xFFFFFFFF)
+    return rng.permutation(_TABLE), rng.random((_TABLE, 8))
+
+
+def _cell_index(ix: np.ndarray, iy: np.ndarray, iz: np.ndarray, perm: np.ndarray) -> np.ndarray:
+    """Pseudo-random index [N] in [0, T) per integer lattice point (Perlin's nested permutation)."""
+    m = _TABLE - 1  # & m is mod T for negative ints too (two's complement)
+    return perm[(perm[(perm[ix & m] + iy) & m] + iz) & m]
 
 
 def _value_noise(p: np.ndarray, salt: int) -> np.ndarray:
     """Smooth value noise in [0, 1] at points p [N, 3] (lattice spacing 1)."""
+    perm, vals = _tables(salt)
+    m = _TABLE - 1
     fl = np.floor(p)
     i = fl.astype(np.int64)
     f = p - fl
@@ -239,11 +250,13 @@ def _value_noise(p: np.ndarray, salt: int) -> np.ndarray:
     out = np.zeros(len(p))
     for dx in (0, 1):
         wx = w[:, 0] if dx else 1.0 - w[:, 0]
+        hx = perm[(i[:, 0] + dx) & m]
         for dy in (0, 1):
-            wy = w[:, 1] if dy else 1.0 - w[:, 1]
+            wxy = wx * (w[:, 1] if dy else 1.0 - w[:, 1])
+            hxy = perm[(hx + i[:, 1] + dy) & m]
             for dz in (0, 1):
                 wz = w[:, 2] if dz else 1.0 - w[:, 2]
-                out += wx * wy * wz * _hash(i[:, 0] + dx, i[:, 1] + dy, i[:, 2] + dz, salt)
+                out += wxy * wz * vals[perm[(hxy + i[:, 2] + dz) & m], 0]
     return out
 
 
@@ -265,19 +278,18 @@ def _dots(p: np.ndarray, salt: int, cell: float, radius: float) -> tuple[np.ndar
     keeps it inside its cell, so only the own cell needs testing. A surface cuts
     the spheres in discs of varying size -- blobs of many sizes and colours.
     """
+    perm, vals = _tables(salt)
     q = p / cell
     fl = np.floor(q)
     i = fl.astype(np.int64)
-    jx = 0.3 + 0.4 * _hash(i[:, 0], i[:, 1], i[:, 2], salt + 1)
-    jy = 0.3 + 0.4 * _hash(i[:, 0], i[:, 1], i[:, 2], salt + 2)
-    jz = 0.3 + 0.4 * _hash(i[:, 0], i[:, 1], i[:, 2], salt + 3)
-    r = radius * (0.5 + 0.5 * _hash(i[:, 0], i[:, 1], i[:, 2], salt + 4))
-    keep = _hash(i[:, 0], i[:, 1], i[:, 2], salt + 5) < 0.75  # some cells stay empty
-    dist = np.linalg.norm(q - fl - np.stack([jx, jy, jz], axis=1), axis=1)
+    h = vals[_cell_index(i[:, 0], i[:, 1], i[:, 2], perm)]  # [N, 8] uniforms per cell
+    centre = 0.3 + 0.4 * h[:, :3]
+    r = radius * (0.5 + 0.5 * h[:, 3])
+    keep = h[:, 4] < DOT_FILL  # some cells stay empty
+    dist = np.linalg.norm(q - fl - centre, axis=1)
     cover = np.clip((r - dist) / 0.04 + 0.5, 0.0, 1.0) * keep  # soft 4%-of-cell edge
-    hue = _hash(i[:, 0], i[:, 1], i[:, 2], salt + 6)
-    val = 0.15 + 0.85 * _hash(i[:, 0], i[:, 1], i[:, 2], salt + 7)  # spread luminance: SIFT sees grey
-    return cover, _hsv(hue, np.full_like(hue, 0.75), val)
+    val = 0.15 + 0.85 * h[:, 6]  # spread luminance: SIFT sees grey
+    return cover, _hsv(h[:, 5], np.full(len(p), 0.75), val)
 
 
 def _hsv(h: np.ndarray, s: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -351,8 +363,10 @@ def _albedo(p: np.ndarray, mat_id: int, seed: int) -> np.ndarray:
         col = col * (0.35 + 0.65 * pat)[:, None]  # grout / mortar lines darken
     elif m.pattern != "none":
         col = col * (0.55 + 0.45 * pat)[:, None]
-    cover, dot_col = _dots(p, salt + 31, m.dot_cell, m.dot_radius)
-    col = _mix(col, dot_col, cover)
+    # Two layers of dots: coarse ones survive at low resolution and far away, fine ones add detail up close.
+    for k, cell in enumerate((m.dot_cell * 2.5, m.dot_cell)):
+        cover, dot_col = _dots(p, salt + 31 + 10 * k, cell, m.dot_radius)
+        col = _mix(col, dot_col, cover)
     return np.clip(col, 0.0, 1.0)
 
 
@@ -372,7 +386,9 @@ def render_view(K: np.ndarray, viewmat: np.ndarray, width: int, height: int, see
     uu, vv = np.meshgrid(u, v)  # [H*ss, W*ss]
     pix = np.stack([uu.ravel(), vv.ravel(), np.ones(uu.size)], axis=1)
     R, t = viewmat[:3, :3], viewmat[:3, 3]
-    d = pix @ (np.linalg.inv(K).T @ R)  # camera rays rotated to world: R^T K^-1 [u, v, 1] as row vectors
+    M = np.linalg.inv(K).T @ R  # camera rays rotated to world: R^T K^-1 [u, v, 1] as row vectors
+    # Column-wise products: numpy's [N, 3] @ [3, 3] is several times slower than this.
+    d = pix[:, 0:1] * M[0] + pix[:, 1:2] * M[1] + pix[:, 2:3] * M[2]
     d /= np.sqrt(d[:, 0] ** 2 + d[:, 1] ** 2 + d[:, 2] ** 2)[:, None]
     o = np.ascontiguousarray(np.broadcast_to(-R.T @ t, d.shape))
 
@@ -390,7 +406,7 @@ def render_view(K: np.ndarray, viewmat: np.ndarray, width: int, height: int, see
         n[sel] = _normal(p[sel], int(m))
         albedo[sel] = _albedo(p[sel], int(m), seed)
     # Hard shadows cast by the objects (the ground and the wall only receive them).
-    lambert = np.clip(n @ LIGHT_DIR, 0.0, None)
+    lambert = np.clip(n[:, 0] * LIGHT_DIR[0] + n[:, 1] * LIGHT_DIR[1] + n[:, 2] * LIGHT_DIR[2], 0.0, None)
     lit = np.flatnonzero(lambert > 0)
     shadow_t, _ = _cast(p[lit] + n[lit] * 1e-4, np.broadcast_to(LIGHT_DIR, (len(lit), 3)), with_background=False)
     lambert[lit[np.isfinite(shadow_t)]] = 0.0
@@ -426,19 +442,23 @@ def render_scene(
     width: int = 320,
     height: int = 240,
     seed: int = 0,
-    arc_degrees: float = ARC_DEGREES,
+    arc_degrees: float | None = None,
     jpeg_quality: int = 92,
 ) -> Path:
     """Render the scene into `out_dir`: images/NNN.jpg and ground_truth.json. Returns out_dir.
 
     Deterministic: the same arguments give the same bytes. `seed` changes the
     textures only; the geometry and the cameras depend on the sizes and views.
+    `arc_degrees` None: 270 degrees, or 10 degrees per step when there are fewer
+    than 28 views (so that small test scenes still register in SfM).
     """
     import cv2  # only to encode JPEGs
 
     out = Path(out_dir)
     images = out / "images"
     images.mkdir(parents=True, exist_ok=True)
+    if arc_degrees is None:
+        arc_degrees = arc_for_views(num_views)
     cams = []
     for i, (K, viewmat) in enumerate(orbit_cameras(num_views, width, height, arc_degrees)):
         name = f"{i:03d}.jpg"
@@ -452,6 +472,7 @@ def render_scene(
         "frame": "opencv",
         "source": "splatcli sample_data/make_scene.py",
         "seed": seed,
+        "arc_degrees": arc_degrees,
         "world_up": [0.0, 0.0, 1.0],
         "look_at": LOOK_AT.tolist(),
         "cameras": cams,
