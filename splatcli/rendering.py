@@ -345,7 +345,8 @@ def select_views(model: LoadedModel, config: RenderConfig, notes: list[str]) -> 
     if project is None and config.project is not None:
         project = Project.open(config.project)
     if config.cameras is not None:
-        base = read_transforms(config.cameras, notes=notes)
+        size = (config.width, config.height) if config.width and config.height else None
+        base = read_transforms(config.cameras, notes=notes, default_size=size)
         name = Path(config.cameras).stem
     elif project is not None:
         split = config.split or "test"

@@ -99,12 +99,14 @@ def _image_size(path: Path) -> tuple[int, int] | None:
     return None if img is None else (int(img.shape[1]), int(img.shape[0]))
 
 
-def read_transforms(path: str | Path, *, notes: list[str] | None = None) -> list[View]:
+def read_transforms(path: str | Path, *, notes: list[str] | None = None,
+                    default_size: tuple[int, int] | None = None) -> list[View]:
     """Cameras of a nerfstudio / instant-ngp `transforms.json`, converted to OpenCV.
 
     Intrinsics: per-frame keys override global ones; `fl_x`/`fl_y` or
     `camera_angle_x` (then fy = fx unless `camera_angle_y`); `cx`, `cy` default to
-    the image centre; `w`, `h` default to the size of the frame's image file.
+    the image centre; `w`, `h` default to the size of the frame's image file,
+    else to `default_size` (width, height).
     Distortion coefficients are ignored (with a note): renders are pinhole.
     """
     path = Path(path)
@@ -141,6 +143,7 @@ def read_transforms(path: str | Path, *, notes: list[str] | None = None) -> list
             if size_cache is None and isinstance(file_path, str):
                 img = path.parent / file_path
                 size_cache = _image_size(img) or (_image_size(img.with_suffix(".png")) if not img.suffix else None)
+            size_cache = size_cache or default_size
             if size_cache is None:
                 raise SplatError(
                     f"{path}: {where}no w/h and its image cannot be read to find the size; pass --width and --height"
@@ -162,7 +165,7 @@ def read_transforms(path: str | Path, *, notes: list[str] | None = None) -> list
         if any(abs(get(k) or 0.0) > 0 for k in ("k1", "k2", "k3", "k4", "p1", "p2")):
             distorted = True
         cam = Camera(name=name, width=int(round(w)), height=int(round(h)), K=K, viewmat=viewmat)
-        views.append(View(camera=cam, out_name=out_name_for(name) if isinstance(file_path, str) else f"{name}.png"))
+        views.append(View(camera=cam, out_name=f"{Path(name).stem}.png"))
     if distorted and notes is not None:
         notes.append(f"{path.name}: distortion coefficients are ignored; frames are rendered as pinhole cameras")
     names = [v.out_name for v in views]
@@ -297,12 +300,18 @@ def orbit_path(cams: Sequence[Camera], frames: int) -> list[View]:
 
 def spiral_path(cams: Sequence[Camera], frames: int, rotations: float = 2.0) -> list[View]:
     """The LLFF render path: a spiral around the average camera, in its image
-    plane, with a forward-backward swing, always looking at the focus point."""
+    plane, with a forward-backward swing, always looking at the focus point.
+    Cameras that look inwards from all sides (a 360-degree capture, where the
+    average viewing direction nearly cancels) get a rising and falling orbit
+    instead: `rotations` turns around the focus point, the height swinging by
+    half the orbit radius."""
     centers = np.stack([c.center for c in cams])
     mid = centers.mean(axis=0)
     z = np.mean([c.viewmat[2, :3] for c in cams], axis=0)
-    z = z / max(np.linalg.norm(z), 1e-12)
     up = _up(cams)
+    if np.linalg.norm(z) < 0.5 or abs(np.dot(z, up)) > 0.9 * np.linalg.norm(z):
+        return _spiral_360(cams, frames, rotations, up)
+    z = z / np.linalg.norm(z)
     x = np.cross(z, up)
     x = x / max(np.linalg.norm(x), 1e-12)
     y = np.cross(z, x)
@@ -318,6 +327,24 @@ def spiral_path(cams: Sequence[Camera], frames: int, rotations: float = 2.0) -> 
         off = rads * np.array([math.cos(t), -math.sin(t), -math.sin(0.5 * t)])
         eye = mid + off @ basis
         vms.append(look_at(eye, mid + focal * z, up))
+    return _generated(_template(cams), "spiral", vms)
+
+
+def _spiral_360(cams: Sequence[Camera], frames: int, rotations: float, up: np.ndarray) -> list[View]:
+    base = orbit_path(cams, 1)[0].camera  # the orbit's start: radius and height
+    target = focus_point(cams)
+    rel = base.center - target
+    height = float(rel @ up)
+    horiz = rel - height * up
+    radius = float(np.linalg.norm(horiz))
+    e1 = horiz / max(radius, 1e-12)
+    e2 = np.cross(up, e1)
+    vms = []
+    for i in range(frames):
+        a = 2 * math.pi * rotations * i / frames
+        h = height + 0.5 * radius * math.sin(a / rotations)  # one full rise and fall over the path
+        eye = target + h * up + radius * (math.cos(a) * e1 + math.sin(a) * e2)
+        vms.append(look_at(eye, target, up))
     return _generated(_template(cams), "spiral", vms)
 
 
