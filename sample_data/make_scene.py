@@ -19,7 +19,8 @@ right, y down, z forward); `viewmat` [4, 4] maps world to camera; pixel
 writes out/images/NNN.jpg and out/ground_truth.json (see README.md).
 """
 
-from __future__ import annotations
+# No `from __future__ import annotations`: tests load this file by path, without a
+# sys.modules entry, and dataclasses must then not need to resolve string annotations.
 
 import argparse
 import functools
@@ -376,22 +377,36 @@ def _sky(d: np.ndarray) -> np.ndarray:
     return _mix(np.broadcast_to([0.75, 0.82, 0.95], d.shape), np.broadcast_to([0.30, 0.45, 0.80], d.shape), t)
 
 
-def render_view(K: np.ndarray, viewmat: np.ndarray, width: int, height: int, seed: int = 0, supersample: int = 2) -> np.ndarray:
-    """RGB uint8 image [H, W, 3] seen by the camera K [3, 3], viewmat [4, 4]."""
+def pixel_rays(K: np.ndarray, viewmat: np.ndarray, width: int, height: int, supersample: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """World-space ray origins and unit directions [H*ss * W*ss, 3], row-major over (v, u).
+
+    Sub-pixel j of pixel u sits at u + (j + 0.5) / ss, so with ss = 1 the ray goes
+    through the pixel centre u + 0.5, and the ss x ss samples average to it.
+    """
     ss = supersample
-    # Sub-pixel centres (u + (j + 0.5) / ss) average to the pixel centre u + 0.5.
     offs = (np.arange(ss) + 0.5) / ss
     u = (np.arange(width)[:, None] + offs[None, :]).reshape(-1)  # [W*ss]
     v = (np.arange(height)[:, None] + offs[None, :]).reshape(-1)  # [H*ss]
     uu, vv = np.meshgrid(u, v)  # [H*ss, W*ss]
-    pix = np.stack([uu.ravel(), vv.ravel(), np.ones(uu.size)], axis=1)
     R, t = viewmat[:3, :3], viewmat[:3, 3]
-    M = np.linalg.inv(K).T @ R  # camera rays rotated to world: R^T K^-1 [u, v, 1] as row vectors
+    M = np.linalg.inv(K).T @ R  # rows map (u, v, 1) to R^T K^-1 [u, v, 1]: camera ray rotated to world
     # Column-wise products: numpy's [N, 3] @ [3, 3] is several times slower than this.
-    d = pix[:, 0:1] * M[0] + pix[:, 1:2] * M[1] + pix[:, 2:3] * M[2]
+    d = uu.reshape(-1, 1) * M[0] + vv.reshape(-1, 1) * M[1] + M[2]
     d /= np.sqrt(d[:, 0] ** 2 + d[:, 1] ** 2 + d[:, 2] ** 2)[:, None]
     o = np.ascontiguousarray(np.broadcast_to(-R.T @ t, d.shape))
+    return o, d
 
+
+def material_ids(K: np.ndarray, viewmat: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Material id [H, W] uint8 seen through each pixel centre (SKY where nothing is hit)."""
+    o, d = pixel_rays(K, viewmat, width, height)
+    return _cast(o, d)[1].reshape(height, width)
+
+
+def render_view(K: np.ndarray, viewmat: np.ndarray, width: int, height: int, seed: int = 0, supersample: int = 2) -> np.ndarray:
+    """RGB uint8 image [H, W, 3] seen by the camera K [3, 3], viewmat [4, 4]."""
+    ss = supersample
+    o, d = pixel_rays(K, viewmat, width, height, ss)
     dist, mat = _cast(o, d)
     rgb = np.empty_like(d)
     sky = mat == SKY
