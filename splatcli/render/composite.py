@@ -29,6 +29,7 @@ import math
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from .project import TILE
@@ -36,8 +37,10 @@ from .project import TILE
 ALPHA_MIN = 1.0 / 255.0  # contributions below this are skipped
 ALPHA_MAX = 0.99  # alpha is clamped to this
 T_MIN = 1e-4  # a Gaussian that would bring transmittance below this is not blended, nor any after it
-CHUNK_ELEMS = 1 << 21  # [blocks, K, pixels] elements per chunk: bounds memory, stays cache-friendly
+CHUNK_ELEMS = 1 << 18  # [blocks, pixels, K] elements per chunk: bounds memory, stays in cache (measured: 2^18 best of 2^16..2^21)
 _DEAD = -1e4  # log-opacity of the padding row: exp() is exactly 0
+_LOG2E = 1.4426950408889634  # exp(x) = exp2(x log2 e); exp2 is the faster vectorised kernel
+SEGMENT = 64  # Gaussians per block processed between early-termination checks
 
 
 @dataclass
@@ -54,6 +57,7 @@ class Plan:
     block_count: Tensor  # [nblocks] int64 list length
     chunks: list[tuple[Tensor, int]]  # (block ids [nb], K) per chunk
     n_pairs: int  # M
+    seg: int = SEGMENT  # K-segment length between early-termination checks
 
 
 def _feats(block: int, dtype: torch.dtype, device: torch.device) -> Tensor:  # [6, P]
@@ -74,7 +78,8 @@ def make_plan(
     width: int,
     height: int,
     block: int = 8,
-    chunk_elems: int = CHUNK_ELEMS,
+    chunk_elems: int | None = None,
+    seg: int | None = None,
 ) -> Plan:
     assert TILE % block == 0
     dev = means2d.device
@@ -120,8 +125,8 @@ def make_plan(
         pair_gid = idx[key % max(S, 1)]
         count = torch.bincount(blk, minlength=nblocks)
         start = torch.cumsum(count, 0) - count
-        chunks = _schedule(count, block * block, chunk_elems)
-    return Plan(width, height, block, nbx, nby, pair_gid, start, count, chunks, M)
+        chunks = _schedule(count, block * block, chunk_elems or CHUNK_ELEMS)
+    return Plan(width, height, block, nbx, nby, pair_gid, start, count, chunks, M, seg or SEGMENT)
 
 
 def _schedule(count: Tensor, P: int, chunk_elems: int) -> list[tuple[Tensor, int]]:
@@ -148,27 +153,52 @@ def _coef(
     centre: Tensor,  # [nb, 1, 2] block centre px
 ):
     """Coefficients of log(o G) as a quadratic in the block-local pixel offset l:
-    c0 + gx lx + gy ly + qa lx^2 + qb lx ly + qc ly^2, with d0 = mean - centre."""
+    c0 + gx lx + gy ly + qa lx^2 + qb lx ly + qc ly^2, with d0 = mean - centre.
+    Expanding around the block centre keeps the terms small where alpha matters:
+    the large part of d0 lies along the ellipse's long axis, where Q d0 is small."""
     d0x = p[..., 0] - centre[..., 0]
     d0y = p[..., 1] - centre[..., 1]
     A, B, C = p[..., 2], p[..., 3], p[..., 4]
     gx = A * d0x + B * d0y
     gy = B * d0x + C * d0y
     c0 = p[..., 5] - 0.5 * (d0x * gx + d0y * gy)
-    coef = torch.stack([c0, gx, gy, -0.5 * A, -B, -0.5 * C], -1)
+    coef = torch.stack([c0, gx, gy, -0.5 * A, -B, -0.5 * C], 1)  # [nb, 6, K]
     return coef, d0x, d0y, gx, gy
 
 
-def _alpha_T(coef: Tensor, feats: Tensor):
-    """alpha and transmittance of a chunk; [nb, K, P] each."""
-    araw = torch.exp(coef @ feats)  # o * G
-    alpha = torch.where(araw >= ALPHA_MIN, araw.clamp(max=ALPHA_MAX), torch.zeros_like(araw))
-    om = 1.0 - alpha
-    T_after = torch.cumprod(om, dim=1)
-    inc = T_after >= T_MIN
-    T_before = T_after / om
-    w = torch.where(inc, alpha * T_before, torch.zeros_like(alpha))
-    return araw, alpha, om, T_after, inc, T_before, w
+def _below(x: float, dtype: torch.dtype) -> float:
+    """The largest value of `dtype` below x, so that `threshold(t > it)` means t >= x."""
+    t = torch.tensor(x, dtype=dtype)
+    return float(torch.nextafter(t, torch.zeros_like(t)))
+
+
+class _Consts:
+    def __init__(self, dtype: torch.dtype):
+        self.a_min = _below(ALPHA_MIN, dtype)
+        self.t_min = _below(T_MIN, dtype)
+
+
+def _alpha(coef2: Tensor, featsT: Tensor, c: _Consts) -> Tensor:  # [nb, P, k]
+    """alpha = min(0.99, o G), zeroed below 1/255; coef2 is in log2 units."""
+    a = torch.matmul(featsT, coef2)  # [P, 6] @ [nb, 6, k]
+    a.exp2_()
+    F.threshold_(a, c.a_min, 0.0)
+    return a.clamp_max_(ALPHA_MAX)
+
+
+def _transmittance(alpha: Tensor, Tc: Tensor | None, c: _Consts):
+    """om = 1 - alpha; U = T after each Gaussian, zero from the first one that would
+    bring T below 1e-4 (that one and all behind it are not blended)."""
+    om = torch.rsub(alpha, 1.0)
+    U = torch.cumprod(om, 2)
+    if Tc is not None:
+        U.mul_(Tc[..., None])
+    F.threshold_(U, c.t_min, 0.0)
+    return om, U
+
+
+def _segments(K: int, seg: int):
+    return [(k0, min(K, k0 + seg)) for k0 in range(0, K, seg)]
 
 
 def _gather(plan: Plan, bl: Tensor, K: int, nrows: int):
@@ -186,14 +216,21 @@ def _gather(plan: Plan, bl: Tensor, K: int, nrows: int):
 
 
 def _pack(means2d, conics, opacities, colors, depths):
-    """Per-Gaussian rows (u, v, A, B, C, log o | r, g, b, z) plus one padding row."""
+    """Per-Gaussian rows (u, v, A, B, C, log o) and (r, g, b, z, 1), plus one padding row
+    (log o = -1e4: alpha exactly 0). The constant 1 makes the colour GEMM also sum the
+    blending weights, which gives T_final = 1 - sum w for free."""
     logo = torch.log(torch.clamp_min(opacities, 1e-38)).masked_fill(opacities <= 0, _DEAD)
     geo = torch.cat([means2d, conics, logo[:, None]], 1)
     pad = geo.new_zeros(1, 6)
     pad[0, 5] = _DEAD
     geo = torch.cat([geo, pad], 0)
-    cz = torch.cat([torch.cat([colors, depths[:, None]], 1), colors.new_zeros(1, 4)], 0)
+    cz = torch.cat([colors, depths[:, None], torch.ones_like(depths)[:, None]], 1)
+    cz = torch.cat([cz, cz.new_zeros(1, 5)], 0)
     return geo, cz
+
+
+def _rows(x: Tensor, act: Tensor | None) -> Tensor:
+    return x if act is None else x[act]
 
 
 class _Composite(torch.autograd.Function):
@@ -203,49 +240,98 @@ class _Composite(torch.autograd.Function):
         dt, dev = means2d.dtype, means2d.device
         P = plan.block * plan.block
         nblocks = plan.nbx * plan.nby
-        feats = _feats(plan.block, dt, dev)
-        acc = torch.zeros(nblocks, P, 4, dtype=dt, device=dev)  # (rgb, depth) sums
-        Tfin = torch.ones(nblocks, P, dtype=dt, device=dev)
+        c = _Consts(dt)
+        featsT = _feats(plan.block, dt, dev).T.contiguous()  # [P, 6]
+        acc = torch.zeros(nblocks, 5, P, dtype=dt, device=dev)  # (r, g, b, depth, sum w)
         for bl, K in plan.chunks:
             g, centre = _gather(plan, bl, K, geo.shape[0])
-            coef = _coef(geo[g], centre)[0]
-            *_, T_after, inc, _, w = _alpha_T(coef, feats)
-            acc[bl] = torch.bmm(w.transpose(1, 2), cz[g])
-            Tfin[bl] = torch.where(inc, T_after, torch.ones_like(T_after)).amin(1)
+            coef2 = _coef(geo[g], centre)[0].mul_(_LOG2E)  # [nb, 6, K]
+            czt = cz[g].transpose(1, 2)  # [nb, 5, K]
+            out = torch.zeros(bl.shape[0], 5, P, dtype=dt, device=dev)
+            act, Tc = None, None
+            for k0, k1 in _segments(K, plan.seg):
+                alpha = _alpha(_rows(coef2, act)[:, :, k0:k1], featsT, c)
+                om, U = _transmittance(alpha, Tc, c)
+                w = alpha.div_(om).mul_(U)  # alpha T_before, 0 where not blended
+                o = torch.bmm(_rows(czt, act)[:, :, k0:k1], w.transpose(1, 2))  # [na, 5, P]
+                Tc = U[:, :, -1]
+                if act is None:
+                    out += o
+                else:
+                    out.index_add_(0, act, o)
+                if k1 < K:  # early termination: drop blocks whose every pixel has stopped
+                    alive = Tc.amax(1) > 0
+                    if not bool(alive.all()):
+                        act = torch.nonzero(alive).squeeze(1) if act is None else act[alive]
+                        Tc = Tc[alive]
+                        if act.numel() == 0:
+                            break
+            acc[bl] = out
         ctx.plan = plan
-        ctx.save_for_backward(geo, cz, acc, Tfin, background, opacities)
-        image, alpha, depth = _unblock(plan, acc, Tfin, background)
-        return image, alpha, depth
+        ctx.save_for_backward(geo, cz, acc, background, opacities)
+        return _unblock(plan, acc, background)
 
     @staticmethod
     def backward(ctx, g_image, g_alpha, g_depth):
         plan: Plan = ctx.plan
-        geo, cz, acc, Tfin, background, opacities = ctx.saved_tensors
+        geo, cz, acc, background, opacities = ctx.saved_tensors
         dt, dev = geo.dtype, geo.device
-        P = plan.block * plan.block
-        feats = _feats(plan.block, dt, dev)
-        g4, gA = _block(plan, g_image, g_alpha, g_depth)  # [nblocks, P, 4], [nblocks, P]
-        # Per pixel: d loss / d T_final = g . bg - g_alpha ; the colour+depth total g . acc.
-        extra_all = Tfin * ((g4[..., :3] * background).sum(-1) - gA)
-        total_all = (g4 * acc).sum(-1)
+        c = _Consts(dt)
+        feats = _feats(plan.block, dt, dev)  # [6, P]
+        featsT = feats.T.contiguous()
+        g4, gA = _block(plan, g_image, g_alpha, g_depth)  # [nblocks, 4, P], [nblocks, P]
+        Tfin = 1.0 - acc[:, 4]
+        # Per pixel: the colour+depth total g . acc (suffix sums come from it: 3DGS's
+        # trick) plus d loss / d T_final = g . bg - g_alpha times T_final.
+        base_all = (g4 * acc[:, :4]).sum(1) + Tfin * ((g4[:, :3] * background[:, None]).sum(1) - gA)
+        g4t_all = g4.transpose(1, 2)  # [nblocks, P, 4]
         d_geo = torch.zeros_like(geo)
         d_cz = torch.zeros_like(cz)
         for bl, K in plan.chunks:
+            nb = bl.shape[0]
             g, centre = _gather(plan, bl, K, geo.shape[0])
             p = geo[g]
-            czg = cz[g]
             coef, d0x, d0y, gx, gy = _coef(p, centre)
-            araw, alpha, om, T_after, inc, T_before, w = _alpha_T(coef, feats)
-            gb = g4[bl]  # [nb, P, 4]
-            v = torch.bmm(czg, gb.transpose(1, 2))  # [nb, K, P]: g . (rgb, z) of each pair
-            pre = torch.cumsum(w * v, 1)
-            suffix = total_all[bl][:, None, :] - pre + extra_all[bl][:, None, :]
-            d_alpha = T_before * v - suffix / om
-            dpow = torch.where(inc & (araw < ALPHA_MAX), d_alpha * alpha, torch.zeros_like(alpha))
-            R = dpow @ feats.T  # [nb, K, 6]: sums over pixels of dpow * (1, lx, ly, lx^2, lx ly, ly^2)
-            d_cz.index_add_(0, g.reshape(-1), torch.bmm(w, gb).reshape(-1, 4))
+            coef2 = coef * _LOG2E
+            czt = cz[g].transpose(1, 2)[:, :4]  # [nb, 4, K]
+            g4b, g4tb, base = g4[bl], g4t_all[bl], base_all[bl]
+            R = torch.zeros(nb, 6, K, dtype=dt, device=dev)
+            dczt = torch.zeros(nb, 4, K, dtype=dt, device=dev)
+            act, Tc, pc = None, None, None
+            for k0, k1 in _segments(K, plan.seg):
+                alpha = _alpha(_rows(coef2, act)[:, :, k0:k1], featsT, c)
+                om, U = _transmittance(alpha, Tc, c)
+                r = alpha / om
+                w = r * U
+                v = torch.bmm(_rows(g4tb, act), _rows(czt, act)[:, :, k0:k1])  # [na, P, k]
+                pre = torch.cumsum(w * v, 2)
+                if pc is not None:
+                    pre += pc[..., None]
+                # d loss / d power = alpha d loss / d alpha
+                #   = r (U v - (base - pre)), for blended, unclamped alpha; 0 otherwise.
+                t = U * v
+                t += pre
+                t -= _rows(base, act)[..., None]
+                mask = torch.sign(U).mul_(torch.sign(torch.rsub(alpha, ALPHA_MAX)))
+                dpow = t.mul_(r).mul_(mask)
+                Rs = torch.matmul(feats, dpow)  # [na, 6, k]: sums of dpow * pixel features
+                ds = torch.bmm(_rows(g4b, act), w)  # [na, 4, k]
+                if act is None:
+                    R[:, :, k0:k1] = Rs
+                    dczt[:, :, k0:k1] = ds
+                else:
+                    R[act, :, k0:k1] = Rs
+                    dczt[act, :, k0:k1] = ds
+                Tc, pc = U[:, :, -1], pre[:, :, -1]
+                if k1 < K:
+                    alive = Tc.amax(1) > 0
+                    if not bool(alive.all()):
+                        act = torch.nonzero(alive).squeeze(1) if act is None else act[alive]
+                        Tc, pc = Tc[alive], pc[alive]
+                        if act.numel() == 0:
+                            break
             A, B, C = p[..., 2], p[..., 3], p[..., 4]
-            R0, R1, R2, R3, R4, R5 = R.unbind(-1)
+            R0, R1, R2, R3, R4, R5 = R.unbind(1)
             dgeo = torch.stack(
                 [
                     -gx * R0 + A * R1 + B * R2,
@@ -258,35 +344,32 @@ class _Composite(torch.autograd.Function):
                 -1,
             )
             d_geo.index_add_(0, g.reshape(-1), dgeo.reshape(-1, 6))
+            d_cz[:, :4].index_add_(0, g.reshape(-1), dczt.transpose(1, 2).reshape(-1, 4))
         d_geo, d_cz = d_geo[:-1], d_cz[:-1]
         d_opac = torch.where(opacities > 0, d_geo[:, 5] / opacities.clamp_min(1e-38), torch.zeros_like(opacities))
         d_bg = None
         if ctx.needs_input_grad[6]:
-            d_bg = (g_image * _image_T(plan, Tfin)[..., None]).sum((0, 1))
+            d_bg = (g_image * _to_image(plan, Tfin[:, None])[..., 0:1]).sum((0, 1))
         return None, d_geo[:, :2], d_geo[:, 2:5], d_opac, d_cz[:, :3], d_cz[:, 3], d_bg
 
 
-def _to_image(plan: Plan, x: Tensor) -> Tensor:  # [nblocks, P, C] -> [H, W, C]
-    b, C = plan.block, x.shape[-1]
-    img = x.reshape(plan.nby, plan.nbx, b, b, C).permute(0, 2, 1, 3, 4).reshape(plan.nby * b, plan.nbx * b, C)
+def _to_image(plan: Plan, x: Tensor) -> Tensor:  # [nblocks, C, P] -> [H, W, C]
+    b, C = plan.block, x.shape[1]
+    img = x.reshape(plan.nby, plan.nbx, C, b, b).permute(0, 3, 1, 4, 2).reshape(plan.nby * b, plan.nbx * b, C)
     return img[: plan.height, : plan.width]
 
 
-def _to_blocks(plan: Plan, img: Tensor) -> Tensor:  # [H, W, C] -> [nblocks, P, C]
+def _to_blocks(plan: Plan, img: Tensor) -> Tensor:  # [H, W, C] -> [nblocks, C, P]
     b, C = plan.block, img.shape[-1]
     Hp, Wp = plan.nby * b, plan.nbx * b
     pad = img.new_zeros(Hp, Wp, C)
     pad[: plan.height, : plan.width] = img
-    return pad.reshape(plan.nby, b, plan.nbx, b, C).permute(0, 2, 1, 3, 4).reshape(-1, b * b, C)
+    return pad.reshape(plan.nby, b, plan.nbx, b, C).permute(0, 2, 4, 1, 3).reshape(-1, C, b * b).contiguous()
 
 
-def _image_T(plan: Plan, Tfin: Tensor) -> Tensor:  # [H, W]
-    return _to_image(plan, Tfin[..., None])[..., 0]
-
-
-def _unblock(plan: Plan, acc: Tensor, Tfin: Tensor, background: Tensor):
+def _unblock(plan: Plan, acc: Tensor, background: Tensor):
     a = _to_image(plan, acc)
-    T = _image_T(plan, Tfin)
+    T = 1.0 - a[..., 4]
     image = a[..., :3] + T[..., None] * background
     return image.contiguous(), (1.0 - T).contiguous(), a[..., 3].contiguous()
 
@@ -298,9 +381,8 @@ def _block(plan: Plan, g_image, g_alpha, g_depth):
     gi = g_image if g_image is not None else z(H, W, 3)
     ga = g_alpha if g_alpha is not None else z(H, W)
     gd = g_depth if g_depth is not None else z(H, W)
-    g4 = _to_blocks(plan, torch.cat([gi, gd[..., None]], -1))
-    gA = _to_blocks(plan, ga[..., None])[..., 0]
-    return g4, gA
+    g5 = _to_blocks(plan, torch.cat([gi, gd[..., None], ga[..., None]], -1))
+    return g5[:, :4].contiguous(), g5[:, 4].contiguous()
 
 
 def composite(
