@@ -59,6 +59,7 @@ class ProcessConfig:
     overwrite: bool = False
     seed: int = 0
     max_features: int = 4096  # SIFT features per image
+    first_octave: int | None = None  # SIFT: None picks 0, or -1 (upsampled) for images under 400 px
     sequential_overlap: int = 10
     blur_ratio: float = 0.6  # video: drop frames less sharp than this x their neighbours' median
     num_threads: int = -1  # -1: all cores
@@ -315,6 +316,7 @@ def _from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: 
         run.note(f"images come in {len(sizes)} sizes; using one camera per image")
     sfm_opts = SfmOptions(
         matcher=cfg.matcher, ordered=spec.kind == "video", max_features=cfg.max_features,
+        first_octave=cfg.first_octave,
         sequential_overlap=cfg.sequential_overlap, seed=cfg.seed, num_threads=cfg.num_threads,
     )
     res = run_sfm(work / "input", names, work, sfm_opts, single_camera=len(sizes) == 1,
@@ -368,7 +370,7 @@ def _finish_model(model: Model, st: Project, work: Path, cfg: ProcessConfig, run
         model.write(st.sparse_dir)
         return False
     model.write(st.distorted_dir)
-    with run.stage("undistort", None):
+    with run.stage("undistort", len(names)) as s:
         out = colmap.undistort(model, work / "input", work / "undistorted", max_image_size=cfg.max_size,
                                num_threads=cfg.num_threads)
         st.sparse_dir.parent.mkdir(parents=True, exist_ok=True)
@@ -380,6 +382,7 @@ def _finish_model(model: Model, st: Project, work: Path, cfg: ProcessConfig, run
             for name in names:
                 if (mdir / name).exists():
                     _convert_mask(mdir / name, _mask_path(st, name))
+        s.progress(len(names))
     return True
 
 
@@ -410,7 +413,7 @@ def _from_colmap(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
     assert spec.model_dir is not None and spec.images_dir is not None
     work = stage / "work"
     st = Project(stage)
-    with run.stage("read model", None):
+    with run.stage("read model", 1) as s:
         summary = check_model(spec.model_dir)
         # Read a copy of only the three files we checked (rigs/frames are ignored).
         copy = work / "model_in"
@@ -418,6 +421,7 @@ def _from_colmap(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
         for stem in ("cameras", "images", "points3D"):
             shutil.copyfile(spec.model_dir / f"{stem}.{summary.format}", copy / f"{stem}.{summary.format}")
         model = colmap.read_model(copy)
+        s.progress(1)
     names = model.registered_names()
     if not names:
         raise SplatError(f"{spec.model_dir}: the COLMAP model has no posed images")
@@ -602,8 +606,10 @@ def _publish(root: Path, stage: Path, spec: InputSpec, cfg: ProcessConfig, ds: _
     config["background_rgb"] = list(background)
     from .io.atomic import atomic_write_json
 
-    atomic_write_json(proj.process_report_path, result.summary())
     proj.update_manifest(splits=splits, scene=facts)
-    proj.record_step("process", config=config, summary=result.summary())  # last: marks the project processed
+    proj.record_step("process", config=config, summary=result.summary())  # marks the project processed
+    # The report copy comes after the step record: batch Makefiles take it as
+    # "process finished", so it must never exist for an unfinished project.
+    atomic_write_json(proj.process_report_path, result.summary())
     return result
 

@@ -1,10 +1,40 @@
-"""`splatcli process` (stub: being implemented)."""
+"""`splatcli process`: photos, a video, a COLMAP workspace or a transforms.json -> a posed dataset."""
 
 from __future__ import annotations
 
-from ..errors import SplatError
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from ..process import ProcessConfig, process as run_process
+from ..sfm import colmap
+from .common import DebugOpt, JsonOpt, QuietOpt, SeedOpt, Ui
 
 
-def process() -> None:
-    """Not implemented yet."""
-    raise SplatError("process: not implemented yet")
+def process(
+    input: Path = typer.Argument(..., help="Folder of photos, video file, COLMAP workspace, or transforms.json (or its folder)."),
+    output: Path = typer.Option(..., "--output", "-o", help="The project directory to create."),
+    input_type: str = typer.Option("auto", "--input-type", help="auto, images, video, colmap or transforms."),
+    max_size: int = typer.Option(1600, "--max-size", help="Cap on the longest image side, pixels (SfM and the dataset)."),
+    matcher: str = typer.Option("auto", "--matcher", help="auto, exhaustive (all pairs) or sequential (ordered captures)."),
+    fps: Optional[float] = typer.Option(None, "--fps", help="Video: frames to extract per second of video."),
+    num_frames: int = typer.Option(100, "--num-frames", help="Video: frames to extract, evenly spaced (without --fps)."),
+    background: str = typer.Option("auto", "--background", help="auto (white for RGBA inputs, else black), white, black or R,G,B."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing project (or use a non-empty folder)."),
+    seed: int = SeedOpt,
+    quiet: bool = QuietOpt,
+    json_out: bool = JsonOpt,
+    debug: bool = DebugOpt,
+) -> None:
+    """Turn a capture into a posed dataset (SfM with pycolmap, or import of existing poses)."""
+    ui = Ui(quiet=quiet, json_out=json_out)
+    colmap.set_verbose(debug)
+    cfg = ProcessConfig(input_type=input_type, max_size=max_size, matcher=matcher, fps=fps, num_frames=num_frames,
+                        background=background, overwrite=overwrite, seed=seed)
+    with ui.progress() as sink:
+        r = run_process(input, output, cfg, on_event=sink)
+    lines = [f"{r.train} train / {r.test} test images, {r.points} points"
+             + (f", reprojection error {r.mean_reprojection_error:.2f} px" if r.mean_reprojection_error else ""),
+             "stages: " + ", ".join(f"{k} {v:.1f}s" for k, v in r.seconds.items())]
+    ui.summary(r.summary(), title=f"{r.input_kind}: {r.registered}/{r.total} images posed -> {r.project}", lines=lines)
