@@ -150,7 +150,7 @@ class FolderReport:
 
     def summary(self) -> dict[str, Any]:
         return {"psnr": self.psnr, "ssim": self.ssim, "num_images": len(self.per_image), "pred": self.pred_dir,
-                "gt": self.gt_dir, "missing": self.missing}
+                "gt": self.gt_dir, "missing": self.missing, "per_image": [asdict(s) for s in self.per_image]}
 
 
 # ---------------------------------------------------------------------------

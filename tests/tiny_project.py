@@ -119,13 +119,18 @@ def run_cli(*args: object):
     return CliRunner().invoke(app, [str(a) for a in args])
 
 
-def assert_user_error(result, *fragments: str) -> None:
-    """Exit 2, one line `error: ...` on stderr naming what it should, no traceback."""
-    err = result.stderr.strip()
+def assert_user_error(result, *fragments: str, alone: bool = True) -> None:
+    """Exit 2, one line `error: ...` on stderr naming what it should, no traceback.
+    Errors found before any work are the only stderr line; one found mid-way
+    (a bad image in a folder) comes after the progress shown so far."""
+    lines = result.stderr.strip().splitlines()
     assert result.exit_code == 2, (result.exit_code, result.output)
-    assert err.startswith("error: "), err
-    assert len(err.splitlines()) == 1, err
+    assert lines and lines[-1].startswith("error: "), result.stderr
+    assert sum(line.startswith("error:") for line in lines) == 1, result.stderr
     assert "Traceback" not in result.output
+    if alone:
+        assert len(lines) == 1, result.stderr
+    err = lines[-1]
     for f in fragments:
         assert f in err, (f, err)
 

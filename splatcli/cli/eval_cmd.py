@@ -43,7 +43,7 @@ def evaluate(
             raise SplatError("--pred and --gt go together, without a project")
         with ui.progress() as sink:
             f = compare_folders(pred, gt, background=bg or (0.0, 0.0, 0.0), on_event=sink)
-        ui.summary(f.summary() | {"per_image": f.per_image}, title=f"{len(f.per_image)} images compared",
+        ui.summary(f.summary(), title=f"{len(f.per_image)} images compared",
                    lines=[f"PSNR {f.psnr:.2f} dB   SSIM {f.ssim:.4f}"])
         return
     if project is None:
