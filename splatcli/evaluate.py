@@ -55,7 +55,9 @@ class EvalConfig:
     budgets: tuple[float, ...] = DEFAULT_BUDGETS  # fractions of the Gaussians kept for the speed curve
     contribution_views: int = 16  # training views that rank the Gaussians (evenly spaced)
     plots: bool = True  # PNG plots beside eval.md (needs matplotlib)
-    write: bool = True  # write reports/eval.json and eval.md
+    write: bool = True  # write eval.json and eval.md
+    model: Path | None = None  # score this 3DGS .ply (any tool's) instead of the latest checkpoint
+    out: Path | None = None  # folder for eval.json, eval.md, plots (default PROJECT/reports)
 
 
 @dataclass
@@ -115,12 +117,14 @@ class EvalReport:
     split: str
     width: int
     height: int
-    step: int  # checkpoint step
+    step: int | None  # checkpoint step (None for a .ply)
+    model: str = ""  # what was scored: "checkpoint step 7000" or the .ply path
     budgets: list[BudgetPoint] = field(default_factory=list)
     training_curve: list[CurvePoint] = field(default_factory=list)
     stats: ModelStats | None = None
     plots: list[str] = field(default_factory=list)  # file names beside eval.md
     notes: list[str] = field(default_factory=list)
+    report_path: Path | None = None  # eval.md, when written
 
     def worst(self, k: int = 5) -> list[ImageScore]:
         return sorted(self.per_image, key=lambda s: s.psnr)[:k]
@@ -129,7 +133,7 @@ class EvalReport:
         """The headline numbers (what `--json` prints)."""
         return {k: getattr(self, k) for k in ("psnr", "ssim", "num_gaussians", "sh_degree", "ply_bytes",
                                               "train_seconds", "train_steps", "render_fps", "device", "split",
-                                              "width", "height", "step")} | {"num_images": len(self.per_image)}
+                                              "width", "height", "step", "model")} | {"num_images": len(self.per_image)}
 
     def to_json(self) -> dict[str, Any]:
         d = asdict(self)
@@ -167,6 +171,10 @@ def load_image(path: Path, background: Sequence[float] = (0.0, 0.0, 0.0),
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED) if path.is_file() else None
     if img is None:
         raise SplatError(f"{path}: cannot read this image")
+    if size is not None and (img.ndim == 2 or img.shape[2] == 3) and (img.shape[1], img.shape[0]) != tuple(size):
+        # resize in the file's own type, as training's loader does, so both score one target
+        shrink = size[0] < img.shape[1]
+        img = cv2.resize(img, tuple(size), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
     scale = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(img.dtype, 1.0)
     a = img.astype(np.float64) / scale
     if a.ndim == 2:
@@ -176,8 +184,8 @@ def load_image(path: Path, background: Sequence[float] = (0.0, 0.0, 0.0),
         a = rgb * alpha + np.asarray(background, dtype=np.float64) * (1 - alpha)
     else:
         a = a[..., 2::-1]
-    if size is not None and (a.shape[1], a.shape[0]) != tuple(size):
-        a = cv2.resize(a, tuple(size), interpolation=cv2.INTER_AREA)
+    if size is not None and (a.shape[1], a.shape[0]) != tuple(size):  # RGBA: composited first, then resized
+        a = cv2.resize(a, tuple(size), interpolation=cv2.INTER_AREA if size[0] < a.shape[1] else cv2.INTER_LINEAR)
     return torch.from_numpy(np.ascontiguousarray(np.clip(a, 0.0, 1.0)))
 
 
@@ -325,29 +333,40 @@ def check_eval_config(config: EvalConfig) -> None:
         raise SplatError(f"--downscale {config.downscale}: must be in (0, 64]")
     if not config.budgets or any(not (0 < b <= 1) for b in config.budgets):
         raise SplatError("--budgets: each fraction must be in (0, 1], e.g. 1,0.5,0.25,0.1")
+    if config.model is not None and not Path(config.model).is_file():
+        raise SplatError(f"--model {config.model}: no such .ply file")
+    if config.out is not None and Path(config.out).exists() and not Path(config.out).is_dir():
+        raise SplatError(f"--out {config.out}: exists and is not a directory")
     if config.contribution_views < 1:
         raise SplatError(f"contribution_views {config.contribution_views}: must be at least 1")
 
 
 def evaluate_project(root: str | Path, config: EvalConfig, device: torch.device, *,
                      on_event: EventSink | None = None) -> EvalReport:
-    """Score the latest checkpoint of the project at `root` (see module docstring)
-    and write reports/eval.json, eval.md and the plots."""
+    """Score the latest checkpoint of the project at `root` (or `config.model`, a
+    .ply) on its held-out views (see module docstring) and write eval.json,
+    eval.md and the plots into `config.out` (default the project's reports/)."""
     from .io.checkpoint import load_checkpoint
+    from .io.ply import read_ply
 
     check_eval_config(config)
     project = Project.open(root)
-    ck_path = project.require_trained()
-    views = dataset_views(project, config.split)
-    ck = load_checkpoint(ck_path, device)
-    g = ck.model()
     notes: list[str] = []
+    if config.model is None:
+        ck = load_checkpoint(project.require_trained(), device)
+        g, step, model_name = ck.model(), ck.step, f"checkpoint step {ck.step}"
+    else:
+        project.require_processed()
+        r = read_ply(config.model, device)
+        g, step, model_name = r.gaussians, None, str(config.model)
+        notes += r.notes
+    views = dataset_views(project, config.split)
     finite = g.finite_mask()
     if not bool(finite.all()):
         notes.append(f"{int((~finite).sum())} Gaussians with NaN/Inf values were left out")
         g = g.select(finite)
 
-    train_step = project.step("train") or {}
+    train_step = (project.step("train") or {}) if config.model is None else {}
     tcfg = train_step.get("config") or {}
     tsum = train_step.get("summary") or {}
     downscale = config.downscale if config.downscale is not None else float(tcfg.get("downscale") or 1.0)
@@ -396,7 +415,7 @@ def evaluate_project(root: str | Path, config: EvalConfig, device: torch.device,
     if 1.0 not in config.budgets:
         budgets = budgets[1:]
 
-    curve = read_training_curve(project.train_log_path)
+    curve = read_training_curve(project.train_log_path) if config.model is None else []
     report = EvalReport(
         psnr=mean_psnr,
         ssim=mean_ssim,
@@ -405,13 +424,14 @@ def evaluate_project(root: str | Path, config: EvalConfig, device: torch.device,
         sh_degree=g.sh_degree,
         ply_bytes=ply_bytes(len(g), g.sh_degree),
         train_seconds=float(tsum["train_seconds"]) if isinstance(tsum.get("train_seconds"), (int, float)) else None,
-        train_steps=int(tsum["steps"]) if isinstance(tsum.get("steps"), int) else ck.step,
+        train_steps=int(tsum["steps"]) if isinstance(tsum.get("steps"), int) else step,
         render_fps=fps,
         device=describe_device(device),
         split=config.split,
         width=views[0].camera.width,
         height=views[0].camera.height,
-        step=ck.step,
+        step=step,
+        model=model_name,
         budgets=budgets,
         training_curve=curve,
         stats=model_stats(g),
@@ -422,18 +442,21 @@ def evaluate_project(root: str | Path, config: EvalConfig, device: torch.device,
     if config.write:
         from .report import NO_PLOTS_HINT, write_plots, write_report_md
 
+        out = Path(config.out) if config.out is not None else project.reports_dir
         if config.plots:
-            plots = write_plots(report, project)
+            plots = write_plots(report, project, out)
             if plots is None:
                 report.notes.append(NO_PLOTS_HINT)
                 emit(on_event, Note(NO_PLOTS_HINT))
             report.plots = plots or []
-        atomic_write_json(project.eval_json_path, report.to_json())
-        atomic_write_text(project.eval_md_path, write_report_md(report, project))
-        project.record_step("eval", config={"split": config.split, "background": list(bg_rgb),
-                                            "downscale": downscale, "max_size": max_size,
-                                            "budgets": list(config.budgets)},
-                            summary=report.summary())
+        atomic_write_json(out / project.eval_json_path.name, report.to_json())
+        report.report_path = out / project.eval_md_path.name
+        atomic_write_text(report.report_path, write_report_md(report, project))
+        if config.model is None and config.out is None:  # the project's own model, in its own reports
+            project.record_step("eval", config={"split": config.split, "background": list(bg_rgb),
+                                                "downscale": downscale, "max_size": max_size,
+                                                "budgets": list(config.budgets)},
+                                summary=report.summary())
     return report
 
 

@@ -36,9 +36,10 @@ def _save(fig, path: Path) -> None:
         fig.savefig(tmp, format="png")
 
 
-def write_plots(report: "EvalReport", project: "Project") -> list[str] | None:
-    """Draw the plots into the reports folder; returns their file names, or None
-    when matplotlib is absent."""
+def write_plots(report: "EvalReport", project: "Project", out_dir: Path) -> list[str] | None:
+    """Draw the plots into `out_dir` (named as the project names them); returns
+    their file names, or None when matplotlib is absent."""
+    path = lambda name: out_dir / project.plot_path(name).name  # noqa: E731
     try:
         fig = _figure(11, 4)
     except ImportError:
@@ -68,8 +69,8 @@ def write_plots(report: "EvalReport", project: "Project") -> list[str] | None:
     ax2.set_ylabel("PSNR (dB)")
     ax2.set_title("error against render time, by Gaussian budget")
     ax2.grid(alpha=0.3)
-    _save(fig, project.plot_path("speed_vs_error"))
-    names.append(project.plot_path("speed_vs_error").name)
+    _save(fig, path("speed_vs_error"))
+    names.append(path("speed_vs_error").name)
 
     st = report.stats
     if st is not None:
@@ -80,8 +81,8 @@ def write_plots(report: "EvalReport", project: "Project") -> list[str] | None:
         ax.set_xlabel("log10 scale (world units, all three axes)")
         ax.set_ylabel("count")
         ax.set_title(f"Gaussian scales (median {st.median_scale:.3g})")
-        _save(fig, project.plot_path("scales"))
-        names.append(project.plot_path("scales").name)
+        _save(fig, path("scales"))
+        names.append(path("scales").name)
 
         fig = _figure()
         ax = fig.subplots()
@@ -90,8 +91,8 @@ def write_plots(report: "EvalReport", project: "Project") -> list[str] | None:
         ax.set_xlabel("opacity")
         ax.set_ylabel("count")
         ax.set_title(f"Gaussian opacities (median {st.median_opacity:.2f})")
-        _save(fig, project.plot_path("opacities"))
-        names.append(project.plot_path("opacities").name)
+        _save(fig, path("opacities"))
+        names.append(path("opacities").name)
 
         fig = _figure(5, 3.5)
         ax = fig.subplots()
@@ -99,8 +100,8 @@ def write_plots(report: "EvalReport", project: "Project") -> list[str] | None:
         ax.set_xlabel("highest SH degree used")
         ax.set_ylabel("Gaussians")
         ax.set_title("SH degree actually used")
-        _save(fig, project.plot_path("sh_degrees"))
-        names.append(project.plot_path("sh_degrees").name)
+        _save(fig, path("sh_degrees"))
+        names.append(path("sh_degrees").name)
     return names
 
 
@@ -120,7 +121,7 @@ def write_report_md(report: "EvalReport", project: "Project") -> str:
     lines = [
         f"# Evaluation of `{project.root.name}`",
         "",
-        f"Checkpoint step {r.step}, {r.split} split ({len(r.per_image)} views at {r.width}x{r.height}), "
+        f"Model: {r.model}. {r.split[0].upper() + r.split[1:]} split ({len(r.per_image)} views at {r.width}x{r.height}), "
         f"rendered on {r.device}.",
         "",
         "## Summary",

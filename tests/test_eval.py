@@ -94,6 +94,20 @@ def test_eval_markdown_and_plots(evaluated) -> None:
         assert f"({name}.png)" in md
 
 
+def test_eval_of_a_ply_matches_the_checkpoint(evaluated, tmp_path: Path) -> None:
+    proj, summary = evaluated
+    assert run_cli("export", proj.root, "-o", tmp_path / "m.ply", "-q").exit_code == 0
+    before = proj.step("eval")
+    r = run_cli("eval", proj.root, "--model", tmp_path / "m.ply", "--out", tmp_path / "rep", "--budgets", "1", "--json")
+    assert r.exit_code == 0, r.output
+    s = json.loads(r.stdout)
+    assert s["psnr"] == summary["psnr"] and s["ssim"] == summary["ssim"] and s["model"] == str(tmp_path / "m.ply")
+    assert s["step"] is None and s["train_seconds"] is None
+    assert (tmp_path / "rep" / "eval.json").is_file() and (tmp_path / "rep" / "eval.md").is_file()
+    assert proj.step("eval") == before  # the project's own record is untouched
+    assert_user_error(run_cli("eval", proj.root, "--model", tmp_path / "none.ply"), "--model", "no such .ply")
+
+
 def test_eval_without_matplotlib(tmp_path: Path, monkeypatch) -> None:
     proj = make_tiny_project(tmp_path / "p")
     for name in [m for m in sys.modules if m == "matplotlib" or m.startswith("matplotlib.")] + ["matplotlib"]:

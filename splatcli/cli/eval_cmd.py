@@ -28,6 +28,8 @@ def evaluate(
     downscale: Optional[float] = typer.Option(None, "--downscale", help="Score at the stored size divided by this (default: as trained)."),
     budgets: str = typer.Option("1,0.5,0.25,0.1", "--budgets", help="Fractions of the Gaussians for the render-time curve."),
     plots: bool = typer.Option(True, "--plots/--no-plots", help="Draw PNG plots beside eval.md (needs matplotlib)."),
+    model: Optional[Path] = typer.Option(None, "--model", help="Score this 3DGS .ply (from any tool) instead of the latest checkpoint."),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Folder for eval.json, eval.md and plots (default PROJECT/reports)."),
     pred: Optional[Path] = typer.Option(None, "--pred", help="Compare this folder of images ..."),
     gt: Optional[Path] = typer.Option(None, "--gt", help="... with this one, by file name (no project needed)."),
     device: str = DeviceOpt,
@@ -48,7 +50,8 @@ def evaluate(
         return
     if project is None:
         raise SplatError("give a PROJECT, or --pred DIR --gt DIR")
-    cfg = EvalConfig(split=split, background=bg, downscale=downscale, budgets=_budgets(budgets), plots=plots)
+    cfg = EvalConfig(split=split, background=bg, downscale=downscale, budgets=_budgets(budgets), plots=plots,
+                     model=model, out=out)
     check_eval_config(cfg)
     dev = resolve_device(device)
     with ui.progress() as sink:
@@ -58,4 +61,4 @@ def evaluate(
                       f"{r.render_fps:.2f} frames/s at {r.width}x{r.height} on {r.device}"]
                + [f"  {b.fraction:>4.0%}: {b.num_gaussians:>9,} Gaussians  {b.psnr:6.2f} dB  {b.ms_per_frame:8.1f} ms/frame"
                   for b in r.budgets]
-               + [f"report: {Path(project) / 'reports' / 'eval.md'}"])
+               + ([f"report: {r.report_path}"] if r.report_path else []))
