@@ -349,7 +349,7 @@ def select_views(model: LoadedModel, config: RenderConfig, notes: list[str]) -> 
         base = read_transforms(config.cameras, notes=notes, default_size=size)
         name = Path(config.cameras).stem
     elif project is not None:
-        split = config.split or "test"
+        split = config.split or ("all" if config.path else "test")  # a path is built around every camera
         base = dataset_views(project, split)
         name = split
     else:

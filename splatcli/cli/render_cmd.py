@@ -33,7 +33,14 @@ def render(
     json_out: bool = JsonOpt,
     debug: bool = DebugOpt,
 ) -> None:
-    """Render views to PNGs and report frames per second."""
+    """Render views to PNGs (and a video) and report frames per second.
+
+    Cameras: the project's --split (test by default), a --cameras transforms.json,
+    or a generated --path around them (around every camera of a project). A .ply
+    from another tool renders too: its cameras come from --project or --cameras,
+    else an orbit around it is made. Rows of a .ply with NaN/Inf values are
+    dropped with a note; a file with no valid row is refused.
+    """
     ui = Ui(quiet=quiet, json_out=json_out)
     cfg = RenderConfig(
         split=split, cameras=cameras, path=path, frames=frames, project=project, width=width, height=height,
