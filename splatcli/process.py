@@ -413,8 +413,8 @@ def _from_colmap(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
     assert spec.model_dir is not None and spec.images_dir is not None
     work = stage / "work"
     st = Project(stage)
+    summary = check_model(spec.model_dir)  # before any progress: a bad model is the only thing said
     with run.stage("read model", 1) as s:
-        summary = check_model(spec.model_dir)
         # Read a copy of only the three files we checked (rigs/frames are ignored).
         copy = work / "model_in"
         copy.mkdir(parents=True)

@@ -1,10 +1,49 @@
-"""`splatcli train` (stub: being implemented)."""
+"""`splatcli train`: optimise Gaussians on a processed project (3DGS recipe)."""
 
 from __future__ import annotations
 
-from ..errors import SplatError
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from ..device import resolve_device
+from ..train import train as run_train
+from ..train_config import PRESETS, make_config
+from .common import DebugOpt, DeviceOpt, JsonOpt, QuietOpt, SeedOpt, Ui
 
 
-def train() -> None:
-    """Not implemented yet."""
-    raise SplatError("train: not implemented yet")
+def train(
+    project: Path = typer.Argument(..., help="The project directory made by `splatcli process`."),
+    preset: str = typer.Option("default", "--preset", help=f"{' | '.join(PRESETS)}: default = the paper's 30k steps; "
+                               "fast = 7k steps, densify to 4k (CPU); demo = a couple of minutes (make demo)."),
+    iterations: Optional[int] = typer.Option(None, "--iterations", "-n", help="Optimiser steps (default 30000; preset)."),
+    sh_degree: Optional[str] = typer.Option(None, "--sh-degree", help="0-3, or auto: the lowest degree within 0.05 dB of 3 on training views."),
+    max_gaussians: Optional[int] = typer.Option(None, "--max-gaussians", help="Hard budget; growth goes to the highest gradients first."),
+    compact: bool = typer.Option(False, "--compact", help="After training keep the third of the Gaussians with the most blending weight, then fine-tune."),
+    downscale: Optional[float] = typer.Option(None, "--downscale", help="Train at the image size divided by this."),
+    max_size: Optional[int] = typer.Option(None, "--max-size", help="Cap the longest image side at this (pixels; default 1600)."),
+    eval_every: Optional[int] = typer.Option(None, "--eval-every", help="Held-out PSNR/SSIM every this many steps (0: at the end)."),
+    resume: bool = typer.Option(False, "--resume", help="Continue from the latest checkpoint (its settings; options given here override)."),
+    init_ply: Optional[Path] = typer.Option(None, "--init-ply", help="Start from a 3DGS .ply instead of the SfM/random points."),
+    device: str = DeviceOpt,
+    seed: int = SeedOpt,
+    quiet: bool = QuietOpt,
+    json_out: bool = JsonOpt,
+    debug: bool = DebugOpt,
+) -> None:
+    """Fit 3D Gaussians to the training views; checkpoints go to PROJECT/checkpoints, the
+    speed/error log to PROJECT/reports/train_log.jsonl. Ctrl-C saves a checkpoint (exit 130)."""
+    ui = Ui(quiet=quiet, json_out=json_out)
+    dev = resolve_device(device)
+    given = dict(iterations=iterations, sh_degree=sh_degree, max_gaussians=max_gaussians, compact=compact or None,
+                 downscale=downscale, max_size=max_size, eval_every=eval_every,
+                 init_ply=str(init_ply) if init_ply else None)
+    cfg = make_config(preset, seed=seed, device=str(dev), **given)
+    overrides = {k: getattr(cfg, k) for k, v in given.items() if v is not None}
+    with ui.progress() as sink:
+        s = run_train(project, cfg, dev, resume=resume, overrides=overrides, on_event=sink)
+    psnr = f", held-out PSNR {s.psnr:.2f} dB" if s.psnr is not None else ""
+    ui.summary(s.to_json(), title=f"trained {s.steps} steps in {s.train_seconds:.0f} s{psnr}",
+               lines=[f"{s.num_gaussians} Gaussians, SH degree {s.sh_degree}, .ply {s.ply_bytes / 1e6:.2f} MB",
+                      f"checkpoint: {s.checkpoint}"])

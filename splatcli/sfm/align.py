@@ -75,6 +75,14 @@ def umeyama(src: np.ndarray, dst: np.ndarray) -> Sim3:
     return Sim3(scale=scale, R=R, t=t)
 
 
+def rotation_angle(Q: np.ndarray) -> float:
+    """Angle of rotation Q [3, 3], radians. atan2 keeps precision near 0, where
+    arccos of the trace loses half the digits."""
+    sin = 0.5 * np.linalg.norm([Q[2, 1] - Q[1, 2], Q[0, 2] - Q[2, 0], Q[1, 0] - Q[0, 1]])
+    cos = 0.5 * (np.trace(Q) - 1.0)
+    return float(np.arctan2(sin, cos))
+
+
 def compare_poses(estimated: list[Camera], reference: list[Camera]) -> PoseErrors:
     """Align `estimated` to `reference` on the cameras both have (by name) and
     measure rotation and centre errors in the reference frame."""
@@ -92,8 +100,7 @@ def compare_poses(estimated: list[Camera], reference: list[Camera]) -> PoseError
         # World rotation of the estimated camera after alignment: R_cw_est @ R^T.
         R_est = e.viewmat[:3, :3] @ sim.R.T
         R_ref = r.viewmat[:3, :3]
-        cos = (np.trace(R_est.T @ R_ref) - 1.0) / 2.0
-        rot_err.append(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+        rot_err.append(np.degrees(rotation_angle(R_est.T @ R_ref)))
     _, extent = scene_extent([r for _, r in pairs])
     return PoseErrors(
         names=[e.name for e, _ in pairs],

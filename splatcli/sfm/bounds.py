@@ -38,7 +38,7 @@ def _half_fov(c: Camera) -> float:
     return float(np.arctan(min(c.width / (2 * c.K[0, 0]), c.height / (2 * c.K[1, 1]))))
 
 
-def frustum_bounds(cameras: list[Camera], *, min_fraction: float = 0.5, grid: int = 32) -> tuple[np.ndarray, np.ndarray]:
+def frustum_bounds(cameras: list[Camera], *, min_fraction: float = 0.9, grid: int = 32) -> tuple[np.ndarray, np.ndarray]:
     """The box around the points seen by at least `min_fraction` of the cameras,
     searched near the cameras' common focus."""
     centers = np.stack([c.center for c in cameras])

@@ -282,10 +282,14 @@ class Model:
                               np.asarray(cam.calibration_matrix(), np.float64), view))
         return sorted(out, key=lambda c: c.name)
 
-    def write(self, out_dir: Path) -> None:
+    def write(self, out_dir: Path, *, text: bool = False) -> None:
+        """COLMAP binary files (or .txt) in `out_dir`."""
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
-        self._rec.write(str(out_dir))
+        if text:
+            self._rec.write_text(str(out_dir))
+        else:
+            self._rec.write(str(out_dir))
 
 
 def _model_name(cam: Any) -> str:
@@ -423,12 +427,12 @@ def undistort_masks(model: Model, mask_dir: Path, out_dir: Path, *, max_image_si
 
 
 def synthetic_model(num_images: int = 6, num_points: int = 50, camera_model: str = "SIMPLE_RADIAL",
-                    width: int = 64, height: int = 48, seed: int = 0) -> Model:
-    """A small synthetic model (tests): `num_images` cameras around random points."""
+                    width: int = 64, height: int = 48, num_cameras: int = 1, seed: int = 0) -> Model:
+    """A small synthetic model (tests): `num_images` images per camera, seeing random points."""
     pycolmap = _pc()
     pycolmap.set_random_seed(seed)
     o = pycolmap.SyntheticDatasetOptions()
-    o.num_rigs = 1
+    o.num_rigs = num_cameras
     o.num_cameras_per_rig = 1
     o.num_frames_per_rig = num_images
     o.num_points3D = num_points

@@ -136,3 +136,14 @@ def quat_to_rotmat(q: Tensor) -> Tensor:  # [M, 4] w,x,y,z (unnormalised) -> [M,
         ],
         dim=-1,
     ).reshape(q.shape[:-1] + (3, 3))
+
+
+def truncate_bands(params: Params, optimizers: Optimizers, name: str, bands: int) -> None:
+    """Keep the first `bands` columns (dim 1) of one parameter and of its moments
+    (dropping unused SH bands); `bands == 0` removes the parameter entirely."""
+    if bands > 0:
+        _edit(params, optimizers, lambda n, p: p[:, :bands].contiguous(), lambda n, m: m[:, :bands].contiguous(),
+              names=[name])
+    else:
+        del params[name]
+        optimizers.pop(name, None)

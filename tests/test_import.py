@@ -1,0 +1,323 @@
+"""Importing existing poses: COLMAP workspaces and transforms.json, end to end.
+
+Models come from `pycolmap.synthesize_dataset` (via sfm.colmap.synthetic_model)
+or are written by hand; images are random textures of the right size. No
+structure from motion runs here, so every test takes well under a second.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from splatcli.cli.main import app
+from splatcli.errors import SplatError
+from splatcli.process import ProcessConfig, process
+from splatcli.project import Project
+from splatcli.sfm import colmap
+from splatcli.sfm.model import read_scene
+
+from test_sfm import gl_c2w, orbit, texture, write_text_model
+from tiny_project import assert_user_error
+
+
+def make_workspace(root: Path, *, camera_model: str = "PINHOLE", text: bool = False, num_cameras: int = 1,
+                   num_images: int = 5, size: tuple[int, int] = (64, 48)) -> colmap.Model:
+    """root/images/<name> + root/sparse/0 (a synthetic model)."""
+    model = colmap.synthetic_model(num_images=num_images, camera_model=camera_model, width=size[0], height=size[1],
+                                   num_cameras=num_cameras)
+    (root / "images").mkdir(parents=True)
+    for i, name in enumerate(model.registered_names()):
+        cv2.imwrite(str(root / "images" / name), texture(size[1], size[0], seed=i))
+    model.write(root / "sparse" / "0", text=text)
+    return model
+
+
+def tree_digest(root: Path) -> str:
+    h = hashlib.sha256()
+    for p in sorted(root.rglob("*")):
+        h.update(str(p.relative_to(root)).encode())
+        if p.is_file():
+            h.update(p.read_bytes())
+    return h.hexdigest()
+
+
+def assert_contract(project: Path) -> dict:
+    """What every later command relies on (see process.py's docstring)."""
+    proj = Project.open(project)
+    proj.require_processed()
+    scene = read_scene(proj.sparse_dir)
+    names = sorted(p.relative_to(proj.images_dir).as_posix() for p in proj.images_dir.rglob("*") if p.is_file())
+    assert [c.name for c in scene.cameras] == names
+    for c in scene.cameras:
+        img = cv2.imread(str(proj.images_dir / c.name))
+        assert img.shape[:2] == (c.height, c.width)
+        assert c.K[0, 1] == 0 and c.K[2, 2] == 1
+    m = proj.manifest()
+    splits = m["splits"]
+    assert sorted(splits["train"] + splits["test"]) == names and not set(splits["train"]) & set(splits["test"])
+    sc = m["scene"]
+    assert {"has_points", "init", "background", "bounds_min", "bounds_max"} <= set(sc)
+    assert sc["has_points"] == (len(scene.points) > 0)
+    assert sc["init"] == ("sfm" if sc["has_points"] else "random")
+    assert all(lo < hi for lo, hi in zip(sc["bounds_min"], sc["bounds_max"]))
+    assert (proj.process_report_path).is_file()
+    assert not (project / ".process-tmp").exists()
+    return m
+
+
+# ---- COLMAP workspaces ---------------------------------------------------------
+
+
+@pytest.mark.parametrize("text", [False, True], ids=["bin", "txt"])
+def test_import_pinhole_colmap_keeps_poses_and_points(tmp_path, text):
+    ws = tmp_path / "ws"
+    model = make_workspace(ws, text=text)
+    r = process(ws, tmp_path / "p")
+    assert r.input_kind == "colmap" and r.registered == 5 and r.points == 50 and not r.undistorted
+    m = assert_contract(tmp_path / "p")
+    assert m["scene"]["init"] == "sfm" and m["splits"]["test"] == [sorted(model.registered_names())[0]]
+    got = read_scene(Project(tmp_path / "p").sparse_dir)
+    for a, b in zip(got.cameras, model.cameras()):
+        np.testing.assert_allclose(a.viewmat, b.viewmat, atol=1e-9)
+        np.testing.assert_allclose(a.K, b.K, atol=1e-9)
+    assert not (tmp_path / "p" / "sfm" / "distorted").exists()
+
+
+def test_import_distorted_colmap_with_two_cameras_is_undistorted(tmp_path):
+    ws = tmp_path / "ws"
+    model = make_workspace(ws, camera_model="OPENCV", num_cameras=2, num_images=3)
+    r = process(ws, tmp_path / "p")
+    assert r.undistorted and r.registered == 6
+    assert_contract(tmp_path / "p")
+    proj = Project(tmp_path / "p")
+    assert (proj.distorted_dir / "cameras.bin").is_file()
+    got = read_scene(proj.sparse_dir)
+    for a, b in zip(got.cameras, model.cameras()):  # undistortion keeps poses
+        np.testing.assert_allclose(a.viewmat, b.viewmat, atol=1e-9)
+
+
+def test_import_rescales_pinhole_images_above_max_size(tmp_path):
+    ws = tmp_path / "ws"
+    model = make_workspace(ws, size=(128, 96))
+    process(ws, tmp_path / "p", ProcessConfig(max_size=64))
+    got = read_scene(Project(tmp_path / "p").sparse_dir)
+    for a, b in zip(got.cameras, model.cameras()):
+        assert (a.width, a.height) == (64, 48)
+        np.testing.assert_allclose(a.K[:2], b.K[:2] / 2, atol=1e-9)
+
+
+def test_import_skips_missing_images_with_a_warning(tmp_path):
+    ws = tmp_path / "ws"
+    model = make_workspace(ws)
+    gone = model.registered_names()[1]
+    (ws / "images" / gone).unlink()
+    notes = []
+    r = process(ws, tmp_path / "p", on_event=notes.append)
+    assert r.registered == 4
+    assert gone not in [c.name for c in read_scene(Project(tmp_path / "p").sparse_dir).cameras]
+    assert any("1 image(s) of the model are missing" in getattr(n, "message", "") for n in notes)
+    assert_contract(tmp_path / "p")
+
+
+def test_import_model_given_as_its_own_folder(tmp_path):
+    ws = tmp_path / "ws"
+    make_workspace(ws)
+    r = process(ws / "sparse" / "0", tmp_path / "p")
+    assert r.input_kind == "colmap" and r.registered == 5
+
+
+# ---- transforms.json -------------------------------------------------------------
+
+
+def blender_scene(root: Path, n_train: int = 6, n_test: int = 2) -> None:
+    """RGBA PNGs without extension in file_path, camera_angle_x, train/test files."""
+    cams = orbit(n_train + n_test)
+    for split, sub in (("train", cams[:n_train]), ("test", cams[n_train:])):
+        (root / split).mkdir(parents=True)
+        frames = []
+        for i, c in enumerate(sub):
+            rgb = texture(48, 64, seed=i)
+            alpha = np.zeros((48, 64), np.uint8)
+            alpha[10:40, 16:48] = 255
+            cv2.imwrite(str(root / split / f"r_{i}.png"), np.dstack([rgb, alpha]))
+            frames.append({"file_path": f"./{split}/r_{i}", "transform_matrix": gl_c2w(c.viewmat)})
+        (root / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": 0.9, "frames": frames}))
+
+
+def test_import_blender_scene_composites_over_white_and_keeps_masks(tmp_path):
+    blender_scene(tmp_path / "lego")
+    r = process(tmp_path / "lego", tmp_path / "p")
+    assert r.input_kind == "transforms" and r.registered == 8 and r.points == 0 and r.masks
+    m = assert_contract(tmp_path / "p")
+    assert m["scene"]["background"] == [1.0, 1.0, 1.0] and m["scene"]["init"] == "random"
+    # train_r_0 / test_r_0 collide by base name, so names carry the folder.
+    assert m["splits"]["test"] == ["test_r_0.png", "test_r_1.png"]
+    proj = Project(tmp_path / "p")
+    img = cv2.imread(str(proj.images_dir / "train_r_0.png"))
+    assert (img[0, 0] == 255).all()  # transparent -> white background
+    mask = cv2.imread(str(proj.mask_path("train_r_0.png")), cv2.IMREAD_UNCHANGED)
+    assert mask.shape == (48, 64) and mask[0, 0] == 0 and mask[20, 20] == 255
+    K = read_scene(proj.sparse_dir).cameras[0].K
+    assert K[0, 0] == pytest.approx(32 / math.tan(0.45)) and K[0, 2] == 32
+
+
+def test_import_blender_with_black_background(tmp_path):
+    blender_scene(tmp_path / "lego", 4, 1)
+    process(tmp_path / "lego", tmp_path / "p", ProcessConfig(background="black"))
+    proj = Project(tmp_path / "p")
+    assert proj.manifest()["scene"]["background"] == [0.0, 0.0, 0.0]
+    assert (cv2.imread(str(proj.images_dir / "train_r_0.png"))[0, 0] == 0).all()
+
+
+def test_import_nerfstudio_with_distortion_and_missing_files(tmp_path):
+    root = tmp_path / "ns"
+    (root / "images").mkdir(parents=True)
+    cams = orbit(6, w=96, h=72, f=80.0)
+    frames = []
+    for i, c in enumerate(cams):
+        if i != 2:  # listed but absent
+            cv2.imwrite(str(root / "images" / f"f{i}.jpg"), texture(72, 96, seed=i))
+        frames.append({"file_path": f"images/f{i}.jpg", "transform_matrix": gl_c2w(c.viewmat)})
+    (root / "transforms.json").write_text(json.dumps({
+        "fl_x": 80.0, "fl_y": 80.0, "cx": 48.0, "cy": 36.0, "w": 96, "h": 72, "k1": -0.05, "k2": 0.01,
+        "p1": 0.0, "p2": 0.0, "frames": frames}))
+    notes = []
+    r = process(root / "transforms.json", tmp_path / "p", on_event=notes.append)
+    assert r.registered == 5 and r.total == 6 and r.missing == 1 and r.undistorted
+    assert any("1 image(s) listed" in getattr(n, "message", "") and n.level == "warning" for n in notes)
+    m = assert_contract(tmp_path / "p")
+    assert m["scene"]["background"] == [0.0, 0.0, 0.0]
+    got = {c.name: c for c in read_scene(Project(tmp_path / "p").sparse_dir).cameras}
+    for i, c in enumerate(cams):
+        if i != 2:
+            np.testing.assert_allclose(got[f"f{i}.jpg"].viewmat, c.viewmat, atol=1e-9)
+
+
+def test_lego_imports_when_the_data_is_present(shared_data, tmp_path):
+    lego = shared_data / "lego"
+    if not (lego / "transforms_train.json").is_file():
+        pytest.skip("lego absent")
+    r = process(lego, tmp_path / "p", ProcessConfig(max_size=200))
+    assert r.registered == 100 and r.test == 13 and r.masks and r.init == "random"
+    m = assert_contract(tmp_path / "p")
+    lo, hi = np.array(m["scene"]["bounds_min"]), np.array(m["scene"]["bounds_max"])
+    assert (lo > -2.5).all() and (hi < 2.5).all() and (lo < -0.5).all() and (hi > 0.5).all()
+
+
+# ---- failures: exit 2, one line naming the file, nothing changed ----------------------
+
+
+@pytest.fixture
+def runner() -> CliRunner:
+    return CliRunner()
+
+
+def run_cli(runner: CliRunner, *args: str):
+    return runner.invoke(app, ["process", *map(str, args)])
+
+
+def assert_one_line_error(r, *needles: str, alone: bool = True) -> None:
+    assert_user_error(r, *needles, alone=alone)
+
+
+def bad_transforms(root: Path, case: str) -> Path:
+    root.mkdir(parents=True)
+    cv2.imwrite(str(root / "a.png"), texture())
+    cam = orbit(1)[0]
+    frame = {"file_path": "a.png", "transform_matrix": gl_c2w(cam.viewmat)}
+    content = {
+        "not_json": "{ this is not json",
+        "no_frames": json.dumps({"camera_angle_x": 0.8}),
+        "no_focal": json.dumps({"frames": [frame]}),
+        "no_matrix": json.dumps({"camera_angle_x": 0.8, "frames": [{"file_path": "a.png"}]}),
+        "missing_files": json.dumps({"camera_angle_x": 0.8, "frames": [{**frame, "file_path": "gone.png"}]}),
+        "escape": json.dumps({"camera_angle_x": 0.8, "frames": [{**frame, "file_path": "../../secret.png"}]}),
+        "absolute": json.dumps({"camera_angle_x": 0.8, "frames": [{**frame, "file_path": "/etc/hostname"}]}),
+    }[case]
+    (root / "transforms.json").write_text(content)
+    return root / "transforms.json"
+
+
+@pytest.mark.parametrize("case, needle", [
+    ("not_json", "not valid JSON"), ("no_frames", "no `frames`"), ("no_focal", "no focal length"),
+    ("no_matrix", "transform_matrix"), ("missing_files", "none of the 1 listed images exists"),
+    ("escape", "outside the input folder"), ("absolute", "outside the input folder"),
+])
+def test_bad_transforms_fail_cleanly(tmp_path, runner, case, needle):
+    tf = bad_transforms(tmp_path / "in", case)
+    r = run_cli(runner, tf, "-o", tmp_path / "p")
+    assert_one_line_error(r, str(tf), needle)
+    assert not (tmp_path / "p").exists()
+
+
+@pytest.mark.parametrize("damage, needle", [
+    ("missing_images_bin", "images.bin: missing"), ("garbled_images_bin", "images.bin"),
+    ("garbled_points_bin", "points3D.bin"), ("truncated_cameras_bin", "cameras.bin"),
+    ("escaping_name", "outside the images folder"),
+])
+def test_bad_colmap_models_fail_cleanly_and_leave_the_project_alone(tmp_path, runner, damage, needle):
+    good = tmp_path / "good"
+    make_workspace(good)
+    assert run_cli(runner, good, "-o", tmp_path / "p").exit_code == 0
+    before = tree_digest(tmp_path / "p")
+    ws = tmp_path / "ws"
+    if damage == "escaping_name":
+        write_text_model(ws / "sparse" / "0", orbit(3))
+        t = (ws / "sparse" / "0" / "images.txt")
+        t.write_text(t.read_text().replace("001.png", "/etc/001.png"))
+        (ws / "images").mkdir()
+    else:
+        make_workspace(ws)
+        d = ws / "sparse" / "0"
+        if damage == "missing_images_bin":
+            (d / "images.bin").unlink()
+        elif damage == "garbled_images_bin":
+            data = bytearray((d / "images.bin").read_bytes())
+            data[8:200] = bytes(range(192))
+            (d / "images.bin").write_bytes(bytes(data))
+        elif damage == "garbled_points_bin":
+            (d / "points3D.bin").write_bytes((d / "points3D.bin").read_bytes()[:8] + b"\xff" * 500)
+        else:
+            (d / "cameras.bin").write_bytes((d / "cameras.bin").read_bytes()[:20])
+    r = run_cli(runner, ws, "-o", tmp_path / "p", "--overwrite")
+    assert_one_line_error(r, needle)
+    assert tree_digest(tmp_path / "p") == before
+
+
+def test_output_rules(tmp_path, runner):
+    ws = tmp_path / "ws"
+    make_workspace(ws)
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "keep.txt").write_text("mine")
+    assert_one_line_error(run_cli(runner, ws, "-o", other), str(other), "--overwrite")
+    assert (other / "keep.txt").read_text() == "mine"
+    assert_one_line_error(run_cli(runner, ws, "-o", ws), "holds the input")
+    assert run_cli(runner, ws, "-o", tmp_path / "p").exit_code == 0
+    assert_one_line_error(run_cli(runner, ws, "-o", tmp_path / "p"), "already holds a processed dataset")
+    r = run_cli(runner, ws, "-o", tmp_path / "p", "--overwrite", "--json")
+    assert r.exit_code == 0 and json.loads(r.stdout)["registered"] == 5
+
+
+def test_bad_options_are_one_line_errors(tmp_path, runner):
+    ws = tmp_path / "ws"
+    make_workspace(ws)
+    for args, needle in ((["--matcher", "magic"], "--matcher"), (["--background", "teal"], "--background"),
+                         (["--max-size", "4"], "--max-size"), (["--input-type", "photos"], "--input-type")):
+        assert_one_line_error(run_cli(runner, ws, "-o", tmp_path / "p", *args), needle)
+    assert not (tmp_path / "p").exists()
+
+
+def test_core_raises_splaterror_for_wrong_forced_type(tmp_path):
+    ws = tmp_path / "ws"
+    make_workspace(ws)
+    with pytest.raises(SplatError, match="no transforms.json"):
+        process(ws, tmp_path / "p", ProcessConfig(input_type="transforms"))
