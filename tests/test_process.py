@@ -1,0 +1,230 @@
+"""`splatcli process` end to end: structure from motion on the rendered sample
+scene (exact ground truth), video, and every failure mode of issue 5.
+
+The scene is rendered once per module by sample_data/make_scene.py at a small
+size (16 views, 256x192: a few seconds); every SfM test reuses it.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from splatcli.camera import Camera
+from splatcli.events import Note
+from splatcli.process import ProcessConfig, process
+from splatcli.project import Project
+from splatcli.sfm.align import compare_poses
+from splatcli.sfm.model import read_scene
+
+from test_import import assert_contract, tree_digest
+from test_sfm import texture
+from tiny_project import assert_user_error, run_cli
+
+REPO = Path(__file__).resolve().parents[1]
+N_VIEWS, W, H = 16, 256, 192
+
+
+def render(out: Path, **kw) -> Path:
+    if not (REPO / "sample_data" / "make_scene.py").is_file():
+        pytest.skip("sample_data/make_scene.py is absent")
+    sys.path.insert(0, str(REPO / "sample_data"))
+    try:
+        from make_scene import render_scene
+    finally:
+        sys.path.pop(0)
+    return Path(render_scene(out, **kw))
+
+
+def ground_truth(scene: Path) -> list[Camera]:
+    gt = json.loads((scene / "ground_truth.json").read_text())
+    return [Camera(c["name"], c["width"], c["height"], np.asarray(c["K"], float), np.asarray(c["viewmat"], float))
+            for c in gt["cameras"]]
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> Path:
+    return render(tmp_path_factory.mktemp("scene") / "scene", num_views=N_VIEWS, width=W, height=H)
+
+
+@pytest.fixture(scope="module")
+def processed(scene, tmp_path_factory):
+    """The scene plus a note file and a truncated JPEG, through the CLI with --json."""
+    src = tmp_path_factory.mktemp("capture") / "capture"
+    shutil.copytree(scene, src)
+    (src / "images" / "notes.txt").write_text("not a photo")
+    data = (src / "images" / "000.jpg").read_bytes()
+    (src / "images" / "zzz_cut.jpg").write_bytes(data[: len(data) // 2])
+    out = tmp_path_factory.mktemp("proj") / "p"
+    r = run_cli("process", src, "-o", out, "--json")
+    return src, out, r
+
+
+def test_sfm_makes_a_valid_project(processed):
+    src, out, r = processed
+    assert r.exit_code == 0, r.output
+    summary = json.loads(r.stdout)  # exactly one JSON object
+    assert summary["registered"] == N_VIEWS and summary["total"] == N_VIEWS
+    assert summary["points"] > 200 and summary["mean_reprojection_error"] < 1.0
+    assert summary["mean_track_length"] > 2 and summary["matcher"] == "exhaustive"
+    assert {"extract features", "match", "map", "undistort", "total"} <= set(summary["seconds"])
+    assert summary["skipped"] == ["zzz_cut.jpg: truncated JPEG (no end-of-image marker)"]
+    assert "1 file(s) that are not images: notes.txt" in r.stderr and "zzz_cut.jpg" in r.stderr
+    m = assert_contract(out)
+    names = sorted(f"{i:03d}.jpg" for i in range(N_VIEWS))
+    assert m["splits"]["test"] == names[::8]
+    assert m["scene"]["init"] == "sfm" and m["scene"]["background"] == [0.0, 0.0, 0.0]
+    assert m["steps"]["process"]["summary"]["registered"] == N_VIEWS
+    proj = Project(out)
+    assert proj.database_path.is_file() and (proj.distorted_dir / "cameras.bin").is_file()
+    assert not proj.masks_dir.exists()
+
+
+def test_sfm_poses_match_the_ground_truth(processed, scene):
+    _, out, _ = processed
+    e = compare_poses(read_scene(Project(out).sparse_dir).cameras, ground_truth(scene))
+    assert len(e.names) == N_VIEWS
+    assert e.max_rotation_deg < 1.0, e.rotation_deg
+    assert e.max_center_error_rel < 0.01, e.center_error / e.extent
+
+
+@pytest.mark.slow
+def test_sfm_accuracy_on_the_default_sample_scene(tmp_path):
+    """The scene `make demo` uses (28 views, 320x240)."""
+    scene = REPO / "sample_data" / "scene"
+    if not (scene / "ground_truth.json").is_file():
+        scene = render(tmp_path / "scene")
+    r = process(scene, tmp_path / "p")
+    assert r.registered == r.total
+    e = compare_poses(read_scene(Project(tmp_path / "p").sparse_dir).cameras, ground_truth(scene))
+    assert e.max_rotation_deg < 1.0 and e.max_center_error_rel < 0.01
+
+
+def test_rerun_needs_overwrite_and_interrupts_leave_the_project_alone(processed, monkeypatch, tmp_path):
+    src, out, _ = processed
+    assert_user_error(run_cli("process", src, "-o", out), "already holds a processed dataset")
+    before = tree_digest(out)
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("splatcli.process.run_sfm", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        process(src, out, ProcessConfig(overwrite=True))
+    assert tree_digest(out) == before  # the old dataset is intact, no temp folder left
+    with pytest.raises(KeyboardInterrupt):
+        process(src, tmp_path / "new")
+    assert not (tmp_path / "new").exists()
+
+
+def test_stale_temp_folder_and_database_do_not_poison_a_rerun(tmp_path):
+    """A run killed mid-way leaves PROJECT/.process-tmp and an unfinished manifest."""
+    from test_import import make_workspace
+
+    make_workspace(tmp_path / "ws")
+    out = tmp_path / "p"
+    Project.create(out, source={})  # manifest without a `process` step
+    stale = out / ".process-tmp" / "work"
+    stale.mkdir(parents=True)
+    (stale / "database.db").write_bytes(b"garbage, not sqlite")
+    r = process(tmp_path / "ws", out)  # no --overwrite needed: the project never finished
+    assert r.registered == 5
+    assert_contract(out)
+
+
+def write_video(path: Path, frames: list[np.ndarray], fps: float = 10.0) -> None:
+    h, w = frames[0].shape[:2]
+    vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), fps, (w, h))
+    if not vw.isOpened():
+        pytest.skip("OpenCV cannot write MJPG video here")
+    for f in frames:
+        vw.write(f)
+    vw.release()
+
+
+def test_video_drops_blurry_frames_and_matches_sequentially(scene, tmp_path):
+    frames = [cv2.imread(str(p)) for p in sorted((scene / "images").glob("*.jpg"))]
+    blurred = cv2.GaussianBlur(frames[8], (0, 0), 6)
+    frames = frames[:8] + [blurred] + frames[8:]  # a motion-blurred moment
+    write_video(tmp_path / "walk.avi", frames)
+    notes = []
+    r = process(tmp_path / "walk.avi", tmp_path / "p", ProcessConfig(num_frames=len(frames)), on_event=notes.append)
+    assert r.input_kind == "video" and r.dropped_blurry == 1
+    assert r.matcher.startswith("sequential") and r.registered >= N_VIEWS - 2
+    assert any("dropped 1 blurry frame" in n.message for n in notes if isinstance(n, Note))
+    assert "frame_000008.jpg" not in Project(tmp_path / "p").splits()["train"]  # the blurred one
+    assert_contract(tmp_path / "p")
+
+
+def test_mixed_sizes_and_orientations_are_handled(scene, tmp_path):
+    src = tmp_path / "mixed"
+    src.mkdir()
+    for i, p in enumerate(sorted((scene / "images").glob("*.jpg"))):
+        img = cv2.imread(str(p))
+        if i % 5 == 1:
+            img = cv2.rotate(img, cv2.ROTATE_90_CLOCKWISE)  # portrait
+        elif i % 5 == 3:
+            img = cv2.resize(img, (224, 168), interpolation=cv2.INTER_AREA)
+        cv2.imwrite(str(src / p.name), img)
+    notes = []
+    r = process(src, tmp_path / "p", on_event=notes.append)
+    assert any("sizes; using one camera per image" in n.message for n in notes if isinstance(n, Note))
+    assert r.registered >= N_VIEWS // 2
+    assert_contract(tmp_path / "p")
+
+
+# ---- failures: exit 2, one line naming the file and the problem -------------------
+
+
+def test_empty_folder(tmp_path):
+    (tmp_path / "empty").mkdir()
+    assert_user_error(run_cli("process", tmp_path / "empty", "-o", tmp_path / "p"),
+                      str(tmp_path / "empty"), "no images found")
+    assert not (tmp_path / "p").exists()
+
+
+def test_one_image_and_a_truncated_png(tmp_path):
+    d = tmp_path / "one"
+    d.mkdir()
+    cv2.imwrite(str(d / "a.png"), texture(96, 128))
+    r = run_cli("process", d, "-o", tmp_path / "p")
+    assert_user_error(r, str(d), "at least 2 readable images, found 1", alone=False)
+    png = cv2.imencode(".png", texture(96, 128, seed=1))[1].tobytes()
+    (d / "b.png").write_bytes(png[: len(png) // 2])
+    r = run_cli("process", d, "-o", tmp_path / "p")
+    assert_user_error(r, "found 1", "b.png: truncated PNG", alone=False)
+    assert not (tmp_path / "p").exists()
+
+
+def test_unreadable_video(tmp_path):
+    (tmp_path / "clip.mp4").write_bytes(b"\x00\x01 definitely not a video" * 100)
+    assert_user_error(run_cli("process", tmp_path / "clip.mp4", "-o", tmp_path / "p"),
+                      str(tmp_path / "clip.mp4"), "cannot read the video", alone=False)
+    assert not (tmp_path / "p").exists()
+
+
+def test_images_that_share_nothing_explain_why_no_model(tmp_path):
+    d = tmp_path / "unrelated"
+    d.mkdir()
+    for i in range(3):  # unrelated smooth textures: features, but no common ones
+        noise = cv2.GaussianBlur(texture(192, 256, seed=10 + i), (0, 0), 2)
+        cv2.imwrite(str(d / f"{i}.png"), noise)
+    r = run_cli("process", d, "-o", tmp_path / "p")
+    assert_user_error(r, str(d), "structure from motion found no model", alone=False)
+    assert "overlap" in r.stderr or "features" in r.stderr
+    assert not (tmp_path / "p").exists()
+
+
+def test_flat_tiny_images_blame_the_features(tmp_path):
+    d = tmp_path / "flat"
+    d.mkdir()
+    for i in range(3):
+        cv2.imwrite(str(d / f"{i}.png"), np.full((40, 40, 3), 90 + i, np.uint8))
+    r = run_cli("process", d, "-o", tmp_path / "p")
+    assert_user_error(r, "too few features", alone=False)
