@@ -1,0 +1,106 @@
+"""Model only what the scene needs: the first Gaussians (within the budget), and
+what happens when the main schedule ends: `--sh-degree auto` and `--compact`.
+
+--sh-degree auto: render a validation subset of the *training* views with the
+  SH truncated to each degree and keep the lowest degree whose PSNR is within
+  `sh_auto_tol_db` of the full degree; the unused bands are dropped from the
+  parameters (so they are neither stored nor exported).
+--compact: rank Gaussians by their total blending weight sum_pixels alpha_i T_i
+  over the training views, keep the top `compact_keep` fraction, then fine-tune
+  `compact_finetune` steps (no densification; the loop does that part).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .data import TrainData, View
+from .events import EventSink, Note, emit
+from .gaussians import SH_C0, Gaussians
+from .init import gaussians_from_ply, gaussians_from_points, random_points, subsample, subsample_index
+from .io.ply import ply_bytes
+from .project import Project
+from .render import rasterize
+from .strategy import ops
+from .train_config import TrainConfig
+from .train_state import TrainState
+
+
+def initial_gaussians(cfg: TrainConfig, data: TrainData, device: torch.device) -> Gaussians:
+    """From --init-ply, else the SfM points, else random points in the scene box
+    (seeded); then a seeded subset if there are more than --max-gaussians."""
+    budget = cfg.max_gaussians
+    if cfg.init_ply:
+        g = gaussians_from_ply(cfg.init_ply, cfg.max_sh_degree, device)
+        return subsample(g, budget, cfg.seed) if budget is not None else g
+    if len(data.points):
+        pts = torch.as_tensor(data.points, dtype=torch.float32, device=device)
+        cols = torch.as_tensor(data.colors, dtype=torch.float32, device=device) / 255.0
+    else:
+        n = cfg.init_random_points if budget is None else min(cfg.init_random_points, budget)
+        pts, cols = random_points(n, data.bounds_min, data.bounds_max, cfg.seed, device)
+    if budget is not None and pts.shape[0] > budget:  # subset first: kNN scales then match the kept density
+        idx = subsample_index(pts.shape[0], budget, cfg.seed).to(device)
+        pts, cols = pts[idx], cols[idx]
+    return gaussians_from_points(pts, cols, cfg.max_sh_degree, cfg.init_opacity, cfg.init_knn)
+
+
+def after_training(project: Project, cfg: TrainConfig, data: TrainData, state: TrainState,
+                   on_event: EventSink | None) -> None:
+    """Run once, at step == iterations, before that step's checkpoint."""
+    from .train import evaluate_views
+
+    if cfg.sh_degree == "auto" and "sh_auto_psnr" not in state.extra:
+        val = subset(data.train, cfg.val_max_views)
+        scores = {d: evaluate_views(state, val, data.background, d)[0] for d in range(state.sh_cap + 1)}
+        best = scores[state.sh_cap]
+        chosen = min(d for d, p in scores.items() if p >= best - cfg.sh_auto_tol_db)
+        state.extra["sh_auto_psnr"] = {str(d): round(p, 4) for d, p in scores.items()}
+        state.extra["sh_auto_degree"] = chosen
+        if chosen < state.sh_cap:
+            ops.truncate_bands(state.params, state.optimizers, "shN", (chosen + 1) ** 2 - 1)
+            state.sh_cap = chosen
+        emit(on_event, Note(f"--sh-degree auto: degree {chosen} (validation PSNR "
+                            + ", ".join(f"{d}: {p:.2f}" for d, p in scores.items()) + " dB)"))
+    if cfg.compact and "compact_before" not in state.extra:
+        deg = state.sh_cap
+        n = state.num_gaussians
+        before_psnr = evaluate_views(state, data.test, data.background, deg)[0] if data.test else None
+        weight = blending_weights(state, data.train, data.background)
+        k = max(1, int(np.ceil(cfg.compact_keep * n)))
+        keep = torch.zeros(n, dtype=torch.bool, device=weight.device)
+        keep[torch.argsort(weight, descending=True, stable=True)[:k]] = True
+        ops.keep(state.params, state.optimizers, keep)
+        m = state.num_gaussians
+        z = state.sstate.grad2d.new_zeros(m)
+        state.sstate.grad2d, state.sstate.count, state.sstate.radii = z, z.clone(), z.clone()
+        state.extra["compact_before"] = {"count": n, "bytes": ply_bytes(n, deg), "psnr": before_psnr,
+                                         "kept_weight": float(weight[keep].sum() / weight.sum().clamp_min(1e-12))}
+        emit(on_event, Note(f"--compact: kept {m} of {n} Gaussians by blending weight; fine-tuning "
+                            f"{cfg.compact_finetune} steps"))
+
+
+def subset(views: list[View], k: int) -> list[View]:
+    """`k` evenly spaced views (all when k <= 0 or there are fewer)."""
+    if k <= 0 or len(views) <= k:
+        return list(views)
+    idx = np.linspace(0, len(views) - 1, k).round().astype(int)
+    return [views[i] for i in idx]
+
+
+def blending_weights(state: TrainState, views: list[View], bg: Tensor) -> Tensor:  # -> [N]
+    """sum over views and pixels of alpha_i T_i per Gaussian, exactly: with every
+    colour 0.5 (DC = 0, degree 0: the clamp at 0 is inactive) the red channel is
+    sum_i w_i c_i + T bg_r, so its gradient w.r.t. dc_i is SH_C0 sum_pixels w_i."""
+    p = state.params
+    n = state.num_gaussians
+    total = torch.zeros(n, dtype=torch.float64, device=p["means"].device)
+    args = [p[k].detach() for k in ("means", "quats", "log_scales", "opacity_logits")]
+    for v in views:
+        dc = torch.zeros(n, 1, 3, dtype=p["means"].dtype, device=p["means"].device, requires_grad=True)
+        out = rasterize(*args, dc, v.viewmat, v.K, v.camera.width, v.camera.height, bg, sh_degree=0)
+        (grad,) = torch.autograd.grad(out.image[..., 0].sum(), dc)
+        total += grad[:, 0, 0].double() / SH_C0
+    return total

@@ -1,0 +1,124 @@
+"""The first Gaussians: from SfM points, random points in the scene bounds, or a .ply.
+
+3DGS recipe: one Gaussian per point, isotropic log scale from the RMS distance
+to the 3 nearest neighbours, identity rotation, opacity sigma^-1(0.1), SH DC
+from the point colour and zero higher bands.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .errors import SplatError
+from .gaussians import SH_C0, Gaussians, num_sh_bases
+
+KNN_BLOCK = 512  # query points per distance block (memory: BLOCK x candidates floats)
+MIN_KNN_DIST = 1e-7 ** 0.5  # 3DGS clamps the squared distance at 1e-7 (coincident points)
+
+
+def gaussians_from_points(
+    points: Tensor,  # [P, 3] world units
+    colors: Tensor,  # [P, 3] in [0, 1]
+    sh_degree: int,
+    init_opacity: float = 0.1,
+    knn: int = 3,
+) -> Gaussians:
+    """One isotropic Gaussian per point (the 3DGS initialisation)."""
+    p = points.shape[0]
+    if p == 0:
+        raise SplatError("cannot initialise from zero points")
+    dist = knn_rms_distance(points, knn)  # [P]
+    log_scales = dist.clamp_min(MIN_KNN_DIST).log()[:, None].repeat(1, 3)
+    quats = torch.zeros(p, 4, dtype=points.dtype, device=points.device)
+    quats[:, 0] = 1.0
+    opacity = torch.full((p,), math.log(init_opacity / (1.0 - init_opacity)), dtype=points.dtype, device=points.device)
+    sh = torch.zeros(p, num_sh_bases(sh_degree), 3, dtype=points.dtype, device=points.device)
+    sh[:, 0] = (colors.to(points.dtype) - 0.5) / SH_C0  # colour = SH_C0 * dc + 0.5
+    return Gaussians(points.contiguous(), quats, log_scales, opacity, sh)
+
+
+def random_points(
+    n: int, lo: np.ndarray, hi: np.ndarray, seed: int, device: torch.device
+) -> tuple[Tensor, Tensor]:  # -> points [n, 3], colors [n, 3]
+    """Uniform points (and colours) in the box [lo, hi], from `seed` only."""
+    g = torch.Generator().manual_seed(int(seed))
+    lo_t = torch.as_tensor(np.asarray(lo, np.float64), dtype=torch.float32)
+    hi_t = torch.as_tensor(np.asarray(hi, np.float64), dtype=torch.float32)
+    pts = lo_t + torch.rand(n, 3, generator=g) * (hi_t - lo_t)
+    cols = torch.rand(n, 3, generator=g)
+    return pts.to(device), cols.to(device)
+
+
+def subsample_index(n: int, k: int, seed: int) -> Tensor:  # -> [min(n, k)] sorted indices
+    """A seeded random subset of k of n indices, in increasing order."""
+    if n <= k:
+        return torch.arange(n)
+    gen = torch.Generator().manual_seed(int(seed) + 17)
+    return torch.randperm(n, generator=gen)[:k].sort().values
+
+
+def subsample(g: Gaussians, n: int, seed: int) -> Gaussians:
+    """A seeded random subset of `n` Gaussians (to respect --max-gaussians from step 0)."""
+    return g if len(g) <= n else g.select(subsample_index(len(g), n, seed).to(g.device))
+
+
+def gaussians_from_ply(path: str | Path, sh_degree: int, device: torch.device) -> Gaussians:
+    """Start from a trained 3DGS .ply (its SH truncated or zero-padded to `sh_degree`)."""
+    from .io.ply import read_ply
+
+    g = read_ply(path, device).gaussians
+    return g.with_sh_degree(sh_degree).to(device, torch.float32)
+
+
+# ---- nearest neighbours -----------------------------------------------------------
+
+
+def knn_rms_distance(points: Tensor, k: int = 3) -> Tensor:  # [P, 3] -> [P]
+    """Exact root-mean-square distance to each point's `k` nearest other points.
+
+    Blocks of Morton-ordered (hence spatially compact) points are compared only
+    against the points inside the block's box grown by an upper bound on any of
+    its points' k-th neighbour distance (taken within the block), so the result
+    is exact (up to float32 rounding) while costing far less than all pairs
+    (100k uniform points: a few seconds instead of ~80 s).
+    """
+    pts = points.detach().to(torch.float32)
+    n = pts.shape[0]
+    out = torch.empty(n, dtype=torch.float32, device=pts.device)
+    if n <= 1:
+        return out.fill_(1.0).to(points.dtype)  # nothing to measure against: unit scale
+    kk = min(k, n - 1)
+    order = _morton_order(pts)
+    sorted_pts = pts[order]
+    for s in range(0, n, KNN_BLOCK):
+        q = sorted_pts[s : s + KNN_BLOCK]  # [B, 3]
+        # Upper bound on every query's k-th distance: its k-th nearest within a
+        # window of neighbouring blocks (Morton neighbours are spatial neighbours).
+        w = sorted_pts[max(0, s - 2 * KNN_BLOCK) : s + 3 * KNN_BLOCK]
+        r = float(torch.cdist(q, w).topk(kk + 1, dim=1, largest=False).values[:, -1].max())
+        lo, hi = q.min(0).values - r, q.max(0).values + r
+        cand = sorted_pts[((sorted_pts >= lo) & (sorted_pts <= hi)).all(dim=1)]
+        c = q.mean(0)  # centre both sets: cdist's matmul form loses digits far from the origin
+        d = torch.cdist(q - c, cand - c).topk(kk + 1, dim=1, largest=False).values[:, 1:]  # drop the point itself
+        out[order[s : s + KNN_BLOCK]] = d.square().mean(dim=1).sqrt()
+    return out.to(points.dtype)
+
+
+def _morton_order(pts: Tensor) -> Tensor:  # [P, 3] -> [P] permutation
+    lo = pts.min(0).values
+    span = (pts.max(0).values - lo).clamp_min(1e-12)
+    q = ((pts - lo) / span * 1023).long().clamp(0, 1023)  # 10 bits per axis
+
+    def spread(v: Tensor) -> Tensor:  # insert two zero bits between each of 10 bits
+        v = (v | (v << 16)) & 0x030000FF
+        v = (v | (v << 8)) & 0x0300F00F
+        v = (v | (v << 4)) & 0x030C30C3
+        return (v | (v << 2)) & 0x09249249
+
+    code = spread(q[:, 0]) | (spread(q[:, 1]) << 1) | (spread(q[:, 2]) << 2)
+    return torch.argsort(code, stable=True)

@@ -1,0 +1,191 @@
+"""The training loop: sample a view, render, loss, step, let the strategy refine.
+
+`train()` sets up (fresh or `--resume`), runs `_loop`, and hands the result to
+`train_report.finish`. Setup details live in train_state.py (parameters,
+optimisers, checkpoints), data.py (cached images), init.py (first Gaussians),
+strategy/ (density control) and compact.py (--compact, --sh-degree auto).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import signal
+import threading
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any, Iterator
+
+import torch
+import torch.nn.functional as F
+
+from . import compact, train_report
+from .data import TrainData, View, load_train_data
+from .errors import Interrupted, SplatError, TrainingDiverged
+from .events import EventSink, Note, Progress, Stage, StageDone, emit
+from .io.checkpoint import load_checkpoint
+from .metrics import psnr, ssim
+from .project import Project
+from .render import rasterize
+from .strategy import StepInfo
+from .train_config import TrainConfig, TrainLogLine, TrainSummary
+from .train_state import TrainState, means_lr, new_state, save_state, state_from_checkpoint
+
+STAGE = "train"
+
+
+def train(
+    project_dir: str | Path,
+    cfg: TrainConfig,
+    device: torch.device,
+    *,
+    resume: bool = False,
+    overrides: dict[str, Any] | None = None,
+    on_event: EventSink | None = None,
+) -> TrainSummary:
+    """Train (or resume) the project's model; return the summary also recorded in
+    the manifest. `overrides` are the options given explicitly, applied on top of
+    a resumed run's stored config. SIGINT/SIGTERM: checkpoint, raise Interrupted."""
+    project = Project.open(project_dir)
+    project.require_processed()
+    resumed_from = None
+    ck = None
+    if resume:
+        path = project.latest_checkpoint()
+        if path is None:
+            emit(on_event, Note("--resume: no checkpoint yet; starting a new run", "warning"))
+        else:
+            ck = load_checkpoint(path, device)
+            cfg = replace(TrainConfig.from_dict(ck.config), **(overrides or {}), device=str(device))
+            resumed_from = ck.step
+    data = load_train_data(project, cfg.downscale, cfg.max_size, device, cfg.eval_max_views)
+    if ck is not None:
+        state = state_from_checkpoint(ck, cfg, data.extent, device)
+        train_report.trim_log(project.train_log_path, ck.step)
+    else:
+        state = new_state(compact.initial_gaussians(cfg, data, device), cfg, data.extent, device, len(data.train))
+        train_report.start_fresh(project, on_event)
+    with _stop_on_signal() as stop:
+        _loop(project, cfg, data, state, stop, on_event)
+    return train_report.finish(project, cfg, data, state, resumed_from)
+
+
+def render_view(state: TrainState, view: View, bg: torch.Tensor, sh_degree: int):
+    p = state.params
+    return rasterize(p["means"], p["quats"], p["log_scales"], p["opacity_logits"], state.sh(), view.viewmat,
+                     view.K, view.camera.width, view.camera.height, bg, sh_degree=sh_degree)
+
+
+def _loss(image: torch.Tensor, target: torch.Tensor, lambda_dssim: float) -> torch.Tensor:  # [H, W, 3] each
+    """(1 - l) L1 + l (1 - SSIM), SSIM with the metric's window (metrics.ssim)."""
+    return (1.0 - lambda_dssim) * F.l1_loss(image, target) + lambda_dssim * (1.0 - ssim(image, target))
+
+
+def _loop(project: Project, cfg: TrainConfig, data: TrainData, state: TrainState,
+          stop: threading.Event, on_event: EventSink | None) -> None:
+    total = cfg.total_steps
+    emit(on_event, Stage(STAGE, total))
+    log = train_report.LogWriter(project.train_log_path, state)
+    for step in range(state.step + 1, total + 1):
+        t0 = time.perf_counter()
+        refining = step <= cfg.iterations  # the compaction fine-tune never grows or prunes
+        state.optimizers["means"].param_groups[0]["lr"] = means_lr(cfg, step, data.extent)
+        view = data.train[state.next_view(len(data.train))]
+        out = render_view(state, view, data.background, state.active_sh_degree(step, cfg.sh_degree_interval))
+        info = StepInfo(out, view.camera.width, view.camera.height)
+        if refining:
+            state.strategy.step_pre_backward(state.params, state.optimizers, state.sstate, step, info)
+        loss = _loss(out.image, view.target(), cfg.lambda_dssim)
+        loss.backward()
+        info.finite = _all_finite(loss, state)
+        if info.finite:
+            for opt in state.optimizers.values():
+                opt.step()
+            state.bad_run = 0
+        else:  # skip: never let NaN/Inf reach the parameters or the Adam moments
+            state.bad_steps += 1
+            state.bad_run += 1
+        for opt in state.optimizers.values():
+            opt.zero_grad(set_to_none=True)
+        if refining:
+            state.strategy.step_post_backward(state.params, state.optimizers, state.sstate, step, info)
+        state.step = step
+        state.elapsed_s += time.perf_counter() - t0
+        log.add(loss.detach() if info.finite else None)
+
+        if state.bad_run >= cfg.max_bad_steps:
+            path = save_state(project.checkpoint_path(step), state, cfg, cfg.sh_degree_interval)
+            raise TrainingDiverged(
+                f"training diverged: {state.bad_run} consecutive steps with a non-finite loss or gradient "
+                f"(step {step}); the last good parameters are in {path}; try a lower learning rate or --resume"
+            )
+        if step == cfg.iterations:
+            compact.after_training(project, cfg, data, state, on_event)  # --sh-degree auto, --compact
+        evaluated = _measure(cfg, data, state, step, total, on_event)
+        log.line(step, state, evaluated, cfg.log_every, force=step == total)
+        emit(on_event, Progress(STAGE, step, total, log.info(state)))
+        if step % cfg.checkpoint_every == 0 or step == total or stop.is_set():
+            save_state(project.checkpoint_path(step), state, cfg, cfg.sh_degree_interval)
+            train_report.prune_checkpoints(project, cfg.keep_checkpoints)
+        if stop.is_set():
+            raise Interrupted(f"interrupted at step {step}; saved {project.checkpoint_path(step)}; "
+                              f"continue with `splatcli train {project.root} --resume`")
+    if stop.is_set():  # signalled during setup or the last step: the final checkpoint exists
+        if state.step == 0 or project.latest_checkpoint() is None:
+            save_state(project.checkpoint_path(state.step), state, cfg, cfg.sh_degree_interval)
+        raise Interrupted(f"interrupted at step {state.step}; continue with `splatcli train {project.root} --resume`")
+    emit(on_event, StageDone(STAGE, state.elapsed_s))
+
+
+def _all_finite(loss: torch.Tensor, state: TrainState) -> bool:
+    """One reduction over the loss and every gradient (a single host sync)."""
+    checks = [torch.isfinite(loss).reshape(1)]
+    checks += [torch.isfinite(p.grad).all().reshape(1) for p in state.params.values() if p.grad is not None]
+    return bool(torch.cat(checks).all())
+
+
+def _measure(cfg: TrainConfig, data: TrainData, state: TrainState, step: int, total: int,
+             on_event: EventSink | None) -> tuple[float, float] | None:
+    """Held-out PSNR / SSIM every `eval_every` steps and at the end (not timed)."""
+    if not data.test or not ((cfg.eval_every and step % cfg.eval_every == 0) or step == total):
+        return None
+    return evaluate_views(state, data.test, data.background, state.active_sh_degree(step, cfg.sh_degree_interval))
+
+
+@torch.no_grad()
+def evaluate_views(state: TrainState, views: list[View], bg: torch.Tensor, sh_degree: int) -> tuple[float, float]:
+    """Mean PSNR (dB) and SSIM over `views`, images clamped to [0, 1] as saved."""
+    ps, ss = [], []
+    for v in views:
+        img = render_view(state, v, bg, sh_degree).image.clamp(0, 1)
+        t = v.target()
+        ps.append(float(psnr(img, t)))
+        ss.append(float(ssim(img, t)))
+    return sum(ps) / len(ps), sum(ss) / len(ss)
+
+
+@contextlib.contextmanager
+def _stop_on_signal() -> Iterator[threading.Event]:
+    """SIGINT/SIGTERM set a flag the loop checks between steps (so the checkpoint
+    is of a whole step); a second signal aborts at once."""
+    stop = threading.Event()
+    if threading.current_thread() is not threading.main_thread():
+        yield stop
+        return
+    previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+
+    def handler(signum: int, frame: Any) -> None:
+        if stop.is_set():
+            raise KeyboardInterrupt
+        stop.set()
+
+    for s in previous:
+        signal.signal(s, handler)
+    try:
+        yield stop
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+
+__all__ = ["train", "evaluate_views", "render_view", "SplatError"]

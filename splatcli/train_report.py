@@ -1,0 +1,168 @@
+"""Training's outputs besides checkpoints: the JSONL log, train.json and the
+manifest summary (the contract in train_config.py)."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from .events import EventSink, Note, emit
+from .io.atomic import append_line, atomic_write_json, atomic_write_text
+from .io.ply import ply_bytes
+from .project import Project
+from .train_config import CompactReport, Histogram, TrainConfig, TrainLogLine, TrainReport, TrainSummary
+from .train_state import TrainState
+
+HIST_BINS = 40
+PROGRESS_PERIOD_S = 0.25  # progress-bar refresh; a loss read is a host sync on CUDA
+
+
+class LogWriter:
+    """Accumulates the loss without a host sync per step; writes one JSONL line
+    every `log_every` steps, at evaluations and at the end."""
+
+    def __init__(self, path: Path, state: TrainState) -> None:
+        self.path = path
+        self.loss_sum: torch.Tensor | float = 0.0
+        self.loss_n = 0
+        self.last = read_log(path)[-1] if path.exists() and read_log(path) else {}
+        self.psnr = self.last.get("psnr") if self.last else None
+        self.loss = self.last.get("loss") if self.last else None
+        self._t_info = 0.0
+        self._rate = (time.perf_counter(), state.elapsed_s, state.step)
+        self._steps_per_s: float | None = None
+        self._info: dict[str, Any] = {}
+
+    def add(self, loss: torch.Tensor | None) -> None:
+        if loss is not None:
+            self.loss_sum = self.loss_sum + loss
+            self.loss_n += 1
+
+    def _mean_loss(self) -> float | None:
+        return float(self.loss_sum) / self.loss_n if self.loss_n else self.loss
+
+    def line(self, step: int, state: TrainState, evaluated: tuple[float, float] | None, log_every: int,
+             force: bool = False) -> None:
+        if not (force or evaluated is not None or (log_every and step % log_every == 0)):
+            return
+        loss = self._mean_loss()
+        rec = TrainLogLine(step=step, elapsed_s=round(state.elapsed_s, 4),
+                           loss=float("nan") if loss is None else round(loss, 6),
+                           num_gaussians=state.num_gaussians, bad_steps=state.bad_steps)
+        if evaluated is not None:
+            rec.psnr, rec.ssim = round(evaluated[0], 4), round(evaluated[1], 5)
+            self.psnr = rec.psnr
+        append_line(self.path, json.dumps(rec.to_json()))
+        self.last = rec.to_json()
+        self.loss, self.loss_sum, self.loss_n = loss, 0.0, 0
+
+    def info(self, state: TrainState) -> dict[str, Any]:
+        """Live figures for the progress bar, refreshed at most every PROGRESS_PERIOD_S."""
+        now = time.perf_counter()
+        if now - self._t_info < PROGRESS_PERIOD_S:
+            return self._info
+        self._t_info = now
+        _, e0, s0 = self._rate
+        if state.elapsed_s - e0 > 1.0:  # training-time rate over the last second or more
+            self._steps_per_s = (state.step - s0) / (state.elapsed_s - e0)
+            self._rate = (now, state.elapsed_s, state.step)
+        info: dict[str, Any] = {}
+        if self._steps_per_s is not None:
+            info["steps/s"] = round(self._steps_per_s, 2)
+        loss = self._mean_loss()
+        if loss is not None:
+            info["loss"] = round(loss, 4)
+        if self.psnr is not None:
+            info["psnr"] = round(self.psnr, 2)
+        info["gaussians"] = state.num_gaussians
+        self._info = info
+        return info
+
+
+def read_log(path: Path) -> list[dict[str, Any]]:
+    """The log's complete lines (a torn last line from a crash is skipped)."""
+    out = []
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError:
+        return out
+    for line in text.splitlines():
+        try:
+            rec = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if isinstance(rec, dict) and "step" in rec:
+            out.append(rec)
+    return out
+
+
+def trim_log(path: Path, step: int) -> None:
+    """On resume: drop lines written after the checkpoint (that work is redone)."""
+    if path.exists():
+        keep = [r for r in read_log(path) if int(r["step"]) <= step]
+        atomic_write_text(path, "".join(json.dumps(r) + "\n" for r in keep))
+
+
+def start_fresh(project: Project, on_event: EventSink | None) -> None:
+    """A new run replaces the previous run's checkpoints and log."""
+    old = project.checkpoints()
+    if old:
+        emit(on_event, Note(f"starting a new run: removing {len(old)} old checkpoint(s) (use --resume to continue)"))
+    for _, p in old:
+        p.unlink(missing_ok=True)
+    project.train_log_path.unlink(missing_ok=True)
+
+
+def prune_checkpoints(project: Project, keep: int) -> None:
+    for _, p in project.checkpoints()[: -max(keep, 1)]:
+        p.unlink(missing_ok=True)
+
+
+def histogram(values: np.ndarray, bins: int = HIST_BINS, range_: tuple[float, float] | None = None) -> Histogram:
+    values = values[np.isfinite(values)]
+    counts, edges = np.histogram(values, bins=bins, range=range_)
+    return Histogram(edges=[round(float(e), 6) for e in edges], counts=[int(c) for c in counts])
+
+
+def finish(project: Project, cfg: TrainConfig, data: Any, state: TrainState, resumed_from: int | None) -> TrainSummary:
+    """Write reports/train.json and the manifest's train summary."""
+    g = state.gaussians()
+    deg = state.active_sh_degree(state.step, cfg.sh_degree_interval)
+    log = read_log(project.train_log_path)
+    last_eval = next((r for r in reversed(log) if "psnr" in r), None)
+    rec = state.extra
+    comp = None
+    if rec.get("compact_before"):
+        b = rec["compact_before"]
+        comp = CompactReport(before_count=b["count"], before_bytes=b["bytes"], before_psnr=b.get("psnr"),
+                             after_count=len(g), after_bytes=ply_bytes(len(g), deg),
+                             after_psnr=last_eval["psnr"] if last_eval else None)
+    summary = TrainSummary(
+        steps=state.step,
+        train_seconds=round(state.elapsed_s, 3),
+        num_gaussians=len(g),
+        sh_degree=deg,
+        ply_bytes=ply_bytes(len(g), deg),
+        device=cfg.device,
+        final_loss=float(log[-1]["loss"]) if log else math.nan,
+        psnr=last_eval.get("psnr") if last_eval else None,
+        ssim=last_eval.get("ssim") if last_eval else None,
+        bad_steps=state.bad_steps,
+        checkpoint=str(project.latest_checkpoint() or ""),
+        sh_auto_psnr=rec.get("sh_auto_psnr"),
+        compact=comp,
+        resumed_from=resumed_from,
+    )
+    max_scale = g.log_scales.amax(dim=1).double().cpu().numpy() / math.log(10)
+    opac = torch.sigmoid(g.opacity_logits.double()).cpu().numpy()
+    report = TrainReport(summary=summary, scale_hist=histogram(max_scale),
+                         opacity_hist=histogram(opac, range_=(0.0, 1.0)), config=cfg.to_dict())
+    atomic_write_json(project.train_report_path, report.to_json())
+    project.record_step("train", config=cfg.to_dict(), summary=summary.to_json())
+    return summary
