@@ -2,8 +2,8 @@
 
     python bench/process.py [--baseline] [--no-accuracy] [--no-write]
 
-fox: the 50 raw photos of ../shared/data/fox/images (or $SPLATCLI_DATA/fox)
-through SfM at 400 px wide: registered images, reprojection error, seconds per
+fox: the 50 raw photos of ../shared/data/fox/images (or $SPLATCLI_DATA/fox),
+shrunk to 400 px wide, through SfM: registered images, reprojection error, seconds per
 stage, and pose agreement with the capture's own transforms.json (which has its
 own errors, so this is a sanity check, not ground truth). `--baseline` also runs
 COLMAP's defaults (8192 SIFT features on the upsampled octave, all pairs) for
@@ -68,9 +68,18 @@ def errors_of(project: Path, reference: list[Camera]) -> PoseErrors:
     return compare_poses(read_scene(Project(project).sparse_dir).cameras, reference)
 
 
-def fox_config(**kw) -> ProcessConfig:
-    # fox photos are 1080x1920 (portrait): 400 px wide is 711 px on the long side.
-    return ProcessConfig(max_size=round(1920 * FOX_WIDTH / 1080), **kw)
+def fox_at_width(fox_images: Path, out: Path, width: int = FOX_WIDTH) -> Path:
+    """The fox photos shrunk to `width` px wide (area filter, JPEG quality 95),
+    the input the baseline was measured on."""
+    import cv2
+
+    out.mkdir(parents=True)
+    for p in sorted(fox_images.glob("*.jpg")):
+        img = cv2.imread(str(p))
+        h, w = img.shape[:2]
+        img = cv2.resize(img, (width, round(h * width / w)), interpolation=cv2.INTER_AREA)
+        cv2.imwrite(str(out / p.name), img, [cv2.IMWRITE_JPEG_QUALITY, 95])
+    return out
 
 
 def stage_row(label: str, r: ProcessResult, cpu: float, e: PoseErrors | None) -> str:
@@ -110,12 +119,13 @@ def main() -> None:
         if (fox / "images").is_dir() and (fox / "transforms.json").is_file():
             ref = fox_reference(fox)
             rows = []
-            r, proj, cpu = run(fox / "images", fox_config(), tmp, "fox")
+            images = fox_at_width(fox / "images", tmp / "fox400")
+            r, proj, cpu = run(images, ProcessConfig(), tmp, "fox")
             e = errors_of(proj, ref)
             rows.append(stage_row("splatcli defaults", r, cpu, e))
             if args.baseline:
-                rb, projb, cpub = run(fox / "images", fox_config(max_features=8192, first_octave=-1,
-                                                                  matcher="exhaustive"), tmp, "fox-baseline")
+                base = ProcessConfig(max_features=8192, first_octave=-1, matcher="exhaustive")
+                rb, projb, cpub = run(images, base, tmp, "fox-baseline")
                 rows.append(stage_row("COLMAP defaults (8192 SIFT, upsampled octave, all pairs)", rb, cpub,
                                       errors_of(projb, ref)))
             out += [

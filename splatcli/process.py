@@ -38,7 +38,7 @@ from .sfm.bounds import frustum_bounds, points_bounds
 from .sfm.colmap import CameraSpec, Model
 from .sfm.colmap_files import check_image_name, check_model
 from .sfm.detect import InputSpec, detect_input
-from .sfm.images import IMAGE_EXTS, ImageError, StagedImage, list_folder, stage_image
+from .sfm.images import IMAGE_EXTS, ImageError, StagedImage, fit_size, list_folder, stage_image
 from .sfm.model import read_scene
 from .sfm.reconstruct import MATCHERS, SfmOptions, run_sfm
 from .sfm.transforms import read_transforms
@@ -51,7 +51,7 @@ MIN_IMAGES = 2
 @dataclass(frozen=True)
 class ProcessConfig:
     input_type: str = "auto"  # auto | images | video | colmap | transforms
-    max_size: int = 1600  # longest image side in pixels (images larger are shrunk)
+    max_size: int = 1600  # SfM: longest side, pixels, of the image SIFT sees (the dataset keeps full resolution)
     matcher: str = "auto"  # auto | exhaustive | sequential
     fps: float | None = None  # video: frames per second of video to extract
     num_frames: int = 100  # video: frames to extract when fps is not given
@@ -247,10 +247,9 @@ def process(input: str | Path, project_dir: str | Path, cfg: ProcessConfig = Pro
 # ---- images and video: structure from motion ---------------------------------
 
 
-def _stage_images(files: list[tuple[Path, str]], st: Project, work: Path, run: _Run, *, max_size: int | None,
+def _stage_images(files: list[tuple[Path, str]], work: Path, run: _Run, *,
                   background: tuple[float, float, float] | None, orient: bool,
-                  expect: dict[str, tuple[int, int]] | None = None,
-                  max_size_for: dict[str, int | None] | None = None) -> tuple[list[StagedImage], list[str]]:
+                  expect: dict[str, tuple[int, int]] | None = None) -> tuple[list[StagedImage], list[str]]:
     """Stage (source, name) pairs into work/input, masks into work/masks.
 
     Unusable images are skipped and returned as "name: reason". RGBA images are
@@ -263,7 +262,7 @@ def _stage_images(files: list[tuple[Path, str]], st: Project, work: Path, run: _
             try:
                 out.append(stage_image(
                     src, name, work / "input" / name, work / "masks" / name,
-                    max_size=max_size_for.get(name, max_size) if max_size_for else max_size,
+                    max_size=None,  # the dataset keeps full resolution; train caps what it loads
                     background=bg, orient=orient, expect_size=(expect or {}).get(name),
                 ))
             except ImageError as exc:
@@ -282,7 +281,7 @@ def _from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: 
         with run.stage("video frames", None) as s:
             frames = extract_frames(
                 spec.path, work / "input", every_fps=cfg.fps, num_frames=None if cfg.fps else cfg.num_frames,
-                max_size=cfg.max_size, blur_ratio=cfg.blur_ratio,
+                max_size=None, blur_ratio=cfg.blur_ratio,
                 on_progress=lambda k, n: s.progress(k, n),
             )
         dropped = len(frames.dropped)
@@ -299,8 +298,7 @@ def _from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: 
             run.note(f"skipped {len(others)} file(s) that are not images: {shown}")
         if not files:
             raise SplatError(f"{spec.images_dir}: no images found (looked for {', '.join(IMAGE_EXTS)})")
-        staged, bad = _stage_images([(p, p.name) for p in files], st, work, run, max_size=cfg.max_size,
-                                    background=background, orient=True)
+        staged, bad = _stage_images([(p, p.name) for p in files], work, run, background=background, orient=True)
         for b in bad:
             run.note(f"skipped {b}")
         skipped = bad
@@ -315,12 +313,12 @@ def _from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: 
     if len(sizes) > 1:
         run.note(f"images come in {len(sizes)} sizes; using one camera per image")
     sfm_opts = SfmOptions(
-        matcher=cfg.matcher, ordered=spec.kind == "video", max_features=cfg.max_features,
-        first_octave=cfg.first_octave,
+        matcher=cfg.matcher, ordered=spec.kind == "video", max_image_size=cfg.max_size,
+        max_features=cfg.max_features, first_octave=cfg.first_octave,
         sequential_overlap=cfg.sequential_overlap, seed=cfg.seed, num_threads=cfg.num_threads,
     )
     res = run_sfm(work / "input", names, work, sfm_opts, single_camera=len(sizes) == 1,
-                  min_side=min(min(s) for s in sizes), where=spec.images_dir or spec.path, on_event=run.on_event)
+                  min_side=min(min(fit_size(w, h, cfg.max_size)) for w, h in sizes), where=spec.images_dir or spec.path, on_event=run.on_event)
     for k, v in res.seconds.items():
         run.seconds[k] = run.seconds.get(k, 0.0) + v
     model = res.model
@@ -371,14 +369,13 @@ def _finish_model(model: Model, st: Project, work: Path, cfg: ProcessConfig, run
         return False
     model.write(st.distorted_dir)
     with run.stage("undistort", len(names)) as s:
-        out = colmap.undistort(model, work / "input", work / "undistorted", max_image_size=cfg.max_size,
-                               num_threads=cfg.num_threads)
+        out = colmap.undistort(model, work / "input", work / "undistorted", num_threads=cfg.num_threads)
         st.sparse_dir.parent.mkdir(parents=True, exist_ok=True)
         os.replace(out, st.sparse_dir)
         os.replace(work / "undistorted" / "images", st.images_dir)
         if masks and (work / "masks").is_dir():
             mdir = colmap.undistort_masks(model, work / "masks", work / "undistorted_masks",
-                                          max_image_size=cfg.max_size, num_threads=cfg.num_threads)
+                                          num_threads=cfg.num_threads)
             for name in names:
                 if (mdir / name).exists():
                     _convert_mask(mdir / name, _mask_path(st, name))
@@ -434,10 +431,8 @@ def _from_colmap(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
                  f"(first: {missing[0]})", "warning")
     if not present:
         raise SplatError(f"{spec.images_dir}: none of the model's {len(names)} images exists here")
-    pinhole = model.is_pinhole()
     sizes = model.camera_sizes()
-    staged, bad = _stage_images([(spec.images_dir / n, n) for n in present], st, work, run,
-                                max_size=cfg.max_size if pinhole else None, background=background,
+    staged, bad = _stage_images([(spec.images_dir / n, n) for n in present], work, run, background=background,
                                 orient=False, expect=sizes)
     for b in bad:
         run.note(f"skipped {b}", "warning")
@@ -445,8 +440,6 @@ def _from_colmap(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
         raise SplatError(f"{spec.images_dir}: none of the model's images could be read ({bad[0]})")
     keep = [s.name for s in staged]
     model.keep_images(keep)
-    if pinhole:
-        model.rescale_images({s.name: (s.width, s.height) for s in staged})
     has_masks = any(s.has_alpha for s in staged)
     undistorted = _finish_model(model, st, work, cfg, run, masks=has_masks)
     stats = {"skipped": bad, "missing": len(missing)}
@@ -472,10 +465,8 @@ def _from_transforms(spec: InputSpec, stage: Path, cfg: ProcessConfig,
         run.note(f"{len(scene.missing)} image(s) listed in {spec.transforms.name} do not exist and were skipped "
                  f"(first: {scene.missing[0]})", "warning")
     frames = {f.name: f for f in scene.frames}
-    distorted = {f.name for f in scene.frames if f.intrinsics.distorted}
-    staged, bad = _stage_images([(f.source, f.name) for f in scene.frames], st, work, run, max_size=cfg.max_size,
-                                background=background, orient=False,
-                                max_size_for={n: None for n in distorted})
+    staged, bad = _stage_images([(f.source, f.name) for f in scene.frames], work, run, background=background,
+                                orient=False)
     for b in bad:
         run.note(f"skipped {b}", "warning")
     if not staged:
@@ -483,10 +474,7 @@ def _from_transforms(spec: InputSpec, stage: Path, cfg: ProcessConfig,
     specs = []
     for s in staged:
         f = frames[s.name]
-        model_name, params = f.intrinsics.resolve(s.src_width, s.src_height, f"{spec.transforms}: {f.source.name}")
-        if (s.width, s.height) != (s.src_width, s.src_height):  # resized while staging (PINHOLE only)
-            sx, sy = s.width / s.src_width, s.height / s.src_height
-            params = [params[0] * sx, params[1] * sy, params[2] * sx, params[3] * sy] + params[4:]
+        model_name, params = f.intrinsics.resolve(s.width, s.height, f"{spec.transforms}: {f.source.name}")
         specs.append(CameraSpec(s.name, s.width, s.height, model_name, params, f.viewmat))
     points = colors = None
     if scene.ply_path is not None:

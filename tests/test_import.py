@@ -104,14 +104,15 @@ def test_import_distorted_colmap_with_two_cameras_is_undistorted(tmp_path):
         np.testing.assert_allclose(a.viewmat, b.viewmat, atol=1e-9)
 
 
-def test_import_rescales_pinhole_images_above_max_size(tmp_path):
+def test_import_keeps_full_resolution_whatever_max_size(tmp_path):
+    """--max-size caps what SIFT sees; imported datasets are never resampled."""
     ws = tmp_path / "ws"
     model = make_workspace(ws, size=(128, 96))
     process(ws, tmp_path / "p", ProcessConfig(max_size=64))
     got = read_scene(Project(tmp_path / "p").sparse_dir)
     for a, b in zip(got.cameras, model.cameras()):
-        assert (a.width, a.height) == (64, 48)
-        np.testing.assert_allclose(a.K[:2], b.K[:2] / 2, atol=1e-9)
+        assert (a.width, a.height) == (128, 96)
+        np.testing.assert_allclose(a.K, b.K, atol=1e-9)
 
 
 def test_import_skips_missing_images_with_a_warning(tmp_path):
@@ -205,7 +206,7 @@ def test_lego_imports_when_the_data_is_present(shared_data, tmp_path):
     lego = shared_data / "lego"
     if not (lego / "transforms_train.json").is_file():
         pytest.skip("lego absent")
-    r = process(lego, tmp_path / "p", ProcessConfig(max_size=200))
+    r = process(lego, tmp_path / "p")
     assert r.registered == 100 and r.test == 13 and r.masks and r.init == "random"
     m = assert_contract(tmp_path / "p")
     lo, hi = np.array(m["scene"]["bounds_min"]), np.array(m["scene"]["bounds_max"])

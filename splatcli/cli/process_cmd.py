@@ -16,7 +16,7 @@ def process(
     input: Path = typer.Argument(..., help="Folder of photos, video file, COLMAP workspace, or transforms.json (or its folder)."),
     output: Path = typer.Option(..., "--output", "-o", help="The project directory to create."),
     input_type: str = typer.Option("auto", "--input-type", help="auto, images, video, colmap or transforms."),
-    max_size: int = typer.Option(1600, "--max-size", help="Cap on the longest image side, pixels (SfM and the dataset)."),
+    max_size: int = typer.Option(1600, "--max-size", help="Longest side, pixels, of the images SIFT sees (the dataset keeps full resolution)."),
     matcher: str = typer.Option("auto", "--matcher", help="auto, exhaustive (all pairs) or sequential (ordered captures)."),
     fps: Optional[float] = typer.Option(None, "--fps", help="Video: frames to extract per second of video."),
     num_frames: int = typer.Option(100, "--num-frames", help="Video: frames to extract, evenly spaced (without --fps)."),

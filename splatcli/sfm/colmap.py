@@ -99,6 +99,7 @@ def create_database(path: Path, image_dir: Path, names: list[str], *, single_cam
 
 @dataclass(frozen=True)
 class SiftOptions:
+    max_image_size: int = 1600  # pixels, longest side SIFT sees; keypoints are scaled back to full size
     max_num_features: int = 4096
     first_octave: int = 0  # -1 upsamples the image twice: ~4x slower, finds small features
     peak_threshold: float = 0.02 / 3  # COLMAP's default
@@ -111,6 +112,7 @@ def extract_features(db: Path, image_dir: Path, names: list[str], opts: SiftOpti
     pycolmap = _pc()
     eo = pycolmap.FeatureExtractionOptions()
     eo.num_threads = opts.num_threads
+    eo.max_image_size = opts.max_image_size
     eo.sift.max_num_features = opts.max_num_features
     eo.sift.first_octave = opts.first_octave
     eo.sift.peak_threshold = opts.peak_threshold
@@ -247,26 +249,6 @@ class Model:
                                       params=[f, f, cx, cy], camera_id=cid)
                 self._rec.cameras[cid] = new  # replaces in place; images keep their camera_id
 
-    def rescale_images(self, sizes: dict[str, tuple[int, int]]) -> None:
-        """Images were resized to `sizes[name]` (width, height): rescale their
-        cameras and keypoints to match. Images sharing a camera share a size."""
-        target: dict[int, tuple[int, int]] = {}
-        for im in self._rec.images.values():
-            if im.name in sizes:
-                target.setdefault(im.camera_id, sizes[im.name])
-        for cid, (w, h) in target.items():
-            cam = self._rec.cameras[cid]  # a reference: edits apply to the model
-            if (w, h) == (cam.width, cam.height):
-                continue
-            sx, sy = w / cam.width, h / cam.height
-            cam.rescale(int(w), int(h))
-            for im in self._rec.images.values():
-                if im.camera_id == cid:
-                    for p in im.points2D:
-                        p.xy = np.array([p.xy[0] * sx, p.xy[1] * sy])
-        if self.num_points:
-            self._rec.update_point_3d_errors()
-
     def cameras(self) -> list[Camera]:
         """Registered cameras as `Camera`, sorted by name (K ignores distortion)."""
         out = []
@@ -393,13 +375,13 @@ def build_model(specs: list[CameraSpec], points: np.ndarray | None = None,
     return Model(rec)
 
 
-def undistort(model: Model, image_dir: Path, out_dir: Path, *, max_image_size: int | None = None,
-              jpeg_quality: int = 95, num_threads: int = -1) -> Path:
+def undistort(model: Model, image_dir: Path, out_dir: Path, *, jpeg_quality: int = 95,
+              num_threads: int = -1) -> Path:
     """Undistort the model's registered images to PINHOLE.
 
     Writes `out_dir/images/<name>` and the model in `out_dir/sparse`; returns
     the model folder. Images are cropped to the region valid in every direction
-    (no black borders to learn) and capped at `max_image_size` pixels."""
+    (no black borders to learn)."""
     pycolmap = _pc()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -407,7 +389,6 @@ def undistort(model: Model, image_dir: Path, out_dir: Path, *, max_image_size: i
     model.write(model_in)
     uo = pycolmap.UndistortCameraOptions()
     uo.blank_pixels = 0.0
-    uo.max_image_size = int(max_image_size or -1)
     try:
         run_cancellable(
             pycolmap.undistort_images, str(out_dir), str(model_in), str(image_dir),
@@ -418,11 +399,10 @@ def undistort(model: Model, image_dir: Path, out_dir: Path, *, max_image_size: i
     return out_dir / "sparse"
 
 
-def undistort_masks(model: Model, mask_dir: Path, out_dir: Path, *, max_image_size: int | None = None,
-                    num_threads: int = -1) -> Path:
+def undistort_masks(model: Model, mask_dir: Path, out_dir: Path, *, num_threads: int = -1) -> Path:
     """Warp masks (stored under the images' names) exactly like their images;
     returns the folder holding the results under the same names."""
-    undistort(model, mask_dir, out_dir, max_image_size=max_image_size, jpeg_quality=100, num_threads=num_threads)
+    undistort(model, mask_dir, out_dir, jpeg_quality=100, num_threads=num_threads)
     return out_dir / "images"
 
 

@@ -33,8 +33,9 @@ class SfmOptions:
     ordered: bool = False  # frames of a video: sequential when auto
     exhaustive_max_images: int = 40  # auto: below this, all pairs are cheap enough
     sequential_overlap: int = 10  # neighbours each image is matched with
+    max_image_size: int = 1600  # pixels: SIFT sees images shrunk to this (keypoints in full-size pixels)
     max_features: int = 4096
-    first_octave: int | None = None  # None: 0, or -1 for images under 400 px (too few features otherwise)
+    first_octave: int | None = None  # None: 0, or -1 when SIFT's image is under 400 px (too few features otherwise)
     seed: int = 0
     num_threads: int = -1
     chunk: int = 8  # images per extraction call (progress granularity)
@@ -121,7 +122,7 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
             on_event: EventSink | None = None) -> SfmResult:
     """Extract, match and map `names` (files in `image_dir`).
 
-    `min_side` is the smallest image side (chooses the SIFT octave); `where`
+    `min_side` is the smallest image side SIFT sees (chooses the octave); `where`
     names the input in error messages. Raises SplatError (with the likely
     cause) when no model comes out."""
     clock = _Clock(on_event)
@@ -133,7 +134,8 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
     first_octave = opts.first_octave
     if first_octave is None:
         first_octave = -1 if min_side < 400 else 0
-    sift = SiftOptions(max_num_features=opts.max_features, first_octave=first_octave, num_threads=opts.num_threads)
+    sift = SiftOptions(max_image_size=opts.max_image_size, max_num_features=opts.max_features,
+                       first_octave=first_octave, num_threads=opts.num_threads)
     t = clock.start("extract features", len(names))
     colmap.create_database(db, image_dir, names, single_camera=single_camera)
     for i in range(0, len(names), opts.chunk):
