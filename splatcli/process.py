@@ -38,7 +38,7 @@ from .sfm.bounds import frustum_bounds, points_bounds
 from .sfm.colmap import CameraSpec, Model
 from .sfm.colmap_files import check_image_name, check_model
 from .sfm.detect import InputSpec, detect_input
-from .sfm.images import IMAGE_EXTS, ImageError, StagedImage, fit_size, list_folder, stage_image
+from .sfm.images import IMAGE_EXTS, ImageError, StagedImage, fit_size, list_folder, stage_image, write_image
 from .sfm.model import read_scene
 from .sfm.reconstruct import MATCHERS, SfmOptions, run_sfm
 from .sfm.transforms import read_transforms
@@ -357,6 +357,10 @@ def _finish_model(model: Model, st: Project, work: Path, cfg: ProcessConfig, run
     """Write images/, masks/ and sfm/sparse/0 (PINHOLE) into the stage folder.
     Returns whether undistortion happened."""
     names = model.registered_names()
+    if masks:  # some images had alpha: give the others an opaque mask, so every image has one
+        for name, (w, h) in model.camera_sizes().items():
+            if not (work / "masks" / name).exists():
+                write_image(work / "masks" / name, np.full((h, w), 255, np.uint8))
     if model.is_pinhole():
         model.to_pinhole()
         with run.stage("copy images", len(names)) as s:
@@ -394,8 +398,6 @@ def _move(src: Path, dst: Path) -> None:
 
 def _convert_mask(src: Path, dst: Path) -> None:
     import cv2
-
-    from .sfm.images import write_image
 
     m = cv2.imread(str(src), cv2.IMREAD_GRAYSCALE)
     if m is not None:

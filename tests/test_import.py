@@ -104,6 +104,30 @@ def test_import_distorted_colmap_with_two_cameras_is_undistorted(tmp_path):
         np.testing.assert_allclose(a.viewmat, b.viewmat, atol=1e-9)
 
 
+def test_import_distorted_rgba_images_undistorts_masks_too(tmp_path):
+    ws = tmp_path / "ws"
+    model = make_workspace(ws, camera_model="OPENCV", num_images=4)
+    names = model.registered_names()
+    for i, name in enumerate(names[:-1]):  # the last image stays RGB: it gets an opaque mask
+        alpha = np.full((48, 64), 255, np.uint8)
+        alpha[:, :20] = 0
+        cv2.imwrite(str(ws / "images" / name), np.dstack([texture(48, 64, seed=i), alpha]))
+    r = process(ws, tmp_path / "p")
+    assert r.masks and r.undistorted
+    m = assert_contract(tmp_path / "p")
+    assert m["scene"]["background"] == [1.0, 1.0, 1.0]
+    proj = Project(tmp_path / "p")
+    for c in read_scene(proj.sparse_dir).cameras:
+        mask = cv2.imread(str(proj.mask_path(c.name)), cv2.IMREAD_UNCHANGED)
+        assert mask.shape == (c.height, c.width)
+        if c.name == names[-1]:
+            assert mask.min() == 255
+        else:
+            assert mask[:, :10].max() < 128 and mask[:, -10:].min() > 128
+            img = cv2.imread(str(proj.images_dir / c.name))
+            assert img[c.height // 2, 2].min() > 200  # composited over white
+
+
 def test_import_keeps_full_resolution_whatever_max_size(tmp_path):
     """--max-size caps what SIFT sees; imported datasets are never resampled."""
     ws = tmp_path / "ws"
@@ -164,6 +188,8 @@ def test_import_blender_scene_composites_over_white_and_keeps_masks(tmp_path):
     proj = Project(tmp_path / "p")
     img = cv2.imread(str(proj.images_dir / "train_r_0.png"))
     assert (img[0, 0] == 255).all()  # transparent -> white background
+    assert sorted(p.name for p in proj.masks_dir.iterdir()) == [n + ".png" for n in sorted(m["splits"]["train"]
+                                                                                         + m["splits"]["test"])]
     mask = cv2.imread(str(proj.mask_path("train_r_0.png")), cv2.IMREAD_UNCHANGED)
     assert mask.shape == (48, 64) and mask[0, 0] == 0 and mask[20, 20] == 255
     K = read_scene(proj.sparse_dir).cameras[0].K
