@@ -14,10 +14,15 @@ of similar list length K as dense [blocks, K, pixels] tensors:
     T          = cumprod(1 - alpha) along K (front to back)
     colour     = (alpha T)^T @ [rgb, z]   one batched GEMM
 
+Lists are cut into segments of `SEGMENT` Gaussians; after each, blocks whose every
+pixel has stopped blending (T would drop below 1e-4) are dropped: early termination.
+
 The backward recomputes alpha and T per chunk (cheaper than storing them: they are
 the largest tensors) and uses the 3DGS identity for the colour behind a Gaussian,
 suffix_i = C_final - prefix_i, so it needs no back-to-front pass. The per-pair
-gradient sums over pixels are again one GEMM against the same six pixel features.
+gradient sums over pixels are again one GEMM against the same six pixel features;
+the chain rule from those sums to the Gaussian's screen parameters runs once over
+all pairs, outside the chunk loop.
 
 Chunks bound memory to O(chunk elements + pairs); nothing here loops over pixels,
 Gaussians or blocks individually.
@@ -53,6 +58,7 @@ class Plan:
     nbx: int  # blocks per row
     nby: int  # blocks per column
     pair_gid: Tensor  # [M] int64 Gaussian index of each pair, sorted by (block, depth)
+    pair_blk: Tensor  # [M] int64 block index of each pair
     block_start: Tensor  # [nblocks] int64 offset of each block's list in pair_gid
     block_count: Tensor  # [nblocks] int64 list length
     chunks: list[tuple[Tensor, int]]  # (block ids [nb], K) per chunk
@@ -71,6 +77,7 @@ def _feats(block: int, dtype: torch.dtype, device: torch.device) -> Tensor:  # [
 def make_plan(
     means2d: Tensor,  # [N, 2] px
     cov2d: Tensor,  # [N, 3] (a, b, c) px^2, incl. blur
+    conics: Tensor,  # [N, 3] (A, B, C) inverse of cov2d
     opacities: Tensor,  # [N]
     depths: Tensor,  # [N]
     rect: Tensor,  # [N, 4] int64 tile rect (tx0, ty0, tx1, ty1), exclusive ends
@@ -81,89 +88,91 @@ def make_plan(
     chunk_elems: int | None = None,
     seg: int | None = None,
 ) -> Plan:
+    """Pairs (Gaussian, block) for every block that holds a pixel centre inside both the
+    Gaussian's tiles and its alpha >= 1/255 ellipse, sorted by (block, depth).
+
+    Enumeration is exact per block row: over a row band, the ellipse's x-extent is an
+    interval whose ends are found in closed form (x given y is a 1D Gaussian with mean
+    (b / c) dy and variance 1 / A), so corner blocks outside the ellipse never appear."""
     assert TILE % block == 0
     dev = means2d.device
+    f64, i64 = torch.float64, torch.int64
     nbx, nby = math.ceil(width / block), math.ceil(height / block)
     nblocks = nbx * nby
     with torch.no_grad():
-        o = opacities.detach().to(torch.float64)
+        o = opacities.detach().to(f64)
         # alpha >= 1/255  <=>  d^T Sigma'^-1 d <= 2 ln(255 o). Slightly generous margin:
         # the per-pixel test in the compositor is the exact one.
         t2 = 2.0 * torch.log(torch.clamp_min(o * 255.0, 1e-30)) + 1e-3
-        act = active & (t2 > 0)
-        idx = torch.nonzero(act).squeeze(1)
-        m = means2d.detach()[idx].to(torch.float64)
-        cv = cov2d.detach()[idx].to(torch.float64)
-        t = torch.sqrt(t2[idx]) * (1 + 1e-6)
-        hx, hy = t * torch.sqrt(cv[:, 0]), t * torch.sqrt(cv[:, 2])
-        rc = rect[idx]
-        # Pixel i is sampled at i + 0.5: inside [lo, hi] iff ceil(lo - .5) <= i <= floor(hi - .5).
-        x0 = torch.maximum(torch.ceil(m[:, 0] - hx - 0.5), (rc[:, 0] * TILE).to(torch.float64)).clamp_min(0)
-        x1 = torch.minimum(torch.floor(m[:, 0] + hx - 0.5), (rc[:, 2] * TILE - 1).to(torch.float64)).clamp_max(width - 1)
-        y0 = torch.maximum(torch.ceil(m[:, 1] - hy - 0.5), (rc[:, 1] * TILE).to(torch.float64)).clamp_min(0)
-        y1 = torch.minimum(torch.floor(m[:, 1] + hy - 0.5), (rc[:, 3] * TILE - 1).to(torch.float64)).clamp_max(height - 1)
-        keep = (x1 >= x0) & (y1 >= y0)
-        idx, x0, x1, y0, y1 = idx[keep], x0[keep], x1[keep], y0[keep], y1[keep]
-        bx0 = torch.div(x0.to(torch.int64), block, rounding_mode="floor")
-        bx1 = torch.div(x1.to(torch.int64), block, rounding_mode="floor")
-        by0 = torch.div(y0.to(torch.int64), block, rounding_mode="floor")
-        by1 = torch.div(y1.to(torch.int64), block, rounding_mode="floor")
+        idx = torch.nonzero(active & (t2 > 0)).squeeze(1)
         # Depth order (stable: ties keep index order, as in the reference).
-        order = torch.argsort(depths.detach()[idx], stable=True)
-        idx, bx0, bx1, by0, by1 = idx[order], bx0[order], bx1[order], by0[order], by1[order]
-        nx, ny = bx1 - bx0 + 1, by1 - by0 + 1
-        n = nx * ny
+        idx = idx[torch.argsort(depths.detach()[idx], stable=True)]
+        m = means2d.detach()[idx].to(f64)
+        cv = cov2d.detach()[idx].to(f64)
+        vx = 1.0 / conics.detach()[idx, 0].to(f64)  # var(x | y) = det / c
+        t2 = t2[idx] * (1 + 1e-6)
+        rc = rect[idx]
+        hy = torch.sqrt(t2 * cv[:, 2])
+        # Pixel i is sampled at i + 0.5: inside [lo, hi] iff ceil(lo - .5) <= i <= floor(hi - .5).
+        py0 = torch.maximum(torch.ceil(m[:, 1] - hy - 0.5), (rc[:, 1] * TILE).to(f64)).clamp_min(0).to(i64)
+        py1 = torch.minimum(torch.floor(m[:, 1] + hy - 0.5), (rc[:, 3] * TILE - 1).to(f64)).clamp_max(height - 1).to(i64)
+        by0 = torch.div(py0, block, rounding_mode="floor")
+        nrow = (torch.div(py1, block, rounding_mode="floor") - by0 + 1).clamp_min(0)
+        nrow = torch.where(py1 >= py0, nrow, torch.zeros_like(nrow))
+        # --- one entry per (Gaussian, block row) ---
         S = idx.numel()
-        rank = torch.repeat_interleave(torch.arange(S, device=dev), n)
-        M = rank.numel()
-        first = torch.cumsum(n, 0) - n
-        local = torch.arange(M, device=dev) - first[rank]
-        nxr = nx[rank]
-        bid = (by0[rank] + local // nxr) * nbx + bx0[rank] + local % nxr
-        key, _ = torch.sort(bid * max(S, 1) + rank)
-        blk = key // max(S, 1)
-        pair_gid = idx[key % max(S, 1)]
-        count = torch.bincount(blk, minlength=nblocks)
+        rg = torch.repeat_interleave(torch.arange(S, device=dev), nrow)
+        R = rg.numel()
+        by = by0[rg] + torch.arange(R, device=dev) - (torch.cumsum(nrow, 0) - nrow)[rg]
+        mr, cr, vxr, t2r = m[rg], cv[rg], vx[rg], t2[rg]
+        ylo = torch.maximum(by * block, py0[rg]).to(f64) + 0.5 - mr[:, 1]
+        yhi = torch.minimum(by * block + block - 1, py1[rg]).to(f64) + 0.5 - mr[:, 1]
+        k = cr[:, 1] / cr[:, 2]
+        dys = torch.sqrt(t2r / cr[:, 0]) * cr[:, 1]  # dy of the ellipse's rightmost point
+        dmax = torch.minimum(torch.maximum(dys, ylo), yhi)
+        dmin = torch.minimum(torch.maximum(-dys, ylo), yhi)
+        xhi = mr[:, 0] + k * dmax + torch.sqrt((vxr * (t2r - dmax * dmax / cr[:, 2])).clamp_min(0))
+        xlo = mr[:, 0] + k * dmin - torch.sqrt((vxr * (t2r - dmin * dmin / cr[:, 2])).clamp_min(0))
+        rcr = rc[rg]
+        px0 = torch.maximum(torch.ceil(xlo - 0.5), (rcr[:, 0] * TILE).to(f64)).clamp_min(0).to(i64)
+        px1 = torch.minimum(torch.floor(xhi - 0.5), (rcr[:, 2] * TILE - 1).to(f64)).clamp_max(width - 1).to(i64)
+        bx0 = torch.div(px0, block, rounding_mode="floor")
+        ncol = (torch.div(px1, block, rounding_mode="floor") - bx0 + 1).clamp_min(0)
+        ncol = torch.where(px1 >= px0, ncol, torch.zeros_like(ncol))
+        # --- one entry per (Gaussian, block) ---
+        pr = torch.repeat_interleave(torch.arange(R, device=dev), ncol)
+        M = pr.numel()
+        bid = (by * nbx + bx0 - (torch.cumsum(ncol, 0) - ncol))[pr] + torch.arange(M, device=dev)
+        # Pairs were generated in depth order: a stable sort by block alone gives
+        # (block, depth) order; small integer keys sort fastest.
+        kdt = torch.int16 if nblocks < 2**15 else (torch.int32 if nblocks < 2**31 else i64)
+        perm = torch.sort(bid.to(kdt), stable=True).indices
+        pair_gid = idx[rg[pr[perm]]]
+        pair_blk = bid[perm]
+        count = torch.bincount(bid, minlength=nblocks)
         start = torch.cumsum(count, 0) - count
-        chunks = _schedule(count, block * block, chunk_elems or CHUNK_ELEMS)
-    return Plan(width, height, block, nbx, nby, pair_gid, start, count, chunks, M, seg or SEGMENT)
+        seg = seg or SEGMENT
+        chunks = _schedule(count, block * block, chunk_elems or CHUNK_ELEMS, seg)
+    return Plan(width, height, block, nbx, nby, pair_gid, pair_blk, start, count, chunks, M, seg)
 
 
-def _schedule(count: Tensor, P: int, chunk_elems: int) -> list[tuple[Tensor, int]]:
-    """Chunks of blocks with similar list lengths (longest first), each about
-    `chunk_elems` dense elements, so padding to the chunk's longest list is small."""
+def _schedule(count: Tensor, P: int, chunk_elems: int, seg: int) -> list[tuple[Tensor, int]]:
+    """Chunks of blocks with similar list lengths (longest first). A chunk's dense
+    tensors are [blocks, P, min(K, seg)]; each holds about `chunk_elems` elements, and
+    padding every list to the chunk's longest stays small."""
     nz = torch.nonzero(count).squeeze(1)
     if nz.numel() == 0:
         return []
-    c = count[nz]
-    c, o = torch.sort(c, descending=True)
+    c, o = torch.sort(count[nz], descending=True)
     nz = nz[o]
     cl = c.tolist()
     out, s = [], 0
     while s < len(cl):
         k = cl[s]
-        nb = max(1, chunk_elems // (k * P))
+        nb = max(1, chunk_elems // (min(k, seg) * P))
         out.append((nz[s : s + nb], k))
         s += nb
     return out
-
-
-def _coef(
-    p: Tensor,  # [nb, K, 6] packed (u, v, A, B, C, log o) per pair
-    centre: Tensor,  # [nb, 1, 2] block centre px
-):
-    """Coefficients of log(o G) as a quadratic in the block-local pixel offset l:
-    c0 + gx lx + gy ly + qa lx^2 + qb lx ly + qc ly^2, with d0 = mean - centre.
-    Expanding around the block centre keeps the terms small where alpha matters:
-    the large part of d0 lies along the ellipse's long axis, where Q d0 is small."""
-    d0x = p[..., 0] - centre[..., 0]
-    d0y = p[..., 1] - centre[..., 1]
-    A, B, C = p[..., 2], p[..., 3], p[..., 4]
-    gx = A * d0x + B * d0y
-    gy = B * d0x + C * d0y
-    c0 = p[..., 5] - 0.5 * (d0x * gx + d0y * gy)
-    coef = torch.stack([c0, gx, gy, -0.5 * A, -B, -0.5 * C], 1)  # [nb, 6, K]
-    return coef, d0x, d0y, gx, gy
 
 
 def _below(x: float, dtype: torch.dtype) -> float:
@@ -176,10 +185,65 @@ class _Consts:
     def __init__(self, dtype: torch.dtype):
         self.a_min = _below(ALPHA_MIN, dtype)
         self.t_min = _below(T_MIN, dtype)
+        # Indicator scales: U >= 1e-4 (or 0) times 2e4 is >= 2 (or 0); 0.99 - alpha is at
+        # least one ulp of 0.99 unless alpha was clamped (then exactly 0).
+        self.u_scale = 2.0 / T_MIN
+        self.a_scale = 2.0 / (ALPHA_MAX - _below(ALPHA_MAX, dtype))
+
+
+class _Pairs:
+    """Per-pair data in plan order plus one padding row at index M (alpha exactly 0).
+
+    coef: log(o G) as a quadratic in the block-local pixel offset l,
+    c0 + gx lx + gy ly + qa lx^2 + qb lx ly + qc ly^2, with d0 = mean - block centre.
+    Expanding around the block centre keeps the terms small where alpha matters: the
+    large part of d0 lies along the ellipse's long axis, where Q d0 is small."""
+
+    def __init__(self, plan: Plan, means2d, conics, opacities, colors, depths):
+        gid = plan.pair_gid
+        b = plan.block
+        blk = plan.pair_blk
+        self.cx = (blk % plan.nbx).to(means2d.dtype) * b + b / 2
+        self.cy = torch.div(blk, plan.nbx, rounding_mode="floor").to(means2d.dtype) * b + b / 2
+        self.d0x = means2d[gid, 0] - self.cx
+        self.d0y = means2d[gid, 1] - self.cy
+        self.con = conics[gid]  # [M, 3]
+        A, B, C = self.con.unbind(1)
+        self.gx = A * self.d0x + B * self.d0y
+        self.gy = B * self.d0x + C * self.d0y
+        logo = torch.log(opacities[gid])  # > 0: pairs exist only for opacity >= 1/255
+        c0 = logo - 0.5 * (self.d0x * self.gx + self.d0y * self.gy)
+        coef = torch.stack([c0, self.gx, self.gy, -0.5 * A, -B, -0.5 * C], 1) * _LOG2E
+        pad = coef.new_zeros(1, 6)
+        pad[0, 0] = _DEAD
+        self.coef2 = torch.cat([coef, pad], 0)  # [M + 1, 6], log2 units for exp2
+        cz = torch.cat([colors[gid], depths[gid, None], torch.ones_like(depths[gid, None])], 1)
+        self.cz = torch.cat([cz, cz.new_zeros(1, 5)], 0)  # [M + 1, 5]: (r, g, b, z, 1)
+
+    def grads(self, R: Tensor, dcz: Tensor):  # R [M, 6] sums of dpow * feats; dcz [M, 4]
+        """Chain rule from the per-pair sums to (mean, conic, log o) of each pair."""
+        A, B, C = self.con.unbind(1)
+        d0x, d0y, gx, gy = self.d0x, self.d0y, self.gx, self.gy
+        R0, R1, R2, R3, R4, R5 = R.unbind(1)
+        return torch.stack(
+            [
+                -gx * R0 + A * R1 + B * R2,
+                -gy * R0 + B * R1 + C * R2,
+                -0.5 * (R0 * d0x * d0x - 2 * R1 * d0x + R3),
+                -(R0 * d0x * d0y - R1 * d0y - R2 * d0x + R4),
+                -0.5 * (R0 * d0y * d0y - 2 * R2 * d0y + R5),
+                R0,
+                dcz[:, 0],
+                dcz[:, 1],
+                dcz[:, 2],
+                dcz[:, 3],
+            ],
+            1,
+        )  # [M, 10]: d(u, v, A, B, C, log o, r, g, b, z)
 
 
 def _alpha(coef2: Tensor, featsT: Tensor, c: _Consts) -> Tensor:  # [nb, P, k]
-    """alpha = min(0.99, o G), zeroed below 1/255; coef2 is in log2 units."""
+    """alpha = min(0.99, o G), zeroed below 1/255; coef2 [nb, 6, k] is in log2 units."""
     a = torch.matmul(featsT, coef2)  # [P, 6] @ [nb, 6, k]
     a.exp2_()
     F.threshold_(a, c.a_min, 0.0)
@@ -201,82 +265,69 @@ def _segments(K: int, seg: int):
     return [(k0, min(K, k0 + seg)) for k0 in range(0, K, seg)]
 
 
-def _gather(plan: Plan, bl: Tensor, K: int, nrows: int):
-    """Per chunk: Gaussian index of every (block, k) slot ([nb, K], padding -> nrows-1)
-    and the block centres [nb, 1, 2]."""
-    dev = bl.device
-    ar = torch.arange(K, device=dev)
+def _slots(plan: Plan, bl: Tensor, K: int) -> Tensor:  # [nb, K] pair index, M for padding
+    ar = torch.arange(K, device=bl.device)
     pos = plan.block_start[bl][:, None] + ar
-    ok = ar < plan.block_count[bl][:, None]
-    g = torch.where(ok, plan.pair_gid[pos.clamp(max=max(plan.n_pairs - 1, 0))], nrows - 1)
-    b = plan.block
-    cx = (bl % plan.nbx) * b + b / 2
-    cy = torch.div(bl, plan.nbx, rounding_mode="floor") * b + b / 2
-    return g, torch.stack([cx, cy], -1)[:, None, :]
+    return torch.where(ar < plan.block_count[bl][:, None], pos, plan.n_pairs)
 
 
-def _pack(means2d, conics, opacities, colors, depths):
-    """Per-Gaussian rows (u, v, A, B, C, log o) and (r, g, b, z, 1), plus one padding row
-    (log o = -1e4: alpha exactly 0). The constant 1 makes the colour GEMM also sum the
-    blending weights, which gives T_final = 1 - sum w for free."""
-    logo = torch.log(torch.clamp_min(opacities, 1e-38)).masked_fill(opacities <= 0, _DEAD)
-    geo = torch.cat([means2d, conics, logo[:, None]], 1)
-    pad = geo.new_zeros(1, 6)
-    pad[0, 5] = _DEAD
-    geo = torch.cat([geo, pad], 0)
-    cz = torch.cat([colors, depths[:, None], torch.ones_like(depths)[:, None]], 1)
-    cz = torch.cat([cz, cz.new_zeros(1, 5)], 0)
-    return geo, cz
+def _seg(x: Tensor, act: Tensor | None, k0: int, k1: int) -> Tensor:
+    """x[act, :, k0:k1] (all rows while none has terminated)."""
+    return x[:, :, k0:k1] if act is None else x[act, :, k0:k1]
 
 
-def _rows(x: Tensor, act: Tensor | None) -> Tensor:
-    return x if act is None else x[act]
+def _terminate(act: Tensor | None, Tc: Tensor, *carry: Tensor):
+    """Early termination: drop the blocks whose every pixel has stopped blending."""
+    alive = Tc.amax(1) > 0
+    if bool(alive.all()):
+        return act, Tc, carry
+    act = torch.nonzero(alive).squeeze(1) if act is None else act[alive]
+    return act, Tc[alive], tuple(x[alive] for x in carry)
 
 
 class _Composite(torch.autograd.Function):
     @staticmethod
     def forward(ctx, plan: Plan, means2d, conics, opacities, colors, depths, background):
-        geo, cz = _pack(means2d, conics, opacities, colors, depths)
         dt, dev = means2d.dtype, means2d.device
         P = plan.block * plan.block
-        nblocks = plan.nbx * plan.nby
         c = _Consts(dt)
+        pairs = _Pairs(plan, means2d, conics, opacities, colors, depths)
         featsT = _feats(plan.block, dt, dev).T.contiguous()  # [P, 6]
-        acc = torch.zeros(nblocks, 5, P, dtype=dt, device=dev)  # (r, g, b, depth, sum w)
+        acc = torch.zeros(plan.nbx * plan.nby, 5, P, dtype=dt, device=dev)  # (r, g, b, depth, sum w)
         for bl, K in plan.chunks:
-            g, centre = _gather(plan, bl, K, geo.shape[0])
-            coef2 = _coef(geo[g], centre)[0].mul_(_LOG2E)  # [nb, 6, K]
-            czt = cz[g].transpose(1, 2)  # [nb, 5, K]
-            out = torch.zeros(bl.shape[0], 5, P, dtype=dt, device=dev)
+            pos = _slots(plan, bl, K)
+            coef2 = pairs.coef2[pos].transpose(1, 2)  # [nb, 6, K]
+            czt = pairs.cz[pos].transpose(1, 2)  # [nb, 5, K]
+            out = None
             act, Tc = None, None
             for k0, k1 in _segments(K, plan.seg):
-                alpha = _alpha(_rows(coef2, act)[:, :, k0:k1], featsT, c)
-                om, U = _transmittance(alpha, Tc, c)
-                w = alpha.div_(om).mul_(U)  # alpha T_before, 0 where not blended
-                o = torch.bmm(_rows(czt, act)[:, :, k0:k1], w.transpose(1, 2))  # [na, 5, P]
-                Tc = U[:, :, -1]
-                if act is None:
+                a = _alpha(_seg(coef2, act, k0, k1), featsT, c)
+                om, U = _transmittance(a, Tc, c)
+                w = a.div_(om).mul_(U)  # alpha T_before; 0 where not blended
+                o = torch.bmm(_seg(czt, act, k0, k1), w.transpose(1, 2))  # [na, 5, P]
+                if out is None:
+                    out = o
+                elif act is None:
                     out += o
                 else:
                     out.index_add_(0, act, o)
-                if k1 < K:  # early termination: drop blocks whose every pixel has stopped
-                    alive = Tc.amax(1) > 0
-                    if not bool(alive.all()):
-                        act = torch.nonzero(alive).squeeze(1) if act is None else act[alive]
-                        Tc = Tc[alive]
-                        if act.numel() == 0:
-                            break
+                if k1 < K:
+                    act, Tc, _ = _terminate(act, U[:, :, -1])
+                    if act is not None and act.numel() == 0:
+                        break
             acc[bl] = out
         ctx.plan = plan
-        ctx.save_for_backward(geo, cz, acc, background, opacities)
+        ctx.save_for_backward(means2d, conics, opacities, colors, depths, background, acc)
         return _unblock(plan, acc, background)
 
     @staticmethod
     def backward(ctx, g_image, g_alpha, g_depth):
         plan: Plan = ctx.plan
-        geo, cz, acc, background, opacities = ctx.saved_tensors
-        dt, dev = geo.dtype, geo.device
+        means2d, conics, opacities, colors, depths, background, acc = ctx.saved_tensors
+        dt, dev = means2d.dtype, means2d.device
+        N, M = means2d.shape[0], plan.n_pairs
         c = _Consts(dt)
+        pairs = _Pairs(plan, means2d, conics, opacities, colors, depths)
         feats = _feats(plan.block, dt, dev)  # [6, P]
         featsT = feats.T.contiguous()
         g4, gA = _block(plan, g_image, g_alpha, g_depth)  # [nblocks, 4, P], [nblocks, P]
@@ -285,72 +336,57 @@ class _Composite(torch.autograd.Function):
         # trick) plus d loss / d T_final = g . bg - g_alpha times T_final.
         base_all = (g4 * acc[:, :4]).sum(1) + Tfin * ((g4[:, :3] * background[:, None]).sum(1) - gA)
         g4t_all = g4.transpose(1, 2)  # [nblocks, P, 4]
-        d_geo = torch.zeros_like(geo)
-        d_cz = torch.zeros_like(cz)
+        dpair = torch.zeros(M + 1, 10, dtype=dt, device=dev)  # (R0..R5, d rgb z) per pair
         for bl, K in plan.chunks:
             nb = bl.shape[0]
-            g, centre = _gather(plan, bl, K, geo.shape[0])
-            p = geo[g]
-            coef, d0x, d0y, gx, gy = _coef(p, centre)
-            coef2 = coef * _LOG2E
-            czt = cz[g].transpose(1, 2)[:, :4]  # [nb, 4, K]
-            g4b, g4tb, base = g4[bl], g4t_all[bl], base_all[bl]
-            R = torch.zeros(nb, 6, K, dtype=dt, device=dev)
-            dczt = torch.zeros(nb, 4, K, dtype=dt, device=dev)
+            pos = _slots(plan, bl, K)
+            coef2 = pairs.coef2[pos].transpose(1, 2)  # [nb, 6, K]
+            czt = pairs.cz[pos, :4].transpose(1, 2)  # [nb, 4, K]
+            g4b, g4tb, base = g4[bl], g4t_all[bl].contiguous(), base_all[bl][..., None]
+            single = K <= plan.seg
+            if not single:
+                D = torch.zeros(nb, K, 10, dtype=dt, device=dev)
             act, Tc, pc = None, None, None
             for k0, k1 in _segments(K, plan.seg):
-                alpha = _alpha(_rows(coef2, act)[:, :, k0:k1], featsT, c)
-                om, U = _transmittance(alpha, Tc, c)
-                r = alpha / om
+                a = _alpha(_seg(coef2, act, k0, k1), featsT, c)
+                om, U = _transmittance(a, Tc, c)
+                r = a / om
                 w = r * U
-                v = torch.bmm(_rows(g4tb, act), _rows(czt, act)[:, :, k0:k1])  # [na, P, k]
-                pre = torch.cumsum(w * v, 2)
+                v = torch.bmm(g4tb if act is None else g4tb[act], _seg(czt, act, k0, k1))  # [na, P, k]
+                t = torch.mul(w, v).cumsum_(2)  # prefix sums of w v
                 if pc is not None:
-                    pre += pc[..., None]
-                # d loss / d power = alpha d loss / d alpha
-                #   = r (U v - (base - pre)), for blended, unclamped alpha; 0 otherwise.
-                t = U * v
-                t += pre
-                t -= _rows(base, act)[..., None]
-                mask = torch.sign(U).mul_(torch.sign(torch.rsub(alpha, ALPHA_MAX)))
-                dpow = t.mul_(r).mul_(mask)
+                    t += pc[..., None]
+                pc = t[:, :, -1].clone()
+                # d loss / d power = alpha d loss / d alpha = r (U v - (base - prefix)) for
+                # blended, unclamped alpha; 0 otherwise (indicators built without branches).
+                t -= base if act is None else base[act]
+                t.addcmul_(U, v)
+                if not single:
+                    Tlast = U[:, :, -1].clone()
+                ind = torch.minimum(U.mul_(c.u_scale), a.sub_(ALPHA_MAX).mul_(-c.a_scale)).clamp_(max=1.0)
+                dpow = t.mul_(r).mul_(ind)
                 Rs = torch.matmul(feats, dpow)  # [na, 6, k]: sums of dpow * pixel features
-                ds = torch.bmm(_rows(g4b, act), w)  # [na, 4, k]
+                ds = torch.bmm(g4b if act is None else g4b[act], w)  # [na, 4, k]
+                d = torch.cat([Rs, ds], 1).transpose(1, 2)  # [na, k, 10]
+                if single:
+                    D = d
+                    break
                 if act is None:
-                    R[:, :, k0:k1] = Rs
-                    dczt[:, :, k0:k1] = ds
+                    D[:, k0:k1] = d
                 else:
-                    R[act, :, k0:k1] = Rs
-                    dczt[act, :, k0:k1] = ds
-                Tc, pc = U[:, :, -1], pre[:, :, -1]
+                    D[act, k0:k1] = d
                 if k1 < K:
-                    alive = Tc.amax(1) > 0
-                    if not bool(alive.all()):
-                        act = torch.nonzero(alive).squeeze(1) if act is None else act[alive]
-                        Tc, pc = Tc[alive], pc[alive]
-                        if act.numel() == 0:
-                            break
-            A, B, C = p[..., 2], p[..., 3], p[..., 4]
-            R0, R1, R2, R3, R4, R5 = R.unbind(1)
-            dgeo = torch.stack(
-                [
-                    -gx * R0 + A * R1 + B * R2,
-                    -gy * R0 + B * R1 + C * R2,
-                    -0.5 * (R0 * d0x * d0x - 2 * R1 * d0x + R3),
-                    -(R0 * d0x * d0y - R1 * d0y - R2 * d0x + R4),
-                    -0.5 * (R0 * d0y * d0y - 2 * R2 * d0y + R5),
-                    R0,
-                ],
-                -1,
-            )
-            d_geo.index_add_(0, g.reshape(-1), dgeo.reshape(-1, 6))
-            d_cz[:, :4].index_add_(0, g.reshape(-1), dczt.transpose(1, 2).reshape(-1, 4))
-        d_geo, d_cz = d_geo[:-1], d_cz[:-1]
-        d_opac = torch.where(opacities > 0, d_geo[:, 5] / opacities.clamp_min(1e-38), torch.zeros_like(opacities))
+                    act, Tc, (pc,) = _terminate(act, Tlast, pc)
+                    if act is not None and act.numel() == 0:
+                        break
+            dpair.index_copy_(0, pos.reshape(-1), D.reshape(-1, 10))  # padding slots all land on row M
+        dpair = pairs.grads(dpair[:M, :6], dpair[:M, 6:])  # [M, 10]
+        dg = torch.zeros(N, 10, dtype=dt, device=dev).index_add_(0, plan.pair_gid, dpair)
+        d_opac = dg[:, 5] / opacities.clamp_min(1e-38)  # d log o -> d o; 0 for pair-less Gaussians
         d_bg = None
         if ctx.needs_input_grad[6]:
             d_bg = (g_image * _to_image(plan, Tfin[:, None])[..., 0:1]).sum((0, 1))
-        return None, d_geo[:, :2], d_geo[:, 2:5], d_opac, d_cz[:, :3], d_cz[:, 3], d_bg
+        return None, dg[:, :2], dg[:, 2:5], d_opac, dg[:, 6:9], dg[:, 9], d_bg
 
 
 def _to_image(plan: Plan, x: Tensor) -> Tensor:  # [nblocks, C, P] -> [H, W, C]

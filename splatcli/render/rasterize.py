@@ -94,7 +94,7 @@ def rasterize(
     pr = project(means, quats, log_scales, opacity_logits, sh, viewmat, K, width, height, sh_degree, near, antialiased)
     rect = tile_rect(pr.means2d, pr.radii, width, height)
     visible = pr.valid & (rect[:, 2] > rect[:, 0]) & (rect[:, 3] > rect[:, 1])
-    plan = make_plan(pr.means2d, pr.cov2d, pr.opacities, pr.depths, rect, visible, width, height, block)
+    plan = make_plan(pr.means2d, pr.cov2d, pr.conics, pr.opacities, pr.depths, rect, visible, width, height, block)
     image, alpha, depth = composite(plan, pr.means2d, pr.conics, pr.opacities, pr.colors, pr.depths, background)
     radii = torch.where(visible, pr.radii, torch.zeros_like(pr.radii))
     return RenderOutput(
