@@ -29,8 +29,7 @@ class LogWriter:
 
     def __init__(self, path: Path, state: TrainState) -> None:
         self.path = path
-        self.loss_sum: torch.Tensor | float = 0.0
-        self.loss_n = 0
+        self.state = state  # the running loss sum lives in the state, so it survives a resume
         self.last = read_log(path)[-1] if path.exists() and read_log(path) else {}
         self.psnr = self.last.get("psnr") if self.last else None
         self.loss = self.last.get("loss") if self.last else None
@@ -41,11 +40,13 @@ class LogWriter:
 
     def add(self, loss: torch.Tensor | None) -> None:
         if loss is not None:
-            self.loss_sum = self.loss_sum + loss
-            self.loss_n += 1
+            acc = self.state.loss_acc
+            acc[0] += loss.to(acc.dtype)
+            acc[1] += 1
 
     def _mean_loss(self) -> float | None:
-        return float(self.loss_sum) / self.loss_n if self.loss_n else self.loss
+        s, n = self.state.loss_acc.tolist()
+        return s / n if n else self.loss
 
     def line(self, step: int, state: TrainState, evaluated: tuple[float, float] | None, log_every: int,
              force: bool = False) -> None:
@@ -60,7 +61,8 @@ class LogWriter:
             self.psnr = rec.psnr
         append_line(self.path, json.dumps(rec.to_json()))
         self.last = rec.to_json()
-        self.loss, self.loss_sum, self.loss_n = loss, 0.0, 0
+        self.loss = loss
+        self.state.loss_acc.zero_()
 
     def info(self, state: TrainState) -> dict[str, Any]:
         """Live figures for the progress bar, refreshed at most every PROGRESS_PERIOD_S."""

@@ -40,6 +40,7 @@ class TrainState:
     bad_steps: int = 0  # non-finite steps skipped, total
     bad_run: int = 0  # ... consecutive
     extra: dict[str, Any] = field(default_factory=dict)  # compaction / sh-auto records
+    loss_acc: Tensor = field(default_factory=lambda: torch.zeros(2, dtype=torch.float64))  # [sum, count] since the last log line
 
     @property
     def num_gaussians(self) -> int:
@@ -115,6 +116,7 @@ def new_state(g: Gaussians, cfg: TrainConfig, extent: float, device: torch.devic
         perm=torch.randperm(n_train, generator=view_gen),
         pos=0,
         sh_cap=cfg.max_sh_degree,
+        loss_acc=torch.zeros(2, dtype=torch.float64, device=device),
     )
 
 
@@ -136,7 +138,7 @@ def save_state(path: Path, state: TrainState, cfg: TrainConfig, interval: int) -
         extra={
             "perm": state.perm, "pos": state.pos, "sh_cap": state.sh_cap, "elapsed_s": state.elapsed_s,
             "bad_steps": state.bad_steps, "bad_run": state.bad_run, "records": state.extra,
-            "param_names": list(state.params),
+            "param_names": list(state.params), "loss_acc": state.loss_acc,
         },
     )
 
@@ -179,6 +181,7 @@ def state_from_checkpoint(ck: Checkpoint, cfg: TrainConfig, extent: float, devic
         bad_steps=int(ex.get("bad_steps", 0)),
         bad_run=int(ex.get("bad_run", 0)),
         extra=dict(ex.get("records") or {}),
+        loss_acc=ex.get("loss_acc", torch.zeros(2, dtype=torch.float64)).to(device),
     )
 
 

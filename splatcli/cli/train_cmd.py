@@ -8,6 +8,7 @@ from typing import Optional
 import typer
 
 from ..device import resolve_device
+from ..project import Project
 from ..train import train as run_train
 from ..train_config import PRESETS, make_config
 from .common import DebugOpt, DeviceOpt, JsonOpt, QuietOpt, SeedOpt, Ui
@@ -41,6 +42,7 @@ def train(
                  init_ply=str(init_ply) if init_ply else None)
     cfg = make_config(preset, seed=seed, device=str(dev), **given)
     overrides = {k: getattr(cfg, k) for k, v in given.items() if v is not None}
+    Project.open(project).require_processed()  # input errors before the progress display starts
     with ui.progress() as sink:
         s = run_train(project, cfg, dev, resume=resume, overrides=overrides, on_event=sink)
     psnr = f", held-out PSNR {s.psnr:.2f} dB" if s.psnr is not None else ""

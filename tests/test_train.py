@@ -1,0 +1,199 @@
+"""Training end to end on a tiny project (48x40 views): outputs, bitwise resume,
+the non-finite guard, the budget, --compact and --sh-degree auto, the CLI."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+
+import pytest
+import torch
+from typer.testing import CliRunner
+
+import splatcli.train as train_mod
+from splatcli.cli.main import app
+from splatcli.errors import Interrupted, TrainingDiverged
+from splatcli.events import Progress
+from splatcli.io.checkpoint import load_checkpoint, load_gaussians
+from splatcli.io.ply import ply_bytes
+from splatcli.project import Project
+from splatcli.train import train
+from splatcli.train_config import make_config
+from splatcli.train_report import read_log
+
+from tiny_project import make_tiny_project
+
+CPU = torch.device("cpu")
+# Every feature inside 50 steps: SH growth, refinement, an opacity reset, a
+# checkpoint, evaluation, then --sh-degree auto, --compact and its fine-tune.
+SMALL = dict(iterations=30, init_random_points=300, max_gaussians=600, eval_every=15, log_every=10,
+             refine_start=4, refine_every=4, reset_every=16, sh_degree_interval=8, checkpoint_every=10,
+             grow_grad2d=2e-5)
+
+
+def tiny(tmp_path, name="p") -> Project:
+    proj = make_tiny_project(tmp_path / name, trained=False)
+    proj.update_manifest(scene={**proj.manifest()["scene"], "bounds_min": [-1.0] * 3, "bounds_max": [1.0] * 3})
+    return proj
+
+
+def _params(ckpt):
+    ck = load_checkpoint(ckpt, CPU)
+    return ck, {k: v for k, v in ck.gaussians.as_dict().items()}
+
+
+def test_train_writes_checkpoint_log_report_and_summary(tmp_path):
+    proj = tiny(tmp_path)
+    events = []
+    s = train(proj.root, make_config(**SMALL), CPU, on_event=events.append)
+    assert s.steps == 30 and 0 < s.num_gaussians <= 600 and s.device == "cpu"
+    assert s.ply_bytes == ply_bytes(s.num_gaussians, s.sh_degree)
+    assert s.psnr is not None and math.isfinite(s.psnr) and s.bad_steps == 0
+    log = read_log(proj.train_log_path)
+    assert [r["step"] for r in log] == [10, 15, 20, 30]
+    assert all({"step", "elapsed_s", "loss", "num_gaussians"} <= set(r) for r in log)
+    assert [r["step"] for r in log if "psnr" in r] == [15, 30]
+    assert all(b["elapsed_s"] > a["elapsed_s"] for a, b in zip(log, log[1:]))
+    summary = proj.step("train")["summary"]
+    for k in ("steps", "train_seconds", "num_gaussians", "sh_degree", "ply_bytes", "device", "final_loss"):
+        assert k in summary
+    report = json.loads(proj.train_report_path.read_text())
+    assert sum(report["opacity_hist"]["counts"]) == s.num_gaussians
+    assert len(report["scale_hist"]["edges"]) == len(report["scale_hist"]["counts"]) + 1
+    assert [p.name for _, p in proj.checkpoints()] == ["step-000000020.pt", "step-000000030.pt"]  # keeps 2
+    g = load_gaussians(proj.latest_checkpoint(), CPU)
+    assert len(g) == s.num_gaussians and g.sh_degree == s.sh_degree == 3
+    assert bool(g.finite_mask().all())
+    assert any(isinstance(e, Progress) and "gaussians" in e.info for e in events)
+
+
+def _interrupt_at(step: int):
+    def sink(ev):
+        if isinstance(ev, Progress) and ev.done == step:
+            os.kill(os.getpid(), signal.SIGINT)  # a real signal through the real handler
+    return sink
+
+
+RESUME_CFG = dict(SMALL, compact=True, compact_finetune=8, sh_degree="auto")
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory):
+    a = tiny(tmp_path_factory.mktemp("uninterrupted"), "a")
+    return a, train(a.root, make_config(**RESUME_CFG), CPU)
+
+
+@pytest.mark.parametrize("stop", [13, 34], ids=["while-densifying", "during-compact-finetune"])
+def test_interrupt_and_resume_is_bitwise_identical(tmp_path, stop, uninterrupted):
+    cfg = make_config(**RESUME_CFG)
+    a, sa = uninterrupted
+    b = tiny(tmp_path, "b")
+    with pytest.raises(Interrupted):
+        train(b.root, cfg, CPU, on_event=_interrupt_at(stop))
+    assert b.latest_checkpoint().name == f"step-{stop:09d}.pt"
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # handler restored
+    sb = train(b.root, cfg, CPU, resume=True)
+    assert sb.resumed_from == stop and sb.steps == sa.steps == 38
+    cka, pa = _params(a.latest_checkpoint())
+    ckb, pb = _params(b.latest_checkpoint())
+    for k in pa:
+        assert torch.equal(pa[k], pb[k]), k  # bitwise, not merely close
+    assert ckb.sh_degree == cka.sh_degree
+    for name, st in cka.optimizer.items():
+        for key in ("exp_avg", "exp_avg_sq"):
+            assert torch.equal(st["state"][0][key], ckb.optimizer[name]["state"][0][key])
+    la, lb = read_log(a.train_log_path), read_log(b.train_log_path)
+    assert [(r["step"], r["loss"], r["num_gaussians"], r.get("psnr")) for r in la] == \
+           [(r["step"], r["loss"], r["num_gaussians"], r.get("psnr")) for r in lb]
+    assert sa.compact is not None and sa.compact.after_count < sa.compact.before_count
+
+
+def _nan_on(steps: set[int] | None):
+    real = train_mod.rasterize
+    calls = {"n": 0}
+
+    def fake(*args, **kw):
+        out = real(*args, **kw)
+        if torch.is_grad_enabled() and args[0].requires_grad:  # a training step, not evaluation
+            calls["n"] += 1
+            if steps is None or calls["n"] in steps:
+                out.image = out.image * float("nan")
+        return out
+    return fake
+
+
+def test_non_finite_steps_are_skipped_and_counted(tmp_path, monkeypatch):
+    proj = tiny(tmp_path)
+    monkeypatch.setattr(train_mod, "rasterize", _nan_on({3, 4, 11}))
+    s = train(proj.root, make_config(**{**SMALL, "iterations": 12}), CPU)
+    assert s.bad_steps == 3 and s.steps == 12
+    assert read_log(proj.train_log_path)[-1]["bad_steps"] == 3
+    assert bool(load_gaussians(proj.latest_checkpoint(), CPU).finite_mask().all())
+
+
+def test_divergence_stops_with_a_usable_checkpoint(tmp_path, monkeypatch):
+    proj = tiny(tmp_path)
+    monkeypatch.setattr(train_mod, "rasterize", _nan_on(None))
+    with pytest.raises(TrainingDiverged) as ei:
+        train(proj.root, make_config(**{**SMALL, "max_bad_steps": 4}), CPU)
+    msg = str(ei.value)
+    assert "4 consecutive" in msg and "step-000000004.pt" in msg and "\n" not in msg
+    ck = load_checkpoint(proj.latest_checkpoint(), CPU)
+    assert ck.step == 4 and bool(ck.gaussians.finite_mask().all())
+
+
+def test_budget_is_never_exceeded(tmp_path):
+    proj = tiny(tmp_path)
+    s = train(proj.root, make_config(**{**SMALL, "iterations": 16, "max_gaussians": 350, "grow_grad2d": 1e-9,
+                                                "log_every": 1}), CPU)
+    counts = [r["num_gaussians"] for r in read_log(proj.train_log_path)]
+    assert max(counts) == 350 and s.num_gaussians <= 350  # it grew up to the budget, never past it
+
+
+def test_init_respects_budget_and_sh_degree_zero_stores_no_bands(tmp_path):
+    proj = tiny(tmp_path)
+    s = train(proj.root, make_config(**{**SMALL, "iterations": 6, "max_gaussians": 100, "sh_degree": "0"}), CPU)
+    ck = load_checkpoint(proj.latest_checkpoint(), CPU)
+    assert ck.gaussians.sh.shape[1] == 1 and s.sh_degree == 0 and len(ck.gaussians) <= 100
+
+
+def test_cli_train_json_and_resume(tmp_path):
+    proj = tiny(tmp_path)
+    r = CliRunner().invoke(app, ["train", str(proj.root), "--iterations", "8", "--max-gaussians", "200",
+                                 "--eval-every", "4", "--device", "cpu", "--json"])
+    assert r.exit_code == 0, r.output
+    out = json.loads(r.stdout)
+    assert out["steps"] == 8 and out["num_gaussians"] <= 200 and out["psnr"] is not None
+    r = CliRunner().invoke(app, ["train", str(proj.root), "--resume", "--iterations", "12", "--json", "--device", "cpu"])
+    assert r.exit_code == 0, r.output
+    out = json.loads(r.stdout)
+    assert out["resumed_from"] == 8 and out["steps"] == 12
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["--sh-degree", "5"], "--sh-degree"),
+    (["--iterations", "0"], "--iterations"),
+    (["--preset", "turbo"], "--preset"),
+    (["--max-gaussians", "0"], "--max-gaussians"),
+])
+def test_cli_bad_options_are_one_line_errors(tmp_path, args, needle):
+    proj = tiny(tmp_path)
+    r = CliRunner().invoke(app, ["train", str(proj.root), *args])
+    assert r.exit_code == 2 and needle in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_cli_refuses_unprocessed_and_unsafe_checkpoint(tmp_path):
+    r = CliRunner().invoke(app, ["train", str(tmp_path / "nothing")])
+    assert r.exit_code == 2 and r.stderr.startswith("error: ")
+    proj = tiny(tmp_path)
+    proj.checkpoints_dir.mkdir()
+
+    class Evil:
+        def __reduce__(self):
+            return (print, ("pwned",))
+
+    torch.save({"x": Evil()}, proj.checkpoint_path(5))
+    r = CliRunner().invoke(app, ["train", str(proj.root), "--resume"])
+    assert r.exit_code == 2 and "refused" in r.stderr and "pwned" not in r.output
