@@ -49,8 +49,13 @@ def rasterize_reference(
     sh_degree: int | None = None,
     near: float = 0.2,
     antialiased: bool = False,
+    rows: tuple[int, int] | None = None,
 ) -> RenderOutput:
+    """The full picture, or only image rows [y0, y1) when `rows` is given (the blend is
+    per pixel, so a band of rows is exactly that part of the image; benchmarks use
+    bands to bound memory)."""
     dt, dev, N = means.dtype, means.device, means.shape[0]
+    y0, y1 = rows if rows is not None else (0, height)
     if background is None:
         background = torch.zeros(3, dtype=dt, device=dev)
     if sh_degree is None:
@@ -100,7 +105,7 @@ def rasterize_reference(
 
     # --- every Gaussian at every pixel centre --------------------------------------------
     vv, uu = torch.meshgrid(
-        torch.arange(height, dtype=dt, device=dev), torch.arange(width, dtype=dt, device=dev), indexing="ij"
+        torch.arange(y0, y1, dtype=dt, device=dev), torch.arange(width, dtype=dt, device=dev), indexing="ij"
     )
     pix = torch.stack([uu.reshape(-1), vv.reshape(-1)], -1) + 0.5  # [P, 2]
     ptx, pty = torch.floor(pix[:, 0] / TILE), torch.floor(pix[:, 1] / TILE)
@@ -130,9 +135,9 @@ def rasterize_reference(
     depth = wgt.T @ z[order]
     radii = torch.where(visible, radius, torch.zeros_like(radius)).clamp(0, 2**30).to(torch.int32)
     return RenderOutput(
-        image=image.reshape(height, width, 3),
-        alpha=(1 - T_final).reshape(height, width),
-        depth=depth.reshape(height, width),
+        image=image.reshape(y1 - y0, width, 3),
+        alpha=(1 - T_final).reshape(y1 - y0, width),
+        depth=depth.reshape(y1 - y0, width),
         means2d=means2d,
         radii=radii,
         visible=visible,
