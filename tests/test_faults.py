@@ -1,0 +1,74 @@
+"""Faults from outside: a real `splatcli train` process receives SIGINT or SIGTERM.
+
+It must exit 130 with a one-line message, leave a consistent checkpoint of a
+whole step (and the log up to it), and `--resume` must continue from exactly
+that step.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+import torch
+
+from splatcli.io.checkpoint import load_checkpoint
+from splatcli.project import Project
+from splatcli.train_report import read_log
+
+from tiny_project import make_tiny_project
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _project(tmp_path) -> Project:
+    proj = make_tiny_project(tmp_path / "p", trained=False)
+    proj.update_manifest(scene={**proj.manifest()["scene"], "bounds_min": [-1.0] * 3, "bounds_max": [1.0] * 3})
+    return proj
+
+
+def _cli(*args: str) -> list[str]:
+    return [sys.executable, "-m", "splatcli.cli.main", *args]
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_signal_checkpoints_exits_130_and_resumes(tmp_path, sig):
+    proj = _project(tmp_path)
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen(
+        _cli("train", str(proj.root), "--iterations", "100000", "--max-gaussians", "150", "--eval-every", "0",
+             "--device", "cpu", "--quiet"),
+        cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        deadline = time.monotonic() + 120
+        while not (proj.train_log_path.exists() and read_log(proj.train_log_path)):  # step 100 is done
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline, "no training progress within 120 s"
+            time.sleep(0.1)
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: interrupted at step "), err
+    step = int(lines[0].split("interrupted at step ")[1].split(";")[0])
+    ck_path = proj.latest_checkpoint()
+    assert ck_path == proj.checkpoint_path(step)
+    ck = load_checkpoint(ck_path, torch.device("cpu"))
+    assert ck.step == step >= 100 and bool(ck.gaussians.finite_mask().all())
+    assert not list(proj.checkpoints_dir.glob(".*.tmp"))  # no torn temp file left behind
+    assert max(r["step"] for r in read_log(proj.train_log_path)) <= step
+
+    r = subprocess.run(_cli("train", str(proj.root), "--resume", "--iterations", str(step + 3), "--json", "--quiet"),
+                       cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    summary = json.loads(r.stdout)
+    assert summary["resumed_from"] == step and summary["steps"] == step + 3
