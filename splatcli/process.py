@@ -236,10 +236,12 @@ def process(input: str | Path, project_dir: str | Path, cfg: ProcessConfig = Pro
         else:
             ds = _from_transforms(spec, stage, cfg, background, run)
         result = _publish(root, stage, spec, cfg, ds, run, t_start)
-    except BaseException:
+    except BaseException as exc:
         shutil.rmtree(stage, ignore_errors=True)
         if created:
             shutil.rmtree(root, ignore_errors=True)
+        if isinstance(exc, OSError):  # disk full, permissions: the user's to fix, not a bug
+            raise SplatError(f"{exc.filename or root}: {exc.strerror or exc}") from exc
         raise
     return result
 

@@ -38,13 +38,16 @@ def _open(path: Path) -> cv2.VideoCapture:
 
 
 def count_frames(path: Path) -> tuple[int, float]:
-    """(frames, fps). The container's frame count is often wrong, so we count by
-    grabbing every frame (decoding without converting)."""
+    """(frames, fps). Trusts the container's frame count when it has one (a
+    wrong one only shifts which frames are taken); otherwise counts by grabbing
+    every frame, which decodes the whole video once more."""
     cap = _open(path)
     fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
-    n = 0
-    while cap.grab():
-        n += 1
+    n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+    if n <= 0:
+        n = 0
+        while cap.grab():
+            n += 1
     cap.release()
     if n == 0:
         raise SplatError(f"{path}: cannot read the video (no decodable frames)")
