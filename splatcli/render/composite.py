@@ -191,55 +191,56 @@ class _Consts:
         self.a_scale = 2.0 / (ALPHA_MAX - _below(ALPHA_MAX, dtype))
 
 
-class _Pairs:
-    """Per-pair data in plan order plus one padding row at index M (alpha exactly 0).
+class _Gauss:
+    """Per-Gaussian rows (u, v, A, B, C, log o) and (r, g, b, z, 1), plus one padding row
+    at index N (log o = -1e4: alpha exactly 0). The constant 1 makes the colour GEMM
+    also sum the blending weights, which gives T_final = 1 - sum w for free."""
 
-    coef: log(o G) as a quadratic in the block-local pixel offset l,
+    def __init__(self, means2d, conics, opacities, colors, depths):
+        logo = torch.log(torch.clamp_min(opacities, 1e-38)).masked_fill(opacities <= 0, _DEAD)
+        geo = torch.cat([means2d, conics, logo[:, None]], 1)
+        pad = geo.new_zeros(1, 6)
+        pad[0, 5] = _DEAD
+        self.geo = torch.cat([geo, pad], 0)  # [N + 1, 6]
+        cz = torch.cat([colors, depths[:, None], torch.ones_like(depths)[:, None]], 1)
+        self.cz = torch.cat([cz, cz.new_zeros(1, 5)], 0)  # [N + 1, 5]
+
+
+class _Slots:
+    """The (block, k) slots of one segment: Gaussian ids and the exponent coefficients.
+
+    log(o G) is a quadratic in the block-local pixel offset l,
     c0 + gx lx + gy ly + qa lx^2 + qb lx ly + qc ly^2, with d0 = mean - block centre.
     Expanding around the block centre keeps the terms small where alpha matters: the
     large part of d0 lies along the ellipse's long axis, where Q d0 is small."""
 
-    def __init__(self, plan: Plan, means2d, conics, opacities, colors, depths):
-        gid = plan.pair_gid
-        b = plan.block
-        blk = plan.pair_blk
-        self.cx = (blk % plan.nbx).to(means2d.dtype) * b + b / 2
-        self.cy = torch.div(blk, plan.nbx, rounding_mode="floor").to(means2d.dtype) * b + b / 2
-        self.d0x = means2d[gid, 0] - self.cx
-        self.d0y = means2d[gid, 1] - self.cy
-        self.con = conics[gid]  # [M, 3]
-        A, B, C = self.con.unbind(1)
-        self.gx = A * self.d0x + B * self.d0y
-        self.gy = B * self.d0x + C * self.d0y
-        logo = torch.log(opacities[gid])  # > 0: pairs exist only for opacity >= 1/255
-        c0 = logo - 0.5 * (self.d0x * self.gx + self.d0y * self.gy)
-        coef = torch.stack([c0, self.gx, self.gy, -0.5 * A, -B, -0.5 * C], 1) * _LOG2E
-        pad = coef.new_zeros(1, 6)
-        pad[0, 0] = _DEAD
-        self.coef2 = torch.cat([coef, pad], 0)  # [M + 1, 6], log2 units for exp2
-        cz = torch.cat([colors[gid], depths[gid, None], torch.ones_like(depths[gid, None])], 1)
-        self.cz = torch.cat([cz, cz.new_zeros(1, 5)], 0)  # [M + 1, 5]: (r, g, b, z, 1)
+    def __init__(self, gs: _Gauss, gid: Tensor, centre: Tensor):  # gid [na, k]; centre [na, 1, 2]
+        self.gid = gid
+        p = gs.geo[gid]  # [na, k, 6]
+        self.d0x = p[..., 0] - centre[..., 0]
+        self.d0y = p[..., 1] - centre[..., 1]
+        self.A, self.B, self.C = p[..., 2], p[..., 3], p[..., 4]
+        self.gx = self.A * self.d0x + self.B * self.d0y
+        self.gy = self.B * self.d0x + self.C * self.d0y
+        c0 = p[..., 5] - 0.5 * (self.d0x * self.gx + self.d0y * self.gy)
+        self.coef2 = torch.stack([c0, self.gx, self.gy, -0.5 * self.A, -self.B, -0.5 * self.C], 1).mul_(_LOG2E)
 
-    def grads(self, R: Tensor, dcz: Tensor):  # R [M, 6] sums of dpow * feats; dcz [M, 4]
-        """Chain rule from the per-pair sums to (mean, conic, log o) of each pair."""
-        A, B, C = self.con.unbind(1)
-        d0x, d0y, gx, gy = self.d0x, self.d0y, self.gx, self.gy
+    def grads(self, R: Tensor, dcz: Tensor) -> Tensor:  # R [na, 6, k], dcz [na, 4, k] -> [na, k, 10]
+        """Chain rule from the per-slot pixel sums to (mean, conic, log o, colour, z)."""
+        A, B, C, d0x, d0y = self.A, self.B, self.C, self.d0x, self.d0y
         R0, R1, R2, R3, R4, R5 = R.unbind(1)
         return torch.stack(
             [
-                -gx * R0 + A * R1 + B * R2,
-                -gy * R0 + B * R1 + C * R2,
+                -self.gx * R0 + A * R1 + B * R2,
+                -self.gy * R0 + B * R1 + C * R2,
                 -0.5 * (R0 * d0x * d0x - 2 * R1 * d0x + R3),
                 -(R0 * d0x * d0y - R1 * d0y - R2 * d0x + R4),
                 -0.5 * (R0 * d0y * d0y - 2 * R2 * d0y + R5),
                 R0,
-                dcz[:, 0],
-                dcz[:, 1],
-                dcz[:, 2],
-                dcz[:, 3],
+                *dcz.unbind(1),
             ],
-            1,
-        )  # [M, 10]: d(u, v, A, B, C, log o, r, g, b, z)
+            -1,
+        )
 
 
 def _alpha(coef2: Tensor, featsT: Tensor, c: _Consts) -> Tensor:  # [nb, P, k]
@@ -265,15 +266,20 @@ def _segments(K: int, seg: int):
     return [(k0, min(K, k0 + seg)) for k0 in range(0, K, seg)]
 
 
-def _slots(plan: Plan, bl: Tensor, K: int) -> Tensor:  # [nb, K] pair index, M for padding
+def _chunk_ids(plan: Plan, bl: Tensor, K: int, n: int):
+    """Gaussian id of every (block, k) slot of a chunk ([nb, K], padding -> n) and the
+    block centres [nb, 1, 2]."""
     ar = torch.arange(K, device=bl.device)
-    pos = plan.block_start[bl][:, None] + ar
-    return torch.where(ar < plan.block_count[bl][:, None], pos, plan.n_pairs)
+    pos = (plan.block_start[bl][:, None] + ar).clamp_max(max(plan.n_pairs - 1, 0))
+    gid = torch.where(ar < plan.block_count[bl][:, None], plan.pair_gid[pos], n)
+    b = plan.block
+    cx = (bl % plan.nbx) * b + b / 2
+    cy = torch.div(bl, plan.nbx, rounding_mode="floor") * b + b / 2
+    return gid, torch.stack([cx, cy], -1)[:, None, :]
 
 
-def _seg(x: Tensor, act: Tensor | None, k0: int, k1: int) -> Tensor:
-    """x[act, :, k0:k1] (all rows while none has terminated)."""
-    return x[:, :, k0:k1] if act is None else x[act, :, k0:k1]
+def _rowsel(x: Tensor, act: Tensor | None) -> Tensor:
+    return x if act is None else x[act]
 
 
 def _terminate(act: Tensor | None, Tc: Tensor, *carry: Tensor):
@@ -289,22 +295,23 @@ class _Composite(torch.autograd.Function):
     @staticmethod
     def forward(ctx, plan: Plan, means2d, conics, opacities, colors, depths, background):
         dt, dev = means2d.dtype, means2d.device
+        N = means2d.shape[0]
         P = plan.block * plan.block
         c = _Consts(dt)
-        pairs = _Pairs(plan, means2d, conics, opacities, colors, depths)
+        gs = _Gauss(means2d, conics, opacities, colors, depths)
         featsT = _feats(plan.block, dt, dev).T.contiguous()  # [P, 6]
         acc = torch.zeros(plan.nbx * plan.nby, 5, P, dtype=dt, device=dev)  # (r, g, b, depth, sum w)
         for bl, K in plan.chunks:
-            pos = _slots(plan, bl, K)
-            coef2 = pairs.coef2[pos].transpose(1, 2)  # [nb, 6, K]
-            czt = pairs.cz[pos].transpose(1, 2)  # [nb, 5, K]
+            gid, centre = _chunk_ids(plan, bl, K, N)
+            centre = centre.to(dt)
             out = None
             act, Tc = None, None
             for k0, k1 in _segments(K, plan.seg):
-                a = _alpha(_seg(coef2, act, k0, k1), featsT, c)
+                sl = _Slots(gs, _rowsel(gid, act)[:, k0:k1], _rowsel(centre, act))
+                a = _alpha(sl.coef2, featsT, c)
                 om, U = _transmittance(a, Tc, c)
                 w = a.div_(om).mul_(U)  # alpha T_before; 0 where not blended
-                o = torch.bmm(_seg(czt, act, k0, k1), w.transpose(1, 2))  # [na, 5, P]
+                o = torch.bmm(gs.cz[sl.gid].transpose(1, 2), w.transpose(1, 2))  # [na, 5, P]
                 if out is None:
                     out = o
                 elif act is None:
@@ -325,9 +332,9 @@ class _Composite(torch.autograd.Function):
         plan: Plan = ctx.plan
         means2d, conics, opacities, colors, depths, background, acc = ctx.saved_tensors
         dt, dev = means2d.dtype, means2d.device
-        N, M = means2d.shape[0], plan.n_pairs
+        N = means2d.shape[0]
         c = _Consts(dt)
-        pairs = _Pairs(plan, means2d, conics, opacities, colors, depths)
+        gs = _Gauss(means2d, conics, opacities, colors, depths)
         feats = _feats(plan.block, dt, dev)  # [6, P]
         featsT = feats.T.contiguous()
         g4, gA = _block(plan, g_image, g_alpha, g_depth)  # [nblocks, 4, P], [nblocks, P]
@@ -336,52 +343,39 @@ class _Composite(torch.autograd.Function):
         # trick) plus d loss / d T_final = g . bg - g_alpha times T_final.
         base_all = (g4 * acc[:, :4]).sum(1) + Tfin * ((g4[:, :3] * background[:, None]).sum(1) - gA)
         g4t_all = g4.transpose(1, 2)  # [nblocks, P, 4]
-        dpair = torch.zeros(M + 1, 10, dtype=dt, device=dev)  # (R0..R5, d rgb z) per pair
+        dg = torch.zeros(N + 1, 10, dtype=dt, device=dev)  # d(u, v, A, B, C, log o, r, g, b, z)
         for bl, K in plan.chunks:
-            nb = bl.shape[0]
-            pos = _slots(plan, bl, K)
-            coef2 = pairs.coef2[pos].transpose(1, 2)  # [nb, 6, K]
-            czt = pairs.cz[pos, :4].transpose(1, 2)  # [nb, 4, K]
+            gid, centre = _chunk_ids(plan, bl, K, N)
+            centre = centre.to(dt)
             g4b, g4tb, base = g4[bl], g4t_all[bl].contiguous(), base_all[bl][..., None]
-            single = K <= plan.seg
-            if not single:
-                D = torch.zeros(nb, K, 10, dtype=dt, device=dev)
             act, Tc, pc = None, None, None
             for k0, k1 in _segments(K, plan.seg):
-                a = _alpha(_seg(coef2, act, k0, k1), featsT, c)
+                sl = _Slots(gs, _rowsel(gid, act)[:, k0:k1], _rowsel(centre, act))
+                a = _alpha(sl.coef2, featsT, c)
                 om, U = _transmittance(a, Tc, c)
                 r = a / om
                 w = r * U
-                v = torch.bmm(g4tb if act is None else g4tb[act], _seg(czt, act, k0, k1))  # [na, P, k]
+                czt = gs.cz[sl.gid, :4].transpose(1, 2)  # [na, 4, k]
+                v = torch.bmm(_rowsel(g4tb, act), czt)  # [na, P, k]: g . (rgb, z) per slot
                 t = torch.mul(w, v).cumsum_(2)  # prefix sums of w v
                 if pc is not None:
                     t += pc[..., None]
                 pc = t[:, :, -1].clone()
                 # d loss / d power = alpha d loss / d alpha = r (U v - (base - prefix)) for
                 # blended, unclamped alpha; 0 otherwise (indicators built without branches).
-                t -= base if act is None else base[act]
+                t -= _rowsel(base, act)
                 t.addcmul_(U, v)
-                if not single:
-                    Tlast = U[:, :, -1].clone()
+                Tlast = U[:, :, -1].clone()
                 ind = torch.minimum(U.mul_(c.u_scale), a.sub_(ALPHA_MAX).mul_(-c.a_scale)).clamp_(max=1.0)
                 dpow = t.mul_(r).mul_(ind)
                 Rs = torch.matmul(feats, dpow)  # [na, 6, k]: sums of dpow * pixel features
-                ds = torch.bmm(g4b if act is None else g4b[act], w)  # [na, 4, k]
-                d = torch.cat([Rs, ds], 1).transpose(1, 2)  # [na, k, 10]
-                if single:
-                    D = d
-                    break
-                if act is None:
-                    D[:, k0:k1] = d
-                else:
-                    D[act, k0:k1] = d
+                ds = torch.bmm(_rowsel(g4b, act), w)  # [na, 4, k]
+                dg.index_add_(0, sl.gid.reshape(-1), sl.grads(Rs, ds).reshape(-1, 10))
                 if k1 < K:
                     act, Tc, (pc,) = _terminate(act, Tlast, pc)
                     if act is not None and act.numel() == 0:
                         break
-            dpair.index_copy_(0, pos.reshape(-1), D.reshape(-1, 10))  # padding slots all land on row M
-        dpair = pairs.grads(dpair[:M, :6], dpair[:M, 6:])  # [M, 10]
-        dg = torch.zeros(N, 10, dtype=dt, device=dev).index_add_(0, plan.pair_gid, dpair)
+        dg = dg[:N]
         d_opac = dg[:, 5] / opacities.clamp_min(1e-38)  # d log o -> d o; 0 for pair-less Gaussians
         d_bg = None
         if ctx.needs_input_grad[6]:
