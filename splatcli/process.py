@@ -273,6 +273,24 @@ def _stage_images(files: list[tuple[Path, str]], work: Path, run: _Run, *,
     return out, bad
 
 
+def _safe_names(names: list[str]) -> list[str]:
+    """Names COLMAP's pair lists can carry: whitespace becomes '_' (a pair list
+    is space-separated), kept unique."""
+    out: list[str] = []
+    taken = set(names)
+    for n in names:
+        safe = "_".join(n.split())
+        if safe != n:
+            stem, dot, ext = safe.rpartition(".")
+            k = 1
+            while safe in taken:
+                safe = f"{stem}_{k}.{ext}" if dot else f"{safe}_{k}"
+                k += 1
+            taken.add(safe)
+        out.append(safe)
+    return out
+
+
 def _from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: tuple[float, float, float] | None,
                   run: _Run) -> _Dataset:
     work = stage / "work"
@@ -300,7 +318,8 @@ def _from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: 
             run.note(f"skipped {len(others)} file(s) that are not images: {shown}")
         if not files:
             raise SplatError(f"{spec.images_dir}: no images found (looked for {', '.join(IMAGE_EXTS)})")
-        staged, bad = _stage_images([(p, p.name) for p in files], work, run, background=background, orient=True)
+        staged, bad = _stage_images(list(zip(files, _safe_names([p.name for p in files]))), work, run,
+                                    background=background, orient=True)
         for b in bad:
             run.note(f"skipped {b}")
         skipped = bad

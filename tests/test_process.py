@@ -228,3 +228,9 @@ def test_flat_tiny_images_blame_the_features(tmp_path):
         cv2.imwrite(str(d / f"{i}.png"), np.full((40, 40, 3), 90 + i, np.uint8))
     r = run_cli("process", d, "-o", tmp_path / "p")
     assert_user_error(r, "too few features", alone=False)
+
+
+def test_names_with_spaces_are_made_safe_for_colmap_pair_lists():
+    from splatcli.process import _safe_names
+
+    assert _safe_names(["a b.jpg", "a_b.jpg", "c.png", "x  y.JPG"]) == ["a_b_1.jpg", "a_b.jpg", "c.png", "x_y.JPG"]

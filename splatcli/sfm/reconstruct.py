@@ -152,6 +152,9 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
         pairs = sequential_pairs(names, opts.sequential_overlap)
     else:
         pairs = exhaustive_pairs(names)
+        if len(names) > 200:
+            emit(on_event, Note(f"matching all {len(pairs)} pairs of {len(names)} images will take long; "
+                                "--matcher sequential is much faster for captures taken in order"))
     _match(db, pairs, work_dir, mopts, clock, on_event)
     matched = set(pairs)
 
