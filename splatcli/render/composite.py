@@ -58,7 +58,6 @@ class Plan:
     nbx: int  # blocks per row
     nby: int  # blocks per column
     pair_gid: Tensor  # [M] int64 Gaussian index of each pair, sorted by (block, depth)
-    pair_blk: Tensor  # [M] int64 block index of each pair
     block_start: Tensor  # [nblocks] int64 offset of each block's list in pair_gid
     block_count: Tensor  # [nblocks] int64 list length
     chunks: list[tuple[Tensor, int]]  # (block ids [nb], K) per chunk
@@ -120,40 +119,40 @@ def make_plan(
         nrow = (torch.div(py1, block, rounding_mode="floor") - by0 + 1).clamp_min(0)
         nrow = torch.where(py1 >= py0, nrow, torch.zeros_like(nrow))
         # --- one entry per (Gaussian, block row) ---
+        sel = lambda x, i: torch.index_select(x, 0, i)  # noqa: E731  (faster than x[i] on CPU)
         S = idx.numel()
         rg = torch.repeat_interleave(torch.arange(S, device=dev), nrow)
         R = rg.numel()
-        by = by0[rg] + torch.arange(R, device=dev) - (torch.cumsum(nrow, 0) - nrow)[rg]
-        mr, cr, vxr, t2r = m[rg], cv[rg], vx[rg], t2[rg]
-        ylo = torch.maximum(by * block, py0[rg]).to(f64) + 0.5 - mr[:, 1]
-        yhi = torch.minimum(by * block + block - 1, py1[rg]).to(f64) + 0.5 - mr[:, 1]
+        by = sel(by0 - (torch.cumsum(nrow, 0) - nrow), rg) + torch.arange(R, device=dev)
+        mr, cr, vxr, t2r = sel(m, rg), sel(cv, rg), sel(vx, rg), sel(t2, rg)
+        ylo = torch.maximum(by * block, sel(py0, rg)).to(f64) + 0.5 - mr[:, 1]
+        yhi = torch.minimum(by * block + block - 1, sel(py1, rg)).to(f64) + 0.5 - mr[:, 1]
         k = cr[:, 1] / cr[:, 2]
         dys = torch.sqrt(t2r / cr[:, 0]) * cr[:, 1]  # dy of the ellipse's rightmost point
         dmax = torch.minimum(torch.maximum(dys, ylo), yhi)
         dmin = torch.minimum(torch.maximum(-dys, ylo), yhi)
         xhi = mr[:, 0] + k * dmax + torch.sqrt((vxr * (t2r - dmax * dmax / cr[:, 2])).clamp_min(0))
         xlo = mr[:, 0] + k * dmin - torch.sqrt((vxr * (t2r - dmin * dmin / cr[:, 2])).clamp_min(0))
-        rcr = rc[rg]
+        rcr = sel(rc, rg)
         px0 = torch.maximum(torch.ceil(xlo - 0.5), (rcr[:, 0] * TILE).to(f64)).clamp_min(0).to(i64)
         px1 = torch.minimum(torch.floor(xhi - 0.5), (rcr[:, 2] * TILE - 1).to(f64)).clamp_max(width - 1).to(i64)
         bx0 = torch.div(px0, block, rounding_mode="floor")
         ncol = (torch.div(px1, block, rounding_mode="floor") - bx0 + 1).clamp_min(0)
         ncol = torch.where(px1 >= px0, ncol, torch.zeros_like(ncol))
-        # --- one entry per (Gaussian, block) ---
-        pr = torch.repeat_interleave(torch.arange(R, device=dev), ncol)
-        M = pr.numel()
-        bid = (by * nbx + bx0 - (torch.cumsum(ncol, 0) - ncol))[pr] + torch.arange(M, device=dev)
+        # --- one entry per (Gaussian, block): expanded from per-row values ---
+        M = int(ncol.sum())
+        bid = torch.repeat_interleave(by * nbx + bx0 - (torch.cumsum(ncol, 0) - ncol), ncol, output_size=M)
+        bid += torch.arange(M, device=dev)
         # Pairs were generated in depth order: a stable sort by block alone gives
         # (block, depth) order; small integer keys sort fastest.
         kdt = torch.int16 if nblocks < 2**15 else (torch.int32 if nblocks < 2**31 else i64)
         perm = torch.sort(bid.to(kdt), stable=True).indices
-        pair_gid = idx[rg[pr[perm]]]
-        pair_blk = bid[perm]
+        pair_gid = sel(torch.repeat_interleave(sel(idx, rg), ncol, output_size=M), perm)
         count = torch.bincount(bid, minlength=nblocks)
         start = torch.cumsum(count, 0) - count
         seg = seg or SEGMENT
         chunks = _schedule(count, block * block, chunk_elems or CHUNK_ELEMS, seg)
-    return Plan(width, height, block, nbx, nby, pair_gid, pair_blk, start, count, chunks, M, seg)
+    return Plan(width, height, block, nbx, nby, pair_gid, start, count, chunks, M, seg)
 
 
 def _schedule(count: Tensor, P: int, chunk_elems: int, seg: int) -> list[tuple[Tensor, int]]:
