@@ -14,7 +14,7 @@ import math
 import torch
 from torch import Tensor
 
-from .composite import make_plan, composite
+from .composite import choose_block, composite, make_plan
 from .output import RenderOutput
 from .project import project, tile_rect
 
@@ -48,14 +48,14 @@ def rasterize(
     sh_degree: int | None = None,
     near: float = 0.2,
     antialiased: bool = False,
-    block: int = 8,
+    block: int | str = "auto",
 ) -> RenderOutput:
     """Render N Gaussians into a width x height image.
 
     Returns image [H, W, 3] (C + T * background), alpha [H, W] (1 - T), depth [H, W]
     (sum of blending weight times view depth), and per Gaussian means2d [N, 2] px,
-    radii [N] int32, visible [N] bool, depths [N] view z. `block` (4, 8, 16) is a
-    speed knob only: the picture does not depend on it.
+    radii [N] int32, visible [N] bool, depths [N] view z. `block` (4, 8, 16 or "auto")
+    is a speed knob only: the picture does not depend on it.
     Raises ValueError naming the parameter for bad shapes or non-finite values.
     """
     if not isinstance(means, Tensor) or means.dim() != 2 or means.shape[1] != 3:
@@ -88,12 +88,14 @@ def rasterize(
         raise ValueError(f"rasterize: sh_degree {sh_degree} is outside 0..{d_have} (what sh holds)")
     if not (float(K[0, 0].detach()) > 0 and float(K[1, 1].detach()) > 0):
         raise ValueError("rasterize: K must have positive focal lengths K[0,0], K[1,1]")
-    if block not in (4, 8, 16):
-        raise ValueError(f"rasterize: block must be 4, 8 or 16, got {block}")
+    if block not in (4, 8, 16, "auto"):
+        raise ValueError(f"rasterize: block must be 4, 8, 16 or 'auto', got {block!r}")
 
     pr = project(means, quats, log_scales, opacity_logits, sh, viewmat, K, width, height, sh_degree, near, antialiased)
     rect = tile_rect(pr.means2d, pr.radii, width, height)
     visible = pr.valid & (rect[:, 2] > rect[:, 0]) & (rect[:, 3] > rect[:, 1])
+    if block == "auto":
+        block = choose_block(pr.cov2d, pr.opacities, visible, width, height)
     plan = make_plan(pr.means2d, pr.cov2d, pr.conics, pr.opacities, pr.depths, rect, visible, width, height, block)
     image, alpha, depth = composite(plan, pr.means2d, pr.conics, pr.opacities, pr.colors, pr.depths, background)
     radii = torch.where(visible, pr.radii, torch.zeros_like(pr.radii))
