@@ -234,3 +234,30 @@ def test_names_with_spaces_are_made_safe_for_colmap_pair_lists():
     from splatcli.process import _safe_names
 
     assert _safe_names(["a b.jpg", "a_b.jpg", "c.png", "x  y.JPG"]) == ["a_b_1.jpg", "a_b.jpg", "c.png", "x_y.JPG"]
+
+
+def test_registering_under_half_the_images_warns(scene, tmp_path, monkeypatch):
+    """Mapping that leaves most images out still makes a project, with a warning."""
+    import splatcli.process as proc
+
+    src = tmp_path / "few"
+    src.mkdir()
+    for p in sorted((scene / "images").glob("*.jpg"))[:8]:
+        shutil.copy(p, src / p.name)
+    real = proc.run_sfm
+
+    def lose_most(*a, **k):  # as if only 3 of 8 images had registered
+        res = real(*a, **k)
+        keep = res.model.registered_names()[:3]
+        res.model.keep_images(keep)
+        res.unregistered = [n for n in res.names if n not in keep]
+        return res
+
+    monkeypatch.setattr(proc, "run_sfm", lose_most)
+    notes = []
+    r = process(src, tmp_path / "p", on_event=notes.append)
+    assert r.registered == 3 and len(r.unregistered) == 5
+    assert any(n.level == "warning" and "only 3 of 8 images registered" in n.message for n in notes
+               if isinstance(n, Note))
+    assert r.warnings and "5 image(s) did not register" in " ".join(n.message for n in notes if isinstance(n, Note))
+    assert_contract(tmp_path / "p")
