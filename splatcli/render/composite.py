@@ -334,7 +334,10 @@ def _terminate(act: Tensor | None, Tc: Tensor, *carry: Tensor):
 
 class _Composite(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, plan: Plan, means2d, conics, opacities, colors, depths, background):
+    def forward(ctx, planner, means2d, conics, opacities, colors, depths, background):
+        # planner: a Plan, or a function that builds one. A function is called again in
+        # backward instead of keeping the plan alive (memory-bounded banded renders).
+        plan = planner() if callable(planner) else planner
         dt, dev = means2d.dtype, means2d.device
         N = means2d.shape[0]
         P = plan.block * plan.block
@@ -364,13 +367,13 @@ class _Composite(torch.autograd.Function):
                     if act is not None and act.numel() == 0:
                         break
             acc[bl] = out
-        ctx.plan = plan
+        ctx.planner = planner
         ctx.save_for_backward(means2d, conics, opacities, colors, depths, background, acc)
         return _unblock(plan, acc, background)
 
     @staticmethod
     def backward(ctx, g_image, g_alpha, g_depth):
-        plan: Plan = ctx.plan
+        plan: Plan = ctx.planner() if callable(ctx.planner) else ctx.planner
         means2d, conics, opacities, colors, depths, background, acc = ctx.saved_tensors
         dt, dev = means2d.dtype, means2d.device
         N = means2d.shape[0]
@@ -456,8 +459,24 @@ def _block(plan: Plan, g_image, g_alpha, g_depth):
     return g5[:, :4].contiguous(), g5[:, 4].contiguous()
 
 
+def estimate_pairs(
+    cov2d: Tensor,  # [N, 3] px^2
+    opacities: Tensor,  # [N]
+    active: Tensor,  # [N] bool
+    block: int,
+) -> float:
+    """About how many (Gaussian, block) pairs a plan will hold (from alpha bounding boxes)."""
+    with torch.no_grad():
+        o = opacities.detach()[active].double()
+        cv = cov2d.detach()[active].double()
+        t2 = (2.0 * torch.log(torch.clamp_min(o * 255.0, 1e-30))).clamp_min(0)
+        w = 2 * torch.sqrt(t2 * cv[:, 0])
+        h = 2 * torch.sqrt(t2 * cv[:, 2])
+        return float(((w / block + 1) * (h / block + 1) * (t2 > 0)).sum())
+
+
 def composite(
-    plan: Plan,
+    plan,  # Plan, or a function returning one (rebuilt in backward instead of kept)
     means2d: Tensor,  # [N, 2] px
     conics: Tensor,  # [N, 3]
     opacities: Tensor,  # [N]

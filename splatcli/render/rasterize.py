@@ -14,9 +14,14 @@ import math
 import torch
 from torch import Tensor
 
-from .composite import choose_block, composite, make_plan
+from .composite import choose_block, composite, estimate_pairs, make_plan
 from .output import RenderOutput
-from .project import project, tile_rect
+from .project import TILE, project, tile_rect
+
+# Above this many (Gaussian, block) pairs the image is rendered in bands of tile rows,
+# each planned on its own and re-planned in backward, so memory stays bounded
+# (~40 bytes per pair while planning).
+PAIR_BUDGET = 1 << 25
 
 
 def _check(name: str, x: Tensor, shape: tuple, dtype: torch.dtype | None, device: torch.device | None) -> None:
@@ -96,9 +101,36 @@ def rasterize(
     visible = pr.valid & (rect[:, 2] > rect[:, 0]) & (rect[:, 3] > rect[:, 1])
     if block == "auto":
         block = choose_block(pr.cov2d, pr.opacities, visible, width, height)
-    plan = make_plan(pr.means2d, pr.cov2d, pr.conics, pr.opacities, pr.depths, rect, visible, width, height, block)
-    image, alpha, depth = composite(plan, pr.means2d, pr.conics, pr.opacities, pr.colors, pr.depths, background)
+    est = estimate_pairs(pr.cov2d, pr.opacities, visible, block)
+    nbands = min(math.ceil(est / PAIR_BUDGET), math.ceil(height / TILE)) if est > PAIR_BUDGET else 1
+    if nbands == 1:
+        plan = make_plan(pr.means2d, pr.cov2d, pr.conics, pr.opacities, pr.depths, rect, visible, width, height, block)
+        image, alpha, depth = composite(plan, pr.means2d, pr.conics, pr.opacities, pr.colors, pr.depths, background)
+    else:
+        image, alpha, depth = _banded(pr, rect, visible, width, height, block, background, nbands)
     radii = torch.where(visible, pr.radii, torch.zeros_like(pr.radii))
     return RenderOutput(
         image=image, alpha=alpha, depth=depth, means2d=pr.means2d, radii=radii, visible=visible, depths=pr.depths
     )
+
+
+def _banded(pr, rect, visible, width, height, block, background, nbands):
+    """Render bands of whole tile rows one after another. Each band is the same model on
+    the rows [y0, y1) (y0 a multiple of 16, so the tile rule is unchanged): means shift
+    by -y0, tile rows by -y0 / 16."""
+    band = math.ceil(math.ceil(height / nbands) / TILE) * TILE
+    m2 = pr.means2d.detach()
+    cov2d, conics, opac, depths = pr.cov2d, pr.conics.detach(), pr.opacities.detach(), pr.depths.detach()
+    outs = []
+    for y0 in range(0, height, band):
+        y1 = min(height, y0 + band)
+        shift = torch.tensor([0.0, float(y0)], dtype=m2.dtype, device=m2.device)
+        r = rect - torch.tensor([0, y0 // TILE, 0, y0 // TILE], device=rect.device)
+        r[:, 1::2] = r[:, 1::2].clamp(0, math.ceil((y1 - y0) / TILE))
+        act = visible & (r[:, 3] > r[:, 1])
+
+        def planner(m=m2 - shift, r=r, act=act, h=y1 - y0):
+            return make_plan(m, cov2d, conics, opac, depths, r, act, width, h, block)
+
+        outs.append(composite(planner, pr.means2d - shift, pr.conics, pr.opacities, pr.colors, pr.depths, background))
+    return tuple(torch.cat([o[i] for o in outs], 0) for i in range(3))
