@@ -81,7 +81,9 @@ class ProcessResult:
     init: str  # "sfm" (from points) or "random"
     undistorted: bool
     masks: bool
-    matcher: str | None = None
+    matcher: str | None = None  # the image pairs matched (SfM only)
+    pairs: int = 0
+    keypoints_median: float | None = None  # SIFT features per image (SfM only)
     model_sizes: list[int] = field(default_factory=list)  # images per SfM model, largest first
     unregistered: list[str] = field(default_factory=list)
     skipped: list[str] = field(default_factory=list)  # "name: reason"
@@ -338,8 +340,9 @@ def _from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: 
         max_features=cfg.max_features, first_octave=cfg.first_octave,
         sequential_overlap=cfg.sequential_overlap, seed=cfg.seed, num_threads=cfg.num_threads,
     )
-    res = run_sfm(work / "input", names, work, sfm_opts, single_camera=len(sizes) == 1,
-                  min_side=min(min(fit_size(w, h, cfg.max_size)) for w, h in sizes), where=spec.images_dir or spec.path, on_event=run.on_event)
+    sift_side = min(min(fit_size(w, h, cfg.max_size)) for w, h in sizes)  # smallest side SIFT will see
+    res = run_sfm(work / "input", names, work, sfm_opts, single_camera=len(sizes) == 1, min_side=sift_side,
+                  where=spec.images_dir or spec.path, on_event=run.on_event)
     for k, v in res.seconds.items():
         run.seconds[k] = run.seconds.get(k, 0.0) + v
     model = res.model
@@ -606,6 +609,8 @@ def _publish(root: Path, stage: Path, spec: InputSpec, cfg: ProcessConfig, ds: _
         undistorted=ds.undistorted,
         masks=ds.masks,
         matcher=stats.get("matcher"),
+        pairs=int(stats.get("pairs", 0)),
+        keypoints_median=stats.get("keypoints_median"),
         model_sizes=list(stats.get("model_sizes", [])),
         unregistered=list(stats.get("unregistered", [])),
         skipped=list(stats.get("skipped", [])),

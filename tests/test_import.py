@@ -228,6 +228,7 @@ def test_import_nerfstudio_with_distortion_and_missing_files(tmp_path):
             np.testing.assert_allclose(got[f"f{i}.jpg"].viewmat, c.viewmat, atol=1e-9)
 
 
+@pytest.mark.data
 def test_lego_imports_when_the_data_is_present(shared_data, tmp_path):
     lego = shared_data / "lego"
     if not (lego / "transforms_train.json").is_file():
