@@ -20,7 +20,7 @@ from splatcli.sfm.align import compare_poses, umeyama
 from splatcli.sfm.bounds import focus_point, frustum_bounds, points_bounds
 from splatcli.sfm.colmap_files import check_model
 from splatcli.sfm.detect import detect_input
-from splatcli.sfm.images import ImageError, check_complete, fit_size, read_image
+from splatcli.sfm.images import ImageError, check_complete, exif_orientation, fit_size, read_image
 from splatcli.sfm.reconstruct import exhaustive_pairs, looks_ordered, natural_key, sequential_pairs
 from splatcli.sfm.transforms import read_transforms
 from splatcli.sfm.video import blurry_frames, choose_frames
@@ -197,6 +197,10 @@ def test_exif_orientation_is_applied_only_when_asked(tmp_path):
     assert rotated.shape == (64, 48, 3) and changed and alpha is None
     raw, _, changed = read_image(p, orient=False)
     assert raw.shape == (48, 64, 3) and not changed
+    p.write_bytes(with_exif_orientation(jpeg_bytes(img), 1))  # upright: copied as is
+    assert exif_orientation(p.read_bytes()) == 1
+    assert not read_image(p, orient=True)[2]
+    assert exif_orientation(jpeg_bytes(img)) is None
 
 
 def test_rgba_png_gives_alpha_and_grey_gives_three_channels(tmp_path):

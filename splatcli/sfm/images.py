@@ -111,11 +111,40 @@ def read_image(path: Path, *, orient: bool) -> tuple[np.ndarray, np.ndarray | No
     else:
         img = cv2.cvtColor(raw[..., :1], cv2.COLOR_GRAY2BGR)
         changed = True
-    if orient and path.suffix.lower() in (".jpg", ".jpeg") and b"Exif" in data[:65536]:
-        oriented = cv2.imdecode(buf, cv2.IMREAD_COLOR)
-        if oriented is not None and (oriented.shape != img.shape or not np.array_equal(oriented, img)):
+    if orient and path.suffix.lower() in (".jpg", ".jpeg") and exif_orientation(data) not in (None, 1):
+        oriented = cv2.imdecode(buf, cv2.IMREAD_COLOR)  # OpenCV applies the EXIF rotation here
+        if oriented is not None:
             img, changed = oriented, True
     return img, alpha, changed
+
+
+def exif_orientation(data: bytes) -> int | None:
+    """The EXIF orientation tag (1-8) of a JPEG, or None. Reads only the APP1
+    segment, so phone photos (always EXIF, nearly always 1) decode once."""
+    pos = 2
+    while pos + 4 <= len(data) and data[pos] == 0xFF:
+        marker, size = data[pos + 1], int.from_bytes(data[pos + 2 : pos + 4], "big")
+        if marker == 0xDA:  # start of scan: no more metadata
+            return None
+        seg = data[pos + 4 : pos + 2 + size]
+        if marker == 0xE1 and seg[:6] == b"Exif\x00\x00":
+            t = seg[6:]
+            if len(t) < 8 or t[:2] not in (b"II", b"MM"):
+                return None
+            order = "little" if t[:2] == b"II" else "big"
+            ifd = int.from_bytes(t[4:8], order)
+            if ifd + 2 > len(t):
+                return None
+            for k in range(int.from_bytes(t[ifd : ifd + 2], order)):
+                e = ifd + 2 + 12 * k
+                if e + 12 > len(t):
+                    return None
+                if int.from_bytes(t[e : e + 2], order) == 0x0112:
+                    v = int.from_bytes(t[e + 8 : e + 10], order)
+                    return v if 1 <= v <= 8 else None
+            return None
+        pos += 2 + size
+    return None
 
 
 def fit_size(width: int, height: int, max_size: int | None) -> tuple[int, int]:
