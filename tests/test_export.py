@@ -75,3 +75,21 @@ def test_export_errors(proj, tmp_path: Path) -> None:
     before = snapshot(untrained.root)
     assert_user_error(run_cli("export", untrained.root), "no trained model", "splatcli train")
     assert snapshot(untrained.root) == before
+
+
+def test_export_drops_non_finite_rows(tmp_path: Path) -> None:
+    from splatcli.io.checkpoint import save_checkpoint
+    from tiny_project import tiny_gaussians
+
+    p = make_tiny_project(tmp_path / "p", trained=False, photos=False)
+    g = tiny_gaussians(20)
+    g.means[3, 1] = float("nan")
+    g.log_scales[11, 0] = float("inf")
+    save_checkpoint(p.checkpoint_path(10), step=10, gaussians=g, sh_degree=1)
+    for fmt, size in (("ply", ply_bytes(18, 1)), ("splat", 18 * SPLAT_ROW_BYTES)):
+        r = run_cli("export", p.root, "-f", fmt, "--json")
+        assert r.exit_code == 0, r.output
+        s = json.loads(r.stdout)
+        assert (s["num_gaussians"], s["num_dropped"]) == (18, 2)
+        assert p.export_path(fmt).stat().st_size == size
+    assert "dropped 2 Gaussians" in run_cli("export", p.root).stderr
