@@ -30,6 +30,5 @@ def export(
         {"path": r.path, "format": r.format, "num_gaussians": r.num_gaussians, "num_dropped": r.num_dropped,
          "sh_degree": r.sh_degree, "bytes": r.bytes, "step": r.step, "lossy": r.lossy},
         title=f"exported {r.num_gaussians} Gaussians to {r.path}",
-        lines=[f"{r.format}, SH degree {r.sh_degree}, {r.bytes / 1e6:.2f} MB, from checkpoint step {r.step}"]
-        + ([f"dropped {r.num_dropped} Gaussians with NaN/Inf values"] if r.num_dropped else []),
+        lines=[f"{r.format}, SH degree {r.sh_degree}, {r.bytes / 1e6:.2f} MB, from checkpoint step {r.step}"],
     )
