@@ -341,11 +341,27 @@ def check_eval_config(config: EvalConfig) -> None:
         raise SplatError(f"contribution_views {config.contribution_views}: must be at least 1")
 
 
-def evaluate_project(root: str | Path, config: EvalConfig, device: torch.device, *,
-                     on_event: EventSink | None = None) -> EvalReport:
-    """Score the latest checkpoint of the project at `root` (or `config.model`, a
-    .ply) on its held-out views (see module docstring) and write eval.json,
-    eval.md and the plots into `config.out` (default the project's reports/)."""
+@dataclass
+class EvalPlan:
+    """Everything checked and loaded, nothing scored yet (input errors surface
+    before any progress display or output)."""
+
+    project: Project
+    config: EvalConfig
+    gaussians: Gaussians
+    step: int | None  # checkpoint step (None for a .ply)
+    model_name: str
+    views: list[View]  # at eval resolution, with their photographs
+    background: tuple[float, float, float]
+    downscale: float
+    max_size: int | None
+    train_summary: dict[str, Any]
+    notes: list[str]
+
+
+def plan_eval(root: str | Path, config: EvalConfig, device: torch.device) -> EvalPlan:
+    """Check options, open the project, load the model (latest checkpoint or
+    `config.model`) and choose the views at the resolution trained."""
     from .io.checkpoint import load_checkpoint
     from .io.ply import read_ply
 
@@ -366,19 +382,32 @@ def evaluate_project(root: str | Path, config: EvalConfig, device: torch.device,
         notes.append(f"{int((~finite).sum())} Gaussians with NaN/Inf values were left out")
         g = g.select(finite)
 
-    train_step = (project.step("train") or {}) if config.model is None else {}
-    tcfg = train_step.get("config") or {}
-    tsum = train_step.get("summary") or {}
+    train_step = project.step("train") or {}
+    tcfg = train_step.get("config") or {}  # the resolution trained, also for a .ply scored against this project
+    tsum = (train_step.get("summary") or {}) if config.model is None else {}
     downscale = config.downscale if config.downscale is not None else float(tcfg.get("downscale") or 1.0)
     max_size = None if config.downscale is not None else tcfg.get("max_size")
-    views = [View(camera=eval_size(v.camera, downscale, max_size if isinstance(max_size, int) else None),
+    max_size = max_size if isinstance(max_size, int) else None
+    views = [View(camera=eval_size(v.camera, downscale, max_size),
                   out_name=v.out_name, image=v.image) for v in views]
     small = [v.camera for v in views if min(v.camera.width, v.camera.height) < 11]
     if small:
         raise SplatError(f"{small[0].name}: {small[0].width}x{small[0].height} at eval resolution is too small "
                          "for SSIM (at least 11x11 pixels); lower --downscale")
     bg_rgb = config.background if config.background is not None else (project_background(project) or (0.0, 0.0, 0.0))
-    bg = torch.tensor(bg_rgb, dtype=g.means.dtype, device=device)
+    return EvalPlan(project=project, config=config, gaussians=g, step=step, model_name=model_name, views=views,
+                    background=tuple(bg_rgb), downscale=downscale,  # type: ignore[arg-type]
+                    max_size=max_size, train_summary=tsum, notes=notes)
+
+
+def run_eval(plan: EvalPlan, *, on_event: EventSink | None = None) -> EvalReport:
+    """Score a plan (see module docstring) and write eval.json, eval.md and the
+    plots into `config.out` (default the project's reports/)."""
+    project, config, g, views = plan.project, plan.config, plan.gaussians, plan.views
+    step, model_name, notes, tsum = plan.step, plan.model_name, list(plan.notes), plan.train_summary
+    downscale, max_size, bg_rgb = plan.downscale, plan.max_size, plan.background
+    bg = torch.tensor(bg_rgb, dtype=g.means.dtype, device=g.device)
+    device = g.device
 
     emit(on_event, Stage("load images", total=len(views)))
     gts = []
@@ -400,7 +429,7 @@ def evaluate_project(root: str | Path, config: EvalConfig, device: torch.device,
     if fractions:
         rank_views = [v.camera for v in dataset_views(project, "train" if project.splits()["train"] else "all")]
         step = max(1, len(rank_views) // config.contribution_views)
-        rank_cams = [eval_size(c, downscale, max_size if isinstance(max_size, int) else None)
+        rank_cams = [eval_size(c, downscale, max_size)
                      for c in rank_views[::step][: config.contribution_views]]
         emit(on_event, Stage("rank Gaussians", total=None))
         t0 = time.perf_counter()
@@ -458,6 +487,14 @@ def evaluate_project(root: str | Path, config: EvalConfig, device: torch.device,
                                                 "budgets": list(config.budgets)},
                                 summary=report.summary())
     return report
+
+
+
+
+def evaluate_project(root: str | Path, config: EvalConfig, device: torch.device, *,
+                     on_event: EventSink | None = None) -> EvalReport:
+    """`splatcli eval PROJECT` in one call: plan, then run."""
+    return run_eval(plan_eval(root, config, device), on_event=on_event)
 
 
 def compare_folders(pred_dir: str | Path, gt_dir: str | Path, *, background: Sequence[float] = (0.0, 0.0, 0.0),

@@ -87,7 +87,9 @@ def load_model(source: str | os.PathLike, device: torch.device) -> LoadedModel:
         ck = load_checkpoint(ck_path, device)
         return LoadedModel(gaussians=ck.model(), kind="checkpoint", path=ck_path, project=project, step=ck.step)
     if not source.exists():
-        raise SplatError(f"{source}: no such project directory or .ply file")
+        if source.suffix.lower() == ".ply":
+            raise SplatError(f"{source}: no such .ply file")
+        Project.open(source)  # raises: no such project, run `splatcli process` first
     r = read_ply(source, device)
     return LoadedModel(gaussians=r.gaussians, kind="ply", path=source, project=None, notes=list(r.notes))
 

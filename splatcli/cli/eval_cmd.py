@@ -9,7 +9,7 @@ import typer
 
 from ..device import resolve_device
 from ..errors import SplatError
-from ..evaluate import EvalConfig, check_eval_config, compare_folders, evaluate_project
+from ..evaluate import EvalConfig, compare_folders, plan_eval, run_eval
 from ..rendering import parse_background
 from .common import DebugOpt, DeviceOpt, JsonOpt, QuietOpt, Ui
 
@@ -52,10 +52,9 @@ def evaluate(
         raise SplatError("give a PROJECT, or --pred DIR --gt DIR")
     cfg = EvalConfig(split=split, background=bg, downscale=downscale, budgets=_budgets(budgets), plots=plots,
                      model=model, out=out)
-    check_eval_config(cfg)
-    dev = resolve_device(device)
+    plan = plan_eval(project, cfg, resolve_device(device))  # input errors surface before any output
     with ui.progress() as sink:
-        r = evaluate_project(project, cfg, dev, on_event=sink)
+        r = run_eval(plan, on_event=sink)
     ui.summary(r.summary(), title=f"{r.split} split: PSNR {r.psnr:.2f} dB, SSIM {r.ssim:.4f} over {len(r.per_image)} views",
                lines=[f"{r.num_gaussians:,} Gaussians (SH {r.sh_degree}, {r.ply_bytes / 1e6:.2f} MB): "
                       f"{r.render_fps:.2f} frames/s at {r.width}x{r.height} on {r.device}"]

@@ -7,6 +7,7 @@ from typing import Optional
 
 import typer
 
+from ..events import Note
 from ..export import ExportConfig, check_export_config, export_project
 from .common import DebugOpt, JsonOpt, QuietOpt, Ui
 
@@ -24,8 +25,9 @@ def export(
     ui = Ui(quiet=quiet, json_out=json_out)
     cfg = ExportConfig(format=fmt.strip().lower(), out=out)
     check_export_config(cfg)
-    with ui.progress() as sink:
-        r = export_project(project, cfg, on_event=sink)
+    # notes only: an export takes seconds, and errors must stay the only line
+    sink = lambda ev: ui.note(ev.message, ev.level) if isinstance(ev, Note) else None  # noqa: E731
+    r = export_project(project, cfg, on_event=sink)
     ui.summary(
         {"path": r.path, "format": r.format, "num_gaussians": r.num_gaussians, "num_dropped": r.num_dropped,
          "sh_degree": r.sh_degree, "bytes": r.bytes, "step": r.step, "lossy": r.lossy},
