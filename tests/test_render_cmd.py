@@ -227,3 +227,21 @@ def test_not_a_project_or_not_ready(tmp_path: Path) -> None:
             before = snapshot(p.root)
             assert_user_error(run_cli(cmd, p.root), str(p.root), f"`splatcli {step}")
             assert snapshot(p.root) == before
+
+
+@pytest.mark.data
+def test_reads_real_transforms_files(shared_data: Path) -> None:
+    """The Blender (lego) and instant-ngp (fox) layouts from ../shared/data."""
+    lego = shared_data / "lego" / "transforms_train.json"
+    fox = shared_data / "fox" / "transforms.json"
+    if not lego.is_file() or not fox.is_file():
+        pytest.skip("lego or fox is absent")
+    v = read_transforms(lego)  # no w/h: the size comes from train/r_0.png (extension appended)
+    assert len(v) == 100 and (v[0].camera.width, v[0].camera.height) == (800, 800)
+    assert v[0].out_name == "r_0.png" and v[0].camera.K[0, 0] == pytest.approx(1111.11, abs=0.01)
+    notes: list[str] = []
+    f = read_transforms(fox, notes=notes)  # all 67 frames, even those whose image is absent
+    assert len(f) == 67 and (f[0].camera.width, f[0].camera.height) == (1080, 1920) and "distortion" in notes[0]
+    for cams in ([x.camera for x in v], [x.camera for x in f]):
+        orbit = generate_path("orbit", cams, 8)
+        assert all(np.isfinite(o.camera.viewmat).all() for o in orbit)
