@@ -19,18 +19,21 @@ never looks finished. A rerun deletes a stale temp folder first.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import shutil
+import signal
+import threading
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 
 from .camera import Camera
-from .errors import SplatError
+from .errors import Interrupted, SplatError
 from .events import EventSink, Note, Progress, Stage, StageDone, emit
 from .project import Project, is_project
 from .sfm import colmap
@@ -223,6 +226,30 @@ def process(input: str | Path, project_dir: str | Path, cfg: ProcessConfig = Pro
     background = parse_background(cfg.background)
     spec = detect_input(input, cfg.input_type)
     _check_output(root, spec, cfg.overwrite)
+    with _terminate_as_interrupt():
+        return _process(spec, root, cfg, background, on_event, t_start)
+
+
+@contextlib.contextmanager
+def _terminate_as_interrupt() -> Iterator[None]:
+    """SIGTERM (a batch scheduler stopping us) cleans up like Ctrl-C does."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum: int, frame: Any) -> None:
+        raise Interrupted("process terminated; run it again to start over")
+
+    colmap.load()  # glog takes SIGTERM when pycolmap is imported: import first, then take it back
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _process(spec: InputSpec, root: Path, cfg: ProcessConfig, background: tuple[float, float, float] | None,
+             on_event: EventSink | None, t_start: float) -> ProcessResult:
     run = _Run(on_event)
     created = not root.exists()
     stage = root / STAGE_DIR

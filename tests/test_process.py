@@ -261,3 +261,42 @@ def test_registering_under_half_the_images_warns(scene, tmp_path, monkeypatch):
                if isinstance(n, Note))
     assert r.warnings and "5 image(s) did not register" in " ".join(n.message for n in notes if isinstance(n, Note))
     assert_contract(tmp_path / "p")
+
+
+def test_ctrl_c_waits_for_pycolmap_to_unwind():
+    """An interrupt while pycolmap works cancels it and waits: a thread left
+    inside pycolmap when Python exits aborts the interpreter."""
+    import threading
+    import time
+
+    from splatcli.sfm.colmap import run_cancellable
+
+    finished = []
+
+    def slow(cancellation_token):
+        while not cancellation_token.is_cancelled:  # a property in pycolmap 4
+            time.sleep(0.01)
+        time.sleep(0.2)  # unwinding takes a while
+        finished.append(True)
+
+    def ctrl_c():
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_cancellable(slow, poll=ctrl_c)
+    assert finished == [True]
+    assert not [t for t in threading.enumerate() if t.name.startswith("pycolmap-")]
+
+
+def test_ctrl_c_exits_130_with_one_line(tmp_path, monkeypatch):
+    from test_import import make_workspace
+
+    make_workspace(tmp_path / "ws")
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("splatcli.process._from_colmap", interrupted)
+    r = run_cli("process", tmp_path / "ws", "-o", tmp_path / "p")
+    assert r.exit_code == 130 and r.stderr.strip().splitlines()[-1] == "error: interrupted"
+    assert not (tmp_path / "p").exists()

@@ -36,8 +36,8 @@ class _Group(TyperGroup):
         argv = list(sys.argv[1:] if args is None else args)
         debug = "--debug" in argv or os.environ.get("SPLATCLI_DEBUG") == "1"
         try:
-            return super().main(args=argv, prog_name=prog_name or "splatcli", complete_var=complete_var,
-                                standalone_mode=False, **extra)
+            rv = super().main(args=argv, prog_name=prog_name or "splatcli", complete_var=complete_var,
+                              standalone_mode=False, **extra)
         except typer.Exit as exc:  # --help, --version, typer.Exit
             code = exc.exit_code
         except typer.Abort:
@@ -75,7 +75,10 @@ class _Group(TyperGroup):
             )
             code = 1
         else:
-            code = 0
+            # Not standalone, typer reports Ctrl-C by returning 130 instead of raising.
+            code = rv if isinstance(rv, int) and not isinstance(rv, bool) else 0
+            if code == 130:
+                sys.stderr.write("error: interrupted\n")
         sys.stderr.flush()
         sys.stdout.flush()
         if standalone_mode:

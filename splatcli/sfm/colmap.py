@@ -38,6 +38,12 @@ def _pc() -> Any:
     return pycolmap
 
 
+def load() -> None:
+    """Import pycolmap now. Its glog installs C-level handlers for SIGTERM and
+    crash signals on import; a Python SIGTERM handler must be set after that."""
+    _pc()
+
+
 def _one_line(exc: BaseException) -> str:
     return " ".join(str(exc).split())[:300]
 
@@ -46,28 +52,38 @@ def run_cancellable(fn: Callable[..., Any], *args: Any, poll: Callable[[], None]
                     **kwargs: Any) -> Any:
     """Call `fn(*args, cancellation_token=token, **kwargs)` in a worker thread.
 
-    `poll` runs every 0.1 s on the calling thread (progress). KeyboardInterrupt
-    cancels the token, waits for the worker, and re-raises."""
+    `poll` runs every 0.1 s on the calling thread (progress). An exception on
+    the calling thread (Ctrl-C) cancels the token and waits for pycolmap to
+    unwind before re-raising: a thread still inside pycolmap when Python exits
+    aborts the process. The wait uses an Event, not Thread.join, because an
+    interrupted join marks a running thread as finished (CPython bpo-45274)."""
     pycolmap = _pc()
     token = pycolmap.CancellationToken()
     box: dict[str, Any] = {}
+    done = threading.Event()
 
     def work() -> None:
         try:
             box["value"] = fn(*args, cancellation_token=token, **kwargs)
         except BaseException as exc:  # re-raised on the caller's thread
             box["error"] = exc
+        finally:
+            done.set()
 
     th = threading.Thread(target=work, name=f"pycolmap-{getattr(fn, '__name__', 'call')}", daemon=True)
     th.start()
     try:
-        while th.is_alive():
-            th.join(0.1)
+        while not done.wait(0.1):
             if poll is not None:
                 poll()
     except BaseException:
         token.cancel()
-        th.join()
+        while True:
+            try:
+                done.wait()
+                break
+            except BaseException:  # a second Ctrl-C: still wait, exiting now would abort
+                continue
         raise
     if poll is not None:
         poll()
