@@ -63,6 +63,7 @@ class Plan:
     chunks: list[tuple[Tensor, int]]  # (block ids [nb], K) per chunk
     n_pairs: int  # M
     seg: int = SEGMENT  # K-segment length between early-termination checks
+    chunk_elems: int = CHUNK_ELEMS  # dense elements per segment (segments grow as blocks terminate)
 
 
 def _feats(block: int, dtype: torch.dtype, device: torch.device) -> Tensor:  # [6, P]
@@ -194,7 +195,7 @@ def make_plan(
         start = torch.cumsum(count, 0) - count
         seg = seg or SEGMENT
         chunks = _schedule(count, block * block, chunk_elems or CHUNK_ELEMS, seg)
-    return Plan(width, height, block, nbx, nby, pair_gid, start, count, chunks, M, seg)
+    return Plan(width, height, block, nbx, nby, pair_gid, start, count, chunks, M, seg, chunk_elems or CHUNK_ELEMS)
 
 
 def _schedule(count: Tensor, P: int, chunk_elems: int, seg: int) -> list[tuple[Tensor, int]]:
@@ -303,8 +304,12 @@ def _transmittance(alpha: Tensor, Tc: Tensor | None, c: _Consts):
     return om, U
 
 
-def _segments(K: int, seg: int):
-    return [(k0, min(K, k0 + seg)) for k0 in range(0, K, seg)]
+def _seg_end(plan: Plan, k0: int, K: int, rows: int) -> int:
+    """End of the segment starting at k0: `seg` long, or longer when so few blocks are
+    still active that a segment's fixed cost (~40 tensor ops) would dominate. Longer
+    segments check for early termination less often, hence only chunk_elems / 8."""
+    P = plan.block * plan.block
+    return min(K, k0 + max(plan.seg, plan.chunk_elems // max(8 * rows * P, 1)))
 
 
 def _chunk_ids(plan: Plan, bl: Tensor, K: int, n: int):
@@ -350,7 +355,9 @@ class _Composite(torch.autograd.Function):
             centre = centre.to(dt)
             out = None
             act, Tc = None, None
-            for k0, k1 in _segments(K, plan.seg):
+            k0 = 0
+            while k0 < K:
+                k1 = _seg_end(plan, k0, K, len(bl) if act is None else len(act))
                 sl = _Slots(gs, _rowsel(gid, act)[:, k0:k1], _rowsel(centre, act))
                 a = _alpha(sl.coef2, featsT, c)
                 om, U = _transmittance(a, Tc, c)
@@ -366,6 +373,7 @@ class _Composite(torch.autograd.Function):
                     act, Tc, _ = _terminate(act, U[:, :, -1])
                     if act is not None and act.numel() == 0:
                         break
+                k0 = k1
             acc[bl] = out
         ctx.planner = planner
         ctx.save_for_backward(means2d, conics, opacities, colors, depths, background, acc)
@@ -393,7 +401,9 @@ class _Composite(torch.autograd.Function):
             centre = centre.to(dt)
             g4b, g4tb, base = g4[bl], g4t_all[bl].contiguous(), base_all[bl][..., None]
             act, Tc, pc = None, None, None
-            for k0, k1 in _segments(K, plan.seg):
+            k0 = 0
+            while k0 < K:
+                k1 = _seg_end(plan, k0, K, len(bl) if act is None else len(act))
                 sl = _Slots(gs, _rowsel(gid, act)[:, k0:k1], _rowsel(centre, act))
                 a = _alpha(sl.coef2, featsT, c)
                 om, U = _transmittance(a, Tc, c)
@@ -419,6 +429,7 @@ class _Composite(torch.autograd.Function):
                     act, Tc, (pc,) = _terminate(act, Tlast, pc)
                     if act is not None and act.numel() == 0:
                         break
+                k0 = k1
         dg = dg[:N]
         d_opac = dg[:, 5] / opacities.clamp_min(1e-38)  # d log o -> d o; 0 for pair-less Gaussians
         d_bg = None
