@@ -63,7 +63,7 @@ class ProcessConfig:
     seed: int = 0
     max_features: int = 4096  # SIFT features per image
     first_octave: int | None = None  # SIFT: None picks 0, or -1 (upsampled) for images under 400 px
-    sequential_overlap: int = 10
+    sequential_overlap: int = 5  # neighbours each image is matched with (plus 2^k further ones)
     blur_ratio: float = 0.6  # video: drop frames less sharp than this x their neighbours' median
     num_threads: int = -1  # -1: all cores
 

@@ -32,7 +32,7 @@ class SfmOptions:
     matcher: str = "auto"  # auto | exhaustive | sequential
     ordered: bool = False  # frames of a video: sequential when auto
     exhaustive_max_images: int = 40  # auto: below this, all pairs are cheap enough
-    sequential_overlap: int = 10  # neighbours each image is matched with
+    sequential_overlap: int = 5  # neighbours each image is matched with (plus 2^k further ones)
     max_image_size: int = 1600  # pixels: SIFT sees images shrunk to this (keypoints in full-size pixels)
     max_features: int = 4096
     first_octave: int | None = None  # None: 0, or -1 when SIFT's image is under 400 px (too few features otherwise)
