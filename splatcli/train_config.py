@@ -161,6 +161,7 @@ class TrainLogLine:
     psnr: float | None = None  # held-out, every --eval-every steps
     ssim: float | None = None
     bad_steps: int = 0  # non-finite steps skipped so far
+    rss_mb: int | None = None  # the process's resident memory now (flat once densification stops)
 
     def to_json(self) -> dict[str, Any]:
         d = asdict(self)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -55,7 +56,7 @@ class LogWriter:
         loss = self._mean_loss()
         rec = TrainLogLine(step=step, elapsed_s=round(state.elapsed_s, 4),
                            loss=float("nan") if loss is None else round(loss, 6),
-                           num_gaussians=state.num_gaussians, bad_steps=state.bad_steps)
+                           num_gaussians=state.num_gaussians, bad_steps=state.bad_steps, rss_mb=rss_mb())
         if evaluated is not None:
             rec.psnr, rec.ssim = round(evaluated[0], 4), round(evaluated[1], 5)
             self.psnr = rec.psnr
@@ -85,6 +86,15 @@ class LogWriter:
         info["gaussians"] = state.num_gaussians
         self._info = info
         return info
+
+
+def rss_mb() -> int | None:
+    """Current resident set size in MiB (Linux /proc; None elsewhere)."""
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") // (1 << 20)
+    except (OSError, ValueError, IndexError):
+        return None
 
 
 def read_log(path: Path) -> list[dict[str, Any]]:

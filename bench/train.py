@@ -1,0 +1,271 @@
+"""Training benchmark: speed against held-out error on real scenes, and what
+--compact and --max-gaussians cost.
+
+    .venv/bin/python bench/train.py [--scenes lego,fox,sample] [--variants default,compact,budget]
+                                    [--preset fast] [--iterations N] [--no-write]
+
+For each scene it processes the data once (bench/out/train/<scene>/base), then
+runs `splatcli train` as a subprocess per variant on a copy of that project:
+
+  default   the preset as is
+  compact   + --compact
+  budget    + --max-gaussians (a third of the default run's final count)
+
+and records steps/s, held-out PSNR/SSIM at 1k, 3k and 7k steps, the training
+seconds to reach 30 dB, wall time, peak RSS (sampled every 0.5 s from /proc),
+the RSS the run logged at each log line (memory must stay flat once densification
+stops), and the final Gaussian count and .ply size. Results go to
+bench/out/train/results.json and the "## train" section of docs/benchmarks.md.
+
+Scenes (../shared/data, or $SPLATCLI_DATA):
+  lego    NeRF synthetic, trained at 200x200 on a white background, every 8th image held out
+  fox     instant-ngp's fox, 50 photos, trained at ~270x480
+  sample  sample_data/scene (what `make demo` uses), --preset demo
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+OUT = REPO / "bench" / "out" / "train"
+DOC = REPO / "docs" / "benchmarks.md"
+SPLATCLI = [sys.executable, "-m", "splatcli.cli.main"]
+MILESTONES = (1000, 3000, 7000)
+TARGET_DB = 30.0
+
+
+def data_dir() -> Path:
+    env = os.environ.get("SPLATCLI_DATA")
+    return Path(env) if env else REPO.parent / "shared" / "data"
+
+
+# scene -> (input, process args, train args, preset)
+SCENES = {
+    "lego": (lambda: data_dir() / "lego", [], ["--max-size", "200"], None),
+    "fox": (lambda: data_dir() / "fox", [], ["--max-size", "480"], None),
+    "sample": (lambda: REPO / "sample_data" / "scene", [], [], "demo"),
+}
+
+
+class RssSampler(threading.Thread):
+    """Peak resident set size of a child, sampled from /proc (Linux)."""
+
+    def __init__(self, pid: int, period: float = 0.5) -> None:
+        super().__init__(daemon=True)
+        self.pid, self.period, self.peak_kb, self.samples = pid, period, 0, []
+        self._stop = threading.Event()
+        self.t0 = time.monotonic()
+
+    def run(self) -> None:
+        path = f"/proc/{self.pid}/status"
+        while not self._stop.is_set():
+            try:
+                with open(path) as f:
+                    for line in f:
+                        if line.startswith("VmRSS:"):
+                            kb = int(line.split()[1])
+                            self.peak_kb = max(self.peak_kb, kb)
+                            self.samples.append((round(time.monotonic() - self.t0, 1), kb // 1024))
+            except OSError:
+                pass
+            self._stop.wait(self.period)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self.join()
+
+
+def run(cmd: list[str], log: Path) -> tuple[int, str, float, int, list]:
+    t0 = time.monotonic()
+    with open(log, "w") as err:
+        p = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=err, text=True)
+        s = RssSampler(p.pid)
+        s.start()
+        out, _ = p.communicate()
+        s.stop()
+    return p.returncode, out, time.monotonic() - t0, s.peak_kb // 1024, s.samples
+
+
+def ensure_processed(scene: str) -> Path:
+    src, pargs, _, _ = SCENES[scene]
+    base = OUT / scene / "base"
+    if (base / "splatcli.json").is_file() and (base / "sfm").is_dir():
+        return base
+    inp = src()
+    if not inp.exists():
+        raise SystemExit(f"{inp}: missing (scene {scene}); set SPLATCLI_DATA or skip it with --scenes")
+    base.parent.mkdir(parents=True, exist_ok=True)
+    rc, out, wall, _, _ = run(SPLATCLI + ["process", str(inp), "-o", str(base), "--overwrite", "--json", "-q", *pargs],
+                              OUT / scene / "process.log")
+    if rc != 0:
+        raise SystemExit(f"process {scene} failed; see {OUT / scene / 'process.log'}")
+    return base
+
+
+def read_log(path: Path) -> list[dict]:
+    rows = []
+    for line in path.read_text().splitlines():
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError:
+            pass
+    return rows
+
+
+def train_variant(scene: str, variant: str, extra: list[str], preset: str, iterations: int | None,
+                  threads: int | None) -> dict:
+    base = ensure_processed(scene)
+    proj = OUT / scene / variant
+    if proj.exists():
+        shutil.rmtree(proj)
+    shutil.copytree(base, proj, ignore=shutil.ignore_patterns("checkpoints", "reports", "renders", "exports"))
+    _, _, targs, scene_preset = SCENES[scene]
+    preset = scene_preset or preset
+    cmd = SPLATCLI + ["train", str(proj), "--preset", preset, "--device", "cpu", "--eval-every", "1000",
+                      "--json", "-q", *targs, *extra]
+    if iterations:
+        cmd += ["--iterations", str(iterations)]
+    if threads:
+        os.environ["OMP_NUM_THREADS"] = str(threads)
+    print(f"[{scene}/{variant}] {' '.join(cmd[2:])}", flush=True)
+    rc, out, wall, peak_mb, samples = run(cmd, OUT / scene / f"{variant}.log")
+    if rc != 0:
+        raise SystemExit(f"train {scene}/{variant} failed (exit {rc}); see {OUT / scene / f'{variant}.log'}")
+    s = json.loads(out)
+    log = read_log(proj / "reports" / "train_log.jsonl")
+    evals = {r["step"]: r for r in log if "psnr" in r}
+    at = {str(m): {"psnr": evals[m]["psnr"], "ssim": evals[m]["ssim"], "seconds": evals[m]["elapsed_s"]}
+          for m in MILESTONES if m in evals}
+    hit = next((r for r in log if r.get("psnr", 0) >= TARGET_DB), None)
+    rss = [(r["step"], r["rss_mb"]) for r in log if "rss_mb" in r]
+    res = {
+        "scene": scene, "variant": variant, "preset": preset, "args": extra, "steps": s["steps"],
+        "train_seconds": s["train_seconds"], "steps_per_s": s["steps"] / max(s["train_seconds"], 1e-9),
+        "wall_seconds": round(wall, 1), "peak_rss_mb": peak_mb, "num_gaussians": s["num_gaussians"],
+        "ply_bytes": s["ply_bytes"], "sh_degree": s["sh_degree"], "final_psnr": s["psnr"], "final_ssim": s["ssim"],
+        "at": at, "seconds_to_30db": hit["elapsed_s"] if hit else None, "rss_by_step": rss,
+        "rss_samples": samples[:: max(1, len(samples) // 200)], "compact": s.get("compact"),
+        "resolution": None,
+    }
+    print(f"[{scene}/{variant}] {res['steps']} steps, {res['steps_per_s']:.2f} steps/s, PSNR {res['final_psnr']}, "
+          f"{res['num_gaussians']} Gaussians, peak RSS {peak_mb} MB", flush=True)
+    return res
+
+
+def fmt(v, spec=".2f") -> str:
+    return "–" if v is None else format(v, spec)
+
+
+def markdown(results: list[dict], meta: dict) -> str:
+    lines = ["## train", "",
+             f"Measured by `python bench/train.py` on {meta['machine']}, {meta['cores']} CPU cores "
+             f"{'shared with other jobs (noisy wall times)' if meta['shared'] else ''}; torch {meta['torch']}, "
+             f"CPU only. Every run is `splatcli train` as a subprocess on its own copy of the processed project; "
+             "PSNR/SSIM are held-out (every 8th image), measured every 1000 steps; seconds are training seconds "
+             "(evaluation excluded) from `reports/train_log.jsonl`.", ""]
+    lines += ["| scene | variant | steps | steps/s | PSNR 1k | PSNR 3k | PSNR 7k | SSIM 7k | s to 30 dB | "
+              "train s | wall s | peak RSS MB | Gaussians | .ply MB |",
+              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for r in results:
+        a = r["at"]
+        p = lambda m, k="psnr": a.get(str(m), {}).get(k)  # noqa: E731
+        last = r["final_psnr"] if str(r["steps"]) not in a else None
+        lines.append(
+            f"| {r['scene']} | {r['variant']}{' ' + ' '.join(r['args']) if r['args'] else ''} | {r['steps']} | "
+            f"{r['steps_per_s']:.2f} | {fmt(p(1000))} | {fmt(p(3000))} | {fmt(p(7000))} | {fmt(p(7000, 'ssim'), '.4f')} | "
+            f"{fmt(r['seconds_to_30db'], '.0f')} | {r['train_seconds']:.0f} | {r['wall_seconds']:.0f} | "
+            f"{r['peak_rss_mb']} | {r['num_gaussians']} | {r['ply_bytes'] / 1e6:.2f} |"
+            + (f" final PSNR {last:.2f}" if last else ""))
+    comp = [r for r in results if r.get("compact")]
+    if comp:
+        lines += ["", "`--compact` (prune by total blending weight over the training views, then fine-tune):", "",
+                  "| scene | before: Gaussians | PSNR | after: Gaussians | PSNR | .ply MB before → after |",
+                  "| --- | --- | --- | --- | --- | --- |"]
+        for r in comp:
+            c = r["compact"]
+            lines.append(f"| {r['scene']} | {c['before_count']} | {fmt(c['before_psnr'])} | {c['after_count']} | "
+                         f"{fmt(c['after_psnr'])} | {c['before_bytes'] / 1e6:.2f} → {c['after_bytes'] / 1e6:.2f} |")
+    lines += ["", "Memory over the run (RSS logged by the training process at each log line; it follows the "
+              "Gaussian count while densifying and must stay flat afterwards):", "",
+              "| scene | variant | RSS MB at steps → |", "| --- | --- | --- |"]
+    for r in results:
+        pts = r["rss_by_step"]
+        if pts:
+            pick = pts[:: max(1, len(pts) // 8)] + ([pts[-1]] if pts[-1] not in pts[:: max(1, len(pts) // 8)] else [])
+            lines.append(f"| {r['scene']} | {r['variant']} | " + ", ".join(f"{s}: {m}" for s, m in pick) + " |")
+    lines += ["", meta.get("notes", "").strip(), ""]
+    return "\n".join(lines) + "\n"
+
+
+def write_section(text: str) -> None:
+    """Replace (or append) only the "## train" section of docs/benchmarks.md."""
+    doc = DOC.read_text() if DOC.exists() else "# Benchmarks\n"
+    start = doc.find("\n## train\n")
+    if start < 0:
+        doc = doc.rstrip("\n") + "\n\n" + text
+    else:
+        nxt = doc.find("\n## ", start + 1)
+        doc = doc[: start + 1] + text + (doc[nxt + 1:] if nxt >= 0 else "")
+    tmp = DOC.with_suffix(".md.tmp")
+    tmp.write_text(doc)
+    os.replace(tmp, DOC)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scenes", default="lego,fox,sample")
+    ap.add_argument("--variants", default="default,compact,budget")
+    ap.add_argument("--preset", default="fast")
+    ap.add_argument("--iterations", type=int, default=None)
+    ap.add_argument("--threads", type=int, default=None, help="OMP_NUM_THREADS for the runs")
+    ap.add_argument("--notes", default="", help="a paragraph appended to the section")
+    ap.add_argument("--no-write", action="store_true", help="do not edit docs/benchmarks.md")
+    args = ap.parse_args()
+    import torch
+
+    OUT.mkdir(parents=True, exist_ok=True)
+    results_path = OUT / "results.json"
+    old = json.loads(results_path.read_text()) if results_path.exists() else {"results": []}
+    results = []
+    for scene in args.scenes.split(","):
+        default = None
+        for variant in args.variants.split(","):
+            if scene == "sample" and variant != "default":
+                continue
+            extra = {"default": [], "compact": ["--compact"]}.get(variant)
+            if variant == "budget":
+                if default is None:
+                    prev = [r for r in old["results"] if r["scene"] == scene and r["variant"] == "default"]
+                    default = prev[-1] if prev else None
+                if default is None:
+                    print(f"[{scene}/budget] skipped: needs the default run's count", flush=True)
+                    continue
+                extra = ["--max-gaussians", str(max(1, default["num_gaussians"] // 3))]
+            r = train_variant(scene, variant, extra, args.preset, args.iterations, args.threads)
+            if variant == "default":
+                default = r
+            results.append(r)
+            keep = [o for o in old["results"] if (o["scene"], o["variant"]) != (scene, variant)]
+            old["results"] = keep + [r]
+            results_path.write_text(json.dumps(old, indent=1))
+    meta = {"machine": f"{platform.machine()} ({platform.processor() or platform.system()})",
+            "cores": os.cpu_count(), "shared": True, "torch": torch.__version__, "notes": args.notes}
+    order = {s: i for i, s in enumerate(SCENES)}
+    allres = sorted(old["results"], key=lambda r: (order.get(r["scene"], 9), ["default", "compact", "budget"].index(r["variant"])))
+    if not args.no_write:
+        write_section(markdown(allres, meta))
+    print(markdown(allres, meta))
+
+
+if __name__ == "__main__":
+    main()
