@@ -55,6 +55,30 @@ OPENSPLAT_S = {"synth-10k-256": 0.43, "synth-10k-800x600": 2.6, "synth-100k-800x
 GSPLAT_TORCH_S = {"synth-10k-256": 2.4, "synth-10k-800x600": 21.0}
 
 
+ALTERNATIVES = """### Alternatives tried (chosen by measuring)
+
+Single thread, CPU (process) time unless marked wall, same-run A/B comparisons where noted
+(the 2 cores were shared with other jobs throughout, so absolute numbers drift by up to 50%
+between runs; ratios within one run are the reliable part). fwd / fwd+bwd in ms.
+
+| # | variant | workload | result | kept? |
+|---|---|---|---|---|
+| 1 | first version: dense [blocks, K, pixels] tensors, `exp`, `torch.where` masks, 2^21-element chunks, whole lists (no early termination), bounding-box pairing | 10k, 256^2, block 4 / 8 / 16 | 345/741, 380/1051, 578/1228 (wall) | replaced |
+| 2 | [blocks, pixels, K] layout: scans run along the contiguous K axis (cumprod 0.46 vs 1.76 ns/element), every GEMM in its fast orientation (colour 0.25 vs 2.1 ns/element); `exp2` with log2(e) folded into the coefficients (0.23 vs 1.7 ns/element); `threshold_`/`clamp_` instead of `where`/`masked_fill` (0.1 vs 2.8 / 10 ns/element); K segments with early termination | 10k, 256^2, block 8 | 52/140 | yes |
+| 3 | chunk size 2^16 / 2^18 / 2^20 / 2^21 elements | same | 70/224, 52/140, 54/184, 71/228 | 2^18 (fits L2/L3) |
+| 4 | segment length 32 / 64 / 128 | same | 49/128, 52/140, 45/129 (noise) | 64 |
+| 5 | exact ellipse-vs-block pairing per block row (closed-form x-extent of the alpha ellipse over a row band) instead of bounding boxes | 10k, 256^2 / 800x600 | 19% / 32% fewer pairs (block 8) | yes |
+| 6 | exponent coefficients per pair, gathered per chunk, vs built per padded slot | 10k, 256^2, same run | 191 -> 138 fwd+bwd | yes, then 7 |
+| 7 | lazy slots: coefficients gathered and gradients scattered per segment, for active blocks only (pairs behind saturated pixels cost nothing but planning) | 100k, 800x600, block 8 / 16 | 4219 -> 2340, 2257 -> 1532 (total) | yes |
+| 8 | planning with `index_select`/`repeat_interleave` instead of `x[idx]` gathers (1.6x faster per element) | 100k, 800x600, block 8 | plan 700 -> 283 | yes |
+| 9 | block side 4 / 8 / 16 (total fwd+bwd) | 10k 256^2; 10k 800x600; 100k 800x600; garden; 100k 200^2 | 110/133/169; 1000/433/460; -/1623/1247; 1146/899/936; 351/310/356 | `block="auto"`: cost model picks 8, 8, 16, 8, 8 |
+| 10 | keep alpha and T from the forward for the backward (budget 2^26 elements) instead of recomputing | 10k 256^2 / 800x600, same run | 120 -> 131, 424 -> 399 fwd+bwd (noise), more memory | no |
+| 11 | `torch.compile` (inductor, CPU) of the per-chunk forward kernel | [64, 64, 64] chunk | 7.8 vs 30 ns/element for the same naive eager code, but 45 s to compile and 5.5 s per new shape (dynamic=True); the tuned eager kernel runs at about 2 ns/element in isolation | no |
+| 12 | textbook flattened formulation (see the line above the table) | 10k, 256^2 | see above | no (baseline) |
+| 13 | 2 torch threads while the cores are oversubscribed | 10k, 256^2 | 6x more CPU time than 1 thread (OpenMP workers spin) | measure 1 thread; use 2 on idle cores |
+"""
+
+
 def data_dir() -> Path:
     env = os.environ.get("SPLATCLI_DATA")
     return Path(env) if env else REPO.parent / "shared" / "data"
@@ -372,6 +396,7 @@ def main() -> None:
         out += [ref_line, ""]
     if flat_line:
         out += [flat_line, ""]
+    out += [ALTERNATIVES]
     if args.extra:
         out += [Path(args.extra).read_text(encoding="utf-8").rstrip("\n"), ""]
     text = "\n".join(out)

@@ -3,29 +3,33 @@ with an analytic backward.
 
 Layout. The image is cut into square pixel blocks of `block` px (4, 8 or 16; a
 divisor of the 16 px tile, so each block lies in one tile). Every Gaussian is paired
-with the blocks that intersect both its tiles (the 16x16 tiles its 3-sigma square
-overlaps: the model's rule) and the bounding box of its alpha >= 1/255 ellipse
-(exact culling: contributions below 1/255 are skipped by the model anyway). Pairs are
-sorted by (block, depth) with one integer key. Blocks are then processed in chunks
-of similar list length K as dense [blocks, K, pixels] tensors:
+with the blocks that hold a pixel centre inside both its tiles (the 16x16 tiles its
+3-sigma square overlaps: the model's rule) and its alpha >= 1/255 ellipse (exact
+culling: the model skips contributions below 1/255 anyway). Pairs are generated in
+depth order and stably sorted by block. Blocks are processed in chunks of similar
+list length K as dense [blocks, pixels, K] tensors (K last, so scans run along
+contiguous memory):
 
-    log(alpha) = coef @ feats      one small GEMM: the exponent is a quadratic in the
-                                   block-local pixel offset, coef [.., 6] per pair
-    T          = cumprod(1 - alpha) along K (front to back)
-    colour     = (alpha T)^T @ [rgb, z]   one batched GEMM
+    log2(alpha) = feats^T @ coef   one small GEMM: the exponent is a quadratic in the
+                                   block-local pixel offset, coef [.., 6, K] per slot
+    T           = cumprod(1 - alpha) along K (front to back), zeroed from the first
+                  Gaussian that would take it below 1e-4
+    colour      = [rgb, z, 1] @ (alpha T_before)^T   one batched GEMM; the row of
+                  ones sums the weights, so T_final = 1 - sum w
 
-Lists are cut into segments of `SEGMENT` Gaussians; after each, blocks whose every
-pixel has stopped blending (T would drop below 1e-4) are dropped: early termination.
+Lists are cut into segments (`SEGMENT` long, longer when few blocks remain); after
+each, blocks whose every pixel has stopped blending are dropped: early termination.
+Per-slot work (coefficients, gradient scatter) happens per segment for active blocks
+only, so pairs behind saturated pixels cost only their planning.
 
-The backward recomputes alpha and T per chunk (cheaper than storing them: they are
-the largest tensors) and uses the 3DGS identity for the colour behind a Gaussian,
-suffix_i = C_final - prefix_i, so it needs no back-to-front pass. The per-pair
-gradient sums over pixels are again one GEMM against the same six pixel features;
-the chain rule from those sums to the Gaussian's screen parameters runs once over
-all pairs, outside the chunk loop.
+The backward recomputes alpha and T per segment (cheaper than storing them: they are
+the largest tensors, and reading them back costs as much as recomputing) and uses the
+3DGS identity for the colour behind a Gaussian, suffix_i = C_final - prefix_i, so it
+needs no back-to-front pass. The per-slot gradient sums over pixels are again one GEMM
+against the same six pixel features.
 
 Chunks bound memory to O(chunk elements + pairs); nothing here loops over pixels,
-Gaussians or blocks individually.
+Gaussians or blocks individually (the Python loops run over chunks and segments).
 """
 
 from __future__ import annotations
@@ -258,7 +262,7 @@ class _Slots:
 
     def __init__(self, gs: _Gauss, gid: Tensor, centre: Tensor):  # gid [na, k]; centre [na, 1, 2]
         self.gid = gid
-        p = gs.geo[gid]  # [na, k, 6]
+        p = gs.geo.index_select(0, gid.reshape(-1)).view(*gid.shape, 6)  # [na, k, 6]
         self.d0x = p[..., 0] - centre[..., 0]
         self.d0y = p[..., 1] - centre[..., 1]
         self.A, self.B, self.C = p[..., 2], p[..., 3], p[..., 4]
@@ -317,7 +321,7 @@ def _chunk_ids(plan: Plan, bl: Tensor, K: int, n: int):
     block centres [nb, 1, 2]."""
     ar = torch.arange(K, device=bl.device)
     pos = (plan.block_start[bl][:, None] + ar).clamp_max(max(plan.n_pairs - 1, 0))
-    gid = torch.where(ar < plan.block_count[bl][:, None], plan.pair_gid[pos], n)
+    gid = torch.where(ar < plan.block_count[bl][:, None], plan.pair_gid.index_select(0, pos.reshape(-1)).view_as(pos), n)
     b = plan.block
     cx = (bl % plan.nbx) * b + b / 2
     cy = torch.div(bl, plan.nbx, rounding_mode="floor") * b + b / 2
@@ -325,7 +329,7 @@ def _chunk_ids(plan: Plan, bl: Tensor, K: int, n: int):
 
 
 def _rowsel(x: Tensor, act: Tensor | None) -> Tensor:
-    return x if act is None else x[act]
+    return x if act is None else x.index_select(0, act)
 
 
 def _terminate(act: Tensor | None, Tc: Tensor, *carry: Tensor):
@@ -362,7 +366,8 @@ class _Composite(torch.autograd.Function):
                 a = _alpha(sl.coef2, featsT, c)
                 om, U = _transmittance(a, Tc, c)
                 w = a.div_(om).mul_(U)  # alpha T_before; 0 where not blended
-                o = torch.bmm(gs.cz[sl.gid].transpose(1, 2), w.transpose(1, 2))  # [na, 5, P]
+                czg = gs.cz.index_select(0, sl.gid.reshape(-1)).view(*sl.gid.shape, 5)
+                o = torch.bmm(czg.transpose(1, 2), w.transpose(1, 2))  # [na, 5, P]
                 if out is None:
                     out = o
                 elif act is None:
@@ -399,7 +404,8 @@ class _Composite(torch.autograd.Function):
         for bl, K in plan.chunks:
             gid, centre = _chunk_ids(plan, bl, K, N)
             centre = centre.to(dt)
-            g4b, g4tb, base = g4[bl], g4t_all[bl].contiguous(), base_all[bl][..., None]
+            g4b, g4tb = g4.index_select(0, bl), g4t_all.index_select(0, bl).contiguous()  # [nb, 4, P], [nb, P, 4]
+            base = base_all.index_select(0, bl)[..., None]
             act, Tc, pc = None, None, None
             k0 = 0
             while k0 < K:
@@ -409,7 +415,7 @@ class _Composite(torch.autograd.Function):
                 om, U = _transmittance(a, Tc, c)
                 r = a / om
                 w = r * U
-                czt = gs.cz[sl.gid, :4].transpose(1, 2)  # [na, 4, k]
+                czt = gs.cz.index_select(0, sl.gid.reshape(-1)).view(*sl.gid.shape, 5)[..., :4].transpose(1, 2)  # [na, 4, k]
                 v = torch.bmm(_rowsel(g4tb, act), czt)  # [na, P, k]: g . (rgb, z) per slot
                 t = torch.mul(w, v).cumsum_(2)  # prefix sums of w v
                 if pc is not None:
