@@ -87,7 +87,7 @@ def stage_row(label: str, r: ProcessResult, cpu: float, e: PoseErrors | None) ->
     acc = f"{e.max_rotation_deg:.2f}° / {100 * e.max_center_error_rel:.2f}%" if e else "-"
     return (f"| {label} | {r.registered}/{r.total} | {r.points} | {r.mean_reprojection_error:.3f} | "
             f"{s.get('extract features', 0):.1f} | {s.get('match', 0):.1f} | {s.get('map', 0):.1f} | "
-            f"{s.get('undistort', 0):.1f} | **{s['total']:.1f}** | {cpu:.1f} | {r.matcher} | {acc} |")
+            f"{s.get('undistort', 0):.1f} | **{s['total']:.1f}** | {cpu:.1f} | {r.matcher}, {r.pairs} | {acc} |")
 
 
 def write_section(text: str) -> None:
@@ -138,7 +138,7 @@ def main() -> None:
                 f"### fox: {r.total} photos, 400 px wide, structure from motion",
                 "",
                 "| configuration | registered | points | reproj. error (px) | extract | match | map | undistort "
-                "| total (s) | CPU (s) | pairs | vs. transforms.json (max rot. / max centre) |",
+                "| total (s) | CPU (s) | matching, pairs | vs. transforms.json (max rot. / max centre) |",
                 "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
                 *rows,
                 "",

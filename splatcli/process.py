@@ -35,6 +35,7 @@ import numpy as np
 from .camera import Camera
 from .errors import Interrupted, SplatError
 from .events import EventSink, Note, Progress, Stage, StageDone, emit
+from .io.atomic import atomic_write_json
 from .project import Project, is_project
 from .sfm import colmap
 from .sfm.bounds import frustum_bounds, points_bounds
@@ -211,8 +212,17 @@ class _Dataset:
     undistorted: bool
     masks: bool
     test: list[str] | None = None  # the input's own held-out images
-    sfm_stats: dict[str, Any] = field(default_factory=dict)
     background: tuple[float, float, float] | None = None  # None: decided from alpha
+    mean_reprojection_error: float | None = None  # pixels, of the model's points (None without points)
+    mean_track_length: float | None = None
+    skipped: list[str] = field(default_factory=list)  # "file: reason"
+    missing: int = 0
+    matcher: str | None = None  # SfM only, from here on
+    pairs: int = 0
+    keypoints_median: float | None = None
+    model_sizes: list[int] = field(default_factory=list)
+    unregistered: list[str] = field(default_factory=list)
+    dropped_blurry: int = 0
 
 
 def process(input: str | Path, project_dir: str | Path, cfg: ProcessConfig = ProcessConfig(),
@@ -382,23 +392,15 @@ def _from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: 
     if model.num_registered < len(names) / 2:
         run.note(f"only {model.num_registered} of {len(names)} images registered; the photos may overlap too "
                  "little or be too blurry", "warning")
-    stats = {
-        "matcher": res.matcher,
-        "pairs": res.num_pairs,
-        "model_sizes": res.model_sizes,
-        "unregistered": res.unregistered,
-        "keypoints_median": res.keypoints_median,
-        "mean_reprojection_error": model.mean_reprojection_error(),
-        "mean_track_length": model.mean_track_length(),
-        "skipped": skipped,
-        "dropped_blurry": dropped,
-    }
     st.sfm_dir.mkdir(parents=True, exist_ok=True)
     os.replace(work / "database.db", st.database_path)
     has_masks = any(s.has_alpha for s in staged if s.name in set(model.registered_names()))
     undistorted = _finish_model(model, st, work, cfg, run, masks=has_masks)
     return _Dataset(registered=model.num_registered, total=len(names), undistorted=undistorted, masks=has_masks,
-                    sfm_stats=stats, background=background)
+                    background=background, mean_reprojection_error=model.mean_reprojection_error(),
+                    mean_track_length=model.mean_track_length(), skipped=skipped, matcher=res.matcher,
+                    pairs=res.num_pairs, keypoints_median=res.keypoints_median, model_sizes=res.model_sizes,
+                    unregistered=res.unregistered, dropped_blurry=dropped)
 
 
 # ---- the common ending: undistort (or not) into images/ and sfm/sparse/0 ------
@@ -495,12 +497,11 @@ def _from_colmap(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
     model.keep_images(keep)
     has_masks = any(s.has_alpha for s in staged)
     undistorted = _finish_model(model, st, work, cfg, run, masks=has_masks)
-    stats = {"skipped": bad, "missing": len(missing)}
-    if model.num_points:
-        stats["mean_reprojection_error"] = model.mean_reprojection_error()
-        stats["mean_track_length"] = model.mean_track_length()
+    has_points = model.num_points > 0
     return _Dataset(registered=len(keep), total=len(names), undistorted=undistorted, masks=has_masks,
-                    sfm_stats=stats, background=background)
+                    background=background, skipped=bad, missing=len(missing),
+                    mean_reprojection_error=model.mean_reprojection_error() if has_points else None,
+                    mean_track_length=model.mean_track_length() if has_points else None)
 
 
 # ---- transforms.json ---------------------------------------------------------
@@ -541,8 +542,7 @@ def _from_transforms(spec: InputSpec, stage: Path, cfg: ProcessConfig,
     if bg is None and has_masks:
         bg = (1.0, 1.0, 1.0)
     return _Dataset(registered=len(staged), total=len(scene.frames) + len(scene.missing), undistorted=undistorted,
-                    masks=has_masks, test=test or None,
-                    sfm_stats={"skipped": bad, "missing": len(scene.missing)}, background=bg)
+                    masks=has_masks, test=test or None, background=bg, skipped=bad, missing=len(scene.missing))
 
 
 def _read_ply_points(path: Path, run: _Run) -> tuple[np.ndarray | None, np.ndarray | None]:
@@ -619,7 +619,6 @@ def _publish(root: Path, stage: Path, spec: InputSpec, cfg: ProcessConfig, ds: _
 
     seconds = dict(run.seconds)
     seconds["total"] = time.perf_counter() - t_start
-    stats = ds.sfm_stats
     result = ProcessResult(
         project=root,
         input=spec.path,
@@ -627,27 +626,26 @@ def _publish(root: Path, stage: Path, spec: InputSpec, cfg: ProcessConfig, ds: _
         registered=len(names),
         total=ds.total,
         points=int(len(scene.points)),
-        mean_reprojection_error=stats.get("mean_reprojection_error"),
-        mean_track_length=stats.get("mean_track_length"),
+        mean_reprojection_error=ds.mean_reprojection_error,
+        mean_track_length=ds.mean_track_length,
         seconds={k: round(v, 3) for k, v in seconds.items()},
         train=len(splits["train"]),
         test=len(splits["test"]),
         init=facts["init"],
         undistorted=ds.undistorted,
         masks=ds.masks,
-        matcher=stats.get("matcher"),
-        pairs=int(stats.get("pairs", 0)),
-        keypoints_median=stats.get("keypoints_median"),
-        model_sizes=list(stats.get("model_sizes", [])),
-        unregistered=list(stats.get("unregistered", [])),
-        skipped=list(stats.get("skipped", [])),
-        missing=int(stats.get("missing", 0)),
-        dropped_blurry=int(stats.get("dropped_blurry", 0)),
+        matcher=ds.matcher,
+        pairs=ds.pairs,
+        keypoints_median=ds.keypoints_median,
+        model_sizes=ds.model_sizes,
+        unregistered=ds.unregistered,
+        skipped=ds.skipped,
+        missing=ds.missing,
+        dropped_blurry=ds.dropped_blurry,
         warnings=list(run.warnings),
     )
     config = asdict(cfg)
     config["background_rgb"] = list(background)
-    from .io.atomic import atomic_write_json
 
     proj.update_manifest(splits=splits, scene=facts)
     proj.record_step("process", config=config, summary=result.summary())  # marks the project processed

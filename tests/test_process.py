@@ -300,3 +300,20 @@ def test_ctrl_c_exits_130_with_one_line(tmp_path, monkeypatch):
     r = run_cli("process", tmp_path / "ws", "-o", tmp_path / "p")
     assert r.exit_code == 130 and r.stderr.strip().splitlines()[-1] == "error: interrupted"
     assert not (tmp_path / "p").exists()
+
+
+def test_images_left_out_by_sequential_matching_are_matched_with_every_image(scene, tmp_path, monkeypatch):
+    import splatcli.sfm.reconstruct as rec
+
+    names = sorted(p.name for p in (scene / "images").glob("*.jpg"))
+    first = set(names[:8])
+    real = rec.sequential_pairs
+    # As if the capture order broke after image 8: sequential pairs never reach the rest.
+    monkeypatch.setattr(rec, "sequential_pairs", lambda n, k: [p for p in real(n, k) if set(p) <= first])
+    notes = []
+    res = rec.run_sfm(scene / "images", names, tmp_path / "work",
+                      rec.SfmOptions(exhaustive_max_images=0), single_camera=True, min_side=H,
+                      where=scene, on_event=notes.append)
+    assert res.matcher == "sequential+exhaustive" and res.unregistered == []
+    assert any("left 8 image(s) out" in n.message for n in notes if isinstance(n, Note))
+    assert res.num_pairs < len(names) * (len(names) - 1) // 2  # never all pairs

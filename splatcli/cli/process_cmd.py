@@ -11,16 +11,18 @@ from ..process import ProcessConfig, process as run_process
 from ..sfm import colmap
 from .common import DebugOpt, JsonOpt, QuietOpt, SeedOpt, Ui
 
+_D = ProcessConfig()  # the defaults, written once in the config
+
 
 def process(
     input: Path = typer.Argument(..., help="Folder of photos, video file, COLMAP workspace, or transforms.json (or its folder)."),
     output: Path = typer.Option(..., "--output", "-o", help="The project directory to create."),
-    input_type: str = typer.Option("auto", "--input-type", help="auto, images, video, colmap or transforms."),
-    max_size: int = typer.Option(1600, "--max-size", help="Longest side, pixels, of the images SIFT sees (the dataset keeps full resolution)."),
-    matcher: str = typer.Option("auto", "--matcher", help="auto, exhaustive (all pairs) or sequential (ordered captures)."),
+    input_type: str = typer.Option(_D.input_type, "--input-type", help="auto, images, video, colmap or transforms."),
+    max_size: int = typer.Option(_D.max_size, "--max-size", help="Longest side, pixels, of the images SIFT sees (the dataset keeps full resolution)."),
+    matcher: str = typer.Option(_D.matcher, "--matcher", help="auto, exhaustive (all pairs) or sequential (ordered captures)."),
     fps: Optional[float] = typer.Option(None, "--fps", help="Video: frames to extract per second of video."),
-    num_frames: int = typer.Option(100, "--num-frames", help="Video: frames to extract, evenly spaced (without --fps)."),
-    background: str = typer.Option("auto", "--background", help="auto (white for RGBA inputs, else black), white, black or R,G,B."),
+    num_frames: int = typer.Option(_D.num_frames, "--num-frames", help="Video: frames to extract, evenly spaced (without --fps)."),
+    background: str = typer.Option(_D.background, "--background", help="auto (white for RGBA inputs, else black), white, black or R,G,B."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing project (or use a non-empty folder)."),
     seed: int = SeedOpt,
     quiet: bool = QuietOpt,

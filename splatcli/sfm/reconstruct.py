@@ -6,9 +6,9 @@ images at 400x711, docs/benchmarks.md):
     default upsampled octave: about 5x faster extraction, still hundreds of
     well-localised features per image, which is what matching needs;
   * at most 4096 features per image, which bounds brute-force matching;
-  * sequential pairs (each image with its next neighbours, plus exponentially
-    spaced ones for loop closure) for video and numbered captures, instead of
-    all N(N-1)/2 pairs, with all remaining pairs matched if that leaves images out.
+  * sequential pairs (each image with its next 5, plus exponentially spaced
+    ones for loop closure) for video and numbered captures, instead of all
+    N(N-1)/2 pairs; images that this leaves out are then matched with every image.
 """
 
 from __future__ import annotations
@@ -164,9 +164,10 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
     models = _map(db, image_dir, work_dir / "models", mapper, len(names), clock, on_event)
     used = matcher
     if matcher == "sequential" and opts.matcher == "auto" and (not models or models[0].num_registered < len(names)):
-        missing = len(names) - (models[0].num_registered if models else 0)
-        emit(on_event, Note(f"sequential matching left {missing} image(s) out; matching the remaining pairs too"))
-        rest = [p for p in exhaustive_pairs(names) if p not in matched]
+        out = set(names) - set(models[0].registered_names() if models else [])
+        emit(on_event, Note(f"sequential matching left {len(out)} image(s) out; matching them with every image"))
+        # Only pairs touching a left-out image: one bad frame in a long video must not cost N^2 pairs.
+        rest = [p for p in exhaustive_pairs(names) if p not in matched and (p[0] in out or p[1] in out)]
         _match(db, rest, work_dir, mopts, clock, on_event)
         matched.update(rest)
         models = _map(db, image_dir, work_dir / "models2", mapper, len(names), clock, on_event)
