@@ -15,7 +15,7 @@ from pathlib import Path
 
 from ..errors import SplatError
 from .colmap_files import model_format
-from .images import IMAGE_EXTS, is_image_name
+from .images import is_image_name
 from .transforms import find_transforms
 from .video import is_video_name
 
@@ -102,4 +102,4 @@ def _guess(path: Path) -> str:
     return "images"
 
 
-__all__ = ["INPUT_TYPES", "IMAGE_EXTS", "InputSpec", "detect_input", "find_colmap_model"]
+__all__ = ["INPUT_TYPES", "InputSpec", "detect_input", "find_colmap_model"]

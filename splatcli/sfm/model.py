@@ -23,8 +23,9 @@ def read_scene(sparse_dir: str | Path, *, pinhole_only: bool = True) -> SceneDat
     everything else before writing the model. `pinhole_only=False` reads any
     model (K then ignores the distortion), for comparing raw SfM output.
     """
-    import pycolmap
+    from .colmap import _pc
 
+    pycolmap = _pc()  # imported with COLMAP's log silenced
     sparse_dir = Path(sparse_dir)
     try:
         rec = pycolmap.Reconstruction(str(sparse_dir))
