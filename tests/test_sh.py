@@ -51,7 +51,7 @@ def test_bands_match_closed_forms():
     phi = np.arctan2(d[:, 1].numpy(), d[:, 0].numpy())
     ours = sh_basis(d, 3).numpy()
     want = _closed_forms(theta, phi)
-    np.testing.assert_allclose(ours, want, atol=1e-12)
+    np.testing.assert_allclose(ours, want, atol=1e-12)  # float64: rounding only
 
 
 @pytest.mark.parametrize("degree", [0, 1, 2, 3])
@@ -66,6 +66,7 @@ def test_orthonormal_on_sphere(degree):
     w = torch.tensor((wx[:, None] * np.full(nphi, 2 * math.pi / nphi)[None]).reshape(-1))
     Y = sh_basis(dirs, degree)
     gram = (Y * w[:, None]).T @ Y
+    # float64 and an exact quadrature: rounding only
     torch.testing.assert_close(gram, torch.eye((degree + 1) ** 2, dtype=torch.float64), atol=1e-12, rtol=0)
 
 
