@@ -72,8 +72,19 @@ class Ui:
             disable=self.quiet,
         )
         tasks: dict[str, TaskID] = {}
+        started = False
+
+        def start() -> None:
+            # Lazily: a command that fails on its input before any progress must
+            # print nothing but its one `error:` line (no blank live-display line).
+            nonlocal started
+            if not started:
+                bars.start()
+                started = True
 
         def sink(ev: Event) -> None:
+            if isinstance(ev, (Stage, Progress)):
+                start()
             if isinstance(ev, Stage):
                 tasks[ev.name] = bars.add_task(ev.name, total=ev.total, info="")
             elif isinstance(ev, Progress):
@@ -88,12 +99,15 @@ class Ui:
                     total = t.total if t is not None and t.total is not None else (t.completed if t else 1)
                     bars.update(tid, total=total, completed=total)
             elif isinstance(ev, Note):
-                bars.console.print(
+                self.err.print(
                     ("[yellow]warning:[/yellow] " if ev.level == "warning" else "[dim]note:[/dim] ") + ev.message
                 )
 
-        with bars:
+        try:
             yield sink
+        finally:
+            if started:
+                bars.stop()
 
     def summary(self, data: dict[str, Any], title: str = "", lines: list[str] | None = None) -> None:
         """Print the command's result: the JSON object on stdout with --json, else
