@@ -17,14 +17,14 @@ from pathlib import Path
 from typing import Any, Iterator
 
 import torch
-import torch.nn.functional as F
 
 from . import compact, train_report
 from .data import TrainData, View, load_train_data
 from .errors import Interrupted, SplatError, TrainingDiverged
 from .events import EventSink, Note, Progress, Stage, StageDone, emit
 from .io.checkpoint import load_checkpoint
-from .metrics import psnr, ssim
+from .loss import photometric_loss, ssim_fast
+from .metrics import psnr
 from .project import Project
 from .render import rasterize
 from .strategy import StepInfo
@@ -76,11 +76,6 @@ def render_view(state: TrainState, view: View, bg: torch.Tensor, sh_degree: int)
                      view.K, view.camera.width, view.camera.height, bg, sh_degree=sh_degree)
 
 
-def _loss(image: torch.Tensor, target: torch.Tensor, lambda_dssim: float) -> torch.Tensor:  # [H, W, 3] each
-    """(1 - l) L1 + l (1 - SSIM), SSIM with the metric's window (metrics.ssim)."""
-    return (1.0 - lambda_dssim) * F.l1_loss(image, target) + lambda_dssim * (1.0 - ssim(image, target))
-
-
 def _loop(project: Project, cfg: TrainConfig, data: TrainData, state: TrainState,
           stop: threading.Event, on_event: EventSink | None) -> None:
     total = cfg.total_steps
@@ -95,7 +90,7 @@ def _loop(project: Project, cfg: TrainConfig, data: TrainData, state: TrainState
         info = StepInfo(out, view.camera.width, view.camera.height)
         if refining:
             state.strategy.step_pre_backward(state.params, state.optimizers, state.sstate, step, info)
-        loss = _loss(out.image, view.target(), cfg.lambda_dssim)
+        loss = photometric_loss(out.image, view.target(), cfg.lambda_dssim)
         loss.backward()
         info.finite = _all_finite(loss, state)
         if info.finite:
@@ -160,7 +155,7 @@ def evaluate_views(state: TrainState, views: list[View], bg: torch.Tensor, sh_de
         img = render_view(state, v, bg, sh_degree).image.clamp(0, 1)
         t = v.target()
         ps.append(float(psnr(img, t)))
-        ss.append(float(ssim(img, t)))
+        ss.append(float(ssim_fast(img, t)))  # == metrics.ssim
     return sum(ps) / len(ps), sum(ss) / len(ss)
 
 
