@@ -81,6 +81,10 @@ def _loop(project: Project, cfg: TrainConfig, data: TrainData, state: TrainState
     total = cfg.total_steps
     emit(on_event, Stage(STAGE, total))
     log = train_report.LogWriter(project.train_log_path, state)
+    if state.step == cfg.iterations < total or (state.step == cfg.iterations and cfg.sh_degree == "auto"):
+        # A finished run resumed with --compact / --sh-degree auto: post-process now
+        # (exactly what an uninterrupted run does at this step; no-op if done).
+        compact.after_training(project, cfg, data, state, on_event)
     for step in range(state.step + 1, total + 1):
         t0 = time.perf_counter()
         refining = step <= cfg.iterations  # the compaction fine-tune never grows or prunes

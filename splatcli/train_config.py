@@ -102,7 +102,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     # for the first ~half keeps the paper's grow-then-settle ratio and gives the
     # last 3k steps to refine a fixed set, which is where SSIM improves.
     "fast": {"iterations": 7000, "refine_stop": 4000, "reset_every": 3000, "checkpoint_every": 1000,
-             "init_random_points": 50_000},
+             "init_random_points": 10_000},
     # `make demo` on sample_data: a couple of minutes on 2 cores.
     "demo": {"iterations": 1500, "refine_start": 300, "refine_stop": 1000, "reset_every": 100_000,
              "sh_degree_interval": 300, "eval_every": 500, "checkpoint_every": 500,

@@ -197,3 +197,16 @@ def test_cli_refuses_unprocessed_and_unsafe_checkpoint(tmp_path):
     torch.save({"x": Evil()}, proj.checkpoint_path(5))
     r = CliRunner().invoke(app, ["train", str(proj.root), "--resume"])
     assert r.exit_code == 2 and "refused" in r.stderr and "pwned" not in r.output
+
+
+def test_finished_run_resumed_with_compact_equals_a_compact_run(tmp_path, uninterrupted):
+    a, sa = uninterrupted  # trained with --compact --sh-degree auto from the start
+    b = tiny(tmp_path, "b")
+    train(b.root, make_config(**SMALL), CPU)  # a plain run ...
+    sb = train(b.root, make_config(**SMALL), CPU, resume=True,  # ... compacted afterwards
+               overrides={"compact": True, "compact_finetune": 8, "sh_degree": "auto"})
+    assert sb.steps == sa.steps and sb.compact.before_count == sa.compact.before_count
+    _, pa = _params(a.latest_checkpoint())
+    _, pb = _params(b.latest_checkpoint())
+    for k in pa:
+        assert torch.equal(pa[k], pb[k]), k
