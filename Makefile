@@ -5,6 +5,8 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 DEMO ?= demo-project
 PYTEST_ARGS ?=
+# Idle OpenMP threads sleep rather than spin: much faster on shared machines.
+export OMP_WAIT_POLICY ?= PASSIVE
 
 .PHONY: setup test demo bench clean
 

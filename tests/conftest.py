@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # see splatcli/cli/main.py: before torch loads
+
 import random
 from pathlib import Path
 
