@@ -43,24 +43,24 @@ def ssim_map(pred: Tensor, gt: Tensor) -> Tensor:
     H, W, C = pred.shape
     if H < SSIM_WINDOW or W < SSIM_WINDOW:
         raise ValueError(f"ssim needs images of at least {SSIM_WINDOW}x{SSIM_WINDOW} pixels, got {W}x{H}")
-    x = pred.permute(2, 0, 1).unsqueeze(1)  # [C, 1, H, W]
-    y = gt.permute(2, 0, 1).unsqueeze(1).to(x.dtype)
+    x = pred.permute(2, 0, 1)  # [C, H, W]
+    y = gt.permute(2, 0, 1).to(x.dtype)
+    # The five moment maps as 5C channels of ONE image, filtered depthwise
+    # (groups=5C). On CPU this layout is ~30x faster forward+backward than a batch
+    # of 5C one-channel images (200x200: 13 ms against 390 ms), and the training
+    # loss runs it every step.
+    stack = torch.cat([x, y, x * x, y * y, x * y], dim=0).unsqueeze(0)  # [1, 5C, H, W]
+    k = stack.shape[1]
     g = _gauss_1d(x.dtype, x.device)
-    gx = g.view(1, 1, 1, -1)
-    gy = g.view(1, 1, -1, 1)
-
-    def blur(t: Tensor) -> Tensor:  # separable valid filter: two 1D passes
-        return F.conv2d(F.conv2d(t, gx), gy)
-
-    stack = torch.cat([x, y, x * x, y * y, x * y], dim=0)  # one conv call for all five moments
-    m = blur(stack)
-    mu_x, mu_y, e_xx, e_yy, e_xy = m.split(C, dim=0)
+    m = F.conv2d(stack, g.view(1, 1, 1, -1).expand(k, 1, 1, SSIM_WINDOW).contiguous(), groups=k)
+    m = F.conv2d(m, g.view(1, 1, -1, 1).expand(k, 1, SSIM_WINDOW, 1).contiguous(), groups=k)
+    mu_x, mu_y, e_xx, e_yy, e_xy = m[0].split(C, dim=0)  # each [C, H-10, W-10]
     var_x = e_xx - mu_x * mu_x
     var_y = e_yy - mu_y * mu_y
     cov = e_xy - mu_x * mu_y
     num = (2 * mu_x * mu_y + _C1) * (2 * cov + _C2)
     den = (mu_x * mu_x + mu_y * mu_y + _C1) * (var_x + var_y + _C2)
-    return (num / den).squeeze(1)
+    return num / den
 
 
 def ssim(pred: Tensor, gt: Tensor) -> Tensor:  # [H, W, C] each -> scalar
