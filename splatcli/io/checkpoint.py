@@ -24,6 +24,7 @@ to `sh_degree` (what render, eval and export use), so unused bands never leave.
 from __future__ import annotations
 
 import pickle
+import re
 import warnings
 import zipfile
 from dataclasses import dataclass, field
@@ -157,6 +158,12 @@ def _safe_load(path: Path) -> Any:
         raise SplatError(f"{path}: checkpoint not found")
     if not path.is_file():
         raise SplatError(f"{path}: checkpoint is not a file")
+    if path.stat().st_size == 0:
+        raise SplatError(f"{path}: not a readable checkpoint, truncated or corrupt (the file is empty)")
+    # save_checkpoint always writes torch's zip archive. Anything else (a raw pickle
+    # stream, a truncated archive, random bytes) is refused before any unpickling.
+    if not zipfile.is_zipfile(path):
+        raise SplatError(f"{path}: not a readable checkpoint, truncated or corrupt (not a PyTorch zip archive)")
     try:
         # weights_only=True: the unpickler only rebuilds tensors and plain containers,
         # so a crafted file can never run code on load.
@@ -164,9 +171,13 @@ def _safe_load(path: Path) -> Any:
             warnings.simplefilter("ignore")
             return torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
-        reason = " ".join(str(exc).split("\n")[0].split())[:160]
+        # torch's message is a paragraph that suggests weights_only=False; keep only the culprit.
+        m = re.search(r"GLOBAL ([\w.]+)", str(exc))
+        if m is None:
+            raise SplatError(f"{path}: not a readable checkpoint, truncated or corrupt (bad pickle data)") from None
         raise SplatError(
-            f"{path}: refused: the checkpoint holds objects other than tensors and plain data ({reason})"
+            f"{path}: refused: the checkpoint holds objects other than tensors and plain data "
+            f"({m.group(1)}); it was not loaded"
         ) from None
     except (RuntimeError, EOFError, zipfile.BadZipFile, ValueError, OSError) as exc:
         reason = " ".join(str(exc).split())[:160]
