@@ -25,6 +25,7 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
+from ..errors import SplatError
 from ..events import Event, EventSink, Note, Progress, Stage, StageDone
 
 DeviceOpt = typer.Option("auto", "--device", help="Where to compute: auto (CUDA if available, else CPU), cpu or cuda.")
@@ -103,10 +104,19 @@ class Ui:
                     ("[yellow]warning:[/yellow] " if ev.level == "warning" else "[dim]note:[/dim] ") + ev.message
                 )
 
+        erase = False
         try:
             yield sink
+        except SplatError:
+            # A user error found mid-way: erase the bars (on a terminal; elsewhere they
+            # are never printed), so the one `error:` line is all that is left to read.
+            erase = True
+            raise
         finally:
-            if started:
+            if started and erase:
+                bars.live.transient = True
+                bars.live.stop()  # not bars.stop(), which prints an empty line off a terminal
+            elif started:
                 bars.stop()
 
     def summary(self, data: dict[str, Any], title: str = "", lines: list[str] | None = None) -> None:
