@@ -352,22 +352,22 @@ def _from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: 
     else:
         assert spec.images_dir is not None
         files, others = list_folder(spec.images_dir)
-        if others:
-            shown = ", ".join(p.name for p in others[:5]) + (", ..." if len(others) > 5 else "")
-            run.note(f"skipped {len(others)} file(s) that are not images: {shown}")
         if not files:
             raise SplatError(f"{spec.images_dir}: no images found (looked for {', '.join(IMAGE_EXTS)})")
         staged, bad = _stage_images(list(zip(files, _safe_names([p.name for p in files]))), work, run,
                                     background=background, orient=True)
-        for b in bad:
-            run.note(f"skipped {b}")
         skipped = bad
-        if len(staged) < MIN_IMAGES:
+        if len(staged) < MIN_IMAGES:  # before the notes: a failed run says one line
             why = f" ({'; '.join(bad[:3])})" if bad else ""
             raise SplatError(
                 f"{spec.images_dir}: structure from motion needs at least {MIN_IMAGES} readable images, "
                 f"found {len(staged)}{why}"
             )
+        if others:
+            shown = ", ".join(p.name for p in others[:5]) + (", ..." if len(others) > 5 else "")
+            run.note(f"skipped {len(others)} file(s) that are not images: {shown}")
+        for b in bad:
+            run.note(f"skipped {b}")
     names = [s.name for s in staged]
     sizes = {(s.width, s.height) for s in staged}
     if len(sizes) > 1:
@@ -481,18 +481,19 @@ def _from_colmap(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
     for n in names:
         check_image_name(n, spec.model_dir)
         (present if (spec.images_dir / n).is_file() else missing).append(n)
-    if missing:
-        run.note(f"{len(missing)} image(s) of the model are missing from {spec.images_dir} and were skipped "
-                 f"(first: {missing[0]})", "warning")
     if not present:
-        raise SplatError(f"{spec.images_dir}: none of the model's {len(names)} images exists here")
+        raise SplatError(f"{spec.images_dir}: none of the model's {len(names)} images exists here "
+                         f"(first: {names[0]})")
     sizes = model.camera_sizes()
     staged, bad = _stage_images([(spec.images_dir / n, n) for n in present], work, run, background=background,
                                 orient=False, expect=sizes)
+    if not staged:  # before the warnings: a failed run says one line
+        raise SplatError(f"{spec.images_dir}: none of the model's images could be read ({bad[0]})")
+    if missing:
+        run.note(f"{len(missing)} image(s) of the model are missing from {spec.images_dir} and were skipped "
+                 f"(first: {missing[0]})", "warning")
     for b in bad:
         run.note(f"skipped {b}", "warning")
-    if not staged:
-        raise SplatError(f"{spec.images_dir}: none of the model's images could be read ({bad[0]})")
     keep = [s.name for s in staged]
     model.keep_images(keep)
     has_masks = any(s.has_alpha for s in staged)
@@ -513,16 +514,9 @@ def _from_transforms(spec: InputSpec, stage: Path, cfg: ProcessConfig,
     work = stage / "work"
     st = Project(stage)
     scene = read_transforms(spec.transforms)
-    for n in scene.notes:
-        run.note(n)
-    if scene.missing:
-        run.note(f"{len(scene.missing)} image(s) listed in {spec.transforms.name} do not exist and were skipped "
-                 f"(first: {scene.missing[0]})", "warning")
     frames = {f.name: f for f in scene.frames}
     staged, bad = _stage_images([(f.source, f.name) for f in scene.frames], work, run, background=background,
                                 orient=False)
-    for b in bad:
-        run.note(f"skipped {b}", "warning")
     if not staged:
         raise SplatError(f"{spec.transforms}: none of the listed images could be read ({bad[0]})")
     specs = []
@@ -530,6 +524,14 @@ def _from_transforms(spec: InputSpec, stage: Path, cfg: ProcessConfig,
         f = frames[s.name]
         model_name, params = f.intrinsics.resolve(s.width, s.height, f"{spec.transforms}: {f.source.name}")
         specs.append(CameraSpec(s.name, s.width, s.height, model_name, params, f.viewmat))
+    # Notes once the input is known to be usable: a failed run says one line.
+    for n in scene.notes:
+        run.note(n)
+    if scene.missing:
+        run.note(f"{len(scene.missing)} image(s) listed in {spec.transforms.name} do not exist and were skipped "
+                 f"(first: {scene.missing[0]})", "warning")
+    for b in bad:
+        run.note(f"skipped {b}", "warning")
     points = colors = None
     if scene.ply_path is not None:
         points, colors = _read_ply_points(scene.ply_path, run)
