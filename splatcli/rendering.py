@@ -81,6 +81,8 @@ def load_model(source: str | os.PathLike, device: torch.device) -> LoadedModel:
     from .io.ply import read_ply
 
     source = Path(source)
+    if source.is_dir() and source.suffix.lower() == ".ply" and not is_project(source):
+        raise SplatError(f"{source}: is a directory, not a .ply file")
     if source.is_dir() or is_project(source):
         project = Project.open(source)
         ck_path = project.require_trained()
@@ -90,8 +92,18 @@ def load_model(source: str | os.PathLike, device: torch.device) -> LoadedModel:
         if source.suffix.lower() == ".ply":
             raise SplatError(f"{source}: no such .ply file")
         Project.open(source)  # raises: no such project, run `splatcli process` first
+    if source.suffix.lower() != ".ply" and not _starts_like_ply(source):
+        raise SplatError(f"{source}: neither a splatcli project directory nor a 3DGS .ply file")
     r = read_ply(source, device)
     return LoadedModel(gaussians=r.gaussians, kind="ply", path=source, project=None, notes=list(r.notes))
+
+
+def _starts_like_ply(path: Path) -> bool:
+    try:
+        with open(path, "rb") as f:
+            return f.read(5).startswith((b"ply\n", b"ply\r\n"))
+    except OSError:
+        return True  # let the .ply reader name the problem
 
 
 # ---------------------------------------------------------------------------
