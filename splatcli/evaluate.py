@@ -334,7 +334,8 @@ def check_eval_config(config: EvalConfig) -> None:
     if not config.budgets or any(not (0 < b <= 1) for b in config.budgets):
         raise SplatError("--budgets: each fraction must be in (0, 1], e.g. 1,0.5,0.25,0.1")
     if config.model is not None and not Path(config.model).is_file():
-        raise SplatError(f"--model {config.model}: no such .ply file")
+        what = "is a directory, not a .ply file" if Path(config.model).is_dir() else "no such .ply file"
+        raise SplatError(f"--model {config.model}: {what}")
     if config.out is not None and Path(config.out).exists() and not Path(config.out).is_dir():
         raise SplatError(f"--out {config.out}: exists and is not a directory")
     if config.contribution_views < 1:
@@ -377,6 +378,10 @@ def plan_eval(root: str | Path, config: EvalConfig, device: torch.device) -> Eva
         g, step, model_name = r.gaussians, None, str(config.model)
         notes += r.notes
     views = dataset_views(project, config.split)
+    absent = [v.image for v in views if v.image is not None and not v.image.is_file()]
+    if absent:
+        raise SplatError(f"{absent[0]}: missing ({len(absent)} of the {len(views)} {config.split} photographs are "
+                         "gone); restore them or run `splatcli process` again")
     finite = g.finite_mask()
     if not bool(finite.all()):
         notes.append(f"{int((~finite).sum())} Gaussians with NaN/Inf values were left out")
