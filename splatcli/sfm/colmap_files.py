@@ -116,7 +116,7 @@ class _Reader:
     def count(self, min_record: int, what: str) -> int:
         (n,) = self.take("<Q")
         if n * min_record > self.left():
-            raise SplatError(f"{self.path}: garbled: claims {n} {what}, more than the file can hold")
+            raise SplatError(f"{self.path}: truncated or garbled: claims {n} {what}, more than the file can hold")
         return n
 
     def cstring(self) -> str:
