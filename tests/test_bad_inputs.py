@@ -1,0 +1,819 @@
+"""Issue 5, "Bad input": the single checklist, every case through the CLI.
+
+Each error case asserts, through typer's CliRunner on `splatcli.cli.main.app`:
+exit code 2; stderr is exactly one line, `error: ...`, naming the file (or the
+option) and the problem; nothing on stdout; no traceback anywhere; and every
+file of the project (and of the input) unchanged, bytes and mtime. The cases
+that are not errors (non-image files mixed in, a truncated image among good
+ones, mixed sizes and orientations, some NaN rows in a .ply) assert exit 0 and
+the note saying what was skipped.
+
+Nothing here runs structure from motion: the `process` cases that must get past
+it replace `run_sfm` with a stand-in that poses the staged images on a ring
+(what is under test is how the input is read, not SfM). Projects are the hand-made
+tiny project of tests/tiny_project.py, copied per test.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import pickle
+import shutil
+import struct
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from splatcli.cli.main import app
+from splatcli.io.checkpoint import CHECKPOINT_SCHEMA
+from splatcli.io.ply import gaussians_to_rows, ply_header, ply_property_names
+from splatcli.project import MANIFEST_NAME, SCHEMA_VERSION, Project
+
+from tiny_project import make_tiny_project, ring_cameras, tiny_gaussians
+
+# ---------------------------------------------------------------------------
+# helpers
+# ---------------------------------------------------------------------------
+
+
+def cli(*args: object):
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+def snapshot(*roots: Path) -> dict[str, tuple[str, int]]:
+    """Every file under `roots`: sha256 of its bytes and its mtime (ns)."""
+    out = {}
+    for root in roots:
+        root = Path(root)
+        if not root.exists():
+            continue
+        files = [root] if root.is_file() else sorted(p for p in root.rglob("*") if p.is_file())
+        for p in files:
+            out[str(p)] = (hashlib.sha256(p.read_bytes()).hexdigest(), p.stat().st_mtime_ns)
+    return out
+
+
+def assert_error(r, *fragments: str) -> str:
+    """Exit 2; stderr is one line `error: ...` holding every fragment; no traceback."""
+    text = (r.stdout or "") + (r.stderr or "")
+    assert "Traceback" not in text, text
+    assert r.exit_code == 2, (r.exit_code, text)
+    lines = r.stderr.splitlines()
+    assert len(lines) == 1, r.stderr
+    line = lines[0]
+    assert line.startswith("error: "), line
+    assert r.stdout == "", r.stdout
+    for f in fragments:
+        assert f in line, (f, line)
+    return line
+
+
+def assert_ok_with_note(r, *fragments: str) -> None:
+    text = (r.stdout or "") + (r.stderr or "")
+    assert "Traceback" not in text, text
+    assert r.exit_code == 0, (r.exit_code, text)
+    notes = " ".join(ln for ln in r.stderr.splitlines() if ln.startswith(("note:", "warning:")))
+    for f in fragments:
+        assert f in notes, (f, r.stderr)
+
+
+def texture(h: int = 48, w: int = 64, seed: int = 0) -> np.ndarray:  # [H, W, 3] uint8
+    return np.random.default_rng(seed).integers(0, 256, size=(h, w, 3), dtype=np.uint8)
+
+
+def png_bytes(img: np.ndarray) -> bytes:
+    return cv2.imencode(".png", img)[1].tobytes()
+
+
+def jpeg_bytes(img: np.ndarray) -> bytes:
+    return cv2.imencode(".jpg", img)[1].tobytes()
+
+
+def with_exif_orientation(jpeg: bytes, orientation: int) -> bytes:
+    """A JPEG with an APP1 Exif segment holding only the orientation tag."""
+    tiff = b"II*\x00" + struct.pack("<I", 8) + struct.pack("<H", 1)
+    tiff += struct.pack("<HHIHH", 0x0112, 3, 1, orientation, 0) + struct.pack("<I", 0)
+    payload = b"Exif\x00\x00" + tiff
+    return jpeg[:2] + b"\xff\xe1" + struct.pack(">H", len(payload) + 2) + payload + jpeg[2:]
+
+
+def gl_c2w(viewmat: np.ndarray) -> list:
+    """Our world-to-camera (OpenCV) as an OpenGL camera-to-world matrix (transforms.json)."""
+    return (np.linalg.inv(viewmat) @ np.diag([1.0, -1.0, -1.0, 1.0])).tolist()
+
+
+# ---------------------------------------------------------------------------
+# projects
+# ---------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def bases(tmp_path_factory) -> dict[str, Path]:
+    """Built once: a trained and an untrained tiny project (grey photos: nothing here renders them)."""
+    d = tmp_path_factory.mktemp("bases")
+    return {"trained": make_tiny_project(d / "trained", photos=False).root,
+            "untrained": make_tiny_project(d / "untrained", trained=False, photos=False).root}
+
+
+@pytest.fixture
+def proj(bases, tmp_path) -> Path:
+    """A fresh copy of the trained tiny project."""
+    return Path(shutil.copytree(bases["trained"], tmp_path / "proj"))
+
+
+def checkpoint_of(root: Path) -> Path:
+    ck = Project(root).latest_checkpoint()
+    assert ck is not None
+    return ck
+
+
+# ---- the broken projects and checkpoints of the train/render/eval/export cases ------
+
+
+class Payload:
+    """A pickled object whose unpickling would create a folder (it must never run)."""
+
+    def __init__(self, marker: Path) -> None:
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (os.mkdir, (self.marker,))
+
+
+def break_project(case: str, tmp_path: Path, bases: dict[str, Path]) -> tuple[Path, Path, list[str]]:
+    """(project path, the file at fault, message fragments) for one broken-project case."""
+    proj = tmp_path / "proj"
+    if case == "missing_path":
+        return proj, proj, ["no such project directory", "splatcli process"]
+    if case == "not_a_project":
+        proj.mkdir()
+        (proj / "notes.txt").write_text("my notes")
+        return proj, proj, ["not a splatcli project", "splatcli process"]
+    if case == "a_file":
+        proj.write_text("a file, not a folder")
+        return proj, proj, ["splatcli project"]  # render also says "nor a 3DGS .ply file"
+    if case == "unprocessed":
+        Project.create(proj, source={"kind": "test"})
+        return proj, proj, ["no processed dataset", "`splatcli process"]
+    if case == "sparse_missing":
+        shutil.copytree(bases["trained"], proj)
+        shutil.rmtree(Project(proj).sparse_dir)
+        return proj, proj, ["no processed dataset", "`splatcli process"]
+    if case == "untrained":
+        shutil.copytree(bases["untrained"], proj)
+        return proj, proj, ["no trained model", "`splatcli train"]
+    shutil.copytree(bases["trained"], proj)
+    m = proj / MANIFEST_NAME
+    if case == "manifest_newer":
+        data = json.loads(m.read_text())
+        data["schema_version"] = SCHEMA_VERSION + 1
+        m.write_text(json.dumps(data))
+        return proj, m, ["schema version", "newer", "upgrade splatcli"]
+    if case == "manifest_not_json":
+        m.write_text('{"schema_version": 1, "splits": ')
+        return proj, m, ["not valid JSON"]
+    if case == "manifest_not_object":
+        m.write_text("[1, 2, 3]")
+        return proj, m, ["not a splatcli manifest"]
+    ck = checkpoint_of(proj)
+    if case == "ckpt_newer":
+        raw = torch.load(ck, weights_only=True)
+        raw["schema"] = CHECKPOINT_SCHEMA + 1
+        torch.save(raw, ck)
+        return proj, ck, ["checkpoint schema", "newer", "upgrade splatcli"]
+    if case == "ckpt_truncated":
+        data = ck.read_bytes()
+        ck.write_bytes(data[: len(data) // 2])
+        return proj, ck, ["truncated or corrupt"]
+    if case == "ckpt_empty":
+        ck.write_bytes(b"")
+        return proj, ck, ["truncated or corrupt"]
+    if case == "ckpt_garbage":
+        ck.write_bytes(bytes(np.random.default_rng(0).integers(0, 256, 4096, dtype=np.uint8)))
+        return proj, ck, ["not a readable checkpoint", "not a PyTorch zip archive"]
+    if case == "ckpt_foreign":
+        torch.save({"model": torch.zeros(3)}, ck)
+        return proj, ck, ["not a splatcli checkpoint"]
+    if case == "ckpt_pickled_payload":
+        raw = torch.load(ck, weights_only=True)
+        raw["extra"] = {"x": Payload(tmp_path / "pwned")}
+        torch.save(raw, ck)
+        return proj, ck, ["refused", "objects other than tensors", "posix.mkdir", "not loaded"]
+    if case == "ckpt_raw_pickle":
+        ck.write_bytes(pickle.dumps({"format": "splatcli-checkpoint", "x": Payload(tmp_path / "pwned")}))
+        return proj, ck, ["not a PyTorch zip archive"]
+    if case == "ckpt_bad_shapes":
+        raw = torch.load(ck, weights_only=True)
+        raw["gaussians"]["quats"] = raw["gaussians"]["quats"][:, :3]
+        torch.save(raw, ck)
+        return proj, ck, ["quats", "shape"]
+    raise AssertionError(case)
+
+
+# Which command is asked to read what: train only reads a checkpoint with --resume;
+# eval and export read the latest checkpoint; render reads it through the project.
+PROJECT_CASES = [
+    "missing_path", "not_a_project", "a_file", "unprocessed", "sparse_missing", "untrained",
+    "manifest_newer", "manifest_not_json", "manifest_not_object",
+    "ckpt_newer", "ckpt_truncated", "ckpt_empty", "ckpt_garbage", "ckpt_foreign", "ckpt_pickled_payload",
+    "ckpt_raw_pickle", "ckpt_bad_shapes",
+]
+COMMANDS = {
+    "train": lambda p: ["train", p, "--resume", "--iterations", "1"],
+    "render": lambda p: ["render", p, "--frames", "2"],
+    "eval": lambda p: ["eval", p, "--no-plots"],
+    "export": lambda p: ["export", p],
+}
+
+
+@pytest.mark.parametrize("case", PROJECT_CASES)
+@pytest.mark.parametrize("cmd", list(COMMANDS))
+def test_broken_project(cmd: str, case: str, tmp_path: Path, bases) -> None:
+    if cmd == "train" and case == "untrained":
+        pytest.skip("an untrained project is what train expects (--resume without a checkpoint starts afresh)")
+    root, culprit, fragments = break_project(case, tmp_path, bases)
+    before = snapshot(tmp_path)
+    line = assert_error(cli(*COMMANDS[cmd](root)), str(culprit), *fragments)
+    assert snapshot(tmp_path) == before, line
+    assert not (tmp_path / "pwned").exists()  # the pickled payload never ran
+
+
+# ---------------------------------------------------------------------------
+# .ply files: render FILE.ply, eval PROJ --model FILE.ply, train PROJ --init-ply FILE.ply
+# ---------------------------------------------------------------------------
+
+
+def good_rows(n: int = 40, sh_degree: int = 1) -> np.ndarray:  # [n, P] float32, 3DGS property order
+    return gaussians_to_rows(tiny_gaussians(n, seed=3, sh_degree=sh_degree))
+
+
+def write_rows(path: Path, rows: np.ndarray, sh_degree: int = 1, count: int | None = None) -> Path:
+    header = ply_header(rows.shape[0] if count is None else count, sh_degree)
+    path.write_bytes(header + np.ascontiguousarray(rows, "<f4").tobytes())
+    return path
+
+
+def bad_ply(case: str, d: Path) -> tuple[Path, list[str]]:
+    """(the .ply, message fragments) for one bad-.ply case."""
+    d.mkdir(parents=True, exist_ok=True)
+    p = d / f"{case}.ply"
+    rows = good_rows()
+    n = rows.shape[0]
+    if case == "missing":
+        return p, ["no such"]
+    if case == "all_nan_inf":
+        rows[: n // 2, 0] = np.nan
+        rows[n // 2 :, -1] = np.inf
+        return write_rows(p, rows), [f"none of its {n} Gaussians is valid", "NaN/Inf"]
+    if case == "zero_vertices":
+        return write_rows(p, rows[:0]), ["zero Gaussians"]
+    if case == "wrong_type_int":
+        data = write_rows(p, rows).read_bytes()
+        p.write_bytes(data.replace(b"property float opacity\n", b"property int opacity\n"))
+        return p, ["'opacity' is int", "float or double"]
+    if case == "wrong_type_uchar":
+        names = ply_property_names(1)
+        dtype = [(nm, "u1" if nm == "scale_0" else "<f4") for nm in names]
+        table = np.zeros(n, dtype=dtype)
+        for i, nm in enumerate(names):
+            table[nm] = rows[:, i] if nm != "scale_0" else 1
+        head = ply_header(n, 1).replace(b"property float scale_0\n", b"property uchar scale_0\n")
+        p.write_bytes(head + table.tobytes())
+        return p, ["'scale_0' is uchar", "float or double"]
+    if case == "list_property":
+        data = write_rows(p, rows).read_bytes()
+        p.write_bytes(data.replace(b"property float x\n", b"property list uchar float x\n"))
+        return p, ["'x' is list uchar float", "float or double"]
+    if case == "header_lies_more":
+        return write_rows(p, rows, count=n + 7), [f"header claims {n + 7} vertices", "lying header"]
+    if case == "header_lies_huge":  # must be refused without allocating the claimed size
+        return write_rows(p, rows, count=10**15), [f"header claims {10**15} vertices"]
+    if case == "truncated_body":
+        data = write_rows(p, rows).read_bytes()
+        p.write_bytes(data[: len(data) - 100])
+        return p, [f"header claims {n} vertices", "truncated"]
+    if case == "no_end_header":
+        p.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\n")
+        return p, ["no end_header"]
+    if case == "not_ply":
+        p.write_bytes(b"\x00\x01 this is no ply file" * 20)
+        return p, ["not a PLY file"]
+    if case == "point_cloud":
+        head = b"ply\nformat binary_little_endian 1.0\nelement vertex 4\nproperty float x\nproperty float y\n" \
+               b"property float z\nproperty uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n"
+        p.write_bytes(head + b"\x00" * (4 * 15))
+        return p, ["plain point cloud", "not a Gaussian splat"]
+    if case == "ascii":
+        p.write_bytes(ply_header(1, 0).replace(b"binary_little_endian", b"ascii") + b" ".join([b"0"] * 17) + b"\n")
+        return p, ["ASCII PLY is not supported"]
+    if case == "bad_sh_count":
+        names = ply_property_names(1)
+        head = ply_header(n, 1).replace(b"property float f_rest_8\n", b"")
+        keep = [i for i, nm in enumerate(names) if nm != "f_rest_8"]
+        p.write_bytes(head + np.ascontiguousarray(rows[:, keep], "<f4").tobytes())
+        return p, ["f_rest_* properties match no SH degree"]
+    if case == "directory":
+        p.mkdir()
+        return p, ["is a directory"]
+    raise AssertionError(case)
+
+
+PLY_CASES = ["missing", "all_nan_inf", "zero_vertices", "wrong_type_int", "wrong_type_uchar", "list_property",
+             "header_lies_more", "header_lies_huge", "truncated_body", "no_end_header", "not_ply", "point_cloud",
+             "ascii", "bad_sh_count", "directory"]
+PLY_COMMANDS = {
+    "render": lambda proj, ply: ["render", ply, "--frames", "2"],
+    "render_project": lambda proj, ply: ["render", ply, "--project", proj],
+    "eval": lambda proj, ply: ["eval", proj, "--model", ply, "--no-plots"],
+    "train": lambda proj, ply: ["train", proj, "--init-ply", ply, "--iterations", "1"],
+}
+
+
+@pytest.mark.parametrize("case", PLY_CASES)
+@pytest.mark.parametrize("cmd", list(PLY_COMMANDS))
+def test_bad_ply(cmd: str, case: str, proj: Path, tmp_path: Path) -> None:
+    ply, fragments = bad_ply(case, tmp_path / "plys")
+    before = snapshot(tmp_path)
+    line = assert_error(cli(*PLY_COMMANDS[cmd](proj, ply)), str(ply), *fragments)
+    assert snapshot(tmp_path) == before, line
+
+
+def test_ply_with_some_nan_rows_renders_with_a_note(tmp_path: Path) -> None:
+    """Not an error: rows with NaN/Inf are dropped and counted; the rest renders."""
+    rows = good_rows()
+    rows[:3, 1] = np.nan
+    rows[3:5, 7] = -np.inf
+    ply = write_rows(tmp_path / "some_nan.ply", rows)
+    r = cli("render", ply, "--frames", "2", "--width", "24", "--out", tmp_path / "out")
+    assert_ok_with_note(r, "some_nan.ply: dropped 5 of 40 Gaussians with NaN/Inf values")
+    assert len(list((tmp_path / "out").glob("*.png"))) == 2
+
+
+# ---------------------------------------------------------------------------
+# options out of range: one line saying which values are allowed
+# ---------------------------------------------------------------------------
+
+NO_GPU = not torch.cuda.is_available()
+OPTION_CASES = [
+    # (command, options, fragments)
+    ("train", ["--iterations", "-5"], ["--iterations -5", "at least 1"]),
+    ("train", ["--iterations", "0"], ["--iterations 0", "at least 1"]),
+    ("train", ["--max-size", "0"], ["--max-size 0", "at least 16"]),
+    ("train", ["--downscale", "0"], ["--downscale 0", "(0, 64]"]),
+    ("train", ["--downscale", "-2"], ["--downscale -2", "(0, 64]"]),
+    ("train", ["--max-gaussians", "0"], ["--max-gaussians 0", "at least 1"]),
+    ("train", ["--eval-every", "-1"], ["--eval-every -1", "0 or more"]),
+    ("train", ["--sh-degree", "7"], ["--sh-degree '7'", "0, 1, 2, 3 or auto"]),
+    ("train", ["--preset", "turbo"], ["--preset 'turbo'", "default"]),
+    ("train", ["--device", "tpu"], ["--device 'tpu'", "auto, cpu, cuda"]),
+    ("train", ["--device", "cuda"], ["--device cuda", "no CUDA GPU", "auto, cpu, cuda"]),
+    ("train", ["--iterations", "many"], ["'--iterations'", "valid integer"]),
+    ("render", ["--width", "0"], ["--width 0", "between 1 and 16384"]),
+    ("render", ["--height", "-4"], ["--height -4", "between 1 and 16384"]),
+    ("render", ["--downscale", "0"], ["--downscale 0", "(0, 64]"]),
+    ("render", ["--frames", "0", "--path", "orbit"], ["--frames 0", "between 1 and 100000"]),
+    ("render", ["--fps", "0", "--video", "v.mp4"], ["--fps 0", "(0, 1000]"]),
+    ("render", ["--split", "val"], ["--split 'val'", "test, train, all"]),
+    ("render", ["--path", "zigzag"], ["--path 'zigzag'", "orbit, spiral, interpolate"]),
+    ("render", ["--background", "teal"], ["--background 'teal'", "white, black, gray"]),
+    ("render", ["--video", "a.gif"], ["--video a.gif", ".mp4"]),
+    ("render", ["--device", "tpu"], ["--device 'tpu'", "auto, cpu, cuda"]),
+    ("render", ["--device", "cuda"], ["--device cuda", "no CUDA GPU", "auto, cpu, cuda"]),
+    ("eval", ["--downscale", "0"], ["--downscale 0"]),
+    ("eval", ["--downscale", "-1"], ["--downscale -1"]),
+    ("eval", ["--split", "val"], ["--split 'val'", "test, train, all"]),
+    ("eval", ["--budgets", "1,abc"], ["--budgets", "(0, 1]"]),
+    ("eval", ["--budgets", "0"], ["--budgets", "(0, 1]"]),
+    ("eval", ["--budgets", "1.5"], ["--budgets", "(0, 1]"]),
+    ("eval", ["--background", "teal"], ["--background 'teal'", "white, black, gray"]),
+    ("eval", ["--device", "tpu"], ["--device 'tpu'", "auto, cpu, cuda"]),
+    ("eval", ["--device", "cuda"], ["--device cuda", "no CUDA GPU", "auto, cpu, cuda"]),
+    ("export", ["--format", "obj"], ["--format 'obj'", "ply, splat"]),
+]
+
+
+@pytest.mark.parametrize("cmd, opts, fragments", OPTION_CASES,
+                         ids=[f"{c}{''.join(o)}" for c, o, _ in OPTION_CASES])
+def test_option_out_of_range(cmd: str, opts: list[str], fragments: list[str], proj: Path) -> None:
+    if "cuda" in opts and not NO_GPU:
+        pytest.skip("a CUDA GPU is available: --device cuda is valid here")
+    before = snapshot(proj)
+    assert_error(cli(cmd, proj, *opts), *fragments)
+    assert snapshot(proj) == before
+
+
+PROCESS_OPTION_CASES = [
+    (["--max-size", "0"], ["--max-size 0", "at least 32"]),
+    (["--max-size", "-100"], ["--max-size -100", "at least 32"]),
+    (["--num-frames", "0"], ["--num-frames 0", "at least 2"]),
+    (["--fps", "0"], ["--fps 0", "positive"]),
+    (["--fps", "-3"], ["--fps -3", "positive"]),
+    (["--matcher", "magic"], ["--matcher 'magic'", "auto, exhaustive, sequential"]),
+    (["--input-type", "photos"], ["--input-type 'photos'", "auto, images, video, colmap, transforms"]),
+    (["--background", "teal"], ["--background 'teal'", "auto, white, black or R,G,B"]),
+]
+
+
+@pytest.mark.parametrize("opts, fragments", PROCESS_OPTION_CASES, ids=["".join(o) for o, _ in PROCESS_OPTION_CASES])
+def test_process_option_out_of_range(opts: list[str], fragments: list[str], tmp_path: Path, proj: Path) -> None:
+    src = image_folder(tmp_path / "photos", 3)
+    before = snapshot(proj, src)
+    assert_error(cli("process", src, "-o", proj, "--overwrite", *opts), *fragments)
+    assert snapshot(proj, src) == before
+
+
+# ---------------------------------------------------------------------------
+# process: folders of photos, videos, transforms.json, COLMAP models
+# ---------------------------------------------------------------------------
+
+
+def image_folder(d: Path, n: int, *, size: tuple[int, int] = (64, 48)) -> Path:
+    d.mkdir(parents=True, exist_ok=True)
+    for i in range(n):
+        (d / f"img_{i:02d}.png").write_bytes(png_bytes(texture(size[1], size[0], seed=i)))
+    return d
+
+
+@pytest.fixture
+def fake_sfm(monkeypatch):
+    """`run_sfm` replaced by a stand-in that poses every staged image on a ring:
+    the cases below test reading the input, not structure from motion."""
+    import splatcli.process as proc
+    from splatcli.sfm import colmap
+    from splatcli.sfm.reconstruct import SfmResult
+
+    calls = []
+
+    def run_sfm(image_dir, names, work, opts, *, single_camera, min_side, where, on_event=None):
+        calls.append(list(names))
+        cams = ring_cameras(len(names))
+        specs = []
+        for name, cam in zip(names, cams):
+            h, w = cv2.imread(str(Path(image_dir) / name)).shape[:2]
+            specs.append(colmap.CameraSpec(name, w, h, "PINHOLE", [float(w), float(w), w / 2, h / 2], cam.viewmat))
+        (Path(work) / "database.db").write_bytes(b"")
+        return SfmResult(model=colmap.build_model(specs), names=list(names), model_sizes=[len(names)],
+                         unregistered=[], matcher="exhaustive", num_pairs=0, keypoints_median=0.0)
+
+    monkeypatch.setattr(proc, "run_sfm", run_sfm)
+    return calls
+
+
+def process_error(src: Path, proj: Path, *fragments: str, extra: tuple = ()) -> str:
+    """`process SRC -o PROJ --overwrite` fails; the old project and the input are untouched."""
+    before = snapshot(proj, src)
+    line = assert_error(cli("process", src, "-o", proj, "--overwrite", *extra), *fragments)
+    assert snapshot(proj, src) == before, line
+    assert not (proj / ".process-tmp").exists()
+    return line
+
+
+def test_process_missing_input(tmp_path: Path, proj: Path) -> None:
+    process_error(tmp_path / "nowhere", proj, str(tmp_path / "nowhere"), "no such file or folder")
+
+
+def test_process_empty_folder(tmp_path: Path, proj: Path) -> None:
+    (tmp_path / "empty").mkdir()
+    process_error(tmp_path / "empty", proj, str(tmp_path / "empty"), "no images found")
+
+
+def test_process_folder_of_non_images(tmp_path: Path, proj: Path) -> None:
+    d = tmp_path / "docs"
+    d.mkdir()
+    (d / "notes.txt").write_text("not a photo")
+    (d / "scan.pdf").write_bytes(b"%PDF-1.4")
+    process_error(d, proj, str(d), "no images found")
+
+
+def test_process_one_image(tmp_path: Path, proj: Path) -> None:
+    d = image_folder(tmp_path / "one", 1)
+    process_error(d, proj, str(d), "at least 2 readable images, found 1")
+
+
+def test_process_a_single_image_file(tmp_path: Path, proj: Path) -> None:
+    d = image_folder(tmp_path / "one", 1)
+    process_error(d / "img_00.png", proj, str(d / "img_00.png"), "a single image", "at least 2 photos")
+
+
+@pytest.mark.parametrize("suffix", [".png", ".jpg"])
+def test_process_one_image_and_a_truncated_one(suffix: str, tmp_path: Path, proj: Path) -> None:
+    d = image_folder(tmp_path / "one", 1)
+    data = (png_bytes if suffix == ".png" else jpeg_bytes)(texture(seed=9))
+    (d / f"cut{suffix}").write_bytes(data[: len(data) // 2])
+    kind = "PNG" if suffix == ".png" else "JPEG"
+    process_error(d, proj, str(d), "found 1", f"cut{suffix}: truncated {kind}")
+
+
+def test_process_only_truncated_images(tmp_path: Path, proj: Path) -> None:
+    d = tmp_path / "cut"
+    d.mkdir()
+    for i in range(3):
+        data = jpeg_bytes(texture(seed=i))
+        (d / f"{i}.jpg").write_bytes(data[: len(data) // 3])
+    process_error(d, proj, str(d), "found 0", "truncated JPEG")
+
+
+def test_process_non_images_mixed_in_are_skipped_with_a_note(tmp_path: Path, fake_sfm) -> None:
+    d = image_folder(tmp_path / "photos", 4)
+    (d / "notes.txt").write_text("not a photo")
+    (d / "Thumbs.db").write_bytes(b"\x00" * 64)
+    r = cli("process", d, "-o", tmp_path / "p")
+    assert_ok_with_note(r, "skipped 2 file(s) that are not images", "notes.txt")
+    assert fake_sfm == [[f"img_{i:02d}.png" for i in range(4)]]
+    assert sorted(Project(tmp_path / "p").splits()["train"] + Project(tmp_path / "p").splits()["test"]) == fake_sfm[0]
+
+
+@pytest.mark.parametrize("suffix", [".png", ".jpg"])
+def test_process_truncated_image_among_good_ones_is_skipped_with_a_note(suffix: str, tmp_path: Path, fake_sfm) -> None:
+    d = image_folder(tmp_path / "photos", 3)
+    data = (png_bytes if suffix == ".png" else jpeg_bytes)(texture(seed=9))
+    (d / f"zz_cut{suffix}").write_bytes(data[: len(data) // 2])
+    r = cli("process", d, "-o", tmp_path / "p", "--json")
+    kind = "PNG" if suffix == ".png" else "JPEG"
+    assert_ok_with_note(r, f"zz_cut{suffix}: truncated {kind}")
+    summary = json.loads(r.stdout)
+    assert summary["registered"] == 3 and len(summary["skipped"]) == 1
+    assert not (Project(tmp_path / "p").images_dir / f"zz_cut{suffix}").exists()
+
+
+def test_process_mixed_sizes_and_orientations_are_handled(tmp_path: Path, fake_sfm) -> None:
+    d = tmp_path / "mixed"
+    d.mkdir()
+    (d / "a_landscape.png").write_bytes(png_bytes(texture(48, 64, seed=1)))
+    (d / "b_portrait.png").write_bytes(png_bytes(texture(64, 48, seed=2)))
+    (d / "c_small.jpg").write_bytes(jpeg_bytes(texture(30, 40, seed=3)))
+    # stored 64 wide x 48 high, EXIF says "rotate 90 degrees clockwise": 48 x 64 once oriented
+    (d / "d_exif.jpg").write_bytes(with_exif_orientation(jpeg_bytes(texture(48, 64, seed=4)), 6))
+    r = cli("process", d, "-o", tmp_path / "p")
+    assert_ok_with_note(r, "sizes; using one camera per image")
+    from splatcli.sfm.model import read_scene
+
+    sizes = {c.name: (c.width, c.height) for c in read_scene(Project(tmp_path / "p").sparse_dir).cameras}
+    assert sizes == {"a_landscape.png": (64, 48), "b_portrait.png": (48, 64), "c_small.jpg": (40, 30),
+                     "d_exif.jpg": (48, 64)}
+
+
+def write_video(path: Path, n: int = 6) -> Path:
+    vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (64, 48))
+    if not vw.isOpened():
+        pytest.skip("OpenCV cannot write MJPG video here")
+    for i in range(n):
+        vw.write(texture(seed=i))
+    vw.release()
+    return path
+
+
+@pytest.mark.parametrize("case", ["garbage", "empty", "truncated"])
+def test_process_unreadable_video(case: str, tmp_path: Path, proj: Path) -> None:
+    v = tmp_path / "clip.avi" if case == "truncated" else tmp_path / "clip.mp4"
+    if case == "garbage":
+        v.write_bytes(b"\x00\x01 definitely not a video" * 100)
+    elif case == "empty":
+        v.write_bytes(b"")
+    else:
+        data = write_video(tmp_path / "good.avi").read_bytes()
+        v.write_bytes(data[:200])  # the container header, no frame
+    process_error(v, proj, str(v), "cannot read the video")
+
+
+# ---- transforms.json ----------------------------------------------------------------
+
+
+def transforms_input(root: Path, case: str) -> tuple[Path, list[str]]:
+    """A transforms.json input broken in one way: (the file, message fragments)."""
+    root.mkdir(parents=True)
+    cams = ring_cameras(3)
+    for i in range(3):
+        (root / f"f{i}.png").write_bytes(png_bytes(texture(40, 48, seed=i)))
+    frames = [{"file_path": f"f{i}.png", "transform_matrix": gl_c2w(c.viewmat)} for i, c in enumerate(cams)]
+    good = {"camera_angle_x": 0.9, "frames": frames}
+    outside = root.parent / "outside.png"  # exists: refused for where it is, not for being absent
+    outside.write_bytes(png_bytes(texture(40, 48, seed=7)))
+    bad_m = [row[:] for row in frames[1]["transform_matrix"]]
+    bad_m[0][0] = float("nan")
+    content, frag = {
+        "not_json": ("{ this is not json", ["not valid JSON"]),
+        "not_utf8": (b"\xff\xfe{\x00", ["not UTF-8"]),
+        "a_list": (json.dumps([good]), ["must hold a JSON object"]),
+        "no_frames": (json.dumps({"camera_angle_x": 0.9}), ["no `frames` list"]),
+        "empty_frames": (json.dumps({"camera_angle_x": 0.9, "frames": []}), ["no `frames` list"]),
+        "frame_not_object": (json.dumps({**good, "frames": [frames[0], 3]}), ["frame 1 is not a JSON object"]),
+        "no_file_path": (json.dumps({**good, "frames": [{"transform_matrix": frames[0]["transform_matrix"]}]}),
+                         ["frame 0 has no file_path"]),
+        "no_focal": (json.dumps({"frames": frames}), ["no focal length"]),
+        "bad_focal": (json.dumps({**good, "camera_angle_x": "wide"}), ["camera_angle_x", "finite number"]),
+        "no_matrix": (json.dumps({**good, "frames": [{"file_path": "f0.png"}]}), ["transform_matrix"]),
+        "nan_matrix": (json.dumps({**good, "frames": [frames[0], {**frames[1], "transform_matrix": bad_m}]}),
+                       ["frame 1", "transform_matrix"]),
+        "missing_files": (json.dumps({**good, "frames": [{**f, "file_path": f"gone{i}.png"} for i, f in enumerate(frames)]}),
+                          ["none of the 3 listed images exists", "gone0.png"]),
+        "escape_dotdot": (json.dumps({**good, "frames": [frames[0], {**frames[1], "file_path": "../outside.png"}]}),
+                          ["'../outside.png'", "outside the input folder"]),
+        "escape_absolute": (json.dumps({**good, "frames": [{**frames[0], "file_path": str(outside)}]}),
+                            [repr(str(outside)), "outside the input folder"]),
+        "escape_ply": (json.dumps({**good, "ply_file_path": "../../points.ply"}),
+                       ["ply_file_path", "outside the input folder"]),
+        "size_mismatch": (json.dumps({**good, "w": 100, "h": 40, "fl_x": 50.0}),
+                          ["f0.png", "not a uniform rescale"]),
+    }[case]
+    tf = root / "transforms.json"
+    (tf.write_bytes if isinstance(content, bytes) else tf.write_text)(content)
+    return tf, frag
+
+
+TRANSFORMS_CASES = ["not_json", "not_utf8", "a_list", "no_frames", "empty_frames", "frame_not_object", "no_file_path",
+                    "no_focal", "bad_focal", "no_matrix", "nan_matrix", "missing_files", "escape_dotdot",
+                    "escape_absolute", "escape_ply", "size_mismatch"]
+
+
+@pytest.mark.parametrize("case", TRANSFORMS_CASES)
+def test_process_bad_transforms(case: str, tmp_path: Path, proj: Path) -> None:
+    tf, fragments = transforms_input(tmp_path / "in", case)
+    process_error(tf, proj, str(tf), *fragments)
+
+
+def test_process_bad_transforms_given_as_its_folder(tmp_path: Path, proj: Path) -> None:
+    tf, fragments = transforms_input(tmp_path / "in", "not_json")
+    process_error(tf.parent, proj, str(tf), *fragments)
+
+
+def test_transforms_with_some_files_missing_or_truncated_imports_the_rest(tmp_path: Path) -> None:
+    """Not an error: listed-but-absent files and a truncated image are skipped with a warning."""
+    root = tmp_path / "in"
+    tf, _ = transforms_input(root, "not_json")
+    cams = ring_cameras(5)
+    for i in (3, 4):
+        (root / f"f{i}.png").write_bytes(png_bytes(texture(40, 48, seed=i)))
+    data = jpeg_bytes(texture(40, 48, seed=5))
+    (root / "f5.jpg").write_bytes(data[: len(data) // 2])
+    frames = [{"file_path": f"f{i}.png", "transform_matrix": gl_c2w(c.viewmat)} for i, c in enumerate(cams)]
+    frames += [{"file_path": "gone.png", "transform_matrix": gl_c2w(cams[0].viewmat)},
+               {"file_path": "f5.jpg", "transform_matrix": gl_c2w(cams[1].viewmat)}]
+    tf.write_text(json.dumps({"camera_angle_x": 0.9, "frames": frames}))
+    r = cli("process", tf, "-o", tmp_path / "p", "--json")
+    assert_ok_with_note(r, "1 image(s) listed in transforms.json do not exist", "f5.jpg: truncated JPEG")
+    assert json.loads(r.stdout)["registered"] == 5
+
+
+# ---- COLMAP models ---------------------------------------------------------------------
+
+
+def colmap_workspace(root: Path, *, text: bool) -> Path:
+    """root/images + root/sparse/0: a small synthetic PINHOLE model with points."""
+    from splatcli.sfm import colmap
+
+    model = colmap.synthetic_model(num_images=4, num_points=30, camera_model="PINHOLE", width=64, height=48)
+    (root / "images").mkdir(parents=True)
+    for i, name in enumerate(model.registered_names()):
+        (root / "images" / name).write_bytes(png_bytes(texture(48, 64, seed=i)))
+    model.write(root / "sparse" / "0", text=text)
+    return root / "sparse" / "0"
+
+
+def break_colmap(case: str, ws: Path) -> tuple[Path, list[str]]:
+    """Damage the workspace's model in one way: (the file at fault, message fragments)."""
+    d = colmap_workspace(ws, text=case.startswith("txt_"))
+    if case in ("bin_missing_cameras", "bin_missing_images", "bin_missing_points3D"):
+        p = d / f"{case.split('_')[-1]}.bin"
+        p.unlink()
+        return p, ["missing"]
+    if case == "bin_truncated_cameras":
+        p = d / "cameras.bin"
+        p.write_bytes(p.read_bytes()[:20])
+        return p, ["truncated or garbled", "more than the file can hold"]
+    if case == "bin_truncated_images":
+        p = d / "images.bin"
+        p.write_bytes(p.read_bytes()[:-10])
+        return p, ["truncated or garbled"]
+    if case == "bin_garbled_images":
+        p = d / "images.bin"
+        data = bytearray(p.read_bytes())
+        data[8:200] = bytes(range(192))
+        p.write_bytes(bytes(data))
+        return p, ["images.bin"]
+    if case == "bin_huge_count":  # a count that would make a reader allocate terabytes
+        p = d / "points3D.bin"
+        p.write_bytes(struct.pack("<Q", 2**62) + p.read_bytes()[8:])
+        return p, ["garbled", "more than the file can hold"]
+    if case == "bin_garbled_points":
+        p = d / "points3D.bin"
+        p.write_bytes(p.read_bytes()[:8] + b"\xff" * 500)
+        return p, ["points3D.bin"]
+    if case == "bin_empty_cameras":
+        p = d / "cameras.bin"
+        p.write_bytes(b"")
+        return p, ["truncated or garbled"]
+    if case == "bin_escape_name":
+        return _rename_first_image_bin(d, "../../outside.png"), ["'../../outside.png'", "outside the images folder"]
+    if case == "txt_garbled_cameras":
+        p = d / "cameras.txt"
+        p.write_text("1 PINHOLE sixty-four 48 50 50 32 24\n")
+        return p, ["line 1", "expected numbers"]
+    if case == "txt_unknown_model":
+        p = d / "cameras.txt"
+        p.write_text("1 FANCY_LENS 64 48 50 50 32 24\n")
+        return p, ["line 1", "CAMERA_ID MODEL WIDTH HEIGHT"]
+    if case == "txt_missing_points3D":
+        p = d / "points3D.txt"
+        p.unlink()
+        return p, ["missing"]
+    if case in ("txt_escape_dotdot", "txt_escape_absolute"):
+        p = d / "images.txt"
+        name = "../outside.png" if case == "txt_escape_dotdot" else str(ws.parent / "outside.png")
+        (ws.parent / "outside.png").write_bytes(png_bytes(texture(48, 64)))
+        lines = p.read_text().splitlines()
+        first = next(i for i, ln in enumerate(lines) if ln.strip() and not ln.startswith("#"))
+        tok = lines[first].split()
+        lines[first] = " ".join(tok[:9] + [name])
+        p.write_text("\n".join(lines) + "\n")
+        return p, [repr(name), "outside the images folder"]
+    raise AssertionError(case)
+
+
+def _rename_first_image_bin(d: Path, new: str) -> Path:
+    """Rewrite the first image's name in images.bin (record: id, 7 doubles, camera id, name\\0, ...)."""
+    p = d / "images.bin"
+    data = p.read_bytes()
+    start = 8 + 4 + 56 + 4
+    end = data.index(b"\0", start)
+    p.write_bytes(data[:start] + new.encode() + data[end:])
+    return p
+
+
+COLMAP_CASES = ["bin_missing_cameras", "bin_missing_images", "bin_missing_points3D", "bin_truncated_cameras",
+                "bin_truncated_images", "bin_garbled_images", "bin_huge_count", "bin_garbled_points",
+                "bin_empty_cameras", "bin_escape_name", "txt_garbled_cameras", "txt_unknown_model",
+                "txt_missing_points3D", "txt_escape_dotdot", "txt_escape_absolute"]
+
+
+@pytest.mark.parametrize("case", COLMAP_CASES)
+def test_process_bad_colmap_model(case: str, tmp_path: Path, proj: Path) -> None:
+    culprit, fragments = break_colmap(case, tmp_path / "ws")
+    process_error(tmp_path / "ws", proj, str(culprit), *fragments)
+
+
+def test_colmap_images_missing_from_the_folder(tmp_path: Path, proj: Path) -> None:
+    colmap_workspace(tmp_path / "ws", text=False)
+    for p in (tmp_path / "ws" / "images").iterdir():
+        p.unlink()
+    process_error(tmp_path / "ws", proj, str(tmp_path / "ws" / "images"), "none of the model's 4 images exists")
+
+
+# ---------------------------------------------------------------------------
+# render --cameras transforms.json
+# ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("case, fragments", [
+    ("not_json", ["not valid JSON"]),
+    ("no_frames", ["no 'frames' list"]),
+    ("bad_matrix", ["frame 0", "transform_matrix"]),
+    ("no_focal", ["frame 0", "no focal length"]),
+    ("missing", ["not found"]),
+])
+def test_render_bad_cameras_file(case: str, fragments: list[str], proj: Path, tmp_path: Path) -> None:
+    tf = tmp_path / "cams.json"
+    frame = {"file_path": "x.png", "w": 32, "h": 24, "transform_matrix": gl_c2w(ring_cameras(1)[0].viewmat)}
+    content = {"not_json": "{", "no_frames": json.dumps({"fl_x": 20}),
+               "bad_matrix": json.dumps({"fl_x": 20, "frames": [{**frame, "transform_matrix": [[1, 2]]}]}),
+               "no_focal": json.dumps({"frames": [frame]}), "missing": None}[case]
+    if content is not None:
+        tf.write_text(content)
+    before = snapshot(tmp_path)
+    assert_error(cli("render", proj, "--cameras", tf), str(tf), *fragments)
+    assert snapshot(tmp_path) == before
+
+
+# ---------------------------------------------------------------------------
+# a project whose files were damaged after process
+# ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("cmd", ["train", "eval"])
+@pytest.mark.parametrize("damage", ["image_missing", "image_garbage"])
+def test_project_image_damaged(cmd: str, damage: str, proj: Path, tmp_path: Path) -> None:
+    """An image of the dataset deleted or overwritten: named, with what to do."""
+    name = Project(proj).splits()["test"][0]
+    img = Project(proj).images_dir / name
+    if damage == "image_missing":
+        img.unlink()
+    else:
+        img.write_bytes(b"not a png")
+    before = snapshot(tmp_path)
+    args = ["train", proj, "--iterations", "1"] if cmd == "train" else ["eval", proj, "--no-plots"]
+    assert_error(cli(*args), str(img))
+    assert snapshot(tmp_path) == before
+
+
+def test_sparse_model_garbled_after_process(proj: Path, tmp_path: Path) -> None:
+    (Project(proj).sparse_dir / "images.txt").write_text("1 2 3\n")
+    before = snapshot(tmp_path)
+    for args in (["train", proj, "--iterations", "1"], ["render", proj], ["eval", proj, "--no-plots"]):
+        assert_error(cli(*args), str(Project(proj).sparse_dir))
+    assert snapshot(tmp_path) == before
