@@ -33,7 +33,7 @@ from typer.testing import CliRunner
 from splatcli.cli.main import app
 from splatcli.io.checkpoint import CHECKPOINT_SCHEMA
 from splatcli.io.ply import gaussians_to_rows, ply_header, ply_property_names
-from splatcli.project import MANIFEST_NAME, SCHEMA_VERSION, Project
+from splatcli.project import MANIFEST_NAME, MAX_JSON_BYTES, SCHEMA_VERSION, Project
 
 from tiny_project import make_tiny_project, ring_cameras, tiny_gaussians
 
@@ -55,7 +55,11 @@ def snapshot(*roots: Path) -> dict[str, tuple[str, int]]:
             continue
         files = [root] if root.is_file() else sorted(p for p in root.rglob("*") if p.is_file())
         for p in files:
-            out[str(p)] = (hashlib.sha256(p.read_bytes()).hexdigest(), p.stat().st_mtime_ns)
+            h = hashlib.sha256()
+            with open(p, "rb") as f:
+                while chunk := f.read(1 << 20):
+                    h.update(chunk)
+            out[str(p)] = (h.hexdigest(), p.stat().st_mtime_ns)
     return out
 
 
@@ -181,6 +185,9 @@ def break_project(case: str, tmp_path: Path, bases: dict[str, Path]) -> tuple[Pa
     if case == "manifest_not_object":
         m.write_text("[1, 2, 3]")
         return proj, m, ["not a splatcli manifest"]
+    if case == "manifest_huge":  # refused by its size before a byte is parsed (a sparse file: no disk used)
+        os.truncate(m, MAX_JSON_BYTES + 1)
+        return proj, m, [f"{MAX_JSON_BYTES + 1} bytes", f"more than the {MAX_JSON_BYTES} allowed"]
     ck = checkpoint_of(proj)
     if case == "ckpt_newer":
         raw = torch.load(ck, weights_only=True)
@@ -220,7 +227,7 @@ def break_project(case: str, tmp_path: Path, bases: dict[str, Path]) -> tuple[Pa
 # eval and export read the latest checkpoint; render reads it through the project.
 PROJECT_CASES = [
     "missing_path", "not_a_project", "a_file", "unprocessed", "sparse_missing", "untrained",
-    "manifest_newer", "manifest_not_json", "manifest_not_object",
+    "manifest_newer", "manifest_not_json", "manifest_not_object", "manifest_huge",
     "ckpt_newer", "ckpt_truncated", "ckpt_empty", "ckpt_garbage", "ckpt_foreign", "ckpt_pickled_payload",
     "ckpt_raw_pickle", "ckpt_bad_shapes",
 ]
@@ -232,11 +239,11 @@ COMMANDS = {
 }
 
 
-@pytest.mark.parametrize("case", PROJECT_CASES)
-@pytest.mark.parametrize("cmd", list(COMMANDS))
+@pytest.mark.parametrize("cmd, case", [
+    (cmd, case) for cmd in COMMANDS for case in PROJECT_CASES
+    if not (cmd == "train" and case == "untrained")  # what train expects (--resume without a checkpoint starts afresh)
+])
 def test_broken_project(cmd: str, case: str, tmp_path: Path, bases) -> None:
-    if cmd == "train" and case == "untrained":
-        pytest.skip("an untrained project is what train expects (--resume without a checkpoint starts afresh)")
     root, culprit, fragments = break_project(case, tmp_path, bases)
     before = snapshot(tmp_path)
     line = assert_error(cli(*COMMANDS[cmd](root)), str(culprit), *fragments)
@@ -395,6 +402,7 @@ OPTION_CASES = [
     ("eval", ["--device", "tpu"], ["--device 'tpu'", "auto, cpu, cuda"]),
     ("eval", ["--device", "cuda"], ["--device cuda", "no CUDA GPU", "auto, cpu, cuda"]),
     ("export", ["--format", "obj"], ["--format 'obj'", "ply, splat"]),
+    ("export", ["-o", "."], ["-o .", "is a directory", "scene.ply"]),
 ]
 
 
@@ -638,6 +646,15 @@ def test_process_bad_transforms(case: str, tmp_path: Path, proj: Path) -> None:
     process_error(tf, proj, str(tf), *fragments)
 
 
+def test_process_huge_transforms_is_refused_by_its_size(tmp_path: Path, proj: Path) -> None:
+    """The JSON reader bounds what it reads by the file's size (a sparse file: no disk used)."""
+    from splatcli.sfm.transforms import MAX_TRANSFORMS_BYTES
+
+    tf, _ = transforms_input(tmp_path / "in", "not_json")
+    os.truncate(tf, MAX_TRANSFORMS_BYTES + 1)
+    process_error(tf, proj, str(tf), f"more than the {MAX_TRANSFORMS_BYTES} allowed")
+
+
 def test_process_bad_transforms_given_as_its_folder(tmp_path: Path, proj: Path) -> None:
     tf, fragments = transforms_input(tmp_path / "in", "not_json")
     process_error(tf.parent, proj, str(tf), *fragments)
@@ -763,6 +780,48 @@ def test_colmap_images_missing_from_the_folder(tmp_path: Path, proj: Path) -> No
     for p in (tmp_path / "ws" / "images").iterdir():
         p.unlink()
     process_error(tmp_path / "ws", proj, str(tmp_path / "ws" / "images"), "none of the model's 4 images exists")
+
+
+# ---- where process writes ------------------------------------------------------------
+
+
+@pytest.mark.parametrize("case", ["output_is_a_file", "output_not_a_project", "output_holds_input",
+                                  "already_processed"])
+def test_process_output_rules(case: str, tmp_path: Path, proj: Path) -> None:
+    src = image_folder(tmp_path / "photos", 3)
+    if case == "output_is_a_file":
+        out = tmp_path / "out.txt"
+        out.write_text("mine")
+        frags = ["exists and is not a directory"]
+    elif case == "output_not_a_project":
+        out = tmp_path / "mine"
+        out.mkdir()
+        (out / "keep.txt").write_text("mine")
+        frags = ["not a splatcli project", "--overwrite"]
+    elif case == "output_holds_input":
+        out = tmp_path
+        frags = ["holds the input"]
+    else:
+        out = proj
+        frags = ["already holds a processed dataset", "--overwrite"]
+    before = snapshot(tmp_path)
+    assert_error(cli("process", src, "-o", out), str(out), *frags)
+    assert snapshot(tmp_path) == before
+
+
+# ---------------------------------------------------------------------------
+# eval --pred/--gt
+# ---------------------------------------------------------------------------
+
+
+def test_eval_folders_bad(tmp_path: Path) -> None:
+    assert_error(cli("eval", "--pred", tmp_path / "none"), "--pred and --gt go together")
+    image_folder(tmp_path / "a", 2)
+    (tmp_path / "b").mkdir()
+    before = snapshot(tmp_path)
+    assert_error(cli("eval", "--pred", tmp_path / "a", "--gt", tmp_path / "nowhere"), str(tmp_path / "nowhere"))
+    assert_error(cli("eval", "--pred", tmp_path / "a", "--gt", tmp_path / "b"), str(tmp_path / "b"))
+    assert snapshot(tmp_path) == before
 
 
 # ---------------------------------------------------------------------------
