@@ -218,6 +218,7 @@ class Project:
                 f"{self.manifest_path}: schema version {version} is newer than this splatcli reads "
                 f"({SCHEMA_VERSION}); upgrade splatcli"
             )
+        _check_manifest_fields(self.manifest_path, data)
         return data
 
     def write_manifest(self, data: dict[str, Any]) -> None:
@@ -260,6 +261,26 @@ class Project:
         if ck is None:
             raise NotReadyError(f"{self.root}: has no trained model (no checkpoint)", "train")
         return ck
+
+
+def _check_manifest_fields(path: Path, data: dict[str, Any]) -> None:
+    """The shapes every reader of the manifest relies on (a hand-edited file may break them)."""
+    def bad(what: str, value: Any, expected: str) -> SplatError:
+        return SplatError(f"{path}: manifest field {what} is {type(value).__name__}, expected {expected} "
+                          "(edited by hand? run `splatcli process` again)")
+
+    for key in ("source", "splits", "scene", "steps"):
+        if key in data and not isinstance(data[key], dict):
+            raise bad(key, data[key], "an object")
+    for name, names in (data.get("splits") or {}).items():
+        if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+            raise bad(f"splits.{name}", names, "a list of image names")
+    for name, step in (data.get("steps") or {}).items():
+        if not isinstance(step, dict):
+            raise bad(f"steps.{name}", step, "an object")
+        for k in ("config", "summary"):
+            if k in step and not isinstance(step[k], dict):
+                raise bad(f"steps.{name}.{k}", step[k], "an object")
 
 
 def is_project(path: str | Path) -> bool:
