@@ -185,6 +185,11 @@ def break_project(case: str, tmp_path: Path, bases: dict[str, Path]) -> tuple[Pa
     if case == "manifest_not_object":
         m.write_text("[1, 2, 3]")
         return proj, m, ["not a splatcli manifest"]
+    if case == "manifest_bad_field":  # hand-edited: a field of the wrong type
+        data = json.loads(m.read_text())
+        data["steps"]["process"] = None
+        m.write_text(json.dumps(data))
+        return proj, m, ["manifest field steps.process is NoneType, expected an object"]
     if case == "manifest_huge":  # refused by its size before a byte is parsed (a sparse file: no disk used)
         os.truncate(m, MAX_JSON_BYTES + 1)
         return proj, m, [f"{MAX_JSON_BYTES + 1} bytes", f"more than the {MAX_JSON_BYTES} allowed"]
@@ -227,7 +232,7 @@ def break_project(case: str, tmp_path: Path, bases: dict[str, Path]) -> tuple[Pa
 # eval and export read the latest checkpoint; render reads it through the project.
 PROJECT_CASES = [
     "missing_path", "not_a_project", "a_file", "unprocessed", "sparse_missing", "untrained",
-    "manifest_newer", "manifest_not_json", "manifest_not_object", "manifest_huge",
+    "manifest_newer", "manifest_not_json", "manifest_not_object", "manifest_bad_field", "manifest_huge",
     "ckpt_newer", "ckpt_truncated", "ckpt_empty", "ckpt_garbage", "ckpt_foreign", "ckpt_pickled_payload",
     "ckpt_raw_pickle", "ckpt_bad_shapes",
 ]

@@ -1,0 +1,212 @@
+"""Property tests for the readers of untrusted files other than .ply (see
+test_ply_properties.py): whatever bytes or JSON they are given, checkpoints,
+COLMAP models, transforms.json and project manifests either load or fail with a
+one-line `SplatError` naming the file; never another exception, never a hang.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from splatcli.errors import SplatError
+from splatcli.gaussians import Gaussians
+from splatcli.io.checkpoint import load_checkpoint, save_checkpoint
+from splatcli.project import Project
+from splatcli.sfm.colmap_files import check_model
+from splatcli.sfm.transforms import read_transforms
+
+SETTINGS = settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture],
+                    derandomize=True)
+
+
+def _one_line_error(exc: SplatError, path: Path) -> None:
+    msg = str(exc)
+    assert "\n" not in msg and str(path) in msg, msg
+
+
+# ---- checkpoints --------------------------------------------------------------------
+
+
+def _checkpoint_bytes() -> bytes:
+    g = torch.Generator().manual_seed(0)
+    n = 5
+    gs = Gaussians(means=torch.randn(n, 3, generator=g), quats=torch.randn(n, 4, generator=g),
+                   log_scales=torch.randn(n, 3, generator=g), opacity_logits=torch.randn(n, generator=g),
+                   sh=torch.randn(n, 4, 3, generator=g))
+    with tempfile.TemporaryDirectory() as d:
+        p = save_checkpoint(Path(d) / "c.pt", step=7, gaussians=gs, sh_degree=1, config={"iterations": 10})
+        return p.read_bytes()
+
+
+CKPT = _checkpoint_bytes()
+
+
+def _load_ckpt(data: bytes) -> None:
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / "step-000000007.pt"
+        p.write_bytes(data)
+        try:
+            ck = load_checkpoint(p)
+        except SplatError as e:
+            _one_line_error(e, p)
+            return
+        assert ck.step >= 0 and len(ck.gaussians) >= 0
+
+
+@SETTINGS
+@given(st.integers(0, len(CKPT)))
+def test_checkpoint_truncations(cut: int) -> None:
+    _load_ckpt(CKPT[:cut])
+
+
+@SETTINGS
+@given(st.lists(st.tuples(st.integers(0, len(CKPT) - 1), st.integers(0, 255)), min_size=1, max_size=8))
+def test_checkpoint_byte_mutations(muts: list[tuple[int, int]]) -> None:
+    b = bytearray(CKPT)
+    for i, v in muts:
+        b[i] = v
+    _load_ckpt(bytes(b))
+
+
+@SETTINGS
+@given(st.binary(max_size=1024))
+def test_checkpoint_random_bytes(data: bytes) -> None:
+    _load_ckpt(data)
+
+
+# ---- COLMAP models ----------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def colmap_models(tmp_path_factory) -> dict[str, dict[str, bytes]]:
+    """A small synthetic model's three files, binary and text."""
+    from splatcli.sfm import colmap
+
+    model = colmap.synthetic_model(num_images=3, num_points=8, camera_model="PINHOLE", width=32, height=24)
+    out = {}
+    for fmt in ("bin", "txt"):
+        d = tmp_path_factory.mktemp(fmt)
+        model.write(d, text=fmt == "txt")
+        out[fmt] = {stem: (d / f"{stem}.{fmt}").read_bytes() for stem in ("cameras", "images", "points3D")}
+    return out
+
+
+def _check(files: dict[str, bytes], fmt: str) -> None:
+    with tempfile.TemporaryDirectory() as d:
+        for stem, data in files.items():
+            (Path(d) / f"{stem}.{fmt}").write_bytes(data)
+        try:
+            s = check_model(Path(d))
+        except SplatError as e:
+            assert "\n" not in str(e) and d in str(e), str(e)
+            return
+        # accepted: every count it reports is consistent with the files
+        assert s.images and all(cid in s.cameras for _, cid, _ in s.images.values())
+
+
+@SETTINGS
+@given(stem=st.sampled_from(["cameras", "images", "points3D"]), fmt=st.sampled_from(["bin", "txt"]),
+       muts=st.lists(st.tuples(st.integers(0, 10**6), st.integers(0, 255)), min_size=1, max_size=6))
+def test_colmap_byte_mutations(colmap_models, stem: str, fmt: str, muts: list[tuple[int, int]]) -> None:
+    files = dict(colmap_models[fmt])
+    b = bytearray(files[stem])
+    for i, v in muts:
+        b[i % len(b)] = v
+    files[stem] = bytes(b)
+    _check(files, fmt)
+
+
+@SETTINGS
+@given(stem=st.sampled_from(["cameras", "images", "points3D"]), fmt=st.sampled_from(["bin", "txt"]),
+       frac=st.floats(0, 1))
+def test_colmap_truncations(colmap_models, stem: str, fmt: str, frac: float) -> None:
+    files = dict(colmap_models[fmt])
+    files[stem] = files[stem][: int(len(files[stem]) * frac)]
+    _check(files, fmt)
+
+
+@SETTINGS
+@given(stem=st.sampled_from(["cameras", "images", "points3D"]), count=st.integers(0, 2**64 - 1))
+def test_colmap_bin_lying_counts(colmap_models, stem: str, count: int) -> None:
+    files = dict(colmap_models["bin"])
+    files[stem] = count.to_bytes(8, "little") + files[stem][8:]
+    _check(files, "bin")
+
+
+# ---- transforms.json and manifests --------------------------------------------------------
+
+JSON_VALUES = st.recursive(
+    st.none() | st.booleans() | st.integers(-10**20, 10**20) | st.floats(allow_nan=False)
+    | st.text(max_size=12),
+    lambda inner: st.lists(inner, max_size=5) | st.dictionaries(st.text(max_size=8), inner, max_size=5),
+    max_leaves=20,
+)
+KEYS = ["frames", "file_path", "transform_matrix", "fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x",
+        "camera_model", "k1", "ply_file_path", "test_filenames", "is_fisheye"]
+FRAME = st.dictionaries(st.sampled_from(KEYS), JSON_VALUES | st.just("a.png")
+                        | st.just(np.eye(4).tolist()), max_size=6)
+TRANSFORMS = st.dictionaries(st.sampled_from(KEYS), JSON_VALUES, max_size=6).flatmap(
+    lambda top: st.lists(FRAME, max_size=4).map(lambda frames: {**top, "frames": frames}))
+
+
+@SETTINGS
+@given(TRANSFORMS)
+def test_transforms_random_structure(data: dict) -> None:
+    with tempfile.TemporaryDirectory() as d:
+        root = Path(d) / "in"
+        root.mkdir()
+        (root / "a.png").write_bytes(b"\x89PNG\r\n\x1a\n")  # exists; content is staging's business
+        tf = root / "transforms.json"
+        tf.write_text(json.dumps(data))
+        try:
+            scene = read_transforms(tf)
+        except SplatError as e:
+            _one_line_error(e, tf)
+            return
+        assert all(f.source.resolve().is_relative_to(root.resolve()) for f in scene.frames)
+
+
+@SETTINGS
+@given(st.binary(max_size=256))
+def test_transforms_random_bytes(data: bytes) -> None:
+    with tempfile.TemporaryDirectory() as d:
+        tf = Path(d) / "transforms.json"
+        tf.write_bytes(data)
+        with pytest.raises(SplatError) as ei:
+            read_transforms(tf)
+        _one_line_error(ei.value, tf)
+
+
+MANIFEST_KEYS = ["schema_version", "splits", "steps", "scene", "train", "test", "process", "background"]
+MANIFEST_VALUES = st.recursive(
+    st.none() | st.booleans() | st.integers(-3, 3) | st.floats(allow_nan=False) | st.text(max_size=6),
+    lambda inner: st.lists(inner, max_size=3) | st.dictionaries(st.sampled_from(MANIFEST_KEYS), inner, max_size=4),
+    max_leaves=12,
+)
+
+
+@SETTINGS
+@given(st.dictionaries(st.sampled_from(MANIFEST_KEYS), MANIFEST_VALUES, max_size=5).map(
+    lambda d: {**d, "schema_version": 1} if "schema_version" not in d else d) | JSON_VALUES)
+def test_manifest_random_json(data) -> None:
+    with tempfile.TemporaryDirectory() as d:
+        root = Path(d) / "p"
+        root.mkdir()
+        (root / "splatcli.json").write_text(json.dumps(data))
+        try:
+            p = Project.open(root)
+            p.splits()
+            p.require_trained()
+        except SplatError as e:
+            assert "\n" not in str(e), str(e)
+        finally:
+            shutil.rmtree(root)
