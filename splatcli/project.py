@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
+import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -266,12 +267,20 @@ class Project:
 def _check_manifest_fields(path: Path, data: dict[str, Any]) -> None:
     """The shapes every reader of the manifest relies on (a hand-edited file may break them)."""
     def bad(what: str, value: Any, expected: str) -> SplatError:
-        return SplatError(f"{path}: manifest field {what} is {type(value).__name__}, expected {expected} "
+        shown = " ".join(repr(value).split())
+        shown = shown if len(shown) <= 40 else shown[:37] + "..."
+        return SplatError(f"{path}: manifest field {what} is {shown}, expected {expected} "
                           "(edited by hand? run `splatcli process` again)")
 
     for key in ("source", "splits", "scene", "steps"):
         if key in data and not isinstance(data[key], dict):
             raise bad(key, data[key], "an object")
+    scene = data.get("scene") or {}
+    for key, n in (("background", 3), ("bounds_min", 3), ("bounds_max", 3)):
+        v = scene.get(key)
+        if v is not None and not (isinstance(v, list) and len(v) == n and all(
+                isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v)):
+            raise bad(f"scene.{key}", v, f"a list of {n} finite numbers")
     for name, names in (data.get("splits") or {}).items():
         if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
             raise bad(f"splits.{name}", names, "a list of image names")
