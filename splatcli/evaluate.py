@@ -390,9 +390,10 @@ def plan_eval(root: str | Path, config: EvalConfig, device: torch.device) -> Eva
     train_step = project.step("train") or {}
     tcfg = train_step.get("config") or {}  # the resolution trained, also for a .ply scored against this project
     tsum = (train_step.get("summary") or {}) if config.model is None else {}
-    downscale = config.downscale if config.downscale is not None else float(tcfg.get("downscale") or 1.0)
-    max_size = None if config.downscale is not None else tcfg.get("max_size")
-    max_size = max_size if isinstance(max_size, int) else None
+    if config.downscale is not None:
+        downscale, max_size = config.downscale, None
+    else:
+        downscale, max_size = _trained_resolution(project, tcfg)
     views = [View(camera=eval_size(v.camera, downscale, max_size),
                   out_name=v.out_name, image=v.image) for v in views]
     small = [v.camera for v in views if min(v.camera.width, v.camera.height) < 11]
@@ -403,6 +404,20 @@ def plan_eval(root: str | Path, config: EvalConfig, device: torch.device) -> Eva
     return EvalPlan(project=project, config=config, gaussians=g, step=step, model_name=model_name, views=views,
                     background=tuple(bg_rgb), downscale=downscale,  # type: ignore[arg-type]
                     max_size=max_size, train_summary=tsum, notes=notes)
+
+
+def _trained_resolution(project: Project, tcfg: dict[str, Any]) -> tuple[float, int | None]:
+    """(downscale, max_size) that `train` recorded; a hand-edited value is named, not guessed."""
+    where = f"{project.manifest_path}: steps.train.config"
+    d = tcfg.get("downscale")
+    if d is None:
+        d = 1.0
+    if isinstance(d, bool) or not isinstance(d, (int, float)) or not (math.isfinite(d) and 0 < d <= 64):
+        raise SplatError(f"{where}.downscale is {d!r}, not a number in (0, 64]; pass --downscale")
+    m = tcfg.get("max_size")
+    if m is not None and (isinstance(m, bool) or not isinstance(m, int) or m < 16):
+        raise SplatError(f"{where}.max_size is {m!r}, not a whole number of pixels >= 16; pass --downscale")
+    return float(d), m
 
 
 def run_eval(plan: EvalPlan, *, on_event: EventSink | None = None) -> EvalReport:
