@@ -189,7 +189,12 @@ def break_project(case: str, tmp_path: Path, bases: dict[str, Path]) -> tuple[Pa
         data = json.loads(m.read_text())
         data["steps"]["process"] = None
         m.write_text(json.dumps(data))
-        return proj, m, ["manifest field steps.process is NoneType, expected an object"]
+        return proj, m, ["manifest field steps.process is None, expected an object"]
+    if case == "manifest_bad_scene":
+        data = json.loads(m.read_text())
+        data["scene"]["background"] = "white"
+        m.write_text(json.dumps(data))
+        return proj, m, ["manifest field scene.background is 'white', expected a list of 3 finite numbers"]
     if case == "manifest_huge":  # refused by its size before a byte is parsed (a sparse file: no disk used)
         os.truncate(m, MAX_JSON_BYTES + 1)
         return proj, m, [f"{MAX_JSON_BYTES + 1} bytes", f"more than the {MAX_JSON_BYTES} allowed"]
@@ -232,7 +237,7 @@ def break_project(case: str, tmp_path: Path, bases: dict[str, Path]) -> tuple[Pa
 # eval and export read the latest checkpoint; render reads it through the project.
 PROJECT_CASES = [
     "missing_path", "not_a_project", "a_file", "unprocessed", "sparse_missing", "untrained",
-    "manifest_newer", "manifest_not_json", "manifest_not_object", "manifest_bad_field", "manifest_huge",
+    "manifest_newer", "manifest_not_json", "manifest_not_object", "manifest_bad_field", "manifest_bad_scene", "manifest_huge",
     "ckpt_newer", "ckpt_truncated", "ckpt_empty", "ckpt_garbage", "ckpt_foreign", "ckpt_pickled_payload",
     "ckpt_raw_pickle", "ckpt_bad_shapes",
 ]
@@ -872,6 +877,21 @@ def test_project_image_damaged(cmd: str, damage: str, proj: Path, tmp_path: Path
     before = snapshot(tmp_path)
     args = ["train", proj, "--iterations", "1"] if cmd == "train" else ["eval", proj, "--no-plots"]
     assert_error(cli(*args), str(img))
+    assert snapshot(tmp_path) == before
+
+
+@pytest.mark.parametrize("key, value, fragment", [
+    ("downscale", "big", "steps.train.config.downscale is 'big'"),
+    ("downscale", 0, "steps.train.config.downscale is 0"),
+    ("max_size", -5, "steps.train.config.max_size is -5"),
+])
+def test_eval_with_a_hand_edited_train_config(key: str, value, fragment: str, proj: Path, tmp_path: Path) -> None:
+    m = proj / MANIFEST_NAME
+    data = json.loads(m.read_text())
+    data["steps"]["train"]["config"][key] = value
+    m.write_text(json.dumps(data))
+    before = snapshot(tmp_path)
+    assert_error(cli("eval", proj, "--no-plots"), str(m), fragment, "pass --downscale")
     assert snapshot(tmp_path) == before
 
 
