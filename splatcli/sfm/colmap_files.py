@@ -122,7 +122,7 @@ class _Reader:
     def cstring(self) -> str:
         end = bytes(self.buf[self.pos : self.pos + 4096]).find(b"\0")
         if end < 0:
-            raise SplatError(f"{self.path}: garbled: an image name is not terminated")
+            raise SplatError(f"{self.path}: truncated or garbled: an image name is not terminated")
         raw = bytes(self.buf[self.pos : self.pos + end])
         self.pos += end + 1
         try:
@@ -199,7 +199,7 @@ def _check_bin(d: Path, s: ModelSummary) -> None:
 
 def _checked_mul(n: int, size: int, r: _Reader) -> int:
     if n > r.left() // size + 1:
-        raise SplatError(f"{r.path}: garbled: a record claims {n} entries, more than the file can hold")
+        raise SplatError(f"{r.path}: truncated or garbled: a record claims {n} entries, more than the file can hold")
     return n * size
 
 

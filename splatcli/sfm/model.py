@@ -24,9 +24,13 @@ def read_scene(sparse_dir: str | Path, *, pinhole_only: bool = True) -> SceneDat
     model (K then ignores the distortion), for comparing raw SfM output.
     """
     from .colmap import _pc
+    from .colmap_files import check_model
 
-    pycolmap = _pc()  # imported with COLMAP's log silenced
     sparse_dir = Path(sparse_dir)
+    # pycolmap trusts the counts in .bin files: a damaged file can abort the
+    # interpreter. Walk the files first (about half pycolmap's own read time).
+    check_model(sparse_dir)
+    pycolmap = _pc()  # imported with COLMAP's log silenced
     try:
         rec = pycolmap.Reconstruction(str(sparse_dir))
     except Exception as exc:  # pycolmap raises plain RuntimeError/ValueError on bad files
