@@ -895,9 +895,43 @@ def test_eval_with_a_hand_edited_train_config(key: str, value, fragment: str, pr
     assert snapshot(tmp_path) == before
 
 
-def test_sparse_model_garbled_after_process(proj: Path, tmp_path: Path) -> None:
-    (Project(proj).sparse_dir / "images.txt").write_text("1 2 3\n")
+def _binary_sparse(proj: Path) -> Path:
+    """Rewrite the project's text model as .bin (what `process` writes)."""
+    from splatcli.sfm import colmap
+
+    sparse = Project(proj).sparse_dir
+    model = colmap.read_model(sparse)
+    for p in sparse.iterdir():
+        p.unlink()
+    model.write(sparse)
+    return sparse
+
+
+@pytest.mark.parametrize("damage, fragments", [
+    ("txt_garbled_images", ["images.txt", "line 1"]),
+    ("bin_huge_points", ["points3D.bin", "truncated or garbled", "more than the file can hold"]),
+    ("bin_truncated_cameras", ["cameras.bin", "truncated or garbled"]),
+    ("bin_truncated_images", ["images.bin", "truncated or garbled"]),
+    ("bin_missing_points", ["points3D.bin", "missing"]),
+])
+def test_sparse_model_damaged_after_process(damage: str, fragments: list[str], proj: Path, tmp_path: Path) -> None:
+    """pycolmap trusts the counts in .bin files (a huge one aborts the interpreter): the
+    project's model is checked before pycolmap reads it."""
+    sparse = Project(proj).sparse_dir
+    if damage == "txt_garbled_images":
+        (sparse / "images.txt").write_text("1 2 3\n")
+    else:
+        _binary_sparse(proj)
+        if damage == "bin_huge_points":
+            p = sparse / "points3D.bin"
+            p.write_bytes(struct.pack("<Q", 2**40) + p.read_bytes()[8:])
+        elif damage == "bin_truncated_cameras":
+            (sparse / "cameras.bin").write_bytes((sparse / "cameras.bin").read_bytes()[:20])
+        elif damage == "bin_truncated_images":
+            (sparse / "images.bin").write_bytes((sparse / "images.bin").read_bytes()[:-20])
+        else:
+            (sparse / "points3D.bin").unlink()
     before = snapshot(tmp_path)
     for args in (["train", proj, "--iterations", "1"], ["render", proj], ["eval", proj, "--no-plots"]):
-        assert_error(cli(*args), str(Project(proj).sparse_dir))
+        assert_error(cli(*args), str(sparse), *fragments)
     assert snapshot(tmp_path) == before
