@@ -47,14 +47,18 @@ def cli(*args: object):
 
 
 def snapshot(*roots: Path) -> dict[str, tuple[str, int]]:
-    """Every file under `roots`: sha256 of its bytes and its mtime (ns)."""
-    out = {}
+    """Every file under `roots`: sha256 of its bytes and its mtime (ns); every folder
+    by its name only (a failed run may create and remove a temp folder inside)."""
+    out: dict[str, tuple[str, int]] = {}
     for root in roots:
         root = Path(root)
         if not root.exists():
             continue
-        files = [root] if root.is_file() else sorted(p for p in root.rglob("*") if p.is_file())
-        for p in files:
+        found = [root] if root.is_file() else sorted(root.rglob("*"))
+        for p in found:
+            if p.is_dir():
+                out[str(p)] = ("folder", 0)
+                continue
             h = hashlib.sha256()
             with open(p, "rb") as f:
                 while chunk := f.read(1 << 20):
@@ -359,6 +363,18 @@ def test_bad_ply(cmd: str, case: str, proj: Path, tmp_path: Path) -> None:
     before = snapshot(tmp_path)
     line = assert_error(cli(*PLY_COMMANDS[cmd](proj, ply)), str(ply), *fragments)
     assert snapshot(tmp_path) == before, line
+
+
+@pytest.mark.parametrize("case", ["missing_path", "not_a_project", "unprocessed"])
+def test_good_ply_with_a_bad_project(case: str, tmp_path: Path, bases) -> None:
+    """`render FILE.ply --project P`, `eval P --model FILE.ply`, `train P --init-ply FILE.ply`: P is at fault."""
+    root, culprit, fragments = break_project(case, tmp_path, bases)
+    ply = write_rows(tmp_path / "good.ply", good_rows())
+    before = snapshot(tmp_path)
+    for args in (["render", ply, "--project", root], ["eval", root, "--model", ply, "--no-plots"],
+                 ["train", root, "--init-ply", ply, "--iterations", "1"]):
+        assert_error(cli(*args), str(culprit), *fragments)
+    assert snapshot(tmp_path) == before
 
 
 def test_ply_with_some_nan_rows_renders_with_a_note(tmp_path: Path) -> None:
