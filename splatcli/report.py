@@ -74,25 +74,19 @@ def write_plots(report: "EvalReport", project: "Project", out_dir: Path) -> list
 
     st = report.stats
     if st is not None:
-        fig = _figure()
-        ax = fig.subplots()
-        h = st.log10_scale_hist
-        ax.stairs(h.counts, h.edges, fill=True)
-        ax.set_xlabel("log10 scale (world units, all three axes)")
-        ax.set_ylabel("count")
-        ax.set_title(f"Gaussian scales (median {st.median_scale:.3g})")
-        _save(fig, path("scales"))
-        names.append(path("scales").name)
-
-        fig = _figure()
-        ax = fig.subplots()
-        h = st.opacity_hist
-        ax.stairs(h.counts, h.edges, fill=True)
-        ax.set_xlabel("opacity")
-        ax.set_ylabel("count")
-        ax.set_title(f"Gaussian opacities (median {st.median_opacity:.2f})")
-        _save(fig, path("opacities"))
-        names.append(path("opacities").name)
+        for name, h, xlabel, title in (
+            ("scales", st.log10_scale_hist, "log10 scale (world units, all three axes)",
+             f"Gaussian scales (median {st.median_scale:.3g})"),
+            ("opacities", st.opacity_hist, "opacity", f"Gaussian opacities (median {st.median_opacity:.2f})"),
+        ):
+            fig = _figure()
+            ax = fig.subplots()
+            ax.stairs(h.counts, h.edges, fill=True)
+            ax.set_xlabel(xlabel)
+            ax.set_ylabel("count")
+            ax.set_title(title)
+            _save(fig, path(name))
+            names.append(path(name).name)
 
         fig = _figure(5, 3.5)
         ax = fig.subplots()
