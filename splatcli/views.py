@@ -23,6 +23,7 @@ import numpy as np
 
 from .camera import Camera, scene_extent
 from .errors import SplatError
+from .io.safepath import safe_join
 from .project import Project, read_json_file
 
 SPLITS = ("test", "train", "all")
@@ -141,7 +142,7 @@ def read_transforms(path: str | Path, *, notes: list[str] | None = None,
         name = str(file_path) if isinstance(file_path, str) and file_path else f"frame_{i:04d}"
         if w is None or h is None:
             if size_cache is None and isinstance(file_path, str):
-                img = path.parent / file_path
+                img = safe_join(path.parent, file_path, path, f"{where}file_path")
                 size_cache = _image_size(img) or (_image_size(img.with_suffix(".png")) if not img.suffix else None)
             size_cache = size_cache or default_size
             if size_cache is None:

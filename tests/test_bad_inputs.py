@@ -951,3 +951,16 @@ def test_sparse_model_damaged_after_process(damage: str, fragments: list[str], p
     for args in (["train", proj, "--iterations", "1"], ["render", proj], ["eval", proj, "--no-plots"]):
         assert_error(cli(*args), str(sparse), *fragments)
     assert snapshot(tmp_path) == before
+
+
+def test_render_cameras_file_path_cannot_escape(tmp_path):
+    """render --cameras reads an image's size only through a path inside its folder."""
+    from splatcli.errors import SplatError
+    from splatcli.views import read_transforms
+
+    (tmp_path / "cams").mkdir()
+    f = tmp_path / "cams" / "transforms.json"
+    f.write_text(json.dumps({"fl_x": 50, "frames": [
+        {"file_path": "../../etc/passwd", "transform_matrix": np.eye(4).tolist()}]}))
+    with pytest.raises(SplatError, match="outside the input folder"):
+        read_transforms(f)

@@ -17,12 +17,13 @@ from __future__ import annotations
 import math
 import os
 from dataclasses import dataclass
-from pathlib import Path, PurePosixPath
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from ..errors import SplatError
+from ..io.safepath import safe_join
 from ..project import read_json_file
 
 TRANSFORMS_NAMES = ("transforms.json", "transforms_train.json")
@@ -160,7 +161,7 @@ def read_transforms(path: Path) -> TransformsScene:
             raw_frames.append((src, i, fr, data, split))
         if src == path:
             if isinstance(data.get("ply_file_path"), str):
-                ply_path = _safe_join(root, data["ply_file_path"], src, "ply_file_path")
+                ply_path = safe_join(root, data["ply_file_path"], src, "ply_file_path")
                 if not ply_path.is_file():
                     notes.append(f"{src.name}: ply_file_path {data['ply_file_path']} not found; no sparse points")
                     ply_path = None
@@ -222,23 +223,8 @@ def read_transforms(path: Path) -> TransformsScene:
     )
 
 
-def _safe_join(root: Path, rel: str, src: Path, what: str) -> Path:
-    """root / rel, refusing paths that leave `root` (lexically: symlinks inside
-    the input folder are the user's business)."""
-    p = PurePosixPath(rel.replace("\\", "/"))
-    if p.is_absolute():
-        full = Path(os.path.normpath(str(p)))
-    else:
-        full = Path(os.path.normpath(str(root / p)))
-    root_n = Path(os.path.normpath(str(root.absolute())))
-    full_abs = Path(os.path.normpath(str(full.absolute())))
-    if full_abs != root_n and root_n not in full_abs.parents:
-        raise SplatError(f"{src}: {what} {rel!r} points outside the input folder {root}")
-    return full
-
-
 def _resolve_image(root: Path, file_path: str, src: Path, where: str) -> Path | None:
-    p = _safe_join(root, file_path, src, "file_path")
+    p = safe_join(root, file_path, src, "file_path")
     if p.is_file():
         return p
     if p.suffix.lower() not in {s.lower() for s in IMAGE_SUFFIXES}:
