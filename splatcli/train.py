@@ -23,8 +23,8 @@ from .data import TrainData, View, load_train_data
 from .errors import Interrupted, SplatError, TrainingDiverged
 from .events import EventSink, Note, Progress, Stage, StageDone, emit
 from .io.checkpoint import load_checkpoint
-from .loss import photometric_loss, ssim_fast
-from .metrics import psnr
+from .loss import photometric_loss
+from .metrics import psnr, ssim
 from .project import Project
 from .render import rasterize
 from .strategy import StepInfo
@@ -159,7 +159,7 @@ def evaluate_views(state: TrainState, views: list[View], bg: torch.Tensor, sh_de
         img = render_view(state, v, bg, sh_degree).image.clamp(0, 1)
         t = v.target()
         ps.append(float(psnr(img, t)))
-        ss.append(float(ssim_fast(img, t)))  # == metrics.ssim
+        ss.append(float(ssim(img, t)))
     return sum(ps) / len(ps), sum(ss) / len(ss)
 
 

@@ -15,6 +15,8 @@ from typing import Callable, Iterable
 import torch
 from torch import Tensor, nn
 
+from ..render.project import quat_to_rotmat
+
 Params = dict[str, nn.Parameter]
 Optimizers = dict[str, torch.optim.Optimizer]
 
@@ -124,18 +126,6 @@ def set_rows(
     (the opacity reset: stale momentum would undo it at once)."""
     _edit(params, optimizers, lambda n, p: fn(p), lambda n, m: torch.zeros_like(m), names=[name])
 
-
-def quat_to_rotmat(q: Tensor) -> Tensor:  # [M, 4] w,x,y,z (unnormalised) -> [M, 3, 3]
-    q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        dim=-1,
-    ).reshape(q.shape[:-1] + (3, 3))
 
 
 def truncate_bands(params: Params, optimizers: Optimizers, name: str, bands: int) -> None:
