@@ -48,8 +48,9 @@ def initial_gaussians(cfg: TrainConfig, data: TrainData, device: torch.device) -
 
 
 def after_training(project: Project, cfg: TrainConfig, data: TrainData, state: TrainState,
-                   on_event: EventSink | None) -> None:
-    """Run once, at step == iterations, before that step's checkpoint."""
+                   on_event: EventSink | None, before: tuple[float, float] | None = None) -> None:
+    """Run once, at step == iterations, before that step's checkpoint. `before` is
+    the held-out (PSNR, SSIM) just measured for this model, if any."""
     from .train import evaluate_views
 
     if cfg.sh_degree == "auto" and "sh_auto_psnr" not in state.extra:
@@ -67,7 +68,9 @@ def after_training(project: Project, cfg: TrainConfig, data: TrainData, state: T
     if cfg.compact and "compact_before" not in state.extra:
         deg = state.sh_cap
         n = state.num_gaussians
-        before_psnr = evaluate_views(state, data.test, data.background, deg)[0] if data.test else None
+        if before is None and data.test:
+            before = evaluate_views(state, data.test, data.background, deg)
+        before_psnr = before[0] if before is not None else None
         weight = blending_weights(state, data.train, data.background)
         k = max(1, int(np.ceil(cfg.compact_keep * n)))
         keep = torch.zeros(n, dtype=torch.bool, device=weight.device)

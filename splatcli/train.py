@@ -87,7 +87,9 @@ def _loop(project: Project, cfg: TrainConfig, data: TrainData, state: TrainState
         compact.after_training(project, cfg, data, state, on_event)
     for step in range(state.step + 1, total + 1):
         t0 = time.perf_counter()
-        refining = step <= cfg.iterations  # the compaction fine-tune never grows or prunes
+        # The strategy never acts on the last step of the schedule (a reset there would
+        # be the final model) nor during the compaction fine-tune.
+        refining = step < cfg.iterations
         state.optimizers["means"].param_groups[0]["lr"] = means_lr(cfg, step, data.extent)
         view = data.train[state.next_view(len(data.train))]
         out = render_view(state, view, data.background, state.active_sh_degree(step, cfg.sh_degree_interval))
@@ -106,21 +108,27 @@ def _loop(project: Project, cfg: TrainConfig, data: TrainData, state: TrainState
             state.bad_run += 1
         for opt in state.optimizers.values():
             opt.zero_grad(set_to_none=True)
-        if refining:
-            state.strategy.step_post_backward(state.params, state.optimizers, state.sstate, step, info)
         state.step = step
         state.elapsed_s += time.perf_counter() - t0
         log.add(loss.detach() if info.finite else None)
-
         if state.bad_run >= cfg.max_bad_steps:
             path = save_state(project.checkpoint_path(step), state, cfg, cfg.sh_degree_interval)
             raise TrainingDiverged(
                 f"training diverged: {state.bad_run} consecutive steps with a non-finite loss or gradient "
                 f"(step {step}); the last good parameters are in {path}; try a lower learning rate or --resume"
             )
-        if step == cfg.iterations:
-            compact.after_training(project, cfg, data, state, on_event)  # --sh-degree auto, --compact
-        evaluated = _measure(cfg, data, state, step, total, on_event)
+        # Measure what this step's update produced, before its densification or opacity
+        # reset (right after a reset every view is nearly transparent); the final model
+        # is measured after post-processing. Evaluation is not training time.
+        evaluated = _measure(cfg, data, state, step, total, force=step == cfg.iterations and cfg.compact)
+        t1 = time.perf_counter()
+        if refining:
+            state.strategy.step_post_backward(state.params, state.optimizers, state.sstate, step, info)
+        if step == cfg.iterations:  # --sh-degree auto, --compact (timed: part of training)
+            compact.after_training(project, cfg, data, state, on_event, before=evaluated)
+        state.elapsed_s += time.perf_counter() - t1
+        if step == total:
+            evaluated = _measure(cfg, data, state, step, total, force=True)
         log.line(step, state, evaluated, cfg.log_every, force=step == total)
         emit(on_event, Progress(STAGE, step, total, log.info(state)))
         if step % cfg.checkpoint_every == 0 or step == total or stop.is_set():
@@ -144,9 +152,9 @@ def _all_finite(loss: torch.Tensor, state: TrainState) -> bool:
 
 
 def _measure(cfg: TrainConfig, data: TrainData, state: TrainState, step: int, total: int,
-             on_event: EventSink | None) -> tuple[float, float] | None:
-    """Held-out PSNR / SSIM every `eval_every` steps and at the end (not timed)."""
-    if not data.test or not ((cfg.eval_every and step % cfg.eval_every == 0) or step == total):
+             force: bool = False) -> tuple[float, float] | None:
+    """Held-out PSNR / SSIM every `eval_every` steps (and when forced)."""
+    if not data.test or not (force or (cfg.eval_every and step % cfg.eval_every == 0 and step < total)):
         return None
     return evaluate_views(state, data.test, data.background, state.active_sh_degree(step, cfg.sh_degree_interval))
 

@@ -210,3 +210,10 @@ def test_finished_run_resumed_with_compact_equals_a_compact_run(tmp_path, uninte
     _, pb = _params(b.latest_checkpoint())
     for k in pa:
         assert torch.equal(pa[k], pb[k]), k
+
+
+def test_no_opacity_reset_on_the_last_step(tmp_path):
+    proj = tiny(tmp_path)
+    train(proj.root, make_config(**{**SMALL, "iterations": 16, "reset_every": 16, "refine_stop": 1000}), CPU)
+    g = load_gaussians(proj.latest_checkpoint(), CPU)
+    assert float(torch.sigmoid(g.opacity_logits).max()) > 0.05  # a reset would have clamped all to 0.01
