@@ -108,7 +108,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     # budget of 20k Gaussians (unbudgeted it reaches ~30k for +0.3 dB at ~1.5x the time).
     "demo": {"iterations": 1500, "refine_start": 300, "refine_stop": 900, "reset_every": 100_000,
              "sh_degree_interval": 300, "eval_every": 500, "checkpoint_every": 500,
-             "max_size": 320, "init_random_points": 20_000, "max_gaussians": 20_000},
+             "max_size": 256, "init_random_points": 20_000, "max_gaussians": 20_000},
 }
 
 
