@@ -72,7 +72,7 @@ def after_training(project: Project, cfg: TrainConfig, data: TrainData, state: T
             before = evaluate_views(state, data.test, data.background, deg)
         before_psnr = before[0] if before is not None else None
         weight = blending_weights(state, data.train, data.background)
-        k = max(1, int(np.ceil(cfg.compact_keep * n)))
+        k = max(1, int(cfg.compact_keep * n))  # floor: never more than the fraction
         keep = torch.zeros(n, dtype=torch.bool, device=weight.device)
         keep[torch.argsort(weight, descending=True, stable=True)[:k]] = True
         ops.keep(state.params, state.optimizers, keep)
