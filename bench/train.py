@@ -63,12 +63,12 @@ class RssSampler(threading.Thread):
     def __init__(self, pid: int, period: float = 0.5) -> None:
         super().__init__(daemon=True)
         self.pid, self.period, self.peak_kb, self.samples = pid, period, 0, []
-        self._stop = threading.Event()
+        self._halt = threading.Event()
         self.t0 = time.monotonic()
 
     def run(self) -> None:
         path = f"/proc/{self.pid}/status"
-        while not self._stop.is_set():
+        while not self._halt.is_set():
             try:
                 with open(path) as f:
                     for line in f:
@@ -78,10 +78,10 @@ class RssSampler(threading.Thread):
                             self.samples.append((round(time.monotonic() - self.t0, 1), kb // 1024))
             except OSError:
                 pass
-            self._stop.wait(self.period)
+            self._halt.wait(self.period)
 
     def stop(self) -> None:
-        self._stop.set()
+        self._halt.set()
         self.join()
 
 
@@ -124,17 +124,27 @@ def read_log(path: Path) -> list[dict]:
 
 def train_variant(scene: str, variant: str, extra: list[str], preset: str, iterations: int | None,
                   threads: int | None) -> dict:
+    """One `splatcli train` run. The compact variant resumes a copy of the finished
+    default run with --compact (bitwise what a --compact run from scratch gives,
+    see tests/test_train.py), so it costs only the prune and the fine-tune."""
     base = ensure_processed(scene)
     proj = OUT / scene / variant
     if proj.exists():
         shutil.rmtree(proj)
-    shutil.copytree(base, proj, ignore=shutil.ignore_patterns("checkpoints", "reports", "renders", "exports"))
     _, _, targs, scene_preset = SCENES[scene]
     preset = scene_preset or preset
-    cmd = SPLATCLI + ["train", str(proj), "--preset", preset, "--device", "cpu", "--eval-every", "1000",
-                      "--json", "-q", *targs, *extra]
-    if iterations:
-        cmd += ["--iterations", str(iterations)]
+    if variant == "compact":
+        src = OUT / scene / "default"
+        if not (src / "checkpoints").is_dir():
+            raise SystemExit(f"[{scene}/compact] needs the default run first ({src})")
+        shutil.copytree(src, proj)
+        cmd = SPLATCLI + ["train", str(proj), "--resume", "--compact", "--device", "cpu", "--json", "-q"]
+    else:
+        shutil.copytree(base, proj, ignore=shutil.ignore_patterns("checkpoints", "reports", "renders", "exports"))
+        cmd = SPLATCLI + ["train", str(proj), "--preset", preset, "--device", "cpu", "--eval-every", "1000",
+                          "--json", "-q", *targs, *extra]
+        if iterations:
+            cmd += ["--iterations", str(iterations)]
     if threads:
         os.environ["OMP_NUM_THREADS"] = str(threads)
     print(f"[{scene}/{variant}] {' '.join(cmd[2:])}", flush=True)
@@ -155,11 +165,20 @@ def train_variant(scene: str, variant: str, extra: list[str], preset: str, itera
         "ply_bytes": s["ply_bytes"], "sh_degree": s["sh_degree"], "final_psnr": s["psnr"], "final_ssim": s["ssim"],
         "at": at, "seconds_to_30db": hit["elapsed_s"] if hit else None, "rss_by_step": rss,
         "rss_samples": samples[:: max(1, len(samples) // 200)], "compact": s.get("compact"),
-        "resolution": None,
+        "threads": os.environ.get("OMP_NUM_THREADS"), "resumed_from": s.get("resumed_from"),
     }
     print(f"[{scene}/{variant}] {res['steps']} steps, {res['steps_per_s']:.2f} steps/s, PSNR {res['final_psnr']}, "
           f"{res['num_gaussians']} Gaussians, peak RSS {peak_mb} MB", flush=True)
     return res
+
+
+def save_result(path: Path, r: dict) -> None:
+    """Merge one result into results.json (re-read first: runs may go in parallel)."""
+    old = json.loads(path.read_text()) if path.exists() else {"results": []}
+    old["results"] = [o for o in old["results"] if (o["scene"], o["variant"]) != (r["scene"], r["variant"])] + [r]
+    tmp = path.with_suffix(f".{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(old, indent=1))
+    os.replace(tmp, path)
 
 
 def fmt(v, spec=".2f") -> str:
@@ -173,19 +192,18 @@ def markdown(results: list[dict], meta: dict) -> str:
              f"CPU only. Every run is `splatcli train` as a subprocess on its own copy of the processed project; "
              "PSNR/SSIM are held-out (every 8th image), measured every 1000 steps; seconds are training seconds "
              "(evaluation excluded) from `reports/train_log.jsonl`.", ""]
-    lines += ["| scene | variant | steps | steps/s | PSNR 1k | PSNR 3k | PSNR 7k | SSIM 7k | s to 30 dB | "
-              "train s | wall s | peak RSS MB | Gaussians | .ply MB |",
-              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    lines += ["| scene | variant | steps | steps/s | PSNR 1k | PSNR 3k | PSNR 7k | SSIM 7k | final PSNR / SSIM | "
+              "s to 30 dB | train s | wall s | peak RSS MB | Gaussians | .ply MB |",
+              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in results:
         a = r["at"]
         p = lambda m, k="psnr": a.get(str(m), {}).get(k)  # noqa: E731
-        last = r["final_psnr"] if str(r["steps"]) not in a else None
         lines.append(
-            f"| {r['scene']} | {r['variant']}{' ' + ' '.join(r['args']) if r['args'] else ''} | {r['steps']} | "
+            f"| {r['scene']} | {r['variant']}{' ' + ' '.join(r['args']) if r['args'] else ''}"
+            f"{' (resumed at ' + str(r['resumed_from']) + ')' if r.get('resumed_from') else ''} | {r['steps']} | "
             f"{r['steps_per_s']:.2f} | {fmt(p(1000))} | {fmt(p(3000))} | {fmt(p(7000))} | {fmt(p(7000, 'ssim'), '.4f')} | "
             f"{fmt(r['seconds_to_30db'], '.0f')} | {r['train_seconds']:.0f} | {r['wall_seconds']:.0f} | "
-            f"{r['peak_rss_mb']} | {r['num_gaussians']} | {r['ply_bytes'] / 1e6:.2f} |"
-            + (f" final PSNR {last:.2f}" if last else ""))
+            f"{r['peak_rss_mb']} | {r['num_gaussians']} | {r['ply_bytes'] / 1e6:.2f} |")
     comp = [r for r in results if r.get("compact")]
     if comp:
         lines += ["", "`--compact` (prune by total blending weight over the training views, then fine-tune):", "",
@@ -227,7 +245,9 @@ def main() -> None:
     ap.add_argument("--variants", default="default,compact,budget")
     ap.add_argument("--preset", default="fast")
     ap.add_argument("--iterations", type=int, default=None)
-    ap.add_argument("--threads", type=int, default=None, help="OMP_NUM_THREADS for the runs")
+    ap.add_argument("--threads", type=int, default=None,
+                    help="OMP_NUM_THREADS for the runs (1 when the cores are shared: OpenMP spin-waits collapse "
+                         "under oversubscription)")
     ap.add_argument("--notes", default="", help="a paragraph appended to the section")
     ap.add_argument("--no-write", action="store_true", help="do not edit docs/benchmarks.md")
     args = ap.parse_args()
@@ -235,29 +255,20 @@ def main() -> None:
 
     OUT.mkdir(parents=True, exist_ok=True)
     results_path = OUT / "results.json"
-    old = json.loads(results_path.read_text()) if results_path.exists() else {"results": []}
-    results = []
-    for scene in args.scenes.split(","):
-        default = None
-        for variant in args.variants.split(","):
+    for scene in [x for x in args.scenes.split(",") if x]:
+        for variant in [x for x in args.variants.split(",") if x]:
             if scene == "sample" and variant != "default":
                 continue
             extra = {"default": [], "compact": ["--compact"]}.get(variant)
             if variant == "budget":
-                if default is None:
-                    prev = [r for r in old["results"] if r["scene"] == scene and r["variant"] == "default"]
-                    default = prev[-1] if prev else None
-                if default is None:
+                old = json.loads(results_path.read_text())["results"] if results_path.exists() else []
+                prev = [r for r in old if r["scene"] == scene and r["variant"] == "default"]
+                if not prev:
                     print(f"[{scene}/budget] skipped: needs the default run's count", flush=True)
                     continue
-                extra = ["--max-gaussians", str(max(1, default["num_gaussians"] // 3))]
-            r = train_variant(scene, variant, extra, args.preset, args.iterations, args.threads)
-            if variant == "default":
-                default = r
-            results.append(r)
-            keep = [o for o in old["results"] if (o["scene"], o["variant"]) != (scene, variant)]
-            old["results"] = keep + [r]
-            results_path.write_text(json.dumps(old, indent=1))
+                extra = ["--max-gaussians", str(max(1, prev[-1]["num_gaussians"] // 3))]
+            save_result(results_path, train_variant(scene, variant, extra, args.preset, args.iterations, args.threads))
+    old = json.loads(results_path.read_text()) if results_path.exists() else {"results": []}
     meta = {"machine": f"{platform.machine()} ({platform.processor() or platform.system()})",
             "cores": os.cpu_count(), "shared": True, "torch": torch.__version__, "notes": args.notes}
     order = {s: i for i, s in enumerate(SCENES)}
