@@ -202,6 +202,7 @@ def markdown(results: list[dict], meta: dict) -> str:
             f"| {r['scene']} | {r['variant']}{' ' + ' '.join(r['args']) if r['args'] else ''}"
             f"{' (resumed at ' + str(r['resumed_from']) + ')' if r.get('resumed_from') else ''} | {r['steps']} | "
             f"{r['steps_per_s']:.2f} | {fmt(p(1000))} | {fmt(p(3000))} | {fmt(p(7000))} | {fmt(p(7000, 'ssim'), '.4f')} | "
+            f"{fmt(r['final_psnr'])} / {fmt(r['final_ssim'], '.4f')} | "
             f"{fmt(r['seconds_to_30db'], '.0f')} | {r['train_seconds']:.0f} | {r['wall_seconds']:.0f} | "
             f"{r['peak_rss_mb']} | {r['num_gaussians']} | {r['ply_bytes'] / 1e6:.2f} |")
     comp = [r for r in results if r.get("compact")]
