@@ -18,6 +18,7 @@ from .errors import SplatError
 from .gaussians import SH_C0, Gaussians, num_sh_bases
 
 KNN_BLOCK = 512  # query points per distance block (memory: BLOCK x candidates floats)
+CDIST_MODE = "donot_use_mm_for_euclid_dist"  # exact differences: the matmul form loses digits for flat, offset clouds
 MIN_KNN_DIST = 1e-7 ** 0.5  # 3DGS clamps the squared distance at 1e-7 (coincident points)
 
 
@@ -103,8 +104,7 @@ def knn_rms_distance(points: Tensor, k: int = 3) -> Tensor:  # [P, 3] -> [P]
         r = float(torch.cdist(q, w).topk(kk + 1, dim=1, largest=False).values[:, -1].max())
         lo, hi = q.min(0).values - r, q.max(0).values + r
         cand = sorted_pts[((sorted_pts >= lo) & (sorted_pts <= hi)).all(dim=1)]
-        c = q.mean(0)  # centre both sets: cdist's matmul form loses digits far from the origin
-        d = torch.cdist(q - c, cand - c).topk(kk + 1, dim=1, largest=False).values[:, 1:]  # drop the point itself
+        d = torch.cdist(q, cand, compute_mode=CDIST_MODE).topk(kk + 1, dim=1, largest=False).values[:, 1:]  # drop the point itself
         out[order[s : s + KNN_BLOCK]] = d.square().mean(dim=1).sqrt()
     return out.to(points.dtype)
 

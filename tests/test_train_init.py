@@ -1,0 +1,133 @@
+"""Initialisation (kNN scales, random points, budget subsets, .ply) and the
+training data cache (resolution rule, image decoding, splits)."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from splatcli.camera import Camera
+from splatcli.data import load_train_data, read_rgb, training_camera
+from splatcli.errors import SplatError
+from splatcli.gaussians import SH_C0, Gaussians
+from splatcli.init import (
+    gaussians_from_ply,
+    gaussians_from_points,
+    knn_rms_distance,
+    random_points,
+    subsample_index,
+)
+from splatcli.io.ply import write_ply
+
+from tiny_project import make_tiny_project
+
+CPU = torch.device("cpu")
+
+
+def _brute_knn(p: torch.Tensor, k: int) -> torch.Tensor:
+    d = torch.cdist(p.double(), p.double(), compute_mode="donot_use_mm_for_euclid_dist")
+    return d.topk(k + 1, dim=1, largest=False).values[:, 1:].square().mean(1).sqrt()
+
+
+@pytest.mark.parametrize("kind", ["uniform", "clustered", "flat", "duplicates", "tiny"])
+def test_knn_matches_brute_force(kind):
+    g = torch.Generator().manual_seed(7)
+    if kind == "uniform":
+        p = torch.rand(3000, 3, generator=g)
+    elif kind == "clustered":  # dense core, sparse halo: per-block radii must still bound the search
+        p = torch.randn(2500, 3, generator=g) ** 3
+    elif kind == "flat":
+        p = torch.rand(1500, 3, generator=g) * torch.tensor([10.0, 1.0, 1e-3]) + 100.0
+    elif kind == "duplicates":
+        p = torch.rand(400, 3, generator=g).repeat(2, 1)
+    else:
+        p = torch.rand(3, 3, generator=g)
+    # float32 input; the reference is float64: differences are float32 rounding of distances
+    torch.testing.assert_close(knn_rms_distance(p, 3).double(), _brute_knn(p, min(3, len(p) - 1)),
+                               rtol=1e-3, atol=1e-5)
+
+
+def test_knn_single_point_gets_unit_scale():
+    assert knn_rms_distance(torch.zeros(1, 3), 3).tolist() == [1.0]
+
+
+def test_gaussians_from_points_follow_the_recipe():
+    pts = torch.tensor([[0.0, 0, 0], [1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]])
+    cols = torch.tensor([[1.0, 0.0, 0.5]] * 4)
+    g = gaussians_from_points(pts, cols, sh_degree=2)
+    assert g.sh.shape == (4, 9, 3) and bool((g.sh[:, 1:] == 0).all())
+    torch.testing.assert_close(SH_C0 * g.sh[:, 0] + 0.5, cols)
+    torch.testing.assert_close(torch.sigmoid(g.opacity_logits), torch.full((4,), 0.1))
+    assert torch.equal(g.quats, torch.tensor([[1.0, 0, 0, 0]] * 4))
+    # point 0's three neighbours are at distance 1: log scale 0, isotropic
+    torch.testing.assert_close(g.log_scales[0], torch.zeros(3), rtol=0, atol=1e-6)
+    with pytest.raises(SplatError):
+        gaussians_from_points(torch.zeros(0, 3), torch.zeros(0, 3), 0)
+
+
+def test_random_points_are_seeded_and_inside_the_box():
+    lo, hi = np.array([-1.0, 0.0, 2.0]), np.array([1.0, 0.5, 3.0])
+    a, ca = random_points(500, lo, hi, seed=3, device=CPU)
+    b, cb = random_points(500, lo, hi, seed=3, device=CPU)
+    c, _ = random_points(500, lo, hi, seed=4, device=CPU)
+    assert torch.equal(a, b) and torch.equal(ca, cb) and not torch.equal(a, c)
+    assert bool((a >= torch.tensor(lo, dtype=torch.float32)).all() and (a <= torch.tensor(hi, dtype=torch.float32)).all())
+
+
+def test_subsample_index():
+    idx = subsample_index(100, 30, seed=0)
+    assert len(idx) == 30 == len(set(idx.tolist())) and torch.equal(idx, idx.sort().values)
+    assert torch.equal(subsample_index(5, 30, seed=0), torch.arange(5))
+
+
+def test_init_from_ply_pads_sh(tmp_path):
+    g = Gaussians(torch.randn(6, 3), torch.randn(6, 4), torch.randn(6, 3), torch.randn(6), torch.randn(6, 4, 3))
+    write_ply(tmp_path / "s.ply", g)
+    h = gaussians_from_ply(tmp_path / "s.ply", 3, CPU)
+    assert h.sh.shape == (6, 16, 3)
+    torch.testing.assert_close(h.sh[:, :4], g.sh)
+    torch.testing.assert_close(h.means, g.means)
+
+
+def test_training_camera_rule():
+    cam = Camera("a.png", 1920, 1080, np.array([[1000.0, 0, 960], [0, 1000.0, 540], [0, 0, 1]]), np.eye(4))
+    c = training_camera(cam, 2.0, 1600)
+    assert (c.width, c.height) == (960, 540)
+    c = training_camera(cam, 1.0, 480)
+    assert (c.width, c.height) == (480, 270) and math.isclose(c.K[0, 0], 250.0)
+    assert training_camera(cam, 1.0, 4000) is cam
+
+
+@pytest.mark.parametrize("kind", ["rgb", "rgba", "gray", "u16"])
+def test_read_rgb_decodes_to_rgb_uint8(tmp_path, kind):
+    rgb = np.zeros((8, 10, 3), np.uint8)
+    rgb[..., 0] = 200  # red
+    path = tmp_path / "x.png"
+    if kind == "rgb":
+        cv2.imwrite(str(path), rgb[..., ::-1])
+    elif kind == "rgba":
+        cv2.imwrite(str(path), np.dstack([rgb[..., ::-1], np.full((8, 10), 255, np.uint8)]))
+    elif kind == "gray":
+        cv2.imwrite(str(path), np.full((8, 10), 200, np.uint8))
+    else:
+        cv2.imwrite(str(path), (rgb[..., ::-1].astype(np.uint16) * 257))
+    out = read_rgb(path, 10, 8)
+    assert out.shape == (8, 10, 3) and out.dtype == np.uint8 and out[0, 0, 0] == 200
+    assert read_rgb(path, 5, 4).shape == (4, 5, 3)
+    with pytest.raises(SplatError):
+        read_rgb(tmp_path / "missing.png", 5, 4)
+
+
+def test_load_train_data_uses_the_splits(tmp_path):
+    proj = make_tiny_project(tmp_path / "p", trained=False, background=1.0)
+    data = load_train_data(proj, 2.0, None, CPU)
+    names = proj.splits()
+    assert [v.camera.name for v in data.train] == names["train"]
+    assert [v.camera.name for v in data.test] == names["test"]
+    assert data.train[0].image.shape == (20, 24, 3) and data.train[0].image.dtype == torch.uint8
+    assert data.background.tolist() == [1.0, 1.0, 1.0] and data.extent > 0
+    assert load_train_data(proj, 1.0, None, CPU, eval_max_views=1).test[0].camera.name == names["test"][0]
