@@ -18,11 +18,11 @@ from torch import Tensor
 
 from .data import TrainData, View
 from .events import EventSink, Note, emit
-from .gaussians import SH_C0, Gaussians
+from .gaussians import Gaussians
 from .init import gaussians_from_ply, gaussians_from_points, random_points, subsample, subsample_index
 from .io.ply import ply_bytes
 from .project import Project
-from .render import rasterize
+from .render.weights import blending_weights as render_weights
 from .strategy import ops
 from .train_config import TrainConfig
 from .train_state import TrainState
@@ -94,16 +94,7 @@ def subset(views: list[View], k: int) -> list[View]:
 
 
 def blending_weights(state: TrainState, views: list[View], bg: Tensor) -> Tensor:  # -> [N]
-    """sum over views and pixels of alpha_i T_i per Gaussian, exactly: with every
-    colour 0.5 (DC = 0, degree 0: the clamp at 0 is inactive) the red channel is
-    sum_i w_i c_i + T bg_r, so its gradient w.r.t. dc_i is SH_C0 sum_pixels w_i."""
+    """sum over views and pixels of alpha_i T_i per Gaussian (render.weights)."""
     p = state.params
-    n = state.num_gaussians
-    total = torch.zeros(n, dtype=torch.float64, device=p["means"].device)
-    args = [p[k].detach() for k in ("means", "quats", "log_scales", "opacity_logits")]
-    for v in views:
-        dc = torch.zeros(n, 1, 3, dtype=p["means"].dtype, device=p["means"].device, requires_grad=True)
-        out = rasterize(*args, dc, v.viewmat, v.K, v.camera.width, v.camera.height, bg, sh_degree=0)
-        (grad,) = torch.autograd.grad(out.image[..., 0].sum(), dc)
-        total += grad[:, 0, 0].double() / SH_C0
-    return total
+    return render_weights(p["means"], p["quats"], p["log_scales"], p["opacity_logits"],
+                          ((v.viewmat, v.K, v.camera.width, v.camera.height) for v in views))

@@ -34,11 +34,12 @@ from torch import Tensor
 from .camera import Camera
 from .errors import SplatError
 from .events import EventSink, Note, Progress, Stage, StageDone, emit
-from .gaussians import SH_C0, Gaussians
+from .gaussians import Gaussians
 from .io.atomic import atomic_write_json, atomic_write_text
 from .io.ply import ply_bytes
 from .metrics import psnr, ssim
 from .project import Project
+from .render.weights import blending_weights
 from .rendering import _sync, describe_device, project_background, render_camera
 from .views import SPLITS, View, dataset_views
 
@@ -212,20 +213,9 @@ def eval_size(cam: Camera, downscale: float, max_size: int | None) -> Camera:
 
 
 def contributions(g: Gaussians, cams: Sequence[Camera]) -> Tensor:  # -> [N] total blending weight, pixels
-    """sum over views and pixels of alpha_i T_i, exactly, via the gradient of the
-    red channel with respect to a zero DC term (see the module docstring)."""
-    total = torch.zeros(len(g), dtype=torch.float64, device=g.device)
-    zero_bg = torch.zeros(3, dtype=g.means.dtype, device=g.device)
-    for cam in cams:
-        dc = torch.zeros(len(g), 1, 3, dtype=g.means.dtype, device=g.device, requires_grad=True)
-        vm, K = cam.torch(g.device, g.means.dtype)
-        from .render import rasterize
-
-        out = rasterize(g.means.detach(), g.quats.detach(), g.log_scales.detach(), g.opacity_logits.detach(), dc,
-                        vm, K, cam.width, cam.height, zero_bg, sh_degree=0)
-        (grad,) = torch.autograd.grad(out.image[..., 0].sum(), dc)
-        total += grad[:, 0, 0].to(torch.float64) / SH_C0
-    return total
+    """sum over views and pixels of alpha_i T_i, exactly (render.weights)."""
+    return blending_weights(g.means, g.quats, g.log_scales, g.opacity_logits,
+                            (cam.torch(g.device, g.means.dtype) + (cam.width, cam.height) for cam in cams))
 
 
 def prune_to(g: Gaussians, weight: Tensor, fraction: float) -> Gaussians:  # weight [N]
