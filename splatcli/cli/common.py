@@ -49,7 +49,11 @@ class Ui:
     def __init__(self, *, quiet: bool = False, json_out: bool = False) -> None:
         self.quiet = quiet
         self.json_out = json_out
-        self.err = Console(stderr=True, highlight=False, quiet=quiet)
+        self.err = Console(stderr=True, highlight=False, quiet=quiet, soft_wrap=True)
+        if not self.err.is_terminal:
+            # Logs of Makefiles and CI: rich assumes 80 columns there, which truncates
+            # the progress columns (loss, PSNR, count) to ellipses.
+            self.err.width = 140
 
     def note(self, message: str, level: str = "note") -> None:
         if level == "warning":
@@ -128,7 +132,7 @@ class Ui:
             return
         if self.quiet:
             return
-        out = Console(highlight=False)
+        out = Console(highlight=False, soft_wrap=True)  # summary lines stay whole in logs
         if title:
             out.print(f"[bold green]{title}[/bold green]")
         for line in lines or []:
