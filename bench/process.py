@@ -37,6 +37,7 @@ from splatcli.project import Project  # noqa: E402
 from splatcli.sfm.align import PoseErrors, compare_poses  # noqa: E402
 from splatcli.sfm.model import read_scene  # noqa: E402
 from splatcli.sfm.transforms import read_transforms  # noqa: E402
+from _doc import write_section  # noqa: E402  (bench/ is on sys.path when run as a script)
 
 FOX_WIDTH = 400  # the baseline was measured at 400 px wide
 DOC = REPO / "docs" / "benchmarks.md"
@@ -101,19 +102,6 @@ def stage_row(label: str, r: ProcessResult, cpu: float, e: PoseErrors | None) ->
     return (f"| {label} | {r.registered}/{r.total} | {r.points} | {r.mean_reprojection_error:.3f} | "
             f"{s.get('extract features', 0):.1f} | {s.get('match', 0):.1f} | {s.get('map', 0):.1f} | "
             f"{s.get('undistort', 0):.1f} | **{s['total']:.1f}** | {cpu:.1f} | {r.matcher}, {r.pairs} | {acc} |")
-
-
-def write_section(text: str) -> None:
-    old = DOC.read_text(encoding="utf-8") if DOC.exists() else "# Benchmarks\n"
-    lines = old.splitlines(keepends=True)
-    start = next((i for i, ln in enumerate(lines) if ln.strip() == SECTION), None)
-    if start is None:
-        new = old.rstrip("\n") + "\n\n" + text
-    else:
-        end = next((i for i in range(start + 1, len(lines)) if lines[i].startswith("## ")), len(lines))
-        new = "".join(lines[:start]) + text + ("\n" + "".join(lines[end:]) if end < len(lines) else "")
-    DOC.parent.mkdir(parents=True, exist_ok=True)
-    DOC.write_text(new, encoding="utf-8")
 
 
 def main() -> None:
@@ -206,7 +194,7 @@ def main() -> None:
         if not args.no_write:
             print(f"{DOC} left unchanged: only a full run (fox data present, accuracy run) rewrites it")
     else:
-        write_section(text)
+        write_section(SECTION, text)
         print(f"wrote the process section of {DOC}")
 
 

@@ -41,12 +41,12 @@ sys.path.insert(0, str(REPO))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from splatcli.io.atomic import atomic_write_text  # noqa: E402
 from splatcli.render import rasterize  # noqa: E402
 from splatcli.render.project import project, tile_rect  # noqa: E402
 from splatcli.render.reference import rasterize_reference  # noqa: E402
 from splatcli.render.scenes import benchmark_scene  # noqa: E402
 from splatcli.render.sh import SH_C0  # noqa: E402
+from _doc import write_section  # noqa: E402  (bench/ is on sys.path when run as a script)
 
 DOC = REPO / "docs" / "benchmarks.md"
 SECTION = "## Rasterizer"
@@ -294,19 +294,6 @@ def flattened_measure(wl: Workload, reps: int) -> dict:
     return measure(wl, reps, torch.device("cpu"), fn=fn)
 
 
-def write_section(text: str) -> None:
-    old = DOC.read_text(encoding="utf-8") if DOC.exists() else "# Benchmarks\n"
-    lines = old.splitlines(keepends=True)
-    start = next((i for i, ln in enumerate(lines) if ln.strip() == SECTION), None)
-    if start is None:
-        new = old.rstrip("\n") + "\n\n" + text
-    else:
-        end = next((i for i in range(start + 1, len(lines)) if lines[i].startswith("## ")), len(lines))
-        rest = "".join(lines[end:])
-        new = "".join(lines[:start]) + text + ("\n" + rest if rest else "")
-    atomic_write_text(DOC, new)
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--threads", default=str(torch.get_num_threads()), help="comma list of torch thread counts")
@@ -402,7 +389,7 @@ def main() -> None:
     text = "\n".join(out)
     print(text)
     if not args.no_write:
-        write_section(text)
+        write_section(SECTION, text)
 
 
 if __name__ == "__main__":

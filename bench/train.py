@@ -35,6 +35,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from _doc import write_section  # noqa: E402  (bench/ is on sys.path when run as a script)
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "bench" / "out" / "train"
@@ -226,20 +227,6 @@ def markdown(results: list[dict], meta: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_section(text: str) -> None:
-    """Replace (or append) only the "## train" section of docs/benchmarks.md."""
-    doc = DOC.read_text() if DOC.exists() else "# Benchmarks\n"
-    start = doc.find("\n## train\n")
-    if start < 0:
-        doc = doc.rstrip("\n") + "\n\n" + text
-    else:
-        nxt = doc.find("\n## ", start + 1)
-        doc = doc[: start + 1] + text + (doc[nxt + 1:] if nxt >= 0 else "")
-    tmp = DOC.with_suffix(".md.tmp")
-    tmp.write_text(doc)
-    os.replace(tmp, DOC)
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenes", default="lego,fox,sample")
@@ -275,7 +262,7 @@ def main() -> None:
     order = {s: i for i, s in enumerate(SCENES)}
     allres = sorted(old["results"], key=lambda r: (order.get(r["scene"], 9), ["default", "compact", "budget"].index(r["variant"])))
     if not args.no_write:
-        write_section(markdown(allres, meta))
+        write_section("## train", markdown(allres, meta))
     print(markdown(allres, meta))
 
 
