@@ -72,3 +72,52 @@ def test_signal_checkpoints_exits_130_and_resumes(tmp_path, sig):
     assert r.returncode == 0, r.stderr
     summary = json.loads(r.stdout)
     assert summary["resumed_from"] == step and summary["steps"] == step + 3
+
+
+def _wait_for_log(proc, proj, deadline_s: float = 120) -> None:
+    deadline = time.monotonic() + deadline_s
+    while not (proj.train_log_path.exists() and read_log(proj.train_log_path)):
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() < deadline, "no training progress within the deadline"
+        time.sleep(0.05)
+
+
+@pytest.mark.parametrize("delay", [0.0, 0.7, 1.9], ids=["at-once", "early", "later"])
+def test_kill_9_leaves_previous_checkpoint_and_manifest_intact(tmp_path, delay):
+    """SIGKILL cannot be caught: only atomic writes protect the files. After a first
+    run is interrupted cleanly, a resumed run is killed -9 at some moment (seeded
+    delays: at once, while loading, while stepping/writing); the old checkpoint and
+    the manifest must still load, and a further --resume must work."""
+    proj = _project(tmp_path)
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    args = ["--iterations", "100000", "--max-gaussians", "150", "--eval-every", "0", "--device", "cpu", "--quiet"]
+    proc = subprocess.Popen(_cli("train", str(proj.root), *args), cwd=REPO, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        _wait_for_log(proc, proj)
+        proc.send_signal(signal.SIGINT)
+        proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    first = proj.latest_checkpoint()
+    assert first is not None
+
+    proc = subprocess.Popen(_cli("train", str(proj.root), "--resume", *args), cwd=REPO, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(delay)
+    proc.send_signal(signal.SIGKILL)
+    proc.communicate(timeout=60)
+    assert proc.returncode == -signal.SIGKILL
+
+    json.loads(proj.manifest_path.read_text())  # parses: never half-written
+    Project.open(proj.root).require_trained()
+    ck = load_checkpoint(first, torch.device("cpu"))  # the previous checkpoint is whole
+    assert bool(ck.gaussians.finite_mask().all())
+    latest = load_checkpoint(proj.latest_checkpoint(), torch.device("cpu"))  # so is any newer one
+    assert latest.step >= ck.step
+
+    r = subprocess.run(_cli("train", str(proj.root), "--resume", "--iterations", str(latest.step + 2), "--json",
+                            "--quiet"), cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["resumed_from"] == latest.step
