@@ -121,3 +121,30 @@ def test_kill_9_leaves_previous_checkpoint_and_manifest_intact(tmp_path, delay):
                             "--quiet"), cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["resumed_from"] == latest.step
+
+
+def test_disk_full_during_export_is_one_line_and_keeps_the_old_file(tmp_path, monkeypatch):
+    """A write error (ENOSPC) while publishing a file: exit 2, one line that says so,
+    the previous export byte-for-byte as it was and no temp debris."""
+    import errno
+
+    from typer.testing import CliRunner
+
+    from splatcli.cli.main import app
+
+    proj = make_tiny_project(tmp_path / "p")
+    r = CliRunner().invoke(app, ["export", str(proj.root), "--quiet"])
+    assert r.exit_code == 0, r.stderr
+    before = proj.export_path().read_bytes()
+
+    def full(src, dst):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(os, "replace", full)
+    r = CliRunner().invoke(app, ["export", str(proj.root), "--quiet"])
+    assert r.exit_code == 2
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and "No space left on device" in lines[0]
+    assert "scene.ply" in lines[0]
+    assert proj.export_path().read_bytes() == before
+    assert not [p for p in proj.exports_dir.iterdir() if p.name.endswith(".tmp")]
