@@ -20,7 +20,7 @@ import torch
 
 from . import compact, train_report
 from .data import TrainData, View, load_train_data
-from .errors import Interrupted, SplatError, TrainingDiverged
+from .errors import Interrupted, TrainingDiverged
 from .events import EventSink, Note, Progress, Stage, StageDone, emit
 from .io.checkpoint import load_checkpoint
 from .loss import photometric_loss
@@ -28,7 +28,7 @@ from .metrics import psnr, ssim
 from .project import Project
 from .render import rasterize
 from .strategy import StepInfo
-from .train_config import TrainConfig, TrainLogLine, TrainSummary
+from .train_config import TrainConfig, TrainSummary
 from .train_state import TrainState, means_lr, new_state, save_state, state_from_checkpoint
 
 STAGE = "train"
@@ -58,14 +58,17 @@ def train(
             ck = load_checkpoint(path, device)
             cfg = replace(TrainConfig.from_dict(ck.config), **(overrides or {}), device=str(device))
             resumed_from = ck.step
+    # Reading the scene imports pycolmap, whose glog installs its own SIGTERM handler:
+    # ours goes in after it.
     data = load_train_data(project, cfg.downscale, cfg.max_size, device, cfg.eval_max_views)
-    if ck is not None:
-        state = state_from_checkpoint(ck, cfg, data.extent, device)
-        train_report.trim_log(project.train_log_path, ck.step)
-    else:
-        state = new_state(compact.initial_gaussians(cfg, data, device), cfg, data.extent, device, len(data.train))
-        train_report.start_fresh(project, on_event)
-    with _stop_on_signal() as stop:
+    with _stop_on_signal() as stop:  # from here on a signal means: checkpoint, exit 130
+        if ck is not None:
+            state = state_from_checkpoint(ck, cfg, data.extent, device)
+            train_report.trim_log(project.train_log_path, ck.step)
+        else:
+            state = new_state(compact.initial_gaussians(cfg, data, device), cfg, data.extent, device,
+                              len(data.train))
+            train_report.start_fresh(project, on_event)
         _loop(project, cfg, data, state, stop, on_event)
     return train_report.finish(project, cfg, data, state, resumed_from)
 
@@ -85,6 +88,8 @@ def _loop(project: Project, cfg: TrainConfig, data: TrainData, state: TrainState
         # A finished run resumed with --compact / --sh-degree auto: post-process now
         # (exactly what an uninterrupted run does at this step; no-op if done).
         compact.after_training(project, cfg, data, state, on_event)
+    if stop.is_set():  # signalled during setup: keep what there is (a resume starts here)
+        _interrupt(project, cfg, state)
     for step in range(state.step + 1, total + 1):
         t0 = time.perf_counter()
         # The strategy never acts on the last step of the schedule (a reset there would
@@ -131,17 +136,20 @@ def _loop(project: Project, cfg: TrainConfig, data: TrainData, state: TrainState
             evaluated = _measure(cfg, data, state, step, total, force=True)
         log.line(step, state, evaluated, cfg.log_every, force=step == total)
         emit(on_event, Progress(STAGE, step, total, log.info(state)))
-        if step % cfg.checkpoint_every == 0 or step == total or stop.is_set():
+        if stop.is_set():
+            _interrupt(project, cfg, state)
+        if step % cfg.checkpoint_every == 0 or step == total:
             save_state(project.checkpoint_path(step), state, cfg, cfg.sh_degree_interval)
             train_report.prune_checkpoints(project, cfg.keep_checkpoints)
-        if stop.is_set():
-            raise Interrupted(f"interrupted at step {step}; saved {project.checkpoint_path(step)}; "
-                              f"continue with `splatcli train {project.root} --resume`")
-    if stop.is_set():  # signalled during setup or the last step: the final checkpoint exists
-        if state.step == 0 or project.latest_checkpoint() is None:
-            save_state(project.checkpoint_path(state.step), state, cfg, cfg.sh_degree_interval)
-        raise Interrupted(f"interrupted at step {state.step}; continue with `splatcli train {project.root} --resume`")
     emit(on_event, StageDone(STAGE, state.elapsed_s))
+
+
+def _interrupt(project: Project, cfg: TrainConfig, state: TrainState) -> None:
+    """Checkpoint the last whole step and stop (the CLI exits 130)."""
+    path = save_state(project.checkpoint_path(state.step), state, cfg, cfg.sh_degree_interval)
+    train_report.prune_checkpoints(project, cfg.keep_checkpoints)
+    raise Interrupted(f"interrupted at step {state.step}; saved {path}; "
+                      f"continue with `splatcli train {project.root} --resume`")
 
 
 def _all_finite(loss: torch.Tensor, state: TrainState) -> bool:
@@ -195,4 +203,4 @@ def _stop_on_signal() -> Iterator[threading.Event]:
             signal.signal(s, h)
 
 
-__all__ = ["train", "evaluate_views", "render_view", "SplatError"]
+__all__ = ["train", "evaluate_views", "render_view"]
