@@ -26,7 +26,7 @@ from .io.checkpoint import load_checkpoint
 from .loss import photometric_loss
 from .metrics import psnr, ssim
 from .project import Project
-from .render import rasterize
+from .render import RenderOutput, rasterize
 from .strategy import StepInfo
 from .train_config import TrainConfig, TrainSummary
 from .train_state import TrainState, means_lr, new_state, save_state, state_from_checkpoint
@@ -73,7 +73,8 @@ def train(
     return train_report.finish(project, cfg, data, state, resumed_from)
 
 
-def render_view(state: TrainState, view: View, bg: torch.Tensor, sh_degree: int):
+def render_view(state: TrainState, view: View, bg: torch.Tensor, sh_degree: int) -> RenderOutput:  # bg [3]
+    """The current Gaussians seen from `view` at the training resolution."""
     p = state.params
     return rasterize(p["means"], p["quats"], p["log_scales"], p["opacity_logits"], state.sh(), view.viewmat,
                      view.K, view.camera.width, view.camera.height, bg, sh_degree=sh_degree)
@@ -152,7 +153,7 @@ def _interrupt(project: Project, cfg: TrainConfig, state: TrainState) -> None:
                       f"continue with `splatcli train {project.root} --resume`")
 
 
-def _all_finite(loss: torch.Tensor, state: TrainState) -> bool:
+def _all_finite(loss: torch.Tensor, state: TrainState) -> bool:  # loss: [] scalar
     """One reduction over the loss and every gradient (a single host sync)."""
     checks = [torch.isfinite(loss).reshape(1)]
     checks += [torch.isfinite(p.grad).all().reshape(1) for p in state.params.values() if p.grad is not None]
@@ -168,7 +169,9 @@ def _measure(cfg: TrainConfig, data: TrainData, state: TrainState, step: int, to
 
 
 @torch.no_grad()
-def evaluate_views(state: TrainState, views: list[View], bg: torch.Tensor, sh_degree: int) -> tuple[float, float]:
+def evaluate_views(
+    state: TrainState, views: list[View], bg: torch.Tensor, sh_degree: int  # bg [3] in [0, 1]
+) -> tuple[float, float]:
     """Mean PSNR (dB) and SSIM over `views`, images clamped to [0, 1] as saved."""
     ps, ss = [], []
     for v in views:
