@@ -223,8 +223,47 @@ def markdown(results: list[dict], meta: dict) -> str:
         if pts:
             pick = pts[:: max(1, len(pts) // 8)] + ([pts[-1]] if pts[-1] not in pts[:: max(1, len(pts) // 8)] else [])
             lines.append(f"| {r['scene']} | {r['variant']} | " + ", ".join(f"{s}: {m}" for s, m in pick) + " |")
-    lines += ["", meta.get("notes", "").strip(), ""]
+    lines += ["", "Goals, as measured:", ""] + goals(results)
+    lines += ["", PRESET_NOTES.strip(), "", meta.get("notes", "").strip(), ""]
     return "\n".join(lines) + "\n"
+
+
+PRESET_NOTES = """
+Presets (`splatcli train --preset`): `default` is the paper's schedule (30k steps, densify every 100
+steps from 500 to 15k, opacity reset every 3k, 100k random points for scenes without SfM points).
+`fast` keeps every rule but compresses the schedule to 7k steps (densify until 4k, so the last 3k
+steps refine a fixed set; one opacity reset at 3k; 10k random initial points, since early steps on
+random points are the most expensive ones on a CPU and the first densification prunes most of them).
+`demo` is `make demo` on sample_data: 1.5k steps at 256 px with a 20k-Gaussian budget. Every run is
+`OMP_NUM_THREADS=1`: the two cores were shared with other jobs, and OpenMP's spin-waiting makes a
+2-thread torch process 10-20x slower per step under oversubscription (measured on this machine);
+on an idle 2-core machine use both threads.
+"""
+
+
+def goals(results: list[dict]) -> list[str]:
+    by = {(r["scene"], r["variant"]): r for r in results}
+    out = []
+    lego = by.get(("lego", "default"))
+    if lego:
+        t = lego["seconds_to_30db"]
+        out.append(f"- lego at 200 px reaches 30 dB held-out PSNR after {fmt(t, '.0f')} training seconds "
+                   f"(goal: within 900 s on 2 cores): {'met' if t is not None and t <= 900 else 'NOT met'}.")
+    for scene in ("lego", "fox"):
+        d, c, b = by.get((scene, "default")), by.get((scene, "compact")), by.get((scene, "budget"))
+        if d and c and c.get("compact"):
+            k = c["compact"]
+            ratio = k["after_count"] / max(d["num_gaussians"], 1)
+            dp = (k["after_psnr"] or 0) - (d["final_psnr"] or 0)
+            ok = ratio <= 1 / 3 + 1e-9 and dp >= -0.1
+            out.append(f"- {scene} --compact keeps {k['after_count']} of {d['num_gaussians']} Gaussians "
+                       f"({ratio:.1%}) at {dp:+.2f} dB held-out PSNR vs the default run "
+                       f"(goal: at most a third within 0.1 dB): {'met' if ok else 'NOT met'}.")
+        if d and b:
+            out.append(f"- {scene} --max-gaussians {b['args'][-1]} (a third of the default's final count): "
+                       f"{b['num_gaussians']} Gaussians, {(b['final_psnr'] or 0) - (d['final_psnr'] or 0):+.2f} dB, "
+                       f"{b['steps_per_s'] / max(d['steps_per_s'], 1e-9):.2f}x the steps/s.")
+    return out
 
 
 def main() -> None:
