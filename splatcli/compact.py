@@ -6,8 +6,9 @@ what happens when the main schedule ends: `--sh-degree auto` and `--compact`.
   `sh_auto_tol_db` of the full degree; the unused bands are dropped from the
   parameters (so they are neither stored nor exported).
 --compact: rank Gaussians by their total blending weight sum_pixels alpha_i T_i
-  over the training views, keep the top `compact_keep` fraction, then fine-tune
-  `compact_finetune` steps (no densification; the loop does that part).
+  over the training views and keep the top `compact_keep` fraction, in
+  `compact_rounds` cuts spread over the first half of a `compact_finetune`-step
+  fine-tune (no densification; the loop runs the steps, `at_step` the cuts).
 """
 
 from __future__ import annotations
@@ -70,19 +71,51 @@ def after_training(project: Project, cfg: TrainConfig, data: TrainData, state: T
         n = state.num_gaussians
         if before is None and data.test:
             before = evaluate_views(state, data.test, data.background, deg)
-        before_psnr = before[0] if before is not None else None
+        state.extra["compact_before"] = {"count": n, "bytes": ply_bytes(n, deg),
+                                         "psnr": before[0] if before is not None else None}
+        _prune_round(cfg, data, state, 1, on_event)
+
+
+def prune_steps(cfg: TrainConfig) -> list[int]:
+    """Steps ending with a --compact prune round: the first at `iterations`, the
+    others spread over the first half of the fine-tune, so the final set still
+    gets at least half of it. Pruning in rounds lets the survivors take over the
+    pruned Gaussians' work before the next cut (one cut loses more)."""
+    spacing = cfg.compact_finetune // (2 * cfg.compact_rounds)
+    if spacing == 0:  # too short a fine-tune for rounds: one cut
+        return [cfg.iterations]
+    return [cfg.iterations + r * spacing for r in range(cfg.compact_rounds)]
+
+
+def at_step(project: Project, cfg: TrainConfig, data: TrainData, state: TrainState, step: int,
+            on_event: EventSink | None, before: tuple[float, float] | None = None) -> None:
+    """The loop's one hook: post-processing at `iterations`, later prune rounds."""
+    if step == cfg.iterations:
+        after_training(project, cfg, data, state, on_event, before)
+    elif cfg.compact and step > cfg.iterations:
+        sched = prune_steps(cfg)
+        if step in sched[1:] and state.extra.get("compact_round", 0) < sched.index(step) + 1:
+            _prune_round(cfg, data, state, sched.index(step) + 1, on_event)
+
+
+def _prune_round(cfg: TrainConfig, data: TrainData, state: TrainState, r: int, on_event: EventSink | None) -> None:
+    """Round r of R: keep the n0 * keep^(r/R) Gaussians with the most blending weight."""
+    n0 = state.extra["compact_before"]["count"]
+    rounds = len(prune_steps(cfg))
+    k = int(cfg.compact_keep * n0) if r == rounds else int(n0 * cfg.compact_keep ** (r / rounds))
+    k = max(1, k)  # floor: never more than the fraction
+    n = state.num_gaussians
+    if k < n:
         weight = blending_weights(state, data.train, data.background)
-        k = max(1, int(cfg.compact_keep * n))  # floor: never more than the fraction
         keep = torch.zeros(n, dtype=torch.bool, device=weight.device)
         keep[torch.argsort(weight, descending=True, stable=True)[:k]] = True
         ops.keep(state.params, state.optimizers, keep)
-        m = state.num_gaussians
-        z = state.sstate.grad2d.new_zeros(m)
+        z = state.sstate.grad2d.new_zeros(state.num_gaussians)
         state.sstate.grad2d, state.sstate.count, state.sstate.radii = z, z.clone(), z.clone()
-        state.extra["compact_before"] = {"count": n, "bytes": ply_bytes(n, deg), "psnr": before_psnr,
-                                         "kept_weight": float(weight[keep].sum() / weight.sum().clamp_min(1e-12))}
-        emit(on_event, Note(f"--compact: kept {m} of {n} Gaussians by blending weight; fine-tuning "
-                            f"{cfg.compact_finetune} steps"))
+        state.extra["compact_before"][f"kept_weight_{r}"] = float(weight[keep].sum() / weight.sum().clamp_min(1e-12))
+    state.extra["compact_round"] = r
+    emit(on_event, Note(f"--compact round {r}/{rounds}: kept {state.num_gaussians} of {n0} Gaussians "
+                        f"by blending weight"))
 
 
 def subset(views: list[View], k: int) -> list[View]:

@@ -130,8 +130,7 @@ def _loop(project: Project, cfg: TrainConfig, data: TrainData, state: TrainState
         t1 = time.perf_counter()
         if refining:
             state.strategy.step_post_backward(state.params, state.optimizers, state.sstate, step, info)
-        if step == cfg.iterations:  # --sh-degree auto, --compact (timed: part of training)
-            compact.after_training(project, cfg, data, state, on_event, before=evaluated)
+        compact.at_step(project, cfg, data, state, step, on_event, before=evaluated)  # timed: training
         state.elapsed_s += time.perf_counter() - t1
         if step == total:
             evaluated = _measure(cfg, data, state, step, total, force=True)
