@@ -124,23 +124,31 @@ def read_log(path: Path) -> list[dict]:
 
 
 def train_variant(scene: str, variant: str, extra: list[str], preset: str, iterations: int | None,
-                  threads: int | None) -> dict:
+                  threads: int | None, resume: bool = False) -> dict:
     """One `splatcli train` run. The compact variant resumes a copy of the finished
     default run with --compact (bitwise what a --compact run from scratch gives,
     see tests/test_train.py), so it costs only the prune and the fine-tune."""
     base = ensure_processed(scene)
     proj = OUT / scene / variant
-    if proj.exists():
-        shutil.rmtree(proj)
     _, _, targs, scene_preset = SCENES[scene]
     preset = scene_preset or preset
-    if variant == "compact":
+    resuming = resume and any((proj / "checkpoints").glob("step-*.pt"))
+    if resuming:
+        # An interrupted benchmark run continues from its last checkpoint (bitwise what an
+        # uninterrupted run gives); its training seconds still count from step 0, but its
+        # wall time and peak RSS cover only the resumed part.
+        cmd = SPLATCLI + ["train", str(proj), "--resume", "--device", "cpu", "--json", "-q"]
+    elif variant == "compact":
         src = OUT / scene / "default"
         if not (src / "checkpoints").is_dir():
             raise SystemExit(f"[{scene}/compact] needs the default run first ({src})")
+        if proj.exists():
+            shutil.rmtree(proj)
         shutil.copytree(src, proj)
         cmd = SPLATCLI + ["train", str(proj), "--resume", "--compact", "--device", "cpu", "--json", "-q"]
     else:
+        if proj.exists():
+            shutil.rmtree(proj)
         shutil.copytree(base, proj, ignore=shutil.ignore_patterns("checkpoints", "reports", "renders", "exports"))
         cmd = SPLATCLI + ["train", str(proj), "--preset", preset, "--device", "cpu", "--eval-every", "1000",
                           "--json", "-q", *targs, *extra]
@@ -275,6 +283,8 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=None,
                     help="OMP_NUM_THREADS for the runs (1 when the cores are shared: OpenMP spin-waits collapse "
                          "under oversubscription)")
+    ap.add_argument("--resume", action="store_true",
+                    help="continue a variant whose run was interrupted, from its last checkpoint")
     ap.add_argument("--notes", default="", help="a paragraph appended to the section")
     ap.add_argument("--no-write", action="store_true", help="do not edit docs/benchmarks.md")
     args = ap.parse_args()
@@ -294,7 +304,8 @@ def main() -> None:
                     print(f"[{scene}/budget] skipped: needs the default run's count", flush=True)
                     continue
                 extra = ["--max-gaussians", str(max(1, prev[-1]["num_gaussians"] // 3))]
-            save_result(results_path, train_variant(scene, variant, extra, args.preset, args.iterations, args.threads))
+            save_result(results_path, train_variant(scene, variant, extra, args.preset, args.iterations, args.threads,
+                                                          args.resume))
     old = json.loads(results_path.read_text()) if results_path.exists() else {"results": []}
     meta = {"machine": f"{platform.machine()} ({platform.processor() or platform.system()})",
             "cores": os.cpu_count(), "shared": True, "torch": torch.__version__, "notes": args.notes}

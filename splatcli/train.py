@@ -56,7 +56,14 @@ def train(
             emit(on_event, Note("--resume: no checkpoint yet; starting a new run", "warning"))
         else:
             ck = load_checkpoint(path, device)
-            cfg = replace(TrainConfig.from_dict(ck.config), **(overrides or {}), device=str(device))
+            stored = TrainConfig.from_dict(ck.config)
+            overrides = dict(overrides or {})
+            if overrides.get("compact") and not stored.compact and cfg is not None:
+                # --compact added on resume brings its own settings (this version's),
+                # not the ones stored unused with the run.
+                for k in ("compact_keep", "compact_finetune", "compact_rounds"):
+                    overrides.setdefault(k, getattr(cfg, k))
+            cfg = replace(stored, **overrides, device=str(device))
             resumed_from = ck.step
     # Reading the scene imports pycolmap, whose glog installs its own SIGTERM handler:
     # ours goes in after it.
