@@ -417,13 +417,13 @@ class _Composite(torch.autograd.Function):
                 w = r * U
                 czt = gs.cz.index_select(0, sl.gid.reshape(-1)).view(*sl.gid.shape, 5)[..., :4].transpose(1, 2)  # [na, 4, k]
                 v = torch.bmm(_rowsel(g4tb, act), czt)  # [na, P, k]: g . (rgb, z) per slot
-                t = torch.mul(w, v).cumsum_(2)  # prefix sums of w v
-                if pc is not None:
-                    t += pc[..., None]
-                pc = t[:, :, -1].clone()
+                t = torch.mul(w, v).cumsum_(2)  # prefix sums of w v (this segment)
+                b0 = _rowsel(base, act)[..., 0]
+                off = -b0 if pc is None else pc - b0  # [na, P]: earlier segments' prefix - base
+                pc = t[:, :, -1] + (0 if pc is None else pc)
                 # d loss / d power = alpha d loss / d alpha = r (U v - (base - prefix)) for
                 # blended, unclamped alpha; 0 otherwise (indicators built without branches).
-                t -= _rowsel(base, act)
+                t += off[..., None]
                 t.addcmul_(U, v)
                 Tlast = U[:, :, -1].clone()
                 ind = torch.minimum(U.mul_(c.u_scale), a.sub_(ALPHA_MAX).mul_(-c.a_scale)).clamp_(max=1.0)
