@@ -200,7 +200,9 @@ def markdown(results: list[dict], meta: dict) -> str:
              f"{'shared with other jobs (noisy wall times)' if meta['shared'] else ''}; torch {meta['torch']}, "
              f"CPU only. Every run is `splatcli train` as a subprocess on its own copy of the processed project; "
              "PSNR/SSIM are held-out (every 8th image), measured every 1000 steps; seconds are training seconds "
-             "(evaluation excluded) from `reports/train_log.jsonl`.", ""]
+             "(evaluation excluded) from `reports/train_log.jsonl`. A row marked *resumed* continued an "
+             "earlier run from its checkpoint: its steps/s and train s count from step 0, its wall s and peak RSS "
+             "cover the resumed part only.", ""]
     lines += ["| scene | variant | steps | steps/s | PSNR 1k | PSNR 3k | PSNR 7k | SSIM 7k | final PSNR / SSIM | "
               "s to 30 dB | train s | wall s | peak RSS MB | Gaussians | .ply MB |",
               "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
@@ -217,12 +219,16 @@ def markdown(results: list[dict], meta: dict) -> str:
     comp = [r for r in results if r.get("compact")]
     if comp:
         lines += ["", "`--compact` (prune by total blending weight over the training views, then fine-tune):", "",
-                  "| scene | before: Gaussians | PSNR | after: Gaussians | PSNR | .ply MB before → after |",
-                  "| --- | --- | --- | --- | --- | --- |"]
+                  "| scene | before: Gaussians | PSNR | after: Gaussians | PSNR | .ply MB before → after | "
+                  "fine-tune steps | extra train s |",
+                  "| --- | --- | --- | --- | --- | --- | --- | --- |"]
         for r in comp:
             c = r["compact"]
+            last = r["at"].get(str(max((int(m) for m in r["at"]), default=0)), {})
+            extra = r["train_seconds"] - last["seconds"] if last else None
             lines.append(f"| {r['scene']} | {c['before_count']} | {fmt(c['before_psnr'])} | {c['after_count']} | "
-                         f"{fmt(c['after_psnr'])} | {c['before_bytes'] / 1e6:.2f} → {c['after_bytes'] / 1e6:.2f} |")
+                         f"{fmt(c['after_psnr'])} | {c['before_bytes'] / 1e6:.2f} → {c['after_bytes'] / 1e6:.2f} | "
+                         f"{r['steps'] - int(max(r['at'], key=int, default=0))} | {fmt(extra, '.0f')} |")
     lines += ["", "Memory over the run (RSS logged by the training process at each log line; it follows the "
               "Gaussian count while densifying and must stay flat afterwards):", "",
               "| scene | variant | RSS MB at steps → |", "| --- | --- | --- |"]
