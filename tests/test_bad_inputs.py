@@ -544,6 +544,27 @@ def test_process_one_image_and_a_truncated_one(suffix: str, tmp_path: Path, proj
     process_error(d, proj, str(d), "found 1", f"cut{suffix}: truncated {kind}")
 
 
+def _claim_huge(data: bytes, suffix: str) -> bytes:
+    """The same image with a header that declares 65535 x 65535 px (4.3 gigapixels)."""
+    b = bytearray(data)
+    if suffix == ".png":
+        b[16:24] = (65535).to_bytes(4, "big") * 2
+    else:
+        pos = 2
+        while not (0xC0 <= b[pos + 1] <= 0xC3):  # walk to the start-of-frame marker
+            pos += 2 + int.from_bytes(b[pos + 2 : pos + 4], "big")
+        b[pos + 5 : pos + 9] = (65535).to_bytes(2, "big") * 2
+    return bytes(b)
+
+
+@pytest.mark.parametrize("suffix", [".png", ".jpg"])
+def test_process_image_claiming_huge_size_is_refused_before_decoding(suffix: str, tmp_path: Path, proj: Path) -> None:
+    d = image_folder(tmp_path / "one", 1)
+    data = (png_bytes if suffix == ".png" else jpeg_bytes)(texture(seed=9))
+    (d / f"huge{suffix}").write_bytes(_claim_huge(data, suffix))
+    process_error(d, proj, str(d), "found 1", f"huge{suffix}: too large (65535 x 65535 px")
+
+
 def test_process_only_truncated_images(tmp_path: Path, proj: Path) -> None:
     d = tmp_path / "cut"
     d.mkdir()

@@ -8,12 +8,19 @@ needs none of this is copied byte for byte, so JPEGs are not re-compressed.
 
 from __future__ import annotations
 
+import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
-import numpy as np
+# Decoding allocates what the header declares: a few bytes can claim a gigapixel. The
+# header check below refuses PNG and JPEG above the cap with a clear message; OpenCV's
+# own limit (read at decode time) covers TIFF and BMP.
+MAX_PIXELS = 1 << 28  # 268 MP: 0.8 GB as 8-bit RGB, far above any photo a capture holds
+os.environ.setdefault("OPENCV_IO_MAX_IMAGE_PIXELS", str(MAX_PIXELS))
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
 
 from ..io.atomic import atomic_path
 
@@ -76,6 +83,30 @@ def check_complete(data: bytes, suffix: str) -> None:
                 return
 
 
+def header_size(data: bytes, suffix: str) -> tuple[int, int] | None:
+    """(width, height) a PNG or JPEG header declares, or None (other formats, or none found)."""
+    s = suffix.lower()
+    if s == ".png" and len(data) >= 24 and data[12:16] == b"IHDR":
+        return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+    if s in (".jpg", ".jpeg"):
+        pos = 2
+        while pos + 9 <= len(data) and data[pos] == 0xFF:
+            marker, size = data[pos + 1], int.from_bytes(data[pos + 2 : pos + 4], "big")
+            if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):  # start of frame
+                return int.from_bytes(data[pos + 7 : pos + 9], "big"), int.from_bytes(data[pos + 5 : pos + 7], "big")
+            if marker == 0xDA:
+                return None
+            pos += 2 + size
+    return None
+
+
+def check_size(data: bytes, suffix: str) -> None:
+    """Refuse images whose header declares more than MAX_PIXELS, before decoding."""
+    wh = header_size(data, suffix)
+    if wh is not None and wh[0] * wh[1] > MAX_PIXELS:
+        raise ImageError(f"too large ({wh[0]} x {wh[1]} px; at most {MAX_PIXELS / 1e6:.0f} megapixels)")
+
+
 def read_image(path: Path, *, orient: bool) -> tuple[np.ndarray, np.ndarray | None, bool]:
     """(BGR uint8 [H, W, 3], alpha uint8 [H, W] or None, changed).
 
@@ -87,6 +118,7 @@ def read_image(path: Path, *, orient: bool) -> tuple[np.ndarray, np.ndarray | No
     except OSError as exc:
         raise ImageError(f"cannot read ({exc.strerror or exc})") from None
     check_complete(data, path.suffix)
+    check_size(data, path.suffix)
     buf = np.frombuffer(data, np.uint8)
     raw = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)  # no EXIF rotation, keeps alpha and 16 bits
     if raw is None or raw.size == 0:
