@@ -5,8 +5,8 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 DEMO ?= demo-project
 PYTEST_ARGS ?=
-# Idle OpenMP threads sleep rather than spin: much faster on shared machines.
-export OMP_WAIT_POLICY ?= PASSIVE
+# One torch thread per process unless you say otherwise (docs/guide.md, "Threads").
+export OMP_NUM_THREADS ?= 1
 
 .PHONY: setup test demo bench clean
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # see splatcli/cli/main.py: before torch loads
+os.environ.setdefault("OMP_NUM_THREADS", "1")  # what the CLI uses (splatcli/cli/main.py); before torch loads
 
 import random
 from pathlib import Path
