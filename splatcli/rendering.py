@@ -165,7 +165,8 @@ def describe_device(device: torch.device) -> str:
     """The device in words, for reports: "cpu (2 threads)", "cuda:0 (NVIDIA H200)"."""
     if device.type == "cuda":
         return f"{device} ({torch.cuda.get_device_name(device)})"
-    return f"{device.type} ({torch.get_num_threads()} threads)"
+    n = torch.get_num_threads()
+    return f"{device.type} ({n} thread{'' if n == 1 else 's'})"
 
 
 def _sync(device: torch.device) -> None:
