@@ -251,7 +251,7 @@ random points are the most expensive ones on a CPU and the first densification p
 `demo` is `make demo` on sample_data: 1.5k steps at 256 px with a 20k-Gaussian budget. Every run is
 `OMP_NUM_THREADS=1`: the two cores were shared with other jobs, and OpenMP's spin-waiting makes a
 2-thread torch process 10-20x slower per step under oversubscription (measured on this machine);
-on an idle 2-core machine use both threads.
+one thread is also the CLI's default (docs/guide.md, "Threads"): 2 threads are 1.2x faster only on idle cores.
 """
 
 
