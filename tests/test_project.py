@@ -85,3 +85,16 @@ def test_json_reader_bounds_and_errors(tmp_path):
     f.write_text("[" + "1," * 100 + "1]")
     with pytest.raises(SplatError, match="more than"):
         read_json_file(f, max_bytes=50)
+
+
+def test_atomic_files_get_the_usual_mode_not_mkstemps_0600(tmp_path):
+    from splatcli.io import atomic
+
+    new = tmp_path / "new.json"
+    atomic_write_text(new, "{}")
+    assert new.stat().st_mode & 0o777 == 0o666 & ~atomic._UMASK  # e.g. 0644 under umask 022
+    kept = tmp_path / "kept.json"
+    kept.write_text("old")
+    os.chmod(kept, 0o640)
+    atomic_write_text(kept, "new")  # rewriting keeps the file's own mode
+    assert kept.stat().st_mode & 0o777 == 0o640 and kept.read_text() == "new"

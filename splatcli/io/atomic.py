@@ -17,6 +17,22 @@ from typing import Any, Callable, Iterator
 from ..errors import SplatError
 
 
+# mkstemp creates 0600 files; what we publish gets the mode any other tool's file
+# would (0666 less the umask), so viewers and servers running as other users can
+# read an export. Read once, at import, while nothing else runs: os.umask can only
+# be read by setting it.
+_UMASK = os.umask(0o022)
+os.umask(_UMASK)
+
+
+def _publish_mode(target: Path) -> int:
+    """The target's current mode if it exists (rewriting keeps it), else 0666 & ~umask."""
+    try:
+        return target.stat().st_mode & 0o7777
+    except OSError:
+        return 0o666 & ~_UMASK
+
+
 @contextlib.contextmanager
 def atomic_path(target: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path in the target's folder; on success rename it over
@@ -27,6 +43,7 @@ def atomic_path(target: str | os.PathLike) -> Iterator[Path]:
     os.close(fd)
     tmp_path = Path(tmp)
     try:
+        os.chmod(tmp_path, _publish_mode(target))
         yield tmp_path
         with open(tmp_path, "rb+") as f:
             os.fsync(f.fileno())
