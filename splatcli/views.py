@@ -278,8 +278,16 @@ def _generated(template: Camera, kind: str, viewmats: list[np.ndarray], Ks: list
     return views
 
 
+# A gap in the cameras' directions around the focus wider than this is left out of
+# the orbit: those sides of the scene were never photographed.
+ORBIT_MAX_GAP_DEG = 60.0
+
+
 def orbit_path(cams: Sequence[Camera], frames: int) -> list[View]:
-    """A full circle around the focus point at the cameras' mean height and distance."""
+    """A circle around the focus point at the cameras' mean height and distance. When
+    the cameras leave a gap wider than ORBIT_MAX_GAP_DEG (a 270-degree capture), the
+    path sweeps the covered arc and back instead (smooth at the turns, so the video
+    loops), rather than showing the side no photo saw."""
     target = focus_point(cams)
     up = _up(cams)
     rel = np.stack([c.center for c in cams]) - target
@@ -291,9 +299,18 @@ def orbit_path(cams: Sequence[Camera], frames: int) -> list[View]:
     e1 = horiz[0] / np.linalg.norm(horiz[0]) if np.linalg.norm(horiz[0]) > 1e-9 else np.cross(up, [1.0, 0, 0])
     e1 = e1 / np.linalg.norm(e1)
     e2 = np.cross(up, e1)
+    start, span, sweep = 0.0, 2 * math.pi, False
+    ok = np.linalg.norm(horiz, axis=1) > 1e-9 * max(radius, 1e-12)
+    if ok.sum() >= 2:
+        az = np.sort(np.arctan2(horiz[ok] @ e2, horiz[ok] @ e1))
+        gaps = np.diff(np.concatenate([az, az[:1] + 2 * math.pi]))
+        g = int(np.argmax(gaps))
+        if math.degrees(gaps[g]) > ORBIT_MAX_GAP_DEG:
+            start, span, sweep = float(az[(g + 1) % len(az)]), 2 * math.pi - float(gaps[g]), True
     vms = []
     for i in range(frames):
-        a = 2 * math.pi * i / frames
+        s = i / frames
+        a = start + (span * (1 - math.cos(2 * math.pi * s)) / 2 if sweep else span * s)
         eye = target + height * up + radius * (math.cos(a) * e1 + math.sin(a) * e2)
         vms.append(look_at(eye, target, up))
     return _generated(_template(cams), "orbit", vms)

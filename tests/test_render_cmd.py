@@ -128,6 +128,19 @@ def test_generated_paths(proj: Project, tmp_path: Path) -> None:
     assert sorted(p.name for p in proj.render_dir("spiral").glob("*.png")) == [f"spiral_000{i}.png" for i in range(3)]
 
 
+def test_orbit_sweeps_only_the_photographed_arc() -> None:
+    """A 270-degree capture orbits over those 270 degrees and back, never behind the scene."""
+    def azimuths(views):
+        return np.degrees([math.atan2(v.camera.center[2], v.camera.center[0]) for v in views]) % 360
+
+    part = ring_cameras(12)[:10]  # 0..270 degrees in steps of 30: a 90-degree gap
+    az = azimuths(generate_path("orbit", part, 40))
+    assert az.min() >= -1e-6 and az.max() <= 270 + 1e-6
+    assert az.max() > 269 and az.min() < 1  # the whole arc is swept
+    full = azimuths(generate_path("orbit", ring_cameras(12), 40))  # all round: the full circle
+    assert np.histogram(full, bins=4, range=(0, 360))[0].min() >= 9  # 10 each, give or take a frame on a bin edge
+
+
 def _foreign_ply(path: Path, n: int = 300, *, nan_rows: int = 0) -> Path:
     """What another tool writes: SH degree 0, no normals, extra properties, other order."""
     t = tiny_gaussians(n, sh_degree=0)
