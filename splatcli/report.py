@@ -62,9 +62,12 @@ def write_plots(report: "EvalReport", project: "Project", out_dir: Path) -> list
     b = sorted(report.budgets, key=lambda p: p.fraction)
     if b:
         ax2.plot([p.ms_per_frame for p in b], [p.psnr for p in b], "o-")
-        for p in b:
+        right = max(p.ms_per_frame for p in b)
+        for p in b:  # the rightmost label goes above-left of its point, inside the axes
+            last = p.ms_per_frame == right
             ax2.annotate(f"{p.fraction:.0%} ({p.num_gaussians:,})", (p.ms_per_frame, p.psnr),
-                         textcoords="offset points", xytext=(4, -10), fontsize=8)
+                         textcoords="offset points", xytext=(-4, 6) if last else (4, -10), fontsize=8,
+                         ha="right" if last else "left")
     ax2.set_xlabel(f"render time per frame (ms, {report.device})")
     ax2.set_ylabel("PSNR (dB)")
     ax2.set_title("error against render time, by Gaussian budget")
