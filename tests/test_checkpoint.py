@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import pickle
+import re
 from pathlib import Path
 
 import pytest
@@ -90,6 +91,30 @@ def test_truncated_checkpoint_is_one_line_error(tmp_path):
     p.write_bytes(b"")
     with pytest.raises(SplatError):
         load_checkpoint(p)
+
+
+def test_checkpoint_declaring_huge_tensors_is_refused_without_allocating(tmp_path):
+    """A few edited bytes can make a tensor claim 4 GB. torch checks each tensor's
+    record size in the archive before allocating, so memory stays bounded by the file."""
+    import resource
+    import zipfile
+
+    p = _save(tmp_path / "c.pt")
+    z = zipfile.ZipFile(p)
+    pkl = next(n for n in z.namelist() if n.endswith("data.pkl"))
+    data = z.read(pkl)
+    # Every storage size (BININT1/BININT2/BININT after the device string) -> 2^30 elements.
+    edited, n = re.subn(rb"(X\x03\x00\x00\x00cpuq.)(K.|M..|J....)", lambda m: m.group(1) + b"J\x00\x00\x00\x40", data)
+    assert n > 0
+    evil = tmp_path / "evil.pt"
+    with zipfile.ZipFile(evil, "w", compression=zipfile.ZIP_STORED) as out:
+        for name in z.namelist():
+            out.writestr(name, edited if name == pkl else z.read(name))
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    with pytest.raises(SplatError) as ei:
+        load_checkpoint(evil)
+    assert "\n" not in str(ei.value)
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before < 512 * 1024  # KiB: far below 4 GB
 
 
 def test_newer_schema_is_refused(tmp_path):
