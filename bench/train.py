@@ -203,16 +203,18 @@ def markdown(results: list[dict], meta: dict) -> str:
              "(evaluation excluded) from `reports/train_log.jsonl`. A row marked *resumed* continued an "
              "earlier run from its checkpoint: its steps/s and train s count from step 0, its wall s and peak RSS "
              "cover the resumed part only.", ""]
-    lines += ["| scene | variant | steps | steps/s | PSNR 1k | PSNR 3k | PSNR 7k | SSIM 7k | final PSNR / SSIM | "
-              "s to 30 dB | train s | wall s | peak RSS MB | Gaussians | .ply MB |",
-              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    lines += ["| scene | variant | steps | steps/s | PSNR / SSIM 1k | PSNR / SSIM 3k | PSNR / SSIM 7k | "
+              "final PSNR / SSIM | s to 30 dB | train s | wall s | peak RSS MB | Gaussians | .ply MB |",
+              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in results:
         a = r["at"]
         p = lambda m, k="psnr": a.get(str(m), {}).get(k)  # noqa: E731
         lines.append(
             f"| {r['scene']} | {r['variant']}{' ' + ' '.join(r['args']) if r['args'] else ''}"
             f"{' (resumed at ' + str(r['resumed_from']) + ')' if r.get('resumed_from') else ''} | {r['steps']} | "
-            f"{r['steps_per_s']:.2f} | {fmt(p(1000))} | {fmt(p(3000))} | {fmt(p(7000))} | {fmt(p(7000, 'ssim'), '.4f')} | "
+            f"{r['steps_per_s']:.2f} | "
+            + " | ".join(f"{fmt(p(m))} / {fmt(p(m, 'ssim'), '.4f')}" if p(m) is not None else "–" for m in MILESTONES)
+            + " | "
             f"{fmt(r['final_psnr'])} / {fmt(r['final_ssim'], '.4f')} | "
             f"{fmt(r['seconds_to_30db'], '.0f')} | {r['train_seconds']:.0f} | {r['wall_seconds']:.0f} | "
             f"{r['peak_rss_mb']} | {r['num_gaussians']} | {r['ply_bytes'] / 1e6:.2f} |")
