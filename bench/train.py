@@ -226,11 +226,12 @@ def markdown(results: list[dict], meta: dict) -> str:
                   "| --- | --- | --- | --- | --- | --- | --- | --- |"]
         for r in comp:
             c = r["compact"]
-            last = r["at"].get(str(max((int(m) for m in r["at"]), default=0)), {})
+            m = max((int(k) for k in r["at"]), default=0)  # the schedule's end, where compaction starts
+            last = r["at"].get(str(m))
             extra = r["train_seconds"] - last["seconds"] if last else None
             lines.append(f"| {r['scene']} | {c['before_count']} | {fmt(c['before_psnr'])} | {c['after_count']} | "
                          f"{fmt(c['after_psnr'])} | {c['before_bytes'] / 1e6:.2f} → {c['after_bytes'] / 1e6:.2f} | "
-                         f"{r['steps'] - int(max(r['at'], key=int, default=0))} | {fmt(extra, '.0f')} |")
+                         f"{r['steps'] - m} | {fmt(extra, '.0f')} |")
     lines += ["", "Memory over the run (RSS logged by the training process at each log line; it follows the "
               "Gaussian count while densifying and must stay flat afterwards):", "",
               "| scene | variant | RSS MB at steps → |", "| --- | --- | --- |"]

@@ -102,8 +102,7 @@ def _prune_round(cfg: TrainConfig, data: TrainData, state: TrainState, r: int, o
     """Round r of R: keep the n0 * keep^(r/R) Gaussians with the most blending weight."""
     n0 = state.extra["compact_before"]["count"]
     rounds = len(prune_steps(cfg))
-    k = int(cfg.compact_keep * n0) if r == rounds else int(n0 * cfg.compact_keep ** (r / rounds))
-    k = max(1, k)  # floor: never more than the fraction
+    k = max(1, int(n0 * cfg.compact_keep ** (r / rounds)))  # the last round keeps exactly int(keep * n0)
     n = state.num_gaussians
     if k < n:
         weight = blending_weights(state, data.train, data.background)

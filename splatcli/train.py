@@ -58,7 +58,7 @@ def train(
             ck = load_checkpoint(path, device)
             stored = TrainConfig.from_dict(ck.config)
             overrides = dict(overrides or {})
-            if overrides.get("compact") and not stored.compact and cfg is not None:
+            if overrides.get("compact") and not stored.compact:
                 # --compact added on resume brings its own settings (this version's),
                 # not the ones stored unused with the run.
                 for k in ("compact_keep", "compact_finetune", "compact_rounds"):

@@ -35,6 +35,7 @@ from splatcli.io.checkpoint import CHECKPOINT_SCHEMA
 from splatcli.io.ply import gaussians_to_rows, ply_header, ply_property_names
 from splatcli.project import MANIFEST_NAME, MAX_JSON_BYTES, SCHEMA_VERSION, Project
 
+from test_sfm import gl_c2w, jpeg_bytes, texture, with_exif_orientation
 from tiny_project import make_tiny_project, ring_cameras, tiny_gaussians
 
 # ---------------------------------------------------------------------------
@@ -91,29 +92,8 @@ def assert_ok_with_note(r, *fragments: str) -> None:
         assert f in notes, (f, r.stderr)
 
 
-def texture(h: int = 48, w: int = 64, seed: int = 0) -> np.ndarray:  # [H, W, 3] uint8
-    return np.random.default_rng(seed).integers(0, 256, size=(h, w, 3), dtype=np.uint8)
-
-
 def png_bytes(img: np.ndarray) -> bytes:
     return cv2.imencode(".png", img)[1].tobytes()
-
-
-def jpeg_bytes(img: np.ndarray) -> bytes:
-    return cv2.imencode(".jpg", img)[1].tobytes()
-
-
-def with_exif_orientation(jpeg: bytes, orientation: int) -> bytes:
-    """A JPEG with an APP1 Exif segment holding only the orientation tag."""
-    tiff = b"II*\x00" + struct.pack("<I", 8) + struct.pack("<H", 1)
-    tiff += struct.pack("<HHIHH", 0x0112, 3, 1, orientation, 0) + struct.pack("<I", 0)
-    payload = b"Exif\x00\x00" + tiff
-    return jpeg[:2] + b"\xff\xe1" + struct.pack(">H", len(payload) + 2) + payload + jpeg[2:]
-
-
-def gl_c2w(viewmat: np.ndarray) -> list:
-    """Our world-to-camera (OpenCV) as an OpenGL camera-to-world matrix (transforms.json)."""
-    return (np.linalg.inv(viewmat) @ np.diag([1.0, -1.0, -1.0, 1.0])).tolist()
 
 
 # ---------------------------------------------------------------------------

@@ -405,7 +405,7 @@ class _Composite(torch.autograd.Function):
             gid, centre = _chunk_ids(plan, bl, K, N)
             centre = centre.to(dt)
             g4b, g4tb = g4.index_select(0, bl), g4t_all.index_select(0, bl).contiguous()  # [nb, 4, P], [nb, P, 4]
-            base = base_all.index_select(0, bl)[..., None]
+            base = base_all.index_select(0, bl)  # [nb, P]
             act, Tc, pc = None, None, None
             k0 = 0
             while k0 < K:
@@ -418,7 +418,7 @@ class _Composite(torch.autograd.Function):
                 czt = gs.cz.index_select(0, sl.gid.reshape(-1)).view(*sl.gid.shape, 5)[..., :4].transpose(1, 2)  # [na, 4, k]
                 v = torch.bmm(_rowsel(g4tb, act), czt)  # [na, P, k]: g . (rgb, z) per slot
                 t = torch.mul(w, v).cumsum_(2)  # prefix sums of w v (this segment)
-                b0 = _rowsel(base, act)[..., 0]
+                b0 = _rowsel(base, act)
                 off = -b0 if pc is None else pc - b0  # [na, P]: earlier segments' prefix - base
                 pc = t[:, :, -1] + (0 if pc is None else pc)
                 # d loss / d power = alpha d loss / d alpha = r (U v - (base - prefix)) for
