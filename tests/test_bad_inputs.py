@@ -458,7 +458,7 @@ def image_folder(d: Path, n: int, *, size: tuple[int, int] = (64, 48)) -> Path:
 def fake_sfm(monkeypatch):
     """`run_sfm` replaced by a stand-in that poses every staged image on a ring:
     the cases below test reading the input, not structure from motion."""
-    import splatcli.process as proc
+    import splatcli.process.run as proc
     from splatcli.sfm import colmap
     from splatcli.sfm.reconstruct import SfmResult
 
@@ -675,7 +675,7 @@ def test_process_bad_transforms(case: str, tmp_path: Path, proj: Path) -> None:
 
 def test_process_huge_transforms_is_refused_by_its_size(tmp_path: Path, proj: Path) -> None:
     """The JSON reader bounds what it reads by the file's size (a sparse file: no disk used)."""
-    from splatcli.sfm.transforms import MAX_TRANSFORMS_BYTES
+    from splatcli.io.transforms import MAX_TRANSFORMS_BYTES
 
     tf, _ = transforms_input(tmp_path / "in", "not_json")
     os.truncate(tf, MAX_TRANSFORMS_BYTES + 1)
@@ -957,7 +957,7 @@ def test_sparse_model_damaged_after_process(damage: str, fragments: list[str], p
 def test_render_cameras_file_path_cannot_escape(tmp_path):
     """render --cameras reads an image's size only through a path inside its folder."""
     from splatcli.errors import SplatError
-    from splatcli.views import read_transforms
+    from splatcli.views.sources import read_transforms
 
     (tmp_path / "cams").mkdir()
     f = tmp_path / "cams" / "transforms.json"

@@ -19,7 +19,7 @@ import torch
 
 from splatcli.io.checkpoint import load_checkpoint
 from splatcli.project import Project
-from splatcli.train_report import read_log
+from splatcli.train.log import read_log
 
 from tiny_project import make_tiny_project
 

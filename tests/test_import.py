@@ -19,7 +19,7 @@ from typer.testing import CliRunner
 
 from splatcli.cli.main import app
 from splatcli.errors import SplatError
-from splatcli.process import ProcessConfig, process
+from splatcli.process.run import ProcessConfig, process
 from splatcli.project import Project
 from splatcli.sfm import colmap
 from splatcli.sfm.model import read_scene

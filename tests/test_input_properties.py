@@ -22,7 +22,7 @@ from splatcli.gaussians import Gaussians
 from splatcli.io.checkpoint import load_checkpoint, save_checkpoint
 from splatcli.project import Project
 from splatcli.sfm.colmap_files import check_model
-from splatcli.sfm.transforms import read_transforms
+from splatcli.io.transforms import read_transforms
 
 SETTINGS = settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture],
                     derandomize=True)

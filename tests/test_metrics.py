@@ -9,7 +9,7 @@ import pytest
 import torch
 from skimage.metrics import structural_similarity
 
-from splatcli.metrics import psnr, psnr_from_mse, ssim, ssim_map
+from splatcli.eval.metrics import psnr, psnr_from_mse, ssim, ssim_map
 
 
 def _pair(h: int, w: int, seed: int) -> tuple[np.ndarray, np.ndarray]:

@@ -15,7 +15,7 @@ import pytest
 from splatcli.errors import SplatError
 from splatcli.io.ply import write_ply
 from splatcli.project import Project
-from splatcli.views import generate_path, read_transforms
+from splatcli.views.sources import generate_path, read_transforms
 from tiny_project import H, W, assert_user_error, make_tiny_project, ring_cameras, run_cli, snapshot, tiny_gaussians
 
 GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])

@@ -12,16 +12,16 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-import splatcli.train as train_mod
+import splatcli.train.loop as train_mod
 from splatcli.cli.main import app
 from splatcli.errors import Interrupted, TrainingDiverged
 from splatcli.events import Progress
 from splatcli.io.checkpoint import load_checkpoint, load_gaussians
 from splatcli.io.ply import ply_bytes
 from splatcli.project import Project
-from splatcli.train import train
-from splatcli.train_config import make_config
-from splatcli.train_report import read_log
+from splatcli.train.loop import train
+from splatcli.train.config import make_config
+from splatcli.train.log import read_log
 
 from tiny_project import make_tiny_project
 

@@ -11,10 +11,10 @@ import pytest
 import torch
 
 from splatcli.camera import Camera
-from splatcli.data import load_train_data, read_rgb, training_camera
+from splatcli.train.data import load_train_data, read_rgb, training_camera
 from splatcli.errors import SplatError
 from splatcli.gaussians import SH_C0, Gaussians
-from splatcli.init import (
+from splatcli.train.init import (
     gaussians_from_ply,
     gaussians_from_points,
     knn_rms_distance,

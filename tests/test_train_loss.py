@@ -6,8 +6,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from splatcli.loss import photometric_loss
-from splatcli.metrics import ssim
+from splatcli.train.loss import photometric_loss
+from splatcli.eval.metrics import ssim
 
 
 def test_ssim_gradcheck():

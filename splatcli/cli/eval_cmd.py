@@ -9,8 +9,8 @@ import typer
 
 from ..device import resolve_device
 from ..errors import SplatError
-from ..evaluate import EvalConfig, compare_folders, plan_eval, run_eval
-from ..rendering import parse_background
+from ..eval.evaluate import EvalConfig, compare_folders, plan_eval, run_eval
+from ..views.output import parse_background
 from .common import DebugOpt, DeviceOpt, JsonOpt, QuietOpt, Ui
 
 

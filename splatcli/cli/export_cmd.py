@@ -8,7 +8,7 @@ from typing import Optional
 import typer
 
 from ..events import Note
-from ..export import ExportConfig, check_export_config, export_project
+from ..io.export import ExportConfig, check_export_config, export_project
 from .common import DebugOpt, JsonOpt, QuietOpt, Ui
 
 

@@ -7,7 +7,7 @@ from typing import Optional
 
 import typer
 
-from ..process import ProcessConfig, process as run_process
+from ..process.run import ProcessConfig, process as run_process
 from ..sfm import colmap
 from .common import DebugOpt, JsonOpt, QuietOpt, SeedOpt, Ui
 

@@ -8,7 +8,7 @@ from typing import Optional
 import typer
 
 from ..device import resolve_device
-from ..rendering import RenderConfig, parse_background, plan_render, run_render
+from ..views.output import RenderConfig, parse_background, plan_render, run_render
 from .common import DebugOpt, DeviceOpt, JsonOpt, QuietOpt, Ui
 
 

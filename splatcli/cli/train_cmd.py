@@ -9,8 +9,8 @@ import typer
 
 from ..device import resolve_device
 from ..project import Project
-from ..train import train as run_train
-from ..train_config import PRESETS, make_config
+from ..train.loop import train as run_train
+from ..train.config import PRESETS, make_config
 from .common import DebugOpt, DeviceOpt, JsonOpt, QuietOpt, SeedOpt, Ui
 
 

@@ -17,10 +17,10 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from .gaussians import Gaussians
-from .io.checkpoint import Checkpoint, save_checkpoint
-from .strategy import DefaultStrategy, DefaultStrategyConfig, DefaultStrategyState
-from .train_config import TrainConfig
+from ..gaussians import Gaussians
+from ..io.checkpoint import Checkpoint, save_checkpoint
+from ..strategy import DefaultStrategy, DefaultStrategyConfig, DefaultStrategyState
+from .config import TrainConfig
 
 PARAM_ORDER = ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN")
 

@@ -10,11 +10,11 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from .io.atomic import atomic_path
+from ..io.atomic import atomic_path
 
 if TYPE_CHECKING:
     from .evaluate import EvalReport
-    from .project import Project
+    from ..project import Project
 
 PLOTS = ("speed_vs_error", "scales", "opacities", "sh_degrees")
 NO_PLOTS_HINT = "plots skipped: matplotlib is not installed (pip install 'splatcli[plots]')"

@@ -32,21 +32,21 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from .camera import Camera
-from .errors import Interrupted, SplatError
-from .events import EventSink, Note, Progress, Stage, StageDone, emit
-from .io.atomic import atomic_write_json
-from .project import Project, is_project
-from .sfm import colmap
-from .sfm.bounds import frustum_bounds, points_bounds
-from .sfm.colmap import CameraSpec, Model
-from .sfm.colmap_files import check_image_name, check_model
-from .sfm.detect import InputSpec, detect_input
-from .sfm.images import IMAGE_EXTS, ImageError, StagedImage, fit_size, list_folder, stage_image, write_image
-from .sfm.model import read_scene
-from .sfm.reconstruct import MATCHERS, SfmOptions, run_sfm
-from .sfm.transforms import read_transforms
-from .sfm.video import extract_frames
+from ..camera import Camera
+from ..errors import Interrupted, SplatError
+from ..events import EventSink, Note, Progress, Stage, StageDone, emit
+from ..io.atomic import atomic_write_json
+from ..project import Project, is_project
+from ..sfm import colmap
+from .bounds import frustum_bounds, points_bounds
+from ..sfm.colmap import CameraSpec, Model
+from ..sfm.colmap_files import check_image_name, check_model
+from .detect import InputSpec, detect_input
+from ..io.images import IMAGE_EXTS, ImageError, StagedImage, fit_size, list_folder, stage_image, write_image
+from ..sfm.model import read_scene
+from ..sfm.reconstruct import MATCHERS, SfmOptions, run_sfm
+from ..io.transforms import read_transforms
+from .video import extract_frames
 
 STAGE_DIR = ".process-tmp"
 MIN_IMAGES = 2

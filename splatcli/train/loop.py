@@ -18,18 +18,19 @@ from typing import Any, Iterator
 
 import torch
 
-from . import compact, train_report
+from ..strategy import compact
+from . import log as train_report
 from .data import TrainData, View, load_train_data
-from .errors import Interrupted, TrainingDiverged
-from .events import EventSink, Note, Progress, Stage, StageDone, emit
-from .io.checkpoint import load_checkpoint
+from ..errors import Interrupted, TrainingDiverged
+from ..events import EventSink, Note, Progress, Stage, StageDone, emit
+from ..io.checkpoint import load_checkpoint
 from .loss import photometric_loss
-from .metrics import psnr, ssim
-from .project import Project
-from .render import RenderOutput, rasterize
-from .strategy import StepInfo
-from .train_config import TrainConfig, TrainSummary
-from .train_state import TrainState, means_lr, new_state, save_state, state_from_checkpoint
+from ..eval.metrics import psnr, ssim
+from ..project import Project
+from ..render import RenderOutput, rasterize
+from ..strategy import StepInfo
+from .config import TrainConfig, TrainSummary
+from .state import TrainState, means_lr, new_state, save_state, state_from_checkpoint
 
 STAGE = "train"
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch.nn.functional as F
 from torch import Tensor
 
-from .metrics import ssim
+from ..eval.metrics import ssim
 
 
 def photometric_loss(image: Tensor, target: Tensor, lambda_dssim: float = 0.2) -> Tensor:  # [H, W, 3] each

@@ -17,16 +17,16 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .data import TrainData, View
-from .events import EventSink, Note, emit
-from .gaussians import Gaussians
-from .init import gaussians_from_ply, gaussians_from_points, random_points, subsample, subsample_index
-from .io.ply import ply_bytes
-from .project import Project
-from .render.weights import blending_weights as render_weights
-from .strategy import ops
-from .train_config import TrainConfig
-from .train_state import TrainState
+from ..train.data import TrainData, View
+from ..events import EventSink, Note, emit
+from ..gaussians import Gaussians
+from ..train.init import gaussians_from_ply, gaussians_from_points, random_points, subsample, subsample_index
+from ..io.ply import ply_bytes
+from ..project import Project
+from ..render.weights import blending_weights as render_weights
+from . import ops
+from ..train.config import TrainConfig
+from ..train.state import TrainState
 
 
 def initial_gaussians(cfg: TrainConfig, data: TrainData, device: torch.device) -> Gaussians:
@@ -52,7 +52,7 @@ def after_training(project: Project, cfg: TrainConfig, data: TrainData, state: T
                    on_event: EventSink | None, before: tuple[float, float] | None = None) -> None:
     """Run once, at step == iterations, before that step's checkpoint. `before` is
     the held-out (PSNR, SSIM) just measured for this model, if any."""
-    from .train import evaluate_views
+    from ..train.loop import evaluate_views
 
     if cfg.sh_degree == "auto" and "sh_auto_psnr" not in state.extra:
         val = subset(data.train, cfg.val_max_views)

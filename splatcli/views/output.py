@@ -20,13 +20,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .errors import SplatError
-from .events import EventSink, Note, Progress, Stage, StageDone, emit
-from .gaussians import Gaussians
-from .io.atomic import atomic_write_bytes
-from .project import Project, is_project
-from .render import RenderOutput, rasterize
-from .views import View
+from ..errors import SplatError
+from ..events import EventSink, Note, Progress, Stage, StageDone, emit
+from ..gaussians import Gaussians
+from ..io.atomic import atomic_write_bytes
+from ..project import Project, is_project
+from ..render import RenderOutput, rasterize
+from .sources import View
 
 BACKGROUNDS = {"black": (0.0, 0.0, 0.0), "white": (1.0, 1.0, 1.0), "gray": (0.5, 0.5, 0.5), "grey": (0.5, 0.5, 0.5)}
 VIDEO_CODECS = {".mp4": "mp4v", ".avi": "MJPG", ".mov": "mp4v", ".mkv": "mp4v"}
@@ -77,8 +77,8 @@ class LoadedModel:
 
 def load_model(source: str | os.PathLike, device: torch.device) -> LoadedModel:
     """A project directory (its latest checkpoint) or a 3DGS .ply file."""
-    from .io.checkpoint import load_checkpoint
-    from .io.ply import read_ply
+    from ..io.checkpoint import load_checkpoint
+    from ..io.ply import read_ply
 
     source = Path(source)
     if source.is_dir() and source.suffix.lower() == ".ply" and not is_project(source):
@@ -328,7 +328,7 @@ def render_views(
 
 def check_config(config: RenderConfig) -> None:
     """Refuse out-of-range options before any work, naming the allowed values."""
-    from .views import PATHS, SPLITS
+    from .sources import PATHS, SPLITS
 
     if config.split is not None and config.split not in SPLITS:
         raise SplatError(f"--split {config.split!r} is not known; allowed values: {', '.join(SPLITS)}")
@@ -354,7 +354,7 @@ def check_config(config: RenderConfig) -> None:
 def select_views(model: LoadedModel, config: RenderConfig, notes: list[str]) -> tuple[list[View], str, Project | None]:
     """The views of the request, the name of their folder, and the project that
     supplied cameras (if any)."""
-    from .views import cameras_around_points, dataset_views, generate_path, read_transforms, resize_views
+    from .sources import cameras_around_points, dataset_views, generate_path, read_transforms, resize_views
 
     project = model.project
     if project is None and config.project is not None:

@@ -13,12 +13,12 @@ from typing import Any
 import numpy as np
 import torch
 
-from .events import EventSink, Note, emit
-from .io.atomic import append_line, atomic_write_json, atomic_write_text
-from .io.ply import ply_bytes
-from .project import Project
-from .train_config import CompactReport, Histogram, TrainConfig, TrainLogLine, TrainReport, TrainSummary
-from .train_state import TrainState
+from ..events import EventSink, Note, emit
+from ..io.atomic import append_line, atomic_write_json, atomic_write_text
+from ..io.ply import ply_bytes
+from ..project import Project
+from .config import CompactReport, Histogram, TrainConfig, TrainLogLine, TrainReport, TrainSummary
+from .state import TrainState
 
 HIST_BINS = 40
 PROGRESS_PERIOD_S = 0.25  # progress-bar refresh; a loss read is a host sync on CUDA

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import SplatError
-from ..io.safepath import safe_join
+from .safepath import safe_join
 from ..project import read_json_file
 
 TRANSFORMS_NAMES = ("transforms.json", "transforms_train.json")

@@ -31,17 +31,17 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .camera import Camera
-from .errors import SplatError
-from .events import EventSink, Note, Progress, Stage, StageDone, emit
-from .gaussians import Gaussians
-from .io.atomic import atomic_write_json, atomic_write_text
-from .io.ply import ply_bytes
+from ..camera import Camera
+from ..errors import SplatError
+from ..events import EventSink, Note, Progress, Stage, StageDone, emit
+from ..gaussians import Gaussians
+from ..io.atomic import atomic_write_json, atomic_write_text
+from ..io.ply import ply_bytes
 from .metrics import psnr, ssim
-from .project import Project
-from .render.weights import blending_weights
-from .rendering import _sync, describe_device, project_background, render_camera
-from .views import SPLITS, View, dataset_views
+from ..project import Project
+from ..render.weights import blending_weights
+from ..views.output import _sync, describe_device, project_background, render_camera
+from ..views.sources import SPLITS, View, dataset_views
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp", ".exr")
 DEFAULT_BUDGETS = (1.0, 0.5, 0.25, 0.1)
@@ -353,8 +353,8 @@ class EvalPlan:
 def plan_eval(root: str | Path, config: EvalConfig, device: torch.device) -> EvalPlan:
     """Check options, open the project, load the model (latest checkpoint or
     `config.model`) and choose the views at the resolution trained."""
-    from .io.checkpoint import load_checkpoint
-    from .io.ply import read_ply
+    from ..io.checkpoint import load_checkpoint
+    from ..io.ply import read_ply
 
     check_eval_config(config)
     project = Project.open(root)

@@ -21,10 +21,10 @@ from typing import Sequence
 
 import numpy as np
 
-from .camera import Camera, scene_extent
-from .errors import SplatError
-from .io.safepath import safe_join
-from .project import Project, read_json_file
+from ..camera import Camera, scene_extent
+from ..errors import SplatError
+from ..io.safepath import safe_join
+from ..project import Project, read_json_file
 
 SPLITS = ("test", "train", "all")
 PATHS = ("orbit", "spiral", "interpolate")
@@ -56,7 +56,7 @@ def out_name_for(name: str) -> str:
 
 def project_cameras(project: Project) -> list[Camera]:
     """All registered cameras of a processed project, sorted by image name."""
-    from .sfm.model import read_scene
+    from ..sfm.model import read_scene
 
     project.require_processed()
     return read_scene(project.sparse_dir).cameras

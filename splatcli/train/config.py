@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any
 
-from .errors import SplatError
+from ..errors import SplatError
 
 MAX_SH_DEGREE = 3
 

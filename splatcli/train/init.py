@@ -14,8 +14,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .errors import SplatError
-from .gaussians import SH_C0, Gaussians, num_sh_bases
+from ..errors import SplatError
+from ..gaussians import SH_C0, Gaussians, num_sh_bases
 
 KNN_BLOCK = 512  # query points per distance block (memory: BLOCK x candidates floats)
 CDIST_MODE = "donot_use_mm_for_euclid_dist"  # exact differences: the matmul form loses digits for flat, offset clouds
@@ -70,7 +70,7 @@ def subsample(g: Gaussians, n: int, seed: int) -> Gaussians:
 
 def gaussians_from_ply(path: str | Path, sh_degree: int, device: torch.device) -> Gaussians:
     """Start from a trained 3DGS .ply (its SH truncated or zero-padded to `sh_degree`)."""
-    from .io.ply import read_ply
+    from ..io.ply import read_ply
 
     g = read_ply(path, device).gaussians
     return g.with_sh_degree(sh_degree).to(device, torch.float32)

@@ -18,10 +18,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .camera import Camera, scene_extent
-from .errors import SplatError
-from .project import Project
-from .sfm.model import read_scene
+from ..camera import Camera, scene_extent
+from ..errors import SplatError
+from ..project import Project
+from ..sfm.model import read_scene
 
 
 @dataclass

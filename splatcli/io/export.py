@@ -17,9 +17,9 @@ from pathlib import Path
 
 import torch
 
-from .errors import SplatError
-from .events import EventSink, Note, Stage, StageDone, emit
-from .project import Project
+from ..errors import SplatError
+from ..events import EventSink, Note, Stage, StageDone, emit
+from ..project import Project
 
 EXPORT_FORMATS = ("ply", "splat")
 
@@ -54,9 +54,9 @@ def check_export_config(config: ExportConfig) -> None:
 
 def export_project(root: str | os.PathLike, config: ExportConfig, *, on_event: EventSink | None = None) -> ExportResult:
     """Write the latest checkpoint of the project at `root` as .ply or .splat."""
-    from .io.checkpoint import load_checkpoint
-    from .io.ply import write_ply
-    from .io.splat import write_splat
+    from .checkpoint import load_checkpoint
+    from .ply import write_ply
+    from .splat import write_splat
 
     check_export_config(config)
     project = Project.open(root)
