@@ -28,15 +28,16 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.append(str(REPO / "tests"))  # tests/align.py (pose comparison), a test helper outside the package
 
 import numpy as np  # noqa: E402
 
 from splatcli.camera import Camera  # noqa: E402
 from splatcli.process.run import ProcessConfig, ProcessResult, process  # noqa: E402
 from splatcli.project import Project  # noqa: E402
-from splatcli.sfm.align import PoseErrors, compare_poses  # noqa: E402
-from splatcli.sfm.model import read_scene  # noqa: E402
+from splatcli.sfm.colmap import read_scene  # noqa: E402
 from splatcli.io.transforms import read_transforms  # noqa: E402
+from align import PoseErrors, compare_poses  # noqa: E402  (tests/align.py)
 from _doc import write_section  # noqa: E402  (bench/ is on sys.path when run as a script)
 
 FOX_WIDTH = 400  # the baseline was measured at 400 px wide

@@ -44,8 +44,8 @@ import torch  # noqa: E402
 from splatcli.render import rasterize  # noqa: E402
 from splatcli.render.project import project, tile_rect  # noqa: E402
 from splatcli.render.reference import rasterize_reference  # noqa: E402
-from splatcli.render.scenes import benchmark_scene  # noqa: E402
 from splatcli.render.sh import SH_C0  # noqa: E402
+from scenes import benchmark_scene  # noqa: E402  (bench/scenes.py)
 from _doc import write_section  # noqa: E402  (bench/ is on sys.path when run as a script)
 
 DOC = REPO / "docs" / "benchmarks.md"

@@ -34,6 +34,14 @@ class Camera:
         h = max(1, int(round(self.height * factor)))
         return self.resized(w, h)
 
+    def at_resolution(self, downscale: float = 1.0, max_size: int | None = None) -> "Camera":
+        """The one resolution rule of train, eval and render: divide the size by
+        `downscale`, then cap the longest side at `max_size` pixels."""
+        c = self.scaled(1.0 / downscale) if downscale != 1.0 else self
+        if max_size and max(c.width, c.height) > max_size:
+            c = c.scaled(max_size / max(c.width, c.height))
+        return c
+
     def resized(self, width: int, height: int) -> "Camera":
         sx, sy = width / self.width, height / self.height
         K = self.K.copy()
@@ -77,3 +85,22 @@ def scene_extent(cameras: list[Camera]) -> tuple[np.ndarray, float]:
     mid = centers.mean(axis=0)
     radius = float(np.linalg.norm(centers - mid, axis=1).max()) * 1.1
     return mid, max(radius, 1e-6)
+
+
+def focus_point(cameras: list[Camera]) -> np.ndarray | None:  # [3]
+    """The point closest (least squares) to every optical axis, or None when the
+    axes are near parallel or the point is behind most cameras."""
+    if len(cameras) < 2:
+        return None
+    centers = np.stack([c.center for c in cameras])
+    dirs = np.stack([c.viewmat[2, :3] for c in cameras])  # camera +z in world
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    P = np.eye(3)[None] - dirs[:, :, None] * dirs[:, None, :]  # [N, 3, 3] projectors off each axis
+    A = P.sum(0)
+    b = (P @ centers[:, :, None]).sum(0)[:, 0]
+    ev = np.linalg.eigvalsh(A)
+    if ev[0] < 1e-3 * ev[-1]:
+        return None
+    x = np.linalg.solve(A, b)
+    in_front = ((x - centers) * dirs).sum(1) > 0
+    return x if in_front.mean() > 0.8 else None

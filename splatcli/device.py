@@ -1,4 +1,4 @@
-"""Resolve the `--device` option to a torch.device, explicitly."""
+"""The `--device` option resolved to a torch.device, explicitly, and the device in words."""
 
 from __future__ import annotations
 
@@ -23,3 +23,17 @@ def resolve_device(name: str = "auto") -> torch.device:
             )
         return torch.device(name)
     raise SplatError(f"--device {name!r} is not known; allowed values: auto, cpu, cuda")
+
+
+def describe_device(device: torch.device) -> str:
+    """The device in words, for reports: "cpu (2 threads)", "cuda:0 (NVIDIA H200)"."""
+    if device.type == "cuda":
+        return f"{device} ({torch.cuda.get_device_name(device)})"
+    n = torch.get_num_threads()
+    return f"{device.type} ({n} thread{'' if n == 1 else 's'})"
+
+
+def synchronize(device: torch.device) -> None:
+    """Wait for the device's queued work (timings of CUDA work need it)."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)

@@ -7,6 +7,7 @@ tests collect them in a list, and `--json` ignores all but the summary.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Union
 
@@ -56,3 +57,41 @@ def null_sink(event: Event) -> None:
 def emit(sink: EventSink | None, event: Event) -> None:
     if sink is not None:
         sink(event)
+
+
+class Stages:
+    """The one timed-stage helper: `with stages.stage(name, total) as s: s.progress(k)`
+    emits Stage, Progress and StageDone, and adds each stage's seconds to `seconds`;
+    `note` emits a Note and keeps warnings in `warnings`."""
+
+    def __init__(self, sink: EventSink | None) -> None:
+        self.sink = sink
+        self.seconds: dict[str, float] = {}
+        self.warnings: list[str] = []
+
+    def note(self, message: str, level: str = "note") -> None:
+        if level == "warning":
+            self.warnings.append(message)
+        emit(self.sink, Note(message, level))
+
+    def stage(self, name: str, total: int | None = None) -> "_Timed":
+        return _Timed(self, name, total)
+
+
+class _Timed:
+    def __init__(self, stages: Stages, name: str, total: int | None) -> None:
+        self.stages, self.name, self.total = stages, name, total
+
+    def __enter__(self) -> "_Timed":
+        emit(self.stages.sink, Stage(self.name, self.total))
+        self.t0 = time.perf_counter()
+        return self
+
+    def progress(self, done: int, total: int | None = None, **info: Any) -> None:
+        emit(self.stages.sink, Progress(self.name, done, total if total is not None else self.total, info))
+
+    def __exit__(self, *exc: Any) -> None:
+        dt = time.perf_counter() - self.t0
+        self.stages.seconds[self.name] = self.stages.seconds.get(self.name, 0.0) + dt
+        if exc[0] is None:
+            emit(self.stages.sink, StageDone(self.name, dt))

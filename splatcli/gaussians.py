@@ -80,3 +80,20 @@ class Gaussians:
     def empty(sh_degree: int = 0, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32) -> "Gaussians":
         z = lambda *s: torch.zeros(*s, device=device, dtype=dtype)  # noqa: E731
         return Gaussians(z(0, 3), z(0, 4), z(0, 3), z(0), z(0, num_sh_bases(sh_degree), 3))
+
+
+@dataclass
+class Histogram:
+    edges: list[float]  # len(counts) + 1
+    counts: list[int]
+
+
+def histogram(values, bins: int = 40, range_: tuple[float, float] | None = None) -> Histogram:
+    """Counts of the finite `values` (a numpy array) in `bins` equal bins."""
+    import numpy as np
+
+    values = values[np.isfinite(values)]
+    if values.size == 0 and range_ is None:
+        range_ = (-1.0, 0.0)
+    counts, edges = np.histogram(values, bins=bins, range=range_)
+    return Histogram(edges=[round(float(e), 6) for e in edges], counts=[int(c) for c in counts])

@@ -18,7 +18,6 @@ Everyone else asks a `Project` for paths; no file name appears in two places.
 from __future__ import annotations
 
 import datetime as _dt
-import json
 import math
 import re
 from dataclasses import dataclass
@@ -27,35 +26,12 @@ from typing import Any
 
 from . import __version__
 from .errors import NotReadyError, SplatError
-from .io.atomic import atomic_write_json
+from .io.atomic import atomic_write_json, read_json_file
 
 SCHEMA_VERSION = 1
 MANIFEST_NAME = "splatcli.json"
 FRAME_CONVENTION = "opencv"  # x right, y down, z forward; viewmat maps world to camera
-MAX_JSON_BYTES = 64 * 1024 * 1024  # a manifest is kilobytes; refuse absurd files before parsing
 _CKPT_RE = re.compile(r"^step-(\d{9})\.pt$")
-
-
-def read_json_file(path: Path, what: str = "JSON file", max_bytes: int = MAX_JSON_BYTES) -> Any:
-    """Read JSON with a size bound, turning every failure into one-line SplatError."""
-    path = Path(path)
-    try:
-        size = path.stat().st_size
-    except FileNotFoundError:
-        raise SplatError(f"{path}: {what} not found") from None
-    except OSError as exc:
-        raise SplatError(f"{path}: cannot read {what}: {exc.strerror or exc}") from None
-    if size > max_bytes:
-        raise SplatError(f"{path}: {what} is {size} bytes, more than the {max_bytes} allowed")
-    try:
-        text = path.read_text(encoding="utf-8")
-        return json.loads(text)
-    except UnicodeDecodeError:
-        raise SplatError(f"{path}: {what} is not UTF-8 text") from None
-    except json.JSONDecodeError as exc:
-        raise SplatError(f"{path}: {what} is not valid JSON ({exc.msg} at line {exc.lineno})") from None
-    except OSError as exc:
-        raise SplatError(f"{path}: cannot read {what}: {exc.strerror or exc}") from None
 
 
 def now_iso() -> str:
@@ -250,6 +226,28 @@ class Project:
         """Image names per split: {"train": [...], "test": [...]}."""
         s = self.manifest().get("splits") or {}
         return {"train": list(s.get("train", [])), "test": list(s.get("test", []))}
+
+    # ---- scene facts -------------------------------------------------------
+    def background(self) -> tuple[float, float, float] | None:
+        """The scene's background (white for Blender scenes) recorded by `process`."""
+        bg = (self.manifest().get("scene") or {}).get("background")
+        return tuple(float(v) for v in bg) if bg is not None else None  # type: ignore[return-value]
+
+    def trained_resolution(self) -> tuple[float, int | None]:
+        """(downscale, max_size) that `train` recorded: eval and render use the
+        resolution the model was trained at (Camera.at_resolution). A hand-edited
+        value is named, not guessed."""
+        tcfg = (self.step("train") or {}).get("config") or {}
+        where = f"{self.manifest_path}: steps.train.config"
+        d = tcfg.get("downscale")
+        if d is None:
+            d = 1.0
+        if isinstance(d, bool) or not isinstance(d, (int, float)) or not (math.isfinite(d) and 0 < d <= 64):
+            raise SplatError(f"{where}.downscale is {d!r}, not a number in (0, 64]; pass --downscale")
+        m = tcfg.get("max_size")
+        if m is not None and (isinstance(m, bool) or not isinstance(m, int) or m < 16):
+            raise SplatError(f"{where}.max_size is {m!r}, not a whole number of pixels >= 16; pass --downscale")
+        return float(d), m
 
     # ---- readiness ---------------------------------------------------------
     def require_processed(self) -> None:

@@ -33,7 +33,8 @@ from typer.testing import CliRunner
 from splatcli.cli.main import app
 from splatcli.io.checkpoint import CHECKPOINT_SCHEMA
 from splatcli.io.ply import gaussians_to_rows, ply_header, ply_property_names
-from splatcli.project import MANIFEST_NAME, MAX_JSON_BYTES, SCHEMA_VERSION, Project
+from splatcli.io.atomic import MAX_JSON_BYTES
+from splatcli.project import MANIFEST_NAME, SCHEMA_VERSION, Project
 
 from test_sfm import gl_c2w, jpeg_bytes, texture, with_exif_orientation
 from tiny_project import make_tiny_project, ring_cameras, tiny_gaussians
@@ -430,7 +431,7 @@ PROCESS_OPTION_CASES = [
     (["--fps", "-3"], ["--fps -3", "positive"]),
     (["--matcher", "magic"], ["--matcher 'magic'", "auto, exhaustive, sequential"]),
     (["--input-type", "photos"], ["--input-type 'photos'", "auto, images, video, colmap, transforms"]),
-    (["--background", "teal"], ["--background 'teal'", "auto, white, black or R,G,B"]),
+    (["--background", "teal"], ["--background 'teal'", "auto, white, black, gray or R,G,B"]),
 ]
 
 
@@ -458,7 +459,7 @@ def image_folder(d: Path, n: int, *, size: tuple[int, int] = (64, 48)) -> Path:
 def fake_sfm(monkeypatch):
     """`run_sfm` replaced by a stand-in that poses every staged image on a ring:
     the cases below test reading the input, not structure from motion."""
-    import splatcli.process.run as proc
+    import splatcli.process.capture as proc
     from splatcli.sfm import colmap
     from splatcli.sfm.reconstruct import SfmResult
 
@@ -587,7 +588,7 @@ def test_process_mixed_sizes_and_orientations_are_handled(tmp_path: Path, fake_s
     (d / "d_exif.jpg").write_bytes(with_exif_orientation(jpeg_bytes(texture(48, 64, seed=4)), 6))
     r = cli("process", d, "-o", tmp_path / "p")
     assert_ok_with_note(r, "sizes; using one camera per image")
-    from splatcli.sfm.model import read_scene
+    from splatcli.sfm.colmap import read_scene
 
     sizes = {c.name: (c.width, c.height) for c in read_scene(Project(tmp_path / "p").sparse_dir).cameras}
     assert sizes == {"a_landscape.png": (64, 48), "b_portrait.png": (48, 64), "c_small.jpg": (40, 30),
@@ -710,9 +711,9 @@ def test_transforms_with_some_files_missing_or_truncated_imports_the_rest(tmp_pa
 
 def colmap_workspace(root: Path, *, text: bool) -> Path:
     """root/images + root/sparse/0: a small synthetic PINHOLE model with points."""
-    from splatcli.sfm import colmap
+    from colmap_models import synthetic_model
 
-    model = colmap.synthetic_model(num_images=4, num_points=30, camera_model="PINHOLE", width=64, height=48)
+    model = synthetic_model(num_images=4, num_points=30, camera_model="PINHOLE", width=64, height=48)
     (root / "images").mkdir(parents=True)
     for i, name in enumerate(model.registered_names()):
         (root / "images" / name).write_bytes(png_bytes(texture(48, 64, seed=i)))
@@ -858,7 +859,7 @@ def test_eval_folders_bad(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("case, fragments", [
     ("not_json", ["not valid JSON"]),
-    ("no_frames", ["no 'frames' list"]),
+    ("no_frames", ["has no `frames` list"]),
     ("bad_matrix", ["frame 0", "transform_matrix"]),
     ("no_focal", ["frame 0", "no focal length"]),
     ("missing", ["not found"]),
@@ -957,11 +958,11 @@ def test_sparse_model_damaged_after_process(damage: str, fragments: list[str], p
 def test_render_cameras_file_path_cannot_escape(tmp_path):
     """render --cameras reads an image's size only through a path inside its folder."""
     from splatcli.errors import SplatError
-    from splatcli.views.sources import read_transforms
+    from splatcli.views.sources import transforms_views
 
     (tmp_path / "cams").mkdir()
     f = tmp_path / "cams" / "transforms.json"
     f.write_text(json.dumps({"fl_x": 50, "frames": [
         {"file_path": "../../etc/passwd", "transform_matrix": np.eye(4).tolist()}]}))
     with pytest.raises(SplatError, match="outside the input folder"):
-        read_transforms(f)
+        transforms_views(f)

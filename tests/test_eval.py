@@ -13,7 +13,8 @@ import pytest
 import torch
 from skimage.metrics import structural_similarity
 
-from splatcli.eval.evaluate import contributions, prune_to, used_sh_degree
+from splatcli.eval.budgets import contributions, prune_to
+from splatcli.eval.report import used_sh_degree
 from splatcli.gaussians import SH_C0
 from splatcli.io.checkpoint import load_gaussians
 from splatcli.io.ply import ply_bytes

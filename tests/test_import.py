@@ -1,6 +1,6 @@
 """Importing existing poses: COLMAP workspaces and transforms.json, end to end.
 
-Models come from `pycolmap.synthesize_dataset` (via sfm.colmap.synthetic_model)
+Models come from `pycolmap.synthesize_dataset` (via tests/colmap_models.py)
 or are written by hand; images are random textures of the right size. No
 structure from motion runs here, so every test takes well under a second.
 """
@@ -22,8 +22,9 @@ from splatcli.errors import SplatError
 from splatcli.process.run import ProcessConfig, process
 from splatcli.project import Project
 from splatcli.sfm import colmap
-from splatcli.sfm.model import read_scene
+from splatcli.sfm.colmap import read_scene
 
+from colmap_models import synthetic_model
 from test_sfm import gl_c2w, orbit, texture, write_text_model
 from tiny_project import assert_user_error
 
@@ -31,8 +32,8 @@ from tiny_project import assert_user_error
 def make_workspace(root: Path, *, camera_model: str = "PINHOLE", text: bool = False, num_cameras: int = 1,
                    num_images: int = 5, size: tuple[int, int] = (64, 48)) -> colmap.Model:
     """root/images/<name> + root/sparse/0 (a synthetic model)."""
-    model = colmap.synthetic_model(num_images=num_images, camera_model=camera_model, width=size[0], height=size[1],
-                                   num_cameras=num_cameras)
+    model = synthetic_model(num_images=num_images, camera_model=camera_model, width=size[0], height=size[1],
+                            num_cameras=num_cameras)
     (root / "images").mkdir(parents=True)
     for i, name in enumerate(model.registered_names()):
         cv2.imwrite(str(root / "images" / name), texture(size[1], size[0], seed=i))
@@ -198,7 +199,7 @@ def test_import_blender_scene_composites_over_white_and_keeps_masks(tmp_path):
 
 def test_import_blender_with_black_background(tmp_path):
     blender_scene(tmp_path / "lego", 4, 1)
-    process(tmp_path / "lego", tmp_path / "p", ProcessConfig(background="black"))
+    process(tmp_path / "lego", tmp_path / "p", ProcessConfig(background=(0.0, 0.0, 0.0)))
     proj = Project(tmp_path / "p")
     assert proj.manifest()["scene"]["background"] == [0.0, 0.0, 0.0]
     assert (cv2.imread(str(proj.images_dir / "train_r_0.png"))[0, 0] == 0).all()

@@ -59,7 +59,14 @@ def _load_ckpt(data: bytes) -> None:
         except SplatError as e:
             _one_line_error(e, p)
             return
-        assert ck.step >= 0 and len(ck.gaussians) >= 0
+        # accepted: a consistent checkpoint, usable as it is (every tensor holds the same N Gaussians)
+        g, n = ck.gaussians, len(ck.gaussians)
+        assert isinstance(ck.step, int) and ck.step >= 0
+        assert g.means.shape == (n, 3) and g.quats.shape == (n, 4) and g.log_scales.shape == (n, 3)
+        assert g.opacity_logits.shape == (n,) and g.sh.shape[0] == n and g.sh.shape[2] == 3
+        assert 0 <= ck.sh_degree <= g.sh_degree and len(ck.model()) == n
+        if data == CKPT:  # the intact file reads back what was saved
+            assert (ck.step, n, ck.sh_degree) == (7, 5, 1)
 
 
 @SETTINGS
@@ -89,9 +96,9 @@ def test_checkpoint_random_bytes(data: bytes) -> None:
 @pytest.fixture(scope="module")
 def colmap_models(tmp_path_factory) -> dict[str, dict[str, bytes]]:
     """A small synthetic model's three files, binary and text."""
-    from splatcli.sfm import colmap
+    from colmap_models import synthetic_model
 
-    model = colmap.synthetic_model(num_images=3, num_points=8, camera_model="PINHOLE", width=32, height=24)
+    model = synthetic_model(num_images=3, num_points=8, camera_model="PINHOLE", width=32, height=24)
     out = {}
     for fmt in ("bin", "txt"):
         d = tmp_path_factory.mktemp(fmt)

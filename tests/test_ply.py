@@ -202,3 +202,25 @@ def test_refusals(tmp_path: Path) -> None:
         read_ply(p)
     except PlyError as e:
         assert str(p) in str(e) and "\n" not in str(e) and isinstance(e, ValueError)
+
+
+def test_refusals_plyfile_would_not_bound(tmp_path: Path) -> None:
+    """What `_check_head` keeps from plyfile: an unbounded header, ASCII and list
+    elements (plyfile would allocate the claimed count), plus a misnamed f_rest."""
+    p = tmp_path / "p.ply"
+    p.write_bytes(b"ply\nformat binary_little_endian 1.0\ncomment " + b"a" * (3 << 20))
+    with pytest.raises(PlyError, match="no end_header within 1048576 bytes"):
+        read_ply(p)
+    write_ply(p, random_gaussians(3, 0))
+    data = p.read_bytes()
+    p.write_bytes(data.replace(b"element vertex 3\n", b"element face 100000000000\nproperty list uchar int vi\nelement vertex 3\n"))
+    with pytest.raises(PlyError, match="'vi' is list uchar int"):
+        read_ply(p)
+    p.write_bytes(data.replace(b"binary_little_endian", b"ascii"))
+    with pytest.raises(PlyError, match="ASCII PLY is not supported"):
+        read_ply(p)
+    # "f_rest_08" is an extra property, not f_rest_8 (this used to escape as a KeyError)
+    write_ply(p, random_gaussians(3, 1))
+    p.write_bytes(p.read_bytes().replace(b"f_rest_8\n", b"f_rest_08\n"))
+    with pytest.raises(PlyError, match="8 f_rest_"):
+        read_ply(p)

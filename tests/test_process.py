@@ -20,9 +20,9 @@ from splatcli.camera import Camera
 from splatcli.events import Note
 from splatcli.process.run import ProcessConfig, process
 from splatcli.project import Project
-from splatcli.sfm.align import compare_poses
-from splatcli.sfm.model import read_scene
+from splatcli.sfm.colmap import read_scene
 
+from align import compare_poses
 from test_import import assert_contract, tree_digest
 from test_sfm import texture
 from tiny_project import assert_user_error, run_cli
@@ -114,7 +114,7 @@ def test_rerun_needs_overwrite_and_interrupts_leave_the_project_alone(processed,
     def interrupted(*a, **k):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr("splatcli.process.run.run_sfm", interrupted)
+    monkeypatch.setattr("splatcli.process.capture.run_sfm", interrupted)
     with pytest.raises(KeyboardInterrupt):
         process(src, out, ProcessConfig(overwrite=True))
     assert tree_digest(out) == before  # the old dataset is intact, no temp folder left
@@ -231,14 +231,14 @@ def test_flat_tiny_images_blame_the_features(tmp_path):
 
 
 def test_names_with_spaces_are_made_safe_for_colmap_pair_lists():
-    from splatcli.process.run import _safe_names
+    from splatcli.process.capture import safe_names
 
-    assert _safe_names(["a b.jpg", "a_b.jpg", "c.png", "x  y.JPG"]) == ["a_b_1.jpg", "a_b.jpg", "c.png", "x_y.JPG"]
+    assert safe_names(["a b.jpg", "a_b.jpg", "c.png", "x  y.JPG"]) == ["a_b_1.jpg", "a_b.jpg", "c.png", "x_y.JPG"]
 
 
 def test_registering_under_half_the_images_warns(scene, tmp_path, monkeypatch):
     """Mapping that leaves most images out still makes a project, with a warning."""
-    import splatcli.process.run as proc
+    import splatcli.process.capture as proc
 
     src = tmp_path / "few"
     src.mkdir()
@@ -296,7 +296,7 @@ def test_ctrl_c_exits_130_with_one_line(tmp_path, monkeypatch):
     def interrupted(*a, **k):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr("splatcli.process.run._from_colmap", interrupted)
+    monkeypatch.setattr("splatcli.process.run.from_colmap", interrupted)
     r = run_cli("process", tmp_path / "ws", "-o", tmp_path / "p")
     assert r.exit_code == 130 and r.stderr.strip().splitlines()[-1] == "error: interrupted"
     assert not (tmp_path / "p").exists()

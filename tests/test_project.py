@@ -9,7 +9,8 @@ import pytest
 
 from splatcli.errors import NotReadyError, SplatError
 from splatcli.io.atomic import atomic_path, atomic_write_json, atomic_write_text
-from splatcli.project import SCHEMA_VERSION, Project, read_json_file
+from splatcli.io.atomic import read_json_file
+from splatcli.project import SCHEMA_VERSION, Project
 
 
 def test_create_and_open(tmp_path):

@@ -9,7 +9,8 @@ import splatcli
 import splatcli.render.composite as composite
 from splatcli import RenderOutput, rasterize
 from splatcli.render.reference import rasterize_reference
-from splatcli.render.scenes import test_scene as make_scene
+
+from scenes import test_scene as make_scene
 
 PARAMS = ["means", "quats", "log_scales", "opacity_logits", "sh", "viewmat", "K"]
 

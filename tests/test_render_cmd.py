@@ -15,7 +15,8 @@ import pytest
 from splatcli.errors import SplatError
 from splatcli.io.ply import write_ply
 from splatcli.project import Project
-from splatcli.views.sources import generate_path, read_transforms
+from splatcli.views.paths import generate_path
+from splatcli.views.sources import transforms_views
 from tiny_project import H, W, assert_user_error, make_tiny_project, ring_cameras, run_cli, snapshot, tiny_gaussians
 
 GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -84,20 +85,20 @@ def test_scene_background_is_the_default(proj: Project, tmp_path: Path) -> None:
 
 
 def test_transforms_json_matches_dataset_cameras(proj: Project, tmp_path: Path) -> None:
-    views = read_transforms(_transforms(tmp_path / "t.json"))
+    views = transforms_views(_transforms(tmp_path / "t.json"))
     for v, c in zip(views, ring_cameras()):
         np.testing.assert_allclose(v.camera.viewmat, c.viewmat, atol=1e-12)
         np.testing.assert_allclose(v.camera.K, c.K)
     notes: list[str] = []
-    pf = read_transforms(_transforms(tmp_path / "pf.json", per_frame=True), notes=notes)
+    pf = transforms_views(_transforms(tmp_path / "pf.json", per_frame=True), notes=notes)
     assert not notes and pf[3].camera.width == W
     (tmp_path / "images").symlink_to(proj.images_dir)  # the size comes from images/img_000.png
-    ang = read_transforms(_transforms(tmp_path / "ang.json", angle_only=True))
+    ang = transforms_views(_transforms(tmp_path / "ang.json", angle_only=True))
     np.testing.assert_allclose(ang[0].camera.K, ring_cameras()[0].K, atol=1e-9)
     (tmp_path / "images").unlink()
     with pytest.raises(SplatError, match="pass --width and --height"):
-        read_transforms(tmp_path / "ang.json")
-    assert read_transforms(tmp_path / "ang.json", default_size=(W, H))[0].camera.width == W
+        transforms_views(tmp_path / "ang.json")
+    assert transforms_views(tmp_path / "ang.json", default_size=(W, H))[0].camera.width == W
     # rendering through --cameras gives the dataset's pixels
     r = run_cli("render", proj.root, "--cameras", tmp_path / "t.json", "-o", tmp_path / "tj", "--width", "24")
     assert r.exit_code == 0, r.output
@@ -249,11 +250,11 @@ def test_reads_real_transforms_files(shared_data: Path) -> None:
     fox = shared_data / "fox" / "transforms.json"
     if not lego.is_file() or not fox.is_file():
         pytest.skip("lego or fox is absent")
-    v = read_transforms(lego)  # no w/h: the size comes from train/r_0.png (extension appended)
+    v = transforms_views(lego)  # no w/h: the size comes from train/r_0.png (extension appended)
     assert len(v) == 100 and (v[0].camera.width, v[0].camera.height) == (800, 800)
     assert v[0].out_name == "r_0.png" and v[0].camera.K[0, 0] == pytest.approx(1111.11, abs=0.01)
     notes: list[str] = []
-    f = read_transforms(fox, notes=notes)  # all 67 frames, even those whose image is absent
+    f = transforms_views(fox, notes=notes)  # all 67 frames, even those whose image is absent
     assert len(f) == 67 and (f[0].camera.width, f[0].camera.height) == (1080, 1920) and "distortion" in notes[0]
     for cams in ([x.camera for x in v], [x.camera for x in f]):
         orbit = generate_path("orbit", cams, 8)

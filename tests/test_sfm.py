@@ -16,14 +16,16 @@ import pytest
 
 from splatcli.camera import Camera
 from splatcli.errors import SplatError
-from splatcli.sfm.align import compare_poses, umeyama
-from splatcli.process.bounds import focus_point, frustum_bounds, points_bounds
+from splatcli.camera import focus_point
+from splatcli.process.bounds import frustum_bounds, points_bounds
 from splatcli.sfm.colmap_files import check_model
 from splatcli.process.detect import detect_input
 from splatcli.io.images import ImageError, check_complete, exif_orientation, fit_size, read_image
 from splatcli.sfm.reconstruct import exhaustive_pairs, looks_ordered, natural_key, sequential_pairs
 from splatcli.io.transforms import read_transforms
 from splatcli.process.video import blurry_frames, choose_frames
+
+from align import compare_poses, umeyama
 
 
 def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:  # [4, 4] world-to-camera, OpenCV axes

@@ -10,7 +10,7 @@ import torch
 from torch import nn
 
 from splatcli.render.output import RenderOutput
-from splatcli.strategy import DefaultStrategy, DefaultStrategyConfig, StepInfo
+from splatcli.strategy import DefaultStrategy, DefaultStrategyConfig, Splats, StepInfo
 from splatcli.strategy import ops
 
 
@@ -46,12 +46,12 @@ def test_keep_and_append_move_moments_with_rows():
     _adam_step(params, optims)
     before = {k: (p.detach().clone(), _moment(optims, params, k).clone()) for k, p in params.items()}
     mask = torch.tensor([True, False, True, True, False, True])
-    ops.keep(params, optims, mask)
+    ops.keep(Splats(params, optims), mask)
     for k, (v, m) in before.items():
         assert torch.equal(params[k].detach(), v[mask])
         assert torch.equal(_moment(optims, params, k), m[mask])
         assert optims[k].param_groups[0]["params"][0] is params[k]
-    ops.append(params, optims, {k: torch.ones(2, *p.shape[1:]) for k, p in params.items()})
+    ops.append(Splats(params, optims), {k: torch.ones(2, *p.shape[1:]) for k, p in params.items()})
     for k, p in params.items():
         assert p.shape[0] == 6
         assert torch.equal(_moment(optims, params, k)[4:], torch.zeros(2, *p.shape[1:]))
@@ -73,7 +73,7 @@ def test_edit_matches_an_optimizer_built_on_the_subset():
         o.state[p] = {"step": st["step"].clone(), "exp_avg": st["exp_avg"][mask].clone(),
                       "exp_avg_sq": st["exp_avg_sq"][mask].clone()}
         ref_opt[k] = o
-    ops.keep(params, optims, mask)
+    ops.keep(Splats(params, optims), mask)
     _adam_step(params, optims, seed=5)
     _adam_step(ref, ref_opt, seed=5)
     for k in params:
@@ -85,7 +85,7 @@ def test_split_samples_inside_and_shrinks():
     sel = torch.tensor([False, True, False, True])
     old_means = params["means"].detach()[sel]
     gen = torch.Generator().manual_seed(3)
-    ops.split(params, optims, sel, gen)
+    ops.split(Splats(params, optims), sel, gen)
     assert params["means"].shape[0] == 2 + 4
     new = params["means"].detach()[2:].reshape(2, 2, 3)
     assert (new - old_means[None]).norm(dim=-1).max() < 0.01 * 6  # within ~6 sigma of the parent
@@ -113,7 +113,7 @@ def test_refine_clones_small_splits_large_prunes_transparent():
     state = s.initial_state(5, torch.device("cpu"))
     grad = torch.zeros(5, 2)
     grad[[0, 3]] = 1e-3  # x16 px -> NDC: well above 2e-4
-    stats = s.step_post_backward(params, optims, state, 1, _info(5, grad))
+    stats = s.step_post_backward(Splats(params, optims, [state]), state, 1, _info(5, grad))
     assert (stats.cloned, stats.split, stats.pruned) == (1, 1, 1)
     assert stats.after == 5 - 1 - 1 + 1 + 2 == params["means"].shape[0]
     assert state.grad2d.shape[0] == stats.after and state.grad2d.abs().sum() == 0  # restarted
@@ -125,7 +125,7 @@ def test_accumulates_only_visible_and_in_ndc_units():
     state = s.initial_state(3, torch.device("cpu"))
     grad = torch.tensor([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
     vis = torch.tensor([True, True, False])
-    s.step_post_backward(params, optims, state, 1, _info(3, grad, visible=vis, w=40, h=20))
+    s.step_post_backward(Splats(params, optims, [state]), state, 1, _info(3, grad, visible=vis, w=40, h=20))
     torch.testing.assert_close(state.grad2d, torch.tensor([20.0, 10.0, 0.0]))
     torch.testing.assert_close(state.count, torch.tensor([1.0, 1.0, 0.0]))
 
@@ -138,7 +138,7 @@ def test_budget_is_never_exceeded_and_takes_highest_gradients():
     state = s.initial_state(n, torch.device("cpu"))
     grad = torch.zeros(n, 2)
     grad[:, 0] = torch.linspace(1e-3, 2e-3, n)  # every one is a candidate; the last three are highest
-    stats = s.step_post_backward(params, optims, state, 1, _info(n, grad))
+    stats = s.step_post_backward(Splats(params, optims, [state]), state, 1, _info(n, grad))
     assert stats.after == budget and stats.cloned == 3 and stats.held_by_budget == 7
     clones = params["means"].detach()[n:]
     assert torch.equal(clones, params["means"].detach()[n - 3:n])  # copies of the top three
@@ -151,7 +151,7 @@ def test_opacity_reset_clamps_and_zeroes_moments():
     _adam_step(params, optims)
     s = DefaultStrategy(DefaultStrategyConfig(reset_every=7), scene_extent=1.0)
     state = s.initial_state(4, torch.device("cpu"))
-    stats = s.step_post_backward(params, optims, state, 7, _info(4, torch.zeros(4, 2)))
+    stats = s.step_post_backward(Splats(params, optims, [state]), state, 7, _info(4, torch.zeros(4, 2)))
     assert stats.reset_opacity
     op = torch.sigmoid(params["opacity_logits"].detach())
     assert op.max() <= 0.01 + 1e-6 and op[0] < 0.001  # low ones stay low
@@ -174,5 +174,20 @@ def test_nothing_happens_outside_the_refine_window(step):
     params, optims = _params(n=4)
     s = DefaultStrategy(DefaultStrategyConfig(), scene_extent=1.0)
     state = s.initial_state(4, torch.device("cpu"))
-    stats = s.step_post_backward(params, optims, state, step, _info(4, torch.full((4, 2), 1.0)))
+    stats = s.step_post_backward(Splats(params, optims, [state]), state, step, _info(4, torch.full((4, 2), 1.0)))
     assert not stats.changed and params["means"].shape[0] == 4
+
+
+def test_ops_keep_every_strategy_row_in_step():
+    """A prune or an append edits the strategies' per-Gaussian rows in the same call:
+    no caller resets or slices accumulators by hand."""
+    params, optims = _params(n=5)
+    s = DefaultStrategy(DefaultStrategyConfig(), scene_extent=1.0)
+    state = s.initial_state(5, torch.device("cpu"))
+    state.grad2d += torch.arange(5.0)
+    splats = Splats(params, optims, [state])
+    ops.keep(splats, torch.tensor([True, False, True, False, True]))
+    assert torch.equal(state.grad2d, torch.tensor([0.0, 2.0, 4.0]))
+    assert state.count.shape == state.radii.shape == (3,)
+    ops.append(splats, {k: torch.ones(2, *p.shape[1:]) for k, p in params.items()})
+    assert torch.equal(state.grad2d, torch.tensor([0.0, 2.0, 4.0, 0.0, 0.0]))

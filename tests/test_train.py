@@ -205,7 +205,7 @@ def test_finished_run_resumed_with_compact_equals_a_compact_run(tmp_path, uninte
     train(b.root, make_config(**SMALL), CPU)  # a plain run ...
     # ... compacted afterwards. The stored config holds the default compact_finetune;
     # --compact given on resume brings the resuming invocation's setting (8) with it.
-    assert make_config(**SMALL).compact_finetune != 8
+    assert make_config(**SMALL).compact.finetune != 8
     sb = train(b.root, make_config(**SMALL, compact_finetune=8), CPU, resume=True,
                overrides={"compact": True, "sh_degree": "auto"})
     assert sb.steps == sa.steps and sb.compact.before_count == sa.compact.before_count

@@ -11,11 +11,13 @@ import pytest
 import torch
 
 from splatcli.camera import Camera
-from splatcli.train.data import load_train_data, read_rgb, training_camera
+from splatcli.train.config import make_config
+from splatcli.io.images import load_rgb
+from splatcli.train.data import load_train_data
 from splatcli.errors import SplatError
 from splatcli.gaussians import SH_C0, Gaussians
 from splatcli.train.init import (
-    gaussians_from_ply,
+    initial_gaussians,
     gaussians_from_points,
     knn_rms_distance,
     random_points,
@@ -87,7 +89,7 @@ def test_subsample_index():
 def test_init_from_ply_pads_sh(tmp_path):
     g = Gaussians(torch.randn(6, 3), torch.randn(6, 4), torch.randn(6, 3), torch.randn(6), torch.randn(6, 4, 3))
     write_ply(tmp_path / "s.ply", g)
-    h = gaussians_from_ply(tmp_path / "s.ply", 3, CPU)
+    h = initial_gaussians(make_config(init_ply=str(tmp_path / "s.ply"), sh_degree="3"), None, CPU)
     assert h.sh.shape == (6, 16, 3)
     torch.testing.assert_close(h.sh[:, :4], g.sh)
     torch.testing.assert_close(h.means, g.means)
@@ -95,15 +97,15 @@ def test_init_from_ply_pads_sh(tmp_path):
 
 def test_training_camera_rule():
     cam = Camera("a.png", 1920, 1080, np.array([[1000.0, 0, 960], [0, 1000.0, 540], [0, 0, 1]]), np.eye(4))
-    c = training_camera(cam, 2.0, 1600)
+    c = cam.at_resolution(2.0, 1600)
     assert (c.width, c.height) == (960, 540)
-    c = training_camera(cam, 1.0, 480)
+    c = cam.at_resolution(1.0, 480)
     assert (c.width, c.height) == (480, 270) and math.isclose(c.K[0, 0], 250.0)
-    assert training_camera(cam, 1.0, 4000) is cam
+    assert cam.at_resolution(1.0, 4000) is cam
 
 
 @pytest.mark.parametrize("kind", ["rgb", "rgba", "gray", "u16"])
-def test_read_rgb_decodes_to_rgb_uint8(tmp_path, kind):
+def test_load_rgb_decodes_to_rgb_uint8(tmp_path, kind):
     rgb = np.zeros((8, 10, 3), np.uint8)
     rgb[..., 0] = 200  # red
     path = tmp_path / "x.png"
@@ -115,11 +117,11 @@ def test_read_rgb_decodes_to_rgb_uint8(tmp_path, kind):
         cv2.imwrite(str(path), np.full((8, 10), 200, np.uint8))
     else:
         cv2.imwrite(str(path), (rgb[..., ::-1].astype(np.uint16) * 257))
-    out = read_rgb(path, 10, 8)
+    out = load_rgb(path, (10, 8))
     assert out.shape == (8, 10, 3) and out.dtype == np.uint8 and out[0, 0, 0] == 200
-    assert read_rgb(path, 5, 4).shape == (4, 5, 3)
+    assert load_rgb(path, (5, 4)).shape == (4, 5, 3)
     with pytest.raises(SplatError):
-        read_rgb(tmp_path / "missing.png", 5, 4)
+        load_rgb(tmp_path / "missing.png", (5, 4))
 
 
 def test_load_train_data_uses_the_splits(tmp_path):

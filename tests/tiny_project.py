@@ -21,7 +21,7 @@ from splatcli.io.checkpoint import save_checkpoint
 from splatcli.io.ply import ply_bytes
 from splatcli.project import Project
 from splatcli.render import rasterize
-from splatcli.views.sources import look_at
+from splatcli.views.paths import look_at
 
 W, H = 48, 40
 N_CAMS = 10
@@ -48,7 +48,7 @@ def ring_cameras(n: int = N_CAMS) -> list[Camera]:
 
 
 def _write_colmap_text(sparse: Path, cams: list[Camera]) -> None:
-    from splatcli.views.sources import _rot_to_quat
+    from splatcli.views.paths import rot_to_quat as _rot_to_quat
 
     sparse.mkdir(parents=True, exist_ok=True)
     c = cams[0]

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import sys
 import time
 from typing import Any, Iterator
@@ -26,6 +27,7 @@ from rich.progress import (
 )
 
 from ..errors import SplatError
+from ..io.atomic import json_default
 from ..events import Event, EventSink, Note, Progress, Stage, StageDone
 
 DeviceOpt = typer.Option("auto", "--device", help="Where to compute: auto (CUDA if available, else CPU), cpu or cuda.")
@@ -33,6 +35,31 @@ SeedOpt = typer.Option(0, "--seed", help="Random seed; the same seed on CPU give
 QuietOpt = typer.Option(False, "--quiet", "-q", help="Print nothing but errors (and the --json object).")
 JsonOpt = typer.Option(False, "--json", help="Print one JSON summary object on stdout, for scripts and Makefiles.")
 DebugOpt = typer.Option(False, "--debug", help="Show full tracebacks on errors.")
+
+
+BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0), "gray": (0.5, 0.5, 0.5), "grey": (0.5, 0.5, 0.5)}
+
+
+def parse_background(text: str | None, *, auto: bool = False) -> tuple[float, float, float] | None:
+    """The one --background parser: white, black, gray, or R,G,B in [0, 1]; `auto`
+    (None) where the command allows it, and None when the option is not given."""
+    if text is None:
+        return None
+    t = text.strip().lower()
+    if auto and t == "auto":
+        return None
+    if t in BACKGROUNDS:
+        return BACKGROUNDS[t]
+    allowed = f"expected {'auto, ' if auto else ''}white, black, gray or R,G,B in [0, 1]"
+    try:
+        rgb = tuple(float(p) for p in t.split(","))
+    except ValueError:
+        rgb = ()
+    if len(rgb) != 3 or not all(math.isfinite(v) for v in rgb):
+        raise SplatError(f"--background {text!r}: {allowed}")
+    if not all(0.0 <= v <= 1.0 for v in rgb):
+        raise SplatError(f"--background {text!r}: each of R,G,B must be in [0, 1] (divide 0-255 values by 255)")
+    return rgb  # type: ignore[return-value]
 
 
 def _fmt(v: Any) -> str:
@@ -127,7 +154,7 @@ class Ui:
         """Print the command's result: the JSON object on stdout with --json, else
         a few human lines."""
         if self.json_out:
-            sys.stdout.write(json.dumps(data, default=_json_default) + "\n")
+            sys.stdout.write(json.dumps(data, default=json_default) + "\n")
             sys.stdout.flush()
             return
         if self.quiet:
@@ -137,12 +164,6 @@ class Ui:
             out.print(f"[bold green]{title}[/bold green]")
         for line in lines or []:
             out.print(line)
-
-
-def _json_default(o: Any) -> Any:
-    from ..io.atomic import _json_default as d
-
-    return d(o)
 
 
 class Stopwatch:

@@ -10,8 +10,9 @@ import typer
 from ..device import resolve_device
 from ..errors import SplatError
 from ..eval.evaluate import EvalConfig, compare_folders, plan_eval, run_eval
-from ..views.output import parse_background
-from .common import DebugOpt, DeviceOpt, JsonOpt, QuietOpt, Ui
+from .common import DebugOpt, DeviceOpt, JsonOpt, QuietOpt, Ui, parse_background
+
+_D = EvalConfig()  # the defaults, written once in the config
 
 
 def _budgets(text: str) -> tuple[float, ...]:
@@ -23,11 +24,11 @@ def _budgets(text: str) -> tuple[float, ...]:
 
 def evaluate(
     project: Optional[Path] = typer.Argument(None, help="The project directory (omit with --pred/--gt)."),
-    split: str = typer.Option("test", "--split", help="Views to score: test (held out), train or all."),
-    background: Optional[str] = typer.Option(None, "--background", help="white, black, gray or r,g,b in [0, 1] (default: the scene's)."),
+    split: str = typer.Option(_D.split, "--split", help="Views to score: test (held out), train or all."),
+    background: Optional[str] = typer.Option(None, "--background", help="white, black, gray or R,G,B in [0, 1] (default: the scene's)."),
     downscale: Optional[float] = typer.Option(None, "--downscale", help="Score at the stored size divided by this (default: as trained)."),
-    budgets: str = typer.Option("1,0.5,0.25,0.1", "--budgets", help="Fractions of the Gaussians for the render-time curve."),
-    plots: bool = typer.Option(True, "--plots/--no-plots", help="Draw PNG plots beside eval.md (needs matplotlib)."),
+    budgets: str = typer.Option(",".join(f"{b:g}" for b in _D.budgets), "--budgets", help="Fractions of the Gaussians for the render-time curve."),
+    plots: bool = typer.Option(_D.plots, "--plots/--no-plots", help="Draw PNG plots beside eval.md (needs matplotlib)."),
     model: Optional[Path] = typer.Option(None, "--model", help="Score this 3DGS .ply (from any tool) instead of the latest checkpoint."),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Folder for eval.json, eval.md and plots (default PROJECT/reports)."),
     pred: Optional[Path] = typer.Option(None, "--pred", help="Compare this folder of images ..."),
@@ -39,7 +40,7 @@ def evaluate(
 ) -> None:
     """Score renders against held-out photographs and write reports/eval.json and eval.md."""
     ui = Ui(quiet=quiet, json_out=json_out)
-    bg = parse_background(background) if background is not None else None
+    bg = parse_background(background)
     if pred is not None or gt is not None:
         if pred is None or gt is None or project is not None:
             raise SplatError("--pred and --gt go together, without a project")

@@ -11,11 +11,13 @@ from ..events import Note
 from ..io.export import ExportConfig, check_export_config, export_project
 from .common import DebugOpt, JsonOpt, QuietOpt, Ui
 
+_D = ExportConfig()  # the defaults, written once in the config
+
 
 def export(
     project: Path = typer.Argument(..., help="The project directory (its latest checkpoint is exported)."),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Output file (default PROJECT/exports/scene.<format>)."),
-    fmt: str = typer.Option("ply", "--format", "-f",
+    fmt: str = typer.Option(_D.format, "--format", "-f",
                             help="ply: 3DGS layout, lossless. splat: 32-byte web-viewer rows, SH degree 0 only."),
     quiet: bool = QuietOpt,
     json_out: bool = JsonOpt,

@@ -9,7 +9,7 @@ import typer
 
 from ..process.run import ProcessConfig, process as run_process
 from ..sfm import colmap
-from .common import DebugOpt, JsonOpt, QuietOpt, SeedOpt, Ui
+from .common import DebugOpt, JsonOpt, QuietOpt, SeedOpt, Ui, parse_background
 
 _D = ProcessConfig()  # the defaults, written once in the config
 
@@ -20,10 +20,10 @@ def process(
     input_type: str = typer.Option(_D.input_type, "--input-type", help="auto, images, video, colmap or transforms."),
     max_size: int = typer.Option(_D.max_size, "--max-size", help="Longest side, pixels, of the images SIFT sees (the dataset keeps full resolution)."),
     matcher: str = typer.Option(_D.matcher, "--matcher", help="auto, exhaustive (all pairs) or sequential (ordered captures)."),
-    fps: Optional[float] = typer.Option(None, "--fps", help="Video: frames to extract per second of video."),
+    fps: Optional[float] = typer.Option(_D.fps, "--fps", help="Video: frames to extract per second of video."),
     num_frames: int = typer.Option(_D.num_frames, "--num-frames", help="Video: frames to extract, evenly spaced (without --fps)."),
-    background: str = typer.Option(_D.background, "--background", help="auto (white for RGBA inputs, else black), white, black or R,G,B."),
-    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing project (or use a non-empty folder)."),
+    background: str = typer.Option("auto", "--background", help="auto (white for RGBA inputs, else black), white, black, gray or R,G,B in [0, 1]."),
+    overwrite: bool = typer.Option(_D.overwrite, "--overwrite", help="Replace an existing project (or use a non-empty folder)."),
     seed: int = SeedOpt,
     quiet: bool = QuietOpt,
     json_out: bool = JsonOpt,
@@ -33,7 +33,7 @@ def process(
     ui = Ui(quiet=quiet, json_out=json_out)
     colmap.set_verbose(debug)
     cfg = ProcessConfig(input_type=input_type, max_size=max_size, matcher=matcher, fps=fps, num_frames=num_frames,
-                        background=background, overwrite=overwrite, seed=seed)
+                        background=parse_background(background, auto=True), overwrite=overwrite, seed=seed)
     with ui.progress() as sink:
         r = run_process(input, output, cfg, on_event=sink)
     lines = [f"{r.train} train / {r.test} test images, {r.points} points"

@@ -8,8 +8,10 @@ from typing import Optional
 import typer
 
 from ..device import resolve_device
-from ..views.output import RenderConfig, parse_background, plan_render, run_render
-from .common import DebugOpt, DeviceOpt, JsonOpt, QuietOpt, Ui
+from ..views.output import RenderConfig, plan_render, run_render
+from .common import DebugOpt, DeviceOpt, JsonOpt, QuietOpt, Ui, parse_background
+
+_D = RenderConfig()  # the defaults, written once in the config
 
 
 def render(
@@ -17,17 +19,17 @@ def render(
     split: Optional[str] = typer.Option(None, "--split", help="Dataset cameras: test (default), train or all."),
     cameras: Optional[Path] = typer.Option(None, "--cameras", help="Cameras from a nerfstudio / instant-ngp transforms.json."),
     path: Optional[str] = typer.Option(None, "--path", help="A generated path around the cameras: orbit, spiral or interpolate."),
-    frames: int = typer.Option(120, "--frames", help="Frames of a generated --path."),
+    frames: int = typer.Option(_D.frames, "--frames", help="Frames of a generated --path."),
     project: Optional[Path] = typer.Option(None, "--project", help="For a .ply: take cameras and background from this project."),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Output folder (default PROJECT/renders/<split|path>/)."),
     width: Optional[int] = typer.Option(None, "--width", help="Image width in pixels (alone: keeps the aspect)."),
     height: Optional[int] = typer.Option(None, "--height", help="Image height in pixels (alone: keeps the aspect)."),
-    downscale: float = typer.Option(1.0, "--downscale", help="Divide the cameras' resolution by this."),
-    background: Optional[str] = typer.Option(None, "--background", help="white, black, gray or r,g,b in [0, 1] (default: the scene's)."),
+    downscale: Optional[float] = typer.Option(None, "--downscale", help="Divide the cameras' stored resolution by this (default: a project's cameras at the resolution trained)."),
+    background: Optional[str] = typer.Option(None, "--background", help="white, black, gray or R,G,B in [0, 1] (default: the scene's)."),
     depth: bool = typer.Option(False, "--depth", help="Also write depth/<name>.png (colour-mapped)."),
     alpha: bool = typer.Option(False, "--alpha", help="Also write alpha/<name>.png."),
     video: Optional[Path] = typer.Option(None, "--video", help="Also encode the frames into this video (.mp4, .avi)."),
-    fps: float = typer.Option(30.0, "--fps", help="Frame rate of the --video."),
+    fps: float = typer.Option(_D.video_fps, "--fps", help="Frame rate of the --video."),
     device: str = DeviceOpt,
     quiet: bool = QuietOpt,
     json_out: bool = JsonOpt,
@@ -44,7 +46,7 @@ def render(
     ui = Ui(quiet=quiet, json_out=json_out)
     cfg = RenderConfig(
         split=split, cameras=cameras, path=path, frames=frames, project=project, width=width, height=height,
-        downscale=downscale, out=out, background=parse_background(background) if background is not None else None,
+        downscale=downscale, out=out, background=parse_background(background),
         depth=depth, alpha=alpha, video=video, video_fps=fps,
     )
     plan = plan_render(source, cfg, resolve_device(device))  # input errors surface before any output

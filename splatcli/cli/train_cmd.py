@@ -10,20 +10,22 @@ import typer
 from ..device import resolve_device
 from ..project import Project
 from ..train.loop import train as run_train
-from ..train.config import PRESETS, make_config
+from ..train.config import PRESETS, TrainConfig, make_config, option
 from .common import DebugOpt, DeviceOpt, JsonOpt, QuietOpt, SeedOpt, Ui
+
+_D = TrainConfig()  # the defaults, written once in the config
 
 
 def train(
     project: Path = typer.Argument(..., help="The project directory made by `splatcli process`."),
-    preset: str = typer.Option("default", "--preset", help=f"{' | '.join(PRESETS)}: default = the paper's 30k steps; "
+    preset: str = typer.Option(_D.preset, "--preset", help=f"{' | '.join(PRESETS)}: default = the paper's 30k steps; "
                                "fast = 7k steps, densify to 4k (CPU); demo = a couple of minutes (make demo)."),
-    iterations: Optional[int] = typer.Option(None, "--iterations", "-n", help="Optimiser steps (default 30000; preset)."),
-    sh_degree: Optional[str] = typer.Option(None, "--sh-degree", help="0-3, or auto: the lowest degree within 0.05 dB of 3 on training views."),
+    iterations: Optional[int] = typer.Option(None, "--iterations", "-n", help=f"Optimiser steps (default {_D.iterations}; the preset may change it)."),
+    sh_degree: Optional[str] = typer.Option(None, "--sh-degree", help=f"0-3, or auto: the lowest degree within {_D.sh_auto.tol_db} dB of 3 on training views (default {_D.sh_degree})."),
     max_gaussians: Optional[int] = typer.Option(None, "--max-gaussians", help="Hard budget; growth goes to the highest gradients first."),
-    compact: bool = typer.Option(False, "--compact", help="After training, keep the third of the Gaussians with the most blending weight (cut in 3 rounds) while fine-tuning 3000 more steps."),
+    compact: bool = typer.Option(False, "--compact", help=f"After training, keep {_D.compact.keep:.0%} of the Gaussians, those with the most blending weight (cut in {_D.compact.rounds} rounds), while fine-tuning {_D.compact.finetune} more steps."),
     downscale: Optional[float] = typer.Option(None, "--downscale", help="Train at the image size divided by this."),
-    max_size: Optional[int] = typer.Option(None, "--max-size", help="Cap the longest image side at this (pixels; default 1600)."),
+    max_size: Optional[int] = typer.Option(None, "--max-size", help=f"Cap the longest image side at this (pixels; default {_D.max_size})."),
     eval_every: Optional[int] = typer.Option(None, "--eval-every", help="Held-out PSNR/SSIM every this many steps (0: at the end)."),
     resume: bool = typer.Option(False, "--resume", help="Continue from the latest checkpoint (its settings; options given here override)."),
     init_ply: Optional[Path] = typer.Option(None, "--init-ply", help="Start from a 3DGS .ply instead of the SfM/random points."),
@@ -41,7 +43,7 @@ def train(
                  downscale=downscale, max_size=max_size, eval_every=eval_every,
                  init_ply=str(init_ply) if init_ply else None)
     cfg = make_config(preset, seed=seed, device=str(dev), **given)
-    overrides = {k: getattr(cfg, k) for k, v in given.items() if v is not None}
+    overrides = {k: option(cfg, k) for k, v in given.items() if v is not None}
     Project.open(project).require_processed()  # input errors before the progress display starts
     with ui.progress() as sink:
         s = run_train(project, cfg, dev, resume=resume, overrides=overrides, on_event=sink)

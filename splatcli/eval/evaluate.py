@@ -20,10 +20,9 @@ sees (and the original 3DGS metrics script) are.
 
 from __future__ import annotations
 
-import json
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -31,21 +30,24 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..camera import Camera
+from ..device import describe_device, synchronize
 from ..errors import SplatError
 from ..events import EventSink, Note, Progress, Stage, StageDone, emit
 from ..gaussians import Gaussians
 from ..io.atomic import atomic_write_json, atomic_write_text
+from ..io.images import load_rgb
+from ..io.model import load_model
 from ..io.ply import ply_bytes
-from .metrics import psnr, ssim
 from ..project import Project
-from ..render.weights import blending_weights
-from ..views.output import _sync, describe_device, project_background, render_camera
+from ..render import render_camera
 from ..views.sources import SPLITS, View, dataset_views
+from .budgets import contributions, prune_to
+from .curve import read_curve
+from .metrics import psnr, ssim
+from .report import NO_PLOTS_HINT, BudgetPoint, EvalReport, ImageScore, model_stats, write_plots, write_report_md
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp", ".exr")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")
 DEFAULT_BUDGETS = (1.0, 0.5, 0.25, 0.1)
-SH_USED_TOL = 0.01  # a band is "used" when some coefficient moves colour by > 1% (SH value x basis ~ coefficient)
 
 
 @dataclass(frozen=True)
@@ -59,87 +61,6 @@ class EvalConfig:
     write: bool = True  # write eval.json and eval.md
     model: Path | None = None  # score this 3DGS .ply (any tool's) instead of the latest checkpoint
     out: Path | None = None  # folder for eval.json, eval.md, plots (default PROJECT/reports)
-
-
-@dataclass
-class ImageScore:
-    name: str
-    psnr: float  # dB
-    ssim: float
-
-
-@dataclass
-class BudgetPoint:
-    fraction: float  # of the Gaussians kept
-    num_gaussians: int
-    ply_bytes: int
-    psnr: float
-    ssim: float
-    render_fps: float
-    ms_per_frame: float
-
-
-@dataclass
-class CurvePoint:
-    step: int
-    elapsed_s: float  # training seconds
-    psnr: float
-    ssim: float | None = None
-    num_gaussians: int | None = None
-
-
-@dataclass
-class Histogram:
-    edges: list[float]  # len(counts) + 1
-    counts: list[int]
-
-
-@dataclass
-class ModelStats:
-    log10_scale_hist: Histogram  # all three axes, log10 world units
-    opacity_hist: Histogram  # sigmoid(logit)
-    sh_degree_counts: list[int]  # Gaussians whose highest used band is 0, 1, ..., d
-    median_scale: float
-    median_opacity: float
-
-
-@dataclass
-class EvalReport:
-    psnr: float  # mean over the split, dB
-    ssim: float
-    per_image: list[ImageScore]
-    num_gaussians: int
-    sh_degree: int
-    ply_bytes: int
-    train_seconds: float | None
-    train_steps: int | None
-    render_fps: float  # 1 / median frame time, held-out views at eval resolution, rasterization only
-    device: str
-    split: str
-    width: int
-    height: int
-    step: int | None  # checkpoint step (None for a .ply)
-    model: str = ""  # what was scored: "checkpoint step 7000" or the .ply path
-    budgets: list[BudgetPoint] = field(default_factory=list)
-    training_curve: list[CurvePoint] = field(default_factory=list)
-    stats: ModelStats | None = None
-    plots: list[str] = field(default_factory=list)  # file names beside eval.md
-    notes: list[str] = field(default_factory=list)
-    report_path: Path | None = None  # eval.md, when written
-
-    def worst(self, k: int = 5) -> list[ImageScore]:
-        return sorted(self.per_image, key=lambda s: s.psnr)[:k]
-
-    def summary(self) -> dict[str, Any]:
-        """The headline numbers (what `--json` prints)."""
-        return {k: getattr(self, k) for k in ("psnr", "ssim", "num_gaussians", "sh_degree", "ply_bytes",
-                                              "train_seconds", "train_steps", "render_fps", "device", "split",
-                                              "width", "height", "step", "model")} | {"num_images": len(self.per_image)}
-
-    def to_json(self) -> dict[str, Any]:
-        d = asdict(self)
-        return {**self.summary(), **{k: d[k] for k in ("per_image", "budgets", "training_curve", "stats", "plots",
-                                                       "notes")}}
 
 
 @dataclass
@@ -158,36 +79,10 @@ class FolderReport:
                 "gt": self.gt_dir, "missing": self.missing, "per_image": [asdict(s) for s in self.per_image]}
 
 
-# ---------------------------------------------------------------------------
-# images
-# ---------------------------------------------------------------------------
-
-
 def load_image(path: Path, background: Sequence[float] = (0.0, 0.0, 0.0),
-               size: tuple[int, int] | None = None) -> Tensor:
-    """An image file as [H, W, 3] float64 in [0, 1]; RGBA composited over
-    `background`; resized (area) to `size` = (width, height) when given."""
-    import cv2
-
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED) if path.is_file() else None
-    if img is None:
-        raise SplatError(f"{path}: cannot read this image")
-    if size is not None and (img.ndim == 2 or img.shape[2] == 3) and (img.shape[1], img.shape[0]) != tuple(size):
-        # resize in the file's own type, as training's loader does, so both score one target
-        shrink = size[0] < img.shape[1]
-        img = cv2.resize(img, tuple(size), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
-    scale = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(img.dtype, 1.0)
-    a = img.astype(np.float64) / scale
-    if a.ndim == 2:
-        a = np.repeat(a[..., None], 3, axis=2)
-    if a.shape[2] == 4:
-        rgb, alpha = a[..., 2::-1], a[..., 3:4]
-        a = rgb * alpha + np.asarray(background, dtype=np.float64) * (1 - alpha)
-    else:
-        a = a[..., 2::-1]
-    if size is not None and (a.shape[1], a.shape[0]) != tuple(size):  # RGBA: composited first, then resized
-        a = cv2.resize(a, tuple(size), interpolation=cv2.INTER_AREA if size[0] < a.shape[1] else cv2.INTER_LINEAR)
-    return torch.from_numpy(np.ascontiguousarray(np.clip(a, 0.0, 1.0)))
+               size: tuple[int, int] | None = None) -> Tensor:  # -> [H, W, 3] float64 in [0, 1]
+    """A photograph or render to score, through the one image loader (io/images.py)."""
+    return torch.from_numpy(load_rgb(path, size, tuple(background))).to(torch.float64) / 255.0
 
 
 def quantise(img: Tensor) -> Tensor:  # [H, W, 3] -> [H, W, 3] float64 in 1/255 steps
@@ -196,91 +91,6 @@ def quantise(img: Tensor) -> Tensor:  # [H, W, 3] -> [H, W, 3] float64 in 1/255 
 
 def score(pred: Tensor, gt: Tensor) -> tuple[float, float]:  # [H, W, 3] each
     return float(psnr(pred, gt)), float(ssim(pred.to(torch.float64), gt.to(torch.float64)))
-
-
-# ---------------------------------------------------------------------------
-# the model's pieces
-# ---------------------------------------------------------------------------
-
-
-def eval_size(cam: Camera, downscale: float, max_size: int | None) -> Camera:
-    """The camera at the resolution training used: divide by `downscale`, then cap
-    the longest side at `max_size`."""
-    c = cam.scaled(1.0 / downscale) if downscale != 1.0 else cam
-    if max_size and max(c.width, c.height) > max_size:
-        c = c.scaled(max_size / max(c.width, c.height))
-    return c
-
-
-def contributions(g: Gaussians, cams: Sequence[Camera]) -> Tensor:  # -> [N] total blending weight, pixels
-    """sum over views and pixels of alpha_i T_i, exactly (render.weights)."""
-    return blending_weights(g.means, g.quats, g.log_scales, g.opacity_logits,
-                            (cam.torch(g.device, g.means.dtype) + (cam.width, cam.height) for cam in cams))
-
-
-def prune_to(g: Gaussians, weight: Tensor, fraction: float) -> Gaussians:  # weight [N]
-    """The `fraction` of the Gaussians with the largest weight (ties: lower index first)."""
-    k = max(1, int(math.ceil(fraction * len(g))))
-    if k >= len(g):
-        return g
-    order = torch.argsort(-weight, stable=True)[:k]
-    keep, _ = torch.sort(order)  # keep the original order (depth sorting does not care, files diff better)
-    return g.select(keep)
-
-
-def used_sh_degree(sh: Tensor) -> Tensor:  # [N, K, 3] -> [N] int
-    """Highest band with a coefficient larger than SH_USED_TOL (0 when only DC)."""
-    k = sh.shape[1]
-    d = int(round(math.sqrt(k))) - 1
-    used = torch.zeros(sh.shape[0], dtype=torch.long, device=sh.device)
-    for l in range(1, d + 1):
-        band = sh[:, l * l:(l + 1) * (l + 1), :].abs().amax(dim=(1, 2))
-        used = torch.where(band > SH_USED_TOL, torch.full_like(used, l), used)
-    return used
-
-
-def model_stats(g: Gaussians, bins: int = 40) -> ModelStats:
-    ls = (g.log_scales.detach().to(torch.float64).cpu().numpy() / math.log(10)).ravel()
-    op = torch.sigmoid(g.opacity_logits.detach().to(torch.float64)).cpu().numpy()
-    ls = ls[np.isfinite(ls)]
-    h1, e1 = np.histogram(ls, bins=bins) if ls.size else (np.zeros(bins, int), np.linspace(-1, 0, bins + 1))
-    h2, e2 = np.histogram(op, bins=bins, range=(0.0, 1.0))
-    used = used_sh_degree(g.sh.detach()).cpu().numpy()
-    counts = [int((used == l).sum()) for l in range(g.sh_degree + 1)]
-    return ModelStats(
-        log10_scale_hist=Histogram(edges=[float(x) for x in e1], counts=[int(x) for x in h1]),
-        opacity_hist=Histogram(edges=[float(x) for x in e2], counts=[int(x) for x in h2]),
-        sh_degree_counts=counts,
-        median_scale=float(10 ** np.median(ls)) if ls.size else float("nan"),
-        median_opacity=float(np.median(op)) if op.size else float("nan"),
-    )
-
-
-def read_training_curve(path: Path) -> list[CurvePoint]:
-    """Held-out PSNR against training seconds from train_log.jsonl. Partial or
-    malformed lines (a crash can leave one) are skipped."""
-    if not path.is_file():
-        return []
-    points = []
-    try:
-        text = path.read_text(encoding="utf-8", errors="replace")
-    except OSError:
-        return []
-    for line in text.splitlines():
-        try:
-            d = json.loads(line)
-        except json.JSONDecodeError:
-            continue
-        if not isinstance(d, dict):
-            continue
-        p, t, s = d.get("psnr"), d.get("elapsed_s"), d.get("step")
-        if isinstance(p, (int, float)) and isinstance(t, (int, float)) and isinstance(s, int) and math.isfinite(p):
-            ss = d.get("ssim")
-            n = d.get("num_gaussians")
-            points.append(CurvePoint(step=s, elapsed_s=float(t), psnr=float(p),
-                                     ssim=float(ss) if isinstance(ss, (int, float)) else None,
-                                     num_gaussians=int(n) if isinstance(n, int) else None))
-    return points
 
 
 def _score_views(g: Gaussians, views: Sequence[View], gts: Sequence[Tensor], bg: Tensor,
@@ -292,12 +102,12 @@ def _score_views(g: Gaussians, views: Sequence[View], gts: Sequence[Tensor], bg:
     scores, times = [], []
     emit(on_event, Stage(stage, total=len(views)))
     t_all = time.perf_counter()
-    render_camera(g, views[0], bg)  # warm-up, untimed
+    render_camera(g, views[0].camera, bg)  # warm-up, untimed
     for i, (v, gt) in enumerate(zip(views, gts)):
-        _sync(g.device)
+        synchronize(g.device)
         t0 = time.perf_counter()
-        out = render_camera(g, v, bg)
-        _sync(g.device)
+        out = render_camera(g, v.camera, bg)
+        synchronize(g.device)
         times.append(time.perf_counter() - t0)
         p, s = score(quantise(out.image), gt)
         scores.append(ImageScore(name=v.camera.name, psnr=p, ssim=s))
@@ -309,6 +119,8 @@ def _score_views(g: Gaussians, views: Sequence[View], gts: Sequence[Tensor], bg:
 def _mean_psnr(scores: Sequence[ImageScore]) -> float:
     """Mean of per-image PSNR (the 3DGS convention), dB."""
     return float(np.mean([s.psnr for s in scores]))
+
+
 
 
 # ---------------------------------------------------------------------------
@@ -353,20 +165,12 @@ class EvalPlan:
 def plan_eval(root: str | Path, config: EvalConfig, device: torch.device) -> EvalPlan:
     """Check options, open the project, load the model (latest checkpoint or
     `config.model`) and choose the views at the resolution trained."""
-    from ..io.checkpoint import load_checkpoint
-    from ..io.ply import read_ply
-
     check_eval_config(config)
     project = Project.open(root)
-    notes: list[str] = []
-    if config.model is None:
-        ck = load_checkpoint(project.require_trained(), device)
-        g, step, model_name = ck.model(), ck.step, f"checkpoint step {ck.step}"
-    else:
+    if config.model is not None:
         project.require_processed()
-        r = read_ply(config.model, device)
-        g, step, model_name = r.gaussians, None, str(config.model)
-        notes += r.notes
+    m = load_model(root if config.model is None else config.model, device)
+    g, step, model_name, notes = m.gaussians, m.step, m.name, list(m.notes)
     views = dataset_views(project, config.split)
     absent = [v.image for v in views if v.image is not None and not v.image.is_file()]
     if absent:
@@ -377,37 +181,21 @@ def plan_eval(root: str | Path, config: EvalConfig, device: torch.device) -> Eva
         notes.append(f"{int((~finite).sum())} Gaussians with NaN/Inf values were left out")
         g = g.select(finite)
 
-    train_step = project.step("train") or {}
-    tcfg = train_step.get("config") or {}  # the resolution trained, also for a .ply scored against this project
-    tsum = (train_step.get("summary") or {}) if config.model is None else {}
+    tsum = ((project.step("train") or {}).get("summary") or {}) if config.model is None else {}
     if config.downscale is not None:
         downscale, max_size = config.downscale, None
-    else:
-        downscale, max_size = _trained_resolution(project, tcfg)
-    views = [View(camera=eval_size(v.camera, downscale, max_size),
+    else:  # the resolution trained, also for a .ply scored against this project
+        downscale, max_size = project.trained_resolution()
+    views = [View(camera=v.camera.at_resolution(downscale, max_size),
                   out_name=v.out_name, image=v.image) for v in views]
     small = [v.camera for v in views if min(v.camera.width, v.camera.height) < 11]
     if small:
         raise SplatError(f"{small[0].name}: {small[0].width}x{small[0].height} at eval resolution is too small "
                          "for SSIM (at least 11x11 pixels); lower --downscale")
-    bg_rgb = config.background if config.background is not None else (project_background(project) or (0.0, 0.0, 0.0))
+    bg_rgb = config.background if config.background is not None else (project.background() or (0.0, 0.0, 0.0))
     return EvalPlan(project=project, config=config, gaussians=g, step=step, model_name=model_name, views=views,
                     background=tuple(bg_rgb), downscale=downscale,  # type: ignore[arg-type]
                     max_size=max_size, train_summary=tsum, notes=notes)
-
-
-def _trained_resolution(project: Project, tcfg: dict[str, Any]) -> tuple[float, int | None]:
-    """(downscale, max_size) that `train` recorded; a hand-edited value is named, not guessed."""
-    where = f"{project.manifest_path}: steps.train.config"
-    d = tcfg.get("downscale")
-    if d is None:
-        d = 1.0
-    if isinstance(d, bool) or not isinstance(d, (int, float)) or not (math.isfinite(d) and 0 < d <= 64):
-        raise SplatError(f"{where}.downscale is {d!r}, not a number in (0, 64]; pass --downscale")
-    m = tcfg.get("max_size")
-    if m is not None and (isinstance(m, bool) or not isinstance(m, int) or m < 16):
-        raise SplatError(f"{where}.max_size is {m!r}, not a whole number of pixels >= 16; pass --downscale")
-    return float(d), m
 
 
 def run_eval(plan: EvalPlan, *, on_event: EventSink | None = None) -> EvalReport:
@@ -438,9 +226,8 @@ def run_eval(plan: EvalPlan, *, on_event: EventSink | None = None) -> EvalReport
     fractions = sorted({float(b) for b in config.budgets if b < 1.0}, reverse=True)
     if fractions:
         rank_views = [v.camera for v in dataset_views(project, "train" if project.splits()["train"] else "all")]
-        step = max(1, len(rank_views) // config.contribution_views)
-        rank_cams = [eval_size(c, downscale, max_size)
-                     for c in rank_views[::step][: config.contribution_views]]
+        stride = max(1, len(rank_views) // config.contribution_views)
+        rank_cams = [c.at_resolution(downscale, max_size) for c in rank_views[::stride][: config.contribution_views]]
         emit(on_event, Stage("rank Gaussians", total=None))
         t0 = time.perf_counter()
         weight = contributions(g, rank_cams)
@@ -454,7 +241,7 @@ def run_eval(plan: EvalPlan, *, on_event: EventSink | None = None) -> EvalReport
     if 1.0 not in config.budgets:
         budgets = budgets[1:]
 
-    curve = read_training_curve(project.train_log_path) if config.model is None else []
+    curve = read_curve(project.train_log_path) if config.model is None else []
     report = EvalReport(
         psnr=mean_psnr,
         ssim=mean_ssim,
@@ -479,7 +266,6 @@ def run_eval(plan: EvalPlan, *, on_event: EventSink | None = None) -> EvalReport
     for n in notes:
         emit(on_event, Note(n))
     if config.write:
-        from .report import NO_PLOTS_HINT, write_plots, write_report_md
 
         out = Path(config.out) if config.out is not None else project.reports_dir
         if config.plots:

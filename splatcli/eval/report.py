@@ -1,4 +1,5 @@
-"""The human eval report: reports/eval.md and the PNG plots beside it.
+"""What eval reports: the typed report (eval.json), the model's statistics, and the
+human report: reports/eval.md and the PNG plots beside it.
 
 Plots need matplotlib (the `plots` extra). Without it the report is written
 all the same, with a line saying how to get the plots. Figures are drawn with
@@ -7,14 +8,115 @@ the object-oriented API on an Agg canvas: no pyplot global state, no display.
 
 from __future__ import annotations
 
+import math
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Any
 
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..gaussians import Gaussians, Histogram, histogram
 from ..io.atomic import atomic_path
+from ..project import Project
+from .curve import CurvePoint
 
-if TYPE_CHECKING:
-    from .evaluate import EvalReport
-    from ..project import Project
+SH_USED_TOL = 0.01  # a band is "used" when some coefficient moves colour by > 1% (SH value x basis ~ coefficient)
+
+
+@dataclass
+class ImageScore:
+    name: str
+    psnr: float  # dB
+    ssim: float
+
+
+@dataclass
+class BudgetPoint:
+    fraction: float  # of the Gaussians kept
+    num_gaussians: int
+    ply_bytes: int
+    psnr: float
+    ssim: float
+    render_fps: float
+    ms_per_frame: float
+
+
+@dataclass
+class ModelStats:
+    log10_scale_hist: Histogram  # all three axes, log10 world units
+    opacity_hist: Histogram  # sigmoid(logit)
+    sh_degree_counts: list[int]  # Gaussians whose highest used band is 0, 1, ..., d
+    median_scale: float
+    median_opacity: float
+
+
+@dataclass
+class EvalReport:
+    psnr: float  # mean over the split, dB
+    ssim: float
+    per_image: list[ImageScore]
+    num_gaussians: int
+    sh_degree: int
+    ply_bytes: int
+    train_seconds: float | None
+    train_steps: int | None
+    render_fps: float  # 1 / median frame time, held-out views at eval resolution, rasterization only
+    device: str
+    split: str
+    width: int
+    height: int
+    step: int | None  # checkpoint step (None for a .ply)
+    model: str = ""  # what was scored: "checkpoint step 7000" or the .ply path
+    budgets: list[BudgetPoint] = field(default_factory=list)
+    training_curve: list[CurvePoint] = field(default_factory=list)
+    stats: ModelStats | None = None
+    plots: list[str] = field(default_factory=list)  # file names beside eval.md
+    notes: list[str] = field(default_factory=list)
+    report_path: Path | None = None  # eval.md, when written
+
+    def worst(self, k: int = 5) -> list[ImageScore]:
+        return sorted(self.per_image, key=lambda s: s.psnr)[:k]
+
+    def summary(self) -> dict[str, Any]:
+        """The headline numbers (what `--json` prints)."""
+        return {k: getattr(self, k) for k in ("psnr", "ssim", "num_gaussians", "sh_degree", "ply_bytes",
+                                              "train_seconds", "train_steps", "render_fps", "device", "split",
+                                              "width", "height", "step", "model")} | {"num_images": len(self.per_image)}
+
+    def to_json(self) -> dict[str, Any]:
+        d = asdict(self)
+        return {**self.summary(), **{k: d[k] for k in ("per_image", "budgets", "training_curve", "stats", "plots",
+                                                       "notes")}}
+
+
+def used_sh_degree(sh: Tensor) -> Tensor:  # [N, K, 3] -> [N] int
+    """Highest band with a coefficient larger than SH_USED_TOL (0 when only DC)."""
+    k = sh.shape[1]
+    d = int(round(math.sqrt(k))) - 1
+    used = torch.zeros(sh.shape[0], dtype=torch.long, device=sh.device)
+    for l in range(1, d + 1):
+        band = sh[:, l * l:(l + 1) * (l + 1), :].abs().amax(dim=(1, 2))
+        used = torch.where(band > SH_USED_TOL, torch.full_like(used, l), used)
+    return used
+
+
+def model_stats(g: Gaussians, bins: int = 40) -> ModelStats:
+    ls = (g.log_scales.detach().to(torch.float64).cpu().numpy() / math.log(10)).ravel()
+    op = torch.sigmoid(g.opacity_logits.detach().to(torch.float64)).cpu().numpy()
+    ls = ls[np.isfinite(ls)]
+    used = used_sh_degree(g.sh.detach()).cpu().numpy()
+    counts = [int((used == l).sum()) for l in range(g.sh_degree + 1)]
+    return ModelStats(
+        log10_scale_hist=histogram(ls, bins),
+        opacity_hist=histogram(op, bins, range_=(0.0, 1.0)),
+        sh_degree_counts=counts,
+        median_scale=float(10 ** np.median(ls)) if ls.size else float("nan"),
+        median_opacity=float(np.median(op)) if op.size else float("nan"),
+    )
+
+
 
 PLOTS = ("speed_vs_error", "scales", "opacities", "sh_degrees")
 NO_PLOTS_HINT = "plots skipped: matplotlib is not installed (pip install 'splatcli[plots]')"
@@ -36,7 +138,7 @@ def _save(fig, path: Path) -> None:
         fig.savefig(tmp, format="png")
 
 
-def write_plots(report: "EvalReport", project: "Project", out_dir: Path) -> list[str] | None:
+def write_plots(report: EvalReport, project: Project, out_dir: Path) -> list[str] | None:
     """Draw the plots into `out_dir` (named as the project names them); returns
     their file names, or None when matplotlib is absent."""
     path = lambda name: out_dir / project.plot_path(name).name  # noqa: E731
@@ -110,10 +212,8 @@ def _opt(v, fmt: str) -> str:
     return "n/a" if v is None else format(v, fmt)
 
 
-def write_report_md(report: "EvalReport", project: "Project") -> str:
+def write_report_md(report: EvalReport, project: Project) -> str:
     """The Markdown report (returned; the caller writes it atomically)."""
-    from .evaluate import SH_USED_TOL
-
     r = report
     lines = [
         f"# Evaluation of `{project.root.name}`",

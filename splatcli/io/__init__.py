@@ -1,1 +1,2 @@
-"""File formats: atomic writes, .ply / .splat, checkpoints."""
+"""Files: .ply, .splat, checkpoints, images, transforms.json, the one model loader,
+export, atomic writes and safe paths."""

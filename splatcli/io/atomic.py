@@ -1,4 +1,5 @@
-"""Atomic file writes: write a temp file beside the target, fsync, rename.
+"""Atomic file writes (a temp file beside the target, fsync, rename) and bounded
+reads of the small JSON files we and other tools write.
 
 An interrupted or failed write never leaves a half-written file at the target,
 and the previous version stays as it was. Write errors (disk full, permissions)
@@ -15,6 +16,8 @@ from pathlib import Path
 from typing import Any, Callable, Iterator
 
 from ..errors import SplatError
+
+MAX_JSON_BYTES = 64 * 1024 * 1024  # a manifest is kilobytes; refuse absurd files before parsing
 
 
 # mkstemp creates 0600 files; what we publish gets the mode any other tool's file
@@ -67,7 +70,7 @@ def atomic_write_text(target: str | os.PathLike, text: str) -> None:
 
 
 def atomic_write_json(target: str | os.PathLike, obj: Any) -> None:
-    atomic_write_text(target, json.dumps(obj, indent=2, sort_keys=False, default=_json_default) + "\n")
+    atomic_write_text(target, json.dumps(obj, indent=2, sort_keys=False, default=json_default) + "\n")
 
 
 def atomic_write_with(target: str | os.PathLike, writer: Callable[[Path], None]) -> None:
@@ -90,7 +93,7 @@ def append_line(target: str | os.PathLike, line: str) -> None:
         raise SplatError(f"cannot write {target}: {exc.strerror or exc}") from exc
 
 
-def _json_default(o: Any) -> Any:
+def json_default(o: Any) -> Any:
     import numpy as np
 
     if isinstance(o, (np.integer,)):
@@ -122,3 +125,25 @@ def _unlink_quiet(path: Path) -> None:
         path.unlink()
     except OSError:
         pass
+
+
+def read_json_file(path: Path, what: str = "JSON file", max_bytes: int = MAX_JSON_BYTES) -> Any:
+    """Read JSON with a size bound, turning every failure into one-line SplatError."""
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+    except FileNotFoundError:
+        raise SplatError(f"{path}: {what} not found") from None
+    except OSError as exc:
+        raise SplatError(f"{path}: cannot read {what}: {exc.strerror or exc}") from None
+    if size > max_bytes:
+        raise SplatError(f"{path}: {what} is {size} bytes, more than the {max_bytes} allowed")
+    try:
+        text = path.read_text(encoding="utf-8")
+        return json.loads(text)
+    except UnicodeDecodeError:
+        raise SplatError(f"{path}: {what} is not UTF-8 text") from None
+    except json.JSONDecodeError as exc:
+        raise SplatError(f"{path}: {what} is not valid JSON ({exc.msg} at line {exc.lineno})") from None
+    except OSError as exc:
+        raise SplatError(f"{path}: cannot read {what}: {exc.strerror or exc}") from None

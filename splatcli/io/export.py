@@ -20,6 +20,9 @@ import torch
 from ..errors import SplatError
 from ..events import EventSink, Note, Stage, StageDone, emit
 from ..project import Project
+from .model import load_model
+from .ply import write_ply
+from .splat import write_splat
 
 EXPORT_FORMATS = ("ply", "splat")
 
@@ -54,25 +57,20 @@ def check_export_config(config: ExportConfig) -> None:
 
 def export_project(root: str | os.PathLike, config: ExportConfig, *, on_event: EventSink | None = None) -> ExportResult:
     """Write the latest checkpoint of the project at `root` as .ply or .splat."""
-    from .checkpoint import load_checkpoint
-    from .ply import write_ply
-    from .splat import write_splat
-
     check_export_config(config)
     project = Project.open(root)
-    ck_path = project.require_trained()
-    ck = load_checkpoint(ck_path, torch.device("cpu"))
-    g = ck.model()
+    m = load_model(project.root, torch.device("cpu"))
+    g, ck_path, step = m.gaussians, m.path, m.step
     out = Path(config.out) if config.out is not None else project.export_path(config.format)
     emit(on_event, Stage(f"export {config.format}"))
     if config.format == "ply":
         r = write_ply(out, g)
         result = ExportResult(path=out, format="ply", num_gaussians=r.num_written, num_dropped=r.num_dropped,
-                              sh_degree=r.sh_degree, bytes=r.bytes, checkpoint=ck_path, step=ck.step, lossy=False)
+                              sh_degree=r.sh_degree, bytes=r.bytes, checkpoint=ck_path, step=step, lossy=False)
     else:
         s = write_splat(out, g)
         result = ExportResult(path=out, format="splat", num_gaussians=s.num_written, num_dropped=s.num_dropped,
-                              sh_degree=0, bytes=s.bytes, checkpoint=ck_path, step=ck.step, lossy=True)
+                              sh_degree=0, bytes=s.bytes, checkpoint=ck_path, step=step, lossy=True)
         if g.sh_degree > 0:
             emit(on_event, Note(f".splat keeps only SH degree 0: view-dependent colour (degree {g.sh_degree}) is dropped; "
                                 "colour, opacity and rotation are 8-bit"))

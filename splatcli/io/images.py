@@ -1,4 +1,11 @@
-"""Reading, checking and staging input images (OpenCV; no pycolmap).
+"""The one image loader, and the checks and staging of input images (OpenCV).
+
+`read_image` decodes any image we accept (truncation and size checked, EXIF
+orientation, 16-bit, grey, alpha); `load_rgb` is what train, eval and render read
+through: RGB uint8, alpha composited over the background, resized by one rule.
+The header checks are hand-written because OpenCV decodes a truncated JPEG or PNG
+without complaint (padding it with grey) and reads no EXIF orientation tag without
+decoding twice; Pillow is not a dependency.
 
 Staging writes the image the rest of the pipeline sees: oriented (EXIF) when
 asked, 8-bit, 3 channels (RGBA composited over the background, the alpha kept
@@ -22,6 +29,7 @@ os.environ.setdefault("OPENCV_IO_MAX_IMAGE_PIXELS", str(MAX_PIXELS))
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
+from ..errors import SplatError
 from .atomic import atomic_path
 
 IMAGE_EXTS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
@@ -205,6 +213,23 @@ def write_image(path: Path, img: np.ndarray) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:
         tmp.write_bytes(enc.tobytes())
+
+
+def load_rgb(path: Path, size: tuple[int, int] | None = None,
+             background: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> np.ndarray:  # -> [H, W, 3] uint8
+    """An image file as RGB uint8: oriented (EXIF), alpha composited over `background`
+    (RGB in [0, 1]), resized to `size` = (width, height) when given (area filter
+    when shrinking, linear when enlarging). Unreadable files are a SplatError."""
+    try:
+        img, alpha, _ = read_image(Path(path), orient=True)
+    except ImageError as exc:
+        raise SplatError(f"{path}: {exc}") from None
+    if alpha is not None:
+        img = composite(img, alpha, background)
+    if size is not None and (img.shape[1], img.shape[0]) != tuple(size):
+        shrink = size[0] < img.shape[1]
+        img = cv2.resize(img, tuple(size), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
+    return np.ascontiguousarray(img[..., ::-1])
 
 
 def stage_image(src: Path, name: str, dst: Path, mask_dst: Path, *, max_size: int | None,

@@ -13,21 +13,29 @@ zero. The header is exactly what `plyfile` writes for that array, so a file
 written here and one written by 3DGS's `save_ply` are byte-identical.
 
 The reader takes SH degree 0 to 3, with or without normals, properties in any
-order, float or double, either endianness, other elements before or after the
-vertices, extra properties (ignored, with a note) and unnormalised quaternions.
+order, float or double, either endianness, other scalar elements before or after
+the vertices, extra properties (ignored, with a note) and unnormalised quaternions.
 It refuses, in one line, anything that is not a Gaussian splat: a plain point
-cloud, a truncated file, a header claiming more vertices than the file holds.
-It never allocates more than the file's actual size implies.
+cloud, a truncated file, a header claiming more vertices than the file holds,
+ASCII PLY and list properties.
+
+Parsing is plyfile's (`PlyData.read(mmap="r")`): it checks each element's claimed
+size against the file before memory-mapping it, so nothing is allocated for a
+lying count; reading a 100-byte file whose header claims 10^12 vertices peaks at
+8 KiB of Python allocations (tracemalloc) with no growth in max RSS, and is
+refused in about 1 ms. `_check_head` keeps the cases plyfile does not bound.
 """
 
 from __future__ import annotations
 
 import os
 import re
+import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import plyfile
 import torch
 
 from ..errors import SplatError
@@ -36,22 +44,7 @@ from .atomic import atomic_write_with
 
 MAX_SH_DEGREE = 3
 MAX_HEADER_BYTES = 1 << 20  # a 3DGS header is ~1.5 KB; anything past 1 MiB is not a splat
-MAX_PROPERTIES = 4096
-
-# PLY scalar type names (both spellings) -> numpy type codes, without byte order.
-_PLY_TYPES = {
-    "char": "i1", "int8": "i1",
-    "uchar": "u1", "uint8": "u1",
-    "short": "i2", "int16": "i2",
-    "ushort": "u2", "uint16": "u2",
-    "int": "i4", "int32": "i4",
-    "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4",
-    "double": "f8", "float64": "f8",
-}
-_FLOAT_CODES = ("f4", "f8")
-_FORMATS = {"binary_little_endian": "<", "binary_big_endian": ">", "ascii": None}
-_F_REST_RE = re.compile(r"^f_rest_(\d+)$")
+_F_REST_RE = re.compile(r"^f_rest_(0|[1-9][0-9]*)$")  # no leading zeros: "f_rest_08" is not f_rest_8
 _REQUIRED = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
              "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
 _SPLAT_MARKERS = ("f_dc_0", "opacity", "scale_0", "rot_0")
@@ -151,41 +144,6 @@ def write_ply(path: str | os.PathLike, gaussians: Gaussians) -> PlyWriteResult:
 # ---------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class PlyProperty:
-    name: str
-    code: str  # numpy type code without byte order: "f4", "u1", ...; "list" for list properties
-    ply_type: str  # as written in the header
-
-
-@dataclass(frozen=True)
-class PlyElement:
-    name: str
-    count: int
-    properties: tuple[PlyProperty, ...]
-
-    def has_list(self) -> bool:
-        return any(p.code == "list" for p in self.properties)
-
-    def dtype(self, order: str) -> np.dtype:
-        return np.dtype([(p.name, order + p.code) for p in self.properties])
-
-
-@dataclass(frozen=True)
-class PlyHeader:
-    path: Path
-    format: str  # binary_little_endian | binary_big_endian | ascii
-    elements: tuple[PlyElement, ...]
-    header_bytes: int  # offset of the body
-    file_bytes: int
-
-    def element(self, name: str) -> PlyElement | None:
-        for e in self.elements:
-            if e.name == name:
-                return e
-        return None
-
-
 @dataclass
 class PlyRead:
     """A Gaussian splat read from a .ply, plus what the reader had to do."""
@@ -199,78 +157,65 @@ class PlyRead:
     notes: list[str] = field(default_factory=list)  # one line each, for Note events
 
 
-def read_ply_header(path: str | os.PathLike) -> PlyHeader:
-    """Parse and check the header; reads at most MAX_HEADER_BYTES."""
-    path = Path(path)
-    try:
-        size = path.stat().st_size
-        if path.is_dir():
-            raise PlyError(f"{path}: is a directory, not a .ply file")
-        with open(path, "rb") as f:
-            head = f.read(min(size, MAX_HEADER_BYTES) if size else MAX_HEADER_BYTES)
-    except FileNotFoundError:
-        raise PlyError(f"{path}: no such file") from None
-    except PlyError:
-        raise
-    except OSError as exc:
-        raise PlyError(f"{path}: cannot read ({exc.strerror or exc})") from None
-    if not head.startswith(b"ply\n") and not head.startswith(b"ply\r\n"):
+def _check_head(path: Path, head: bytes) -> None:
+    """Refuse, from the file's first MAX_HEADER_BYTES (`head`) only, what plyfile would read unbounded.
+
+    Hand-written because plyfile does not bound these (measured, plyfile 1.1.5):
+    it reads the header one byte at a time until `end_header`, so a 64 MiB file
+    without one took 102 s and 560 MiB before failing; and it reads ASCII
+    elements and elements with list properties with `np.empty(claimed count)`
+    then a Python loop per row, so a 419-byte file claiming 10^8 list rows took
+    5.5 s and 763 MiB of RSS. Only binary files without list properties reach
+    plyfile, which then memory-maps every element after checking its size.
+    The lines are split and tokenised as plyfile does (on the newline after
+    `ply`, with str.split), so the checks see the header plyfile would parse.
+    """
+    nl = b"\r\n" if head.startswith(b"ply\r\n") else b"\n"
+    if not head.startswith(b"ply" + nl):
         raise PlyError(f"{path}: not a PLY file (it does not start with 'ply')")
-    m = re.search(rb"(?:^|\n)end_header\r?\n", head)
-    if m is None:
+    end = head.find(nl + b"end_header" + nl)
+    if end < 0:
         raise PlyError(f"{path}: PLY header has no end_header within {len(head)} bytes (truncated or not a PLY file)")
-    header_bytes = m.end()
     try:
-        text = head[:header_bytes].decode("ascii")
+        lines = head[:end].decode("ascii").split(nl.decode())
     except UnicodeDecodeError:
         raise PlyError(f"{path}: PLY header contains non-ASCII bytes") from None
+    for words in map(str.split, lines):
+        if words[:2] == ["format", "ascii"]:
+            raise PlyError(f"{path}: ASCII PLY is not supported for splats; write binary_little_endian")
+        if words[:2] == ["property", "list"]:
+            raise PlyError(f"{path}: property {words[-1]!r} is {' '.join(words[1:-1]) or 'list'}; "
+                           f"Gaussian parameters must be float or double scalars (PLY list properties are refused)")
 
-    fmt: str | None = None
-    elements: list[tuple[str, int, list[PlyProperty]]] = []
-    n_props = 0
-    for lineno, raw in enumerate(text.splitlines()[1:], start=2):
-        words = raw.split()
-        if not words or words[0] in ("comment", "obj_info"):
-            continue
-        key = words[0]
-        if key == "end_header":
-            break
-        if key == "format":
-            if len(words) != 3 or words[1] not in _FORMATS:
-                raise PlyError(f"{path}: unknown PLY format line {raw.strip()!r} (line {lineno})")
-            if fmt is not None:
-                raise PlyError(f"{path}: PLY header has two format lines")
-            fmt = words[1]
-        elif key == "element":
-            if len(words) != 3 or not words[2].isdigit() or len(words[2]) > 18:
-                raise PlyError(f"{path}: bad PLY element line {raw.strip()!r} (line {lineno})")
-            elements.append((words[1], int(words[2]), []))
-        elif key == "property":
-            if not elements:
-                raise PlyError(f"{path}: PLY property before any element (line {lineno})")
-            n_props += 1
-            if n_props > MAX_PROPERTIES:
-                raise PlyError(f"{path}: PLY header declares more than {MAX_PROPERTIES} properties")
-            if len(words) == 5 and words[1] == "list":
-                if words[2] not in _PLY_TYPES or words[3] not in _PLY_TYPES:
-                    raise PlyError(f"{path}: unknown PLY type in {raw.strip()!r} (line {lineno})")
-                elements[-1][2].append(PlyProperty(words[4], "list", " ".join(words[1:4])))
-            elif len(words) == 3 and words[1] in _PLY_TYPES:
-                elements[-1][2].append(PlyProperty(words[2], _PLY_TYPES[words[1]], words[1]))
-            else:
-                raise PlyError(f"{path}: bad PLY property line {raw.strip()!r} (line {lineno})")
-        else:
-            raise PlyError(f"{path}: unknown PLY header line {raw.strip()!r} (line {lineno})")
-    if fmt is None:
-        raise PlyError(f"{path}: PLY header has no format line")
-    els = []
-    for name, count, props in elements:
-        names = [p.name for p in props]
-        if len(set(names)) != len(names):
-            dup = sorted({n for n in names if names.count(n) > 1})
-            raise PlyError(f"{path}: PLY element {name!r} declares property {dup[0]!r} twice")
-        els.append(PlyElement(name, count, tuple(props)))
-    return PlyHeader(path=path, format=fmt, elements=tuple(els), header_bytes=header_bytes, file_bytes=size)
+
+def _read_plydata(path: Path) -> plyfile.PlyData:
+    """The whole file through plyfile, every element memory-mapped (nothing read
+    into memory yet), or a one-line PlyError naming the file."""
+    try:
+        with open(path, "rb") as f:
+            st = os.fstat(f.fileno())
+            if not stat.S_ISREG(st.st_mode):  # plyfile memory-maps only regular files
+                raise PlyError(f"{path}: not a regular file")
+            _check_head(path, f.read(min(st.st_size, MAX_HEADER_BYTES)))
+            f.seek(0)
+            return plyfile.PlyData.read(f, mmap="r")
+    except PlyError:
+        raise
+    except FileNotFoundError:
+        raise PlyError(f"{path}: no such file") from None
+    except IsADirectoryError:
+        raise PlyError(f"{path}: is a directory, not a .ply file") from None
+    except OSError as exc:
+        raise PlyError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    except plyfile.PlyElementParseError as exc:
+        e = exc.element
+        if exc.message == "early end-of-file" and e is not None and exc.row is not None:
+            what = "vertices" if e.name == "vertex" else f"{e.name!r} rows"
+            raise PlyError(f"{path}: header claims {e.count} {what} but the file holds only {exc.row} "
+                           f"(truncated file or lying header)") from None
+        raise PlyError(f"{path}: bad PLY data ({' '.join(str(exc).split())[:200]})") from None
+    except Exception as exc:  # plyfile's PlyHeaderParseError, ValueError from numpy, ...
+        raise PlyError(f"{path}: bad PLY file ({' '.join(str(exc).split())[:200] or type(exc).__name__})") from None
 
 
 def _sh_layout(path: Path, names: list[str]) -> int:
@@ -289,12 +234,12 @@ def _sh_layout(path: Path, names: list[str]) -> int:
     )
 
 
-def _check_vertex(path: Path, header: PlyHeader) -> tuple[PlyElement, int]:
+def _check_vertex(path: Path, ply: plyfile.PlyData) -> tuple[plyfile.PlyElement, int]:
     """The vertex element and its SH degree, or a one-line refusal."""
-    vertex = header.element("vertex")
-    if vertex is None:
-        names = ", ".join(e.name for e in header.elements) or "none"
+    if "vertex" not in ply:
+        names = ", ".join(e.name for e in ply.elements) or "none"
         raise PlyError(f"{path}: PLY file has no 'vertex' element (elements: {names}); not a Gaussian splat")
+    vertex = ply["vertex"]
     names = [p.name for p in vertex.properties]
     if not any(n in names for n in _SPLAT_MARKERS):
         raise PlyError(
@@ -305,49 +250,14 @@ def _check_vertex(path: Path, header: PlyHeader) -> tuple[PlyElement, int]:
     if missing:
         raise PlyError(f"{path}: not a 3DGS splat: vertex properties missing: {', '.join(missing)}")
     d = _sh_layout(path, names)
-    by_name = {p.name: p for p in vertex.properties}
     for n in _REQUIRED + [f"f_rest_{i}" for i in range(3 * (num_sh_bases(d) - 1))]:
-        p = by_name[n]
-        if p.code not in _FLOAT_CODES:
-            raise PlyError(f"{path}: property {n!r} is {p.ply_type}; Gaussian parameters must be float or double")
+        p = vertex.ply_property(n)
+        if p.val_dtype not in ("f4", "f8"):
+            ply_type = str(p).split()[1]  # "property uchar opacity" -> "uchar"
+            raise PlyError(f"{path}: property {n!r} is {ply_type}; Gaussian parameters must be float or double")
     if vertex.count == 0:
         raise PlyError(f"{path}: the vertex element holds zero Gaussians")
     return vertex, d
-
-
-def _load_vertex_table(header: PlyHeader, vertex: PlyElement) -> np.ndarray:
-    """The vertex rows as a structured array, reading only what the file holds."""
-    path = header.path
-    if header.format == "ascii":
-        raise PlyError(f"{path}: ASCII PLY is not supported for splats; write binary_little_endian")
-    order = "<" if header.format == "binary_little_endian" else ">"
-    offset = header.header_bytes
-    for e in header.elements:
-        if e is vertex:
-            break
-        if e.count and e.has_list():
-            raise PlyError(f"{path}: element {e.name!r} before the vertices has list properties; cannot locate the vertices")
-        offset += e.count * e.dtype(order).itemsize
-    if vertex.has_list():
-        bad = next(p.name for p in vertex.properties if p.code == "list")
-        raise PlyError(f"{path}: vertex property {bad!r} is a list; Gaussian splats have scalar properties only")
-    dtype = vertex.dtype(order)
-    need = vertex.count * dtype.itemsize
-    have = header.file_bytes - offset
-    if need > have:
-        raise PlyError(
-            f"{path}: header claims {vertex.count} vertices ({need} bytes) but the file holds only "
-            f"{max(have, 0)} bytes after the header (truncated file or lying header)"
-        )
-    try:
-        with open(path, "rb") as f:
-            f.seek(offset)
-            table = np.fromfile(f, dtype=dtype, count=vertex.count)
-    except OSError as exc:
-        raise PlyError(f"{path}: cannot read ({exc.strerror or exc})") from None
-    if table.shape[0] != vertex.count:  # the file shrank under us
-        raise PlyError(f"{path}: file ended after {table.shape[0]} of {vertex.count} vertices")
-    return table
 
 
 def read_ply(path: str | os.PathLike, device: torch.device | str = "cpu") -> PlyRead:
@@ -358,9 +268,9 @@ def read_ply(path: str | os.PathLike, device: torch.device | str = "cpu") -> Ply
     Raises PlyError (a SplatError and a ValueError) for anything else.
     """
     path = Path(path)
-    header = read_ply_header(path)
-    vertex, d = _check_vertex(path, header)
-    table = _load_vertex_table(header, vertex)
+    ply = _read_plydata(path)
+    vertex, d = _check_vertex(path, ply)
+    table = vertex.data  # memory-mapped; the columns below are the only copies
     names = [p.name for p in vertex.properties]
     k = num_sh_bases(d)
 
@@ -393,7 +303,7 @@ def read_ply(path: str | os.PathLike, device: torch.device | str = "cpu") -> Ply
     if extra:
         shown = ", ".join(extra[:6]) + (f" and {len(extra) - 6} more" if len(extra) > 6 else "")
         notes.append(f"{path.name}: ignored extra vertex properties: {shown}")
-    ignored_elements = [e.name for e in header.elements if e is not vertex and e.count]
+    ignored_elements = [e.name for e in ply.elements if e is not vertex and e.count]
     if ignored_elements:
         notes.append(f"{path.name}: ignored PLY elements: {', '.join(ignored_elements)}")
 

@@ -24,7 +24,7 @@ import numpy as np
 
 from ..errors import SplatError
 from .safepath import safe_join
-from ..project import read_json_file
+from .atomic import read_json_file
 
 TRANSFORMS_NAMES = ("transforms.json", "transforms_train.json")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG", ".tif", ".tiff", ".bmp", ".webp")
@@ -94,11 +94,12 @@ class Intrinsics:
 class Frame:
     """One image listed in a transforms file."""
 
-    source: Path  # the image file (exists)
-    name: str  # name in the project's images/
+    source: Path | None  # the image file (None: absent, allowed when only cameras are read)
+    name: str  # name in the project's images/ (for cameras only: the file_path as written)
     split: str  # "train" or "test"
     viewmat: np.ndarray  # [4, 4] float64 world-to-camera, OpenCV axes
     intrinsics: Intrinsics
+    file_path: str = ""  # as written in the file
 
 
 @dataclass
@@ -122,18 +123,23 @@ def find_transforms(path: Path) -> Path | None:
     return None
 
 
-def read_transforms(path: Path) -> TransformsScene:
-    """Parse a transforms file (and its test/val siblings for Blender splits).
+def read_transforms(path: Path, *, images: bool = True) -> TransformsScene:
+    """Parse a transforms file: the one reader of `process` and `render --cameras`.
 
-    Raises SplatError naming the file for anything malformed, and when no
-    listed image exists.
+    images=True (process): the listed images must exist (missing ones are counted,
+    frames listing one image twice are imported once) and a Blender
+    `transforms_train.json` brings its test/val siblings as the held-out split.
+    images=False (render --cameras): only the cameras are wanted; every frame is
+    kept in file order, with `source` None when its image is absent.
+    Raises SplatError naming the file for anything malformed, and (images=True)
+    when no listed image exists.
     """
     path = Path(path)
     root = path.parent
     notes: list[str] = []
     sources: list[tuple[Path, str]] = [(path, "train")]
     has_test = False
-    if path.name == "transforms_train.json":
+    if images and path.name == "transforms_train.json":
         test = root / "transforms_test.json"
         val = root / "transforms_val.json"
         if test.is_file():
@@ -185,19 +191,28 @@ def read_transforms(path: Path) -> TransformsScene:
         if not isinstance(fp, str) or not fp.strip():
             raise SplatError(f"{where} has no file_path")
         image = _resolve_image(root, fp, src, where)
-        if image is None:
-            missing.append(fp)
-            continue
-        if image in seen:
-            duplicates += 1
-            continue
-        seen.add(image)
+        if images:
+            if image is None:
+                missing.append(fp)
+                continue
+            if image in seen:
+                duplicates += 1
+                continue
+            seen.add(image)
         viewmat = _viewmat(fr.get("transform_matrix"), where)
         intr = _intrinsics(fr, data, where)
+        if not images:
+            parsed.append((image, split, viewmat, intr, fp))
+            continue
         if test_set is not None and len(sources) == 1:
             rel = os.path.normpath(os.path.relpath(image, root))
             split = "test" if rel in test_set or os.path.normpath(fp) in test_set else "train"
-        parsed.append((image, split, viewmat, intr, where))
+        parsed.append((image, split, viewmat, intr, fp))
+    if not images:
+        frames = [Frame(source=img, name=fp, split=split, viewmat=vm, intrinsics=intr, file_path=fp)
+                  for img, split, vm, intr, fp in parsed]
+        return TransformsScene(frames=frames, files=[path], missing=[], has_test_split=False, ply_path=None,
+                               notes=notes)
     if duplicates:
         notes.append(f"{duplicates} duplicate frame(s) listed twice were imported once")
     if not parsed:
@@ -206,8 +221,8 @@ def read_transforms(path: Path) -> TransformsScene:
         )
     names = _unique_names([p[0] for p in parsed], root)
     frames = [
-        Frame(source=img, name=name, split=split, viewmat=vm, intrinsics=intr)
-        for (img, split, vm, intr, _), name in zip(parsed, names)
+        Frame(source=img, name=name, split=split, viewmat=vm, intrinsics=intr, file_path=fp)
+        for (img, split, vm, intr, fp), name in zip(parsed, names)
     ]
     frames.sort(key=lambda f: f.name)
     if has_test and not any(f.split == "test" for f in frames):

@@ -9,29 +9,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..camera import Camera
+from ..camera import Camera, focus_point
 
 
 def points_bounds(points: np.ndarray, lo: float = 0.5, hi: float = 99.5) -> tuple[np.ndarray, np.ndarray]:
     """Per-axis percentiles of points [P, 3]: robust to the stray far points SfM leaves."""
     return np.percentile(points, lo, axis=0), np.percentile(points, hi, axis=0)
-
-
-def focus_point(cameras: list[Camera]) -> np.ndarray | None:  # [3]
-    """The point closest (least squares) to every optical axis, or None when the
-    axes are near parallel or the point is behind most cameras."""
-    centers = np.stack([c.center for c in cameras])
-    dirs = np.stack([c.viewmat[2, :3] for c in cameras])  # camera +z in world
-    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-    P = np.eye(3)[None] - dirs[:, :, None] * dirs[:, None, :]  # [N, 3, 3] projectors off each axis
-    A = P.sum(0)
-    b = (P @ centers[:, :, None]).sum(0)[:, 0]
-    ev = np.linalg.eigvalsh(A)
-    if ev[0] < 1e-3 * ev[-1]:
-        return None
-    x = np.linalg.solve(A, b)
-    in_front = ((x - centers) * dirs).sum(1) > 0
-    return x if in_front.mean() > 0.8 else None
 
 
 def _half_fov(c: Camera) -> float:

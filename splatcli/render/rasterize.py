@@ -14,6 +14,8 @@ import math
 import torch
 from torch import Tensor
 
+from ..camera import Camera
+from ..gaussians import Gaussians
 from .composite import choose_block, composite, estimate_pairs, make_plan
 from .output import RenderOutput
 from .project import TILE, project, tile_rect
@@ -134,3 +136,12 @@ def _banded(pr, rect, visible, width, height, block, background, nbands):
 
         outs.append(composite(planner, pr.means2d - shift, pr.conics, pr.opacities, pr.colors, pr.depths, background))
     return tuple(torch.cat([o[i] for o in outs], 0) for i in range(3))
+
+
+def render_camera(g: Gaussians, camera: Camera, background: Tensor, *, sh_degree: int | None = None) -> RenderOutput:
+    """A model seen from a camera, without gradients (render, eval). background: [3]
+    on the model's device."""
+    vm, K = camera.torch(g.device, g.means.dtype)
+    with torch.no_grad():
+        return rasterize(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh, vm, K,
+                         camera.width, camera.height, background, sh_degree=sh_degree)

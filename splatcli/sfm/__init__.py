@@ -1,2 +1,2 @@
-"""Structure from motion and dataset import. The only package that imports pycolmap,
+"""Structure from motion and the COLMAP model: the only package that imports pycolmap,
 because its API changes between versions."""

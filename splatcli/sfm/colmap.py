@@ -11,6 +11,7 @@ it: the two SQLite copies in one process corrupt each other's locks (SIGBUS).
 
 from __future__ import annotations
 
+import hashlib
 import threading
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,8 +19,10 @@ from typing import Any, Callable, Iterable
 
 import numpy as np
 
-from ..camera import Camera
+from ..camera import Camera, SceneData
 from ..errors import SplatError
+from ..project import Project
+from .colmap_files import MODEL_FILES, check_model, model_format
 
 _VERBOSE = False
 
@@ -422,23 +425,69 @@ def undistort_masks(model: Model, mask_dir: Path, out_dir: Path, *, num_threads:
     return out_dir / "images"
 
 
-def synthetic_model(num_images: int = 6, num_points: int = 50, camera_model: str = "SIMPLE_RADIAL",
-                    width: int = 64, height: int = 48, num_cameras: int = 1, seed: int = 0) -> Model:
-    """A small synthetic model (tests): `num_images` images per camera, seeing random points."""
-    pycolmap = _pc()
-    pycolmap.set_random_seed(seed)
-    o = pycolmap.SyntheticDatasetOptions()
-    o.num_rigs = num_cameras
-    o.num_cameras_per_rig = 1
-    o.num_frames_per_rig = num_images
-    o.num_points3D = num_points
-    o.camera_width = width
-    o.camera_height = height
-    o.camera_model_id = getattr(pycolmap.CameraModelId, camera_model)
-    f = 1.2 * max(width, height)
-    params = {"SIMPLE_PINHOLE": [f, width / 2, height / 2], "PINHOLE": [f, f, width / 2, height / 2],
-              "SIMPLE_RADIAL": [f, width / 2, height / 2, 0.05],
-              "OPENCV": [f, f, width / 2, height / 2, 0.05, -0.01, 0.001, 0.001]}[camera_model]
-    o.camera_params = params
-    o.num_points2D_without_point3D = 3
-    return Model(pycolmap.synthesize_dataset(o))
+# ---- the project's own model ---------------------------------------------------
+
+
+def _cam_from_world(image) -> np.ndarray:  # [3, 4]
+    pose = image.cam_from_world
+    pose = pose() if callable(pose) else pose  # a method in pycolmap >= 3.12 frames API
+    return np.asarray(pose.matrix(), dtype=np.float64)
+
+
+def model_digest(sparse_dir: Path) -> str:
+    """SHA-256 of a model's cameras, images and points3D files (either format)."""
+    h = hashlib.sha256()
+    fmt = model_format(sparse_dir) or "bin"
+    for stem in MODEL_FILES:
+        p = sparse_dir / f"{stem}.{fmt}"
+        h.update(p.read_bytes() if p.is_file() else b"")
+    return h.hexdigest()
+
+
+def read_project_scene(project: Project) -> SceneData:
+    """The project's own model (sfm/sparse/0). When it is the model `process` wrote
+    (its digest is the one recorded in the manifest) the file walk is skipped."""
+    project.require_processed()
+    recorded = (project.manifest().get("scene") or {}).get("model_sha256")
+    return read_scene(project.sparse_dir, digest=recorded if isinstance(recorded, str) else None)
+
+
+def read_scene(sparse_dir: str | Path, *, pinhole_only: bool = True, digest: str | None = None) -> SceneData:
+    """Cameras sorted by image name, plus the SfM points and colours.
+
+    Only PINHOLE / SIMPLE_PINHOLE cameras are accepted: `process` undistorts
+    everything else before writing the model. `pinhole_only=False` reads any
+    model (K then ignores the distortion), for comparing raw SfM output.
+    pycolmap trusts the counts in .bin files, so a damaged file can abort the
+    interpreter: the files are walked first (colmap_files.check_model, about half
+    pycolmap's own read time), unless their SHA-256 is `digest`, a model we wrote.
+    """
+    sparse_dir = Path(sparse_dir)
+    if digest is None or model_digest(sparse_dir) != digest:
+        check_model(sparse_dir)
+    pycolmap = _pc()  # imported with COLMAP's log silenced
+    try:
+        rec = pycolmap.Reconstruction(str(sparse_dir))
+    except Exception as exc:  # pycolmap raises plain RuntimeError/ValueError on bad files
+        raise SplatError(f"{sparse_dir}: cannot read the COLMAP model ({' '.join(str(exc).split())[:200]})") from None
+    cams: list[Camera] = []
+    for image in rec.images.values():
+        if hasattr(image, "has_pose") and not image.has_pose:
+            continue
+        cam = rec.cameras[image.camera_id]
+        model = str(cam.model_name if hasattr(cam, "model_name") else cam.model).split(".")[-1]
+        if pinhole_only and model not in ("PINHOLE", "SIMPLE_PINHOLE"):
+            raise SplatError(f"{sparse_dir}: camera {image.camera_id} is {model}, expected PINHOLE (undistorted)")
+        K = np.asarray(cam.calibration_matrix(), dtype=np.float64)
+        view = np.eye(4)
+        view[:3, :4] = _cam_from_world(image)
+        cams.append(Camera(name=image.name, width=int(cam.width), height=int(cam.height), K=K, viewmat=view))
+    cams.sort(key=lambda c: c.name)
+    if rec.num_points3D() > 0:
+        pts = rec.points3D
+        points = np.stack([p.xyz for p in pts.values()]).astype(np.float64)
+        colors = np.stack([p.color for p in pts.values()]).astype(np.uint8)
+    else:
+        points = np.zeros((0, 3), np.float64)
+        colors = np.zeros((0, 3), np.uint8)
+    return SceneData(cameras=cams, points=points, colors=colors)

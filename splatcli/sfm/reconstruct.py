@@ -15,12 +15,11 @@ from __future__ import annotations
 
 import re
 import statistics
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import SplatError
-from ..events import EventSink, Note, Progress, Stage, StageDone, emit
+from ..events import EventSink, Note, Stages, emit
 from . import colmap
 from .colmap import MapperOptions, MatchOptions, Model, SiftOptions
 
@@ -102,21 +101,6 @@ def _choose_matcher(opts: SfmOptions, names: list[str]) -> str:
     return "sequential" if looks_ordered(names) else "exhaustive"
 
 
-class _Clock:
-    def __init__(self, on_event: EventSink | None) -> None:
-        self.on_event = on_event
-        self.seconds: dict[str, float] = {}
-
-    def start(self, name: str, total: int | None) -> float:
-        emit(self.on_event, Stage(name, total))
-        return time.perf_counter()
-
-    def done(self, name: str, t0: float) -> None:
-        dt = time.perf_counter() - t0
-        self.seconds[name] = self.seconds.get(name, 0.0) + dt
-        emit(self.on_event, StageDone(name, dt))
-
-
 def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions, *,
             single_camera: bool, min_side: int, where: Path,
             on_event: EventSink | None = None) -> SfmResult:
@@ -125,7 +109,7 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
     `min_side` is the smallest image side SIFT sees (chooses the octave); `where`
     names the input in error messages. Raises SplatError (with the likely
     cause) when no model comes out."""
-    clock = _Clock(on_event)
+    clock = Stages(on_event)
     names = sorted(names, key=natural_key)
     work_dir.mkdir(parents=True, exist_ok=True)
     db = work_dir / "database.db"
@@ -136,12 +120,11 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
         first_octave = -1 if min_side < 400 else 0
     sift = SiftOptions(max_image_size=opts.max_image_size, max_num_features=opts.max_features,
                        first_octave=first_octave, num_threads=opts.num_threads)
-    t = clock.start("extract features", len(names))
-    colmap.create_database(db, image_dir, names, single_camera=single_camera)
-    for i in range(0, len(names), opts.chunk):
-        colmap.extract_features(db, image_dir, names[i : i + opts.chunk], sift, single_camera=single_camera)
-        emit(on_event, Progress("extract features", min(i + opts.chunk, len(names)), len(names)))
-    clock.done("extract features", t)
+    with clock.stage("extract features", len(names)) as st:
+        colmap.create_database(db, image_dir, names, single_camera=single_camera)
+        for i in range(0, len(names), opts.chunk):
+            colmap.extract_features(db, image_dir, names[i : i + opts.chunk], sift, single_camera=single_camera)
+            st.progress(min(i + opts.chunk, len(names)))
     stats = colmap.database_stats(db)
     kp_median = statistics.median(stats.keypoints.values()) if stats.keypoints else 0
 
@@ -155,22 +138,22 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
         if len(names) > 200:
             emit(on_event, Note(f"matching all {len(pairs)} pairs of {len(names)} images will take long; "
                                 "--matcher sequential is much faster for captures taken in order"))
-    _match(db, pairs, work_dir, mopts, clock, on_event)
+    _match(db, pairs, work_dir, mopts, clock)
     matched = set(pairs)
 
     # -- mapping
     mapper = MapperOptions(seed=opts.seed, num_threads=opts.num_threads,
                            min_model_size=min(10, max(2, len(names) // 4)))
-    models = _map(db, image_dir, work_dir / "models", mapper, len(names), clock, on_event)
+    models = _map(db, image_dir, work_dir / "models", mapper, len(names), clock)
     used = matcher
     if matcher == "sequential" and opts.matcher == "auto" and (not models or models[0].num_registered < len(names)):
         out = set(names) - set(models[0].registered_names() if models else [])
         emit(on_event, Note(f"sequential matching left {len(out)} image(s) out; matching them with every image"))
         # Only pairs touching a left-out image: one bad frame in a long video must not cost N^2 pairs.
         rest = [p for p in exhaustive_pairs(names) if p not in matched and (p[0] in out or p[1] in out)]
-        _match(db, rest, work_dir, mopts, clock, on_event)
+        _match(db, rest, work_dir, mopts, clock)
         matched.update(rest)
-        models = _map(db, image_dir, work_dir / "models2", mapper, len(names), clock, on_event)
+        models = _map(db, image_dir, work_dir / "models2", mapper, len(names), clock)
         used = "sequential+exhaustive"
     if not models or models[0].num_registered < 2:
         raise SplatError(f"{where}: structure from motion found no model: {_diagnose(db, len(names))}")
@@ -188,29 +171,22 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
     )
 
 
-def _match(db: Path, pairs: list[tuple[str, str]], work_dir: Path, mopts: MatchOptions,
-           clock: _Clock, on_event: EventSink | None) -> None:
+def _match(db: Path, pairs: list[tuple[str, str]], work_dir: Path, mopts: MatchOptions, clock: Stages) -> None:
     if not pairs:
         return
-    t = clock.start("match", len(pairs))
-    # Each call reloads descriptors and restarts threads (~0.1 s), so calls
-    # carry at least 100 pairs: ~10 progress updates, under 5% overhead.
-    step = max(100, -(-len(pairs) // 10))
-    for i in range(0, len(pairs), step):
-        colmap.match_pairs(db, pairs[i : i + step], work_dir / "pairs.txt", mopts)
-        emit(on_event, Progress("match", min(i + step, len(pairs)), len(pairs)))
-    clock.done("match", t)
+    with clock.stage("match", len(pairs)) as st:
+        # Each call reloads descriptors and restarts threads (~0.1 s), so calls
+        # carry at least 100 pairs: ~10 progress updates, under 5% overhead.
+        step = max(100, -(-len(pairs) // 10))
+        for i in range(0, len(pairs), step):
+            colmap.match_pairs(db, pairs[i : i + step], work_dir / "pairs.txt", mopts)
+            st.progress(min(i + step, len(pairs)))
 
 
-def _map(db: Path, image_dir: Path, out: Path, mapper: MapperOptions, n: int, clock: _Clock,
-         on_event: EventSink | None) -> list[Model]:
-    t = clock.start("map", n)
-    models = colmap.incremental_mapping(
-        db, image_dir, out, mapper,
-        on_registered=lambda k: emit(on_event, Progress("map", min(k, n), n, {"registered": k})),
-    )
-    clock.done("map", t)
-    return models
+def _map(db: Path, image_dir: Path, out: Path, mapper: MapperOptions, n: int, clock: Stages) -> list[Model]:
+    with clock.stage("map", n) as st:
+        return colmap.incremental_mapping(db, image_dir, out, mapper,
+                                          on_registered=lambda k: st.progress(min(k, n), registered=k))
 
 
 def _diagnose(db: Path, n: int) -> str:

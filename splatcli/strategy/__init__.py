@@ -1,5 +1,10 @@
-"""Adaptive density control: when to clone, split, prune and reset Gaussians."""
+"""Density and model control: when to clone, split, prune, reset and compact Gaussians,
+and the one set of ops that edits parameters, Adam moments and strategy state together."""
 
-from .default import DefaultStrategy, DefaultStrategyConfig, DefaultStrategyState, RefineStats, StepInfo
+from .base import Context, RefineStats, RowState, Splats, StepInfo, Strategy
+from .compact import CompactConfig, CompactReport, CompactStep, ShAutoConfig, ShAutoStep, sh_degree_of
+from .default import DefaultStrategy, DefaultStrategyConfig, DefaultStrategyState
 
-__all__ = ["DefaultStrategy", "DefaultStrategyConfig", "DefaultStrategyState", "RefineStats", "StepInfo"]
+__all__ = ["CompactConfig", "CompactReport", "CompactStep", "Context", "DefaultStrategy", "DefaultStrategyConfig",
+           "DefaultStrategyState", "RefineStats", "RowState", "ShAutoConfig", "ShAutoStep", "Splats", "StepInfo",
+           "Strategy", "sh_degree_of"]

@@ -1,132 +1,160 @@
-"""Model only what the scene needs: the first Gaussians (within the budget), and
-what happens when the main schedule ends: `--sh-degree auto` and `--compact`.
+"""Model only what the scene needs, once the main schedule ends.
 
---sh-degree auto: render a validation subset of the *training* views with the
-  SH truncated to each degree and keep the lowest degree whose PSNR is within
-  `sh_auto_tol_db` of the full degree; the unused bands are dropped from the
-  parameters (so they are neither stored nor exported).
---compact: rank Gaussians by their total blending weight sum_pixels alpha_i T_i
-  over the training views and keep the top `compact_keep` fraction, in
-  `compact_rounds` cuts spread over the first half of a `compact_finetune`-step
-  fine-tune (no densification; the loop runs the steps, `at_step` the cuts).
+`ShAutoStep` (--sh-degree auto): score a validation subset of the *training* views
+  with the SH truncated to each degree and keep the lowest degree whose PSNR is
+  within `tol_db` of the full degree; the unused bands leave the parameters (so
+  they are neither stored nor exported).
+`CompactStep` (--compact): rank Gaussians by their total blending weight
+  sum_pixels alpha_i T_i over the training views and keep the top `keep` fraction,
+  in `rounds` cuts spread over the first half of a `finetune`-step fine-tune (no
+  densification: the default strategy stops at the end of the main schedule).
 """
 
 from __future__ import annotations
 
-import numpy as np
+from dataclasses import dataclass, field
+
 import torch
-from torch import Tensor
 
-from ..train.data import TrainData, View
-from ..events import EventSink, Note, emit
-from ..gaussians import Gaussians
-from ..train.init import gaussians_from_ply, gaussians_from_points, random_points, subsample, subsample_index
+from ..gaussians import sh_degree_from_bases
 from ..io.ply import ply_bytes
-from ..project import Project
-from ..render.weights import blending_weights as render_weights
 from . import ops
-from ..train.config import TrainConfig
-from ..train.state import TrainState
+from .base import Context, RefineStats, RowState, Splats, StepInfo, Strategy
 
 
-def initial_gaussians(cfg: TrainConfig, data: TrainData, device: torch.device) -> Gaussians:
-    """From --init-ply, else the SfM points, else random points in the scene box
-    (seeded); then a seeded subset if there are more than --max-gaussians."""
-    budget = cfg.max_gaussians
-    if cfg.init_ply:
-        g = gaussians_from_ply(cfg.init_ply, cfg.max_sh_degree, device)
-        return subsample(g, budget, cfg.seed) if budget is not None else g
-    if len(data.points):
-        pts = torch.as_tensor(data.points, dtype=torch.float32, device=device)
-        cols = torch.as_tensor(data.colors, dtype=torch.float32, device=device) / 255.0
-    else:
-        n = cfg.init_random_points if budget is None else min(cfg.init_random_points, budget)
-        pts, cols = random_points(n, data.bounds_min, data.bounds_max, cfg.seed, device)
-    if budget is not None and pts.shape[0] > budget:  # subset first: kNN scales then match the kept density
-        idx = subsample_index(pts.shape[0], budget, cfg.seed).to(device)
-        pts, cols = pts[idx], cols[idx]
-    return gaussians_from_points(pts, cols, cfg.max_sh_degree, cfg.init_opacity, cfg.init_knn)
+def sh_degree_of(splats: Splats) -> int:
+    """The highest SH degree the parameters hold."""
+    shn = splats.params.get("shN")
+    return sh_degree_from_bases(1 + (int(shn.shape[1]) if shn is not None else 0))
 
 
-def after_training(project: Project, cfg: TrainConfig, data: TrainData, state: TrainState,
-                   on_event: EventSink | None, before: tuple[float, float] | None = None) -> None:
-    """Run once, at step == iterations, before that step's checkpoint. `before` is
-    the held-out (PSNR, SSIM) just measured for this model, if any."""
-    from ..train.loop import evaluate_views
-
-    if cfg.sh_degree == "auto" and "sh_auto_psnr" not in state.extra:
-        val = subset(data.train, cfg.val_max_views)
-        scores = {d: evaluate_views(state, val, data.background, d)[0] for d in range(state.sh_cap + 1)}
-        best = scores[state.sh_cap]
-        chosen = min(d for d, p in scores.items() if p >= best - cfg.sh_auto_tol_db)
-        state.extra["sh_auto_psnr"] = {str(d): round(p, 4) for d, p in scores.items()}
-        state.extra["sh_auto_degree"] = chosen
-        if chosen < state.sh_cap:
-            ops.truncate_bands(state.params, state.optimizers, "shN", (chosen + 1) ** 2 - 1)
-            state.sh_cap = chosen
-        emit(on_event, Note(f"--sh-degree auto: degree {chosen} (validation PSNR "
-                            + ", ".join(f"{d}: {p:.2f}" for d, p in scores.items()) + " dB)"))
-    if cfg.compact and "compact_before" not in state.extra:
-        deg = state.sh_cap
-        n = state.num_gaussians
-        if before is None and data.test:
-            before = evaluate_views(state, data.test, data.background, deg)
-        state.extra["compact_before"] = {"count": n, "bytes": ply_bytes(n, deg),
-                                         "psnr": before[0] if before is not None else None}
-        _prune_round(cfg, data, state, 1, on_event)
+@dataclass(frozen=True)
+class ShAutoConfig:
+    tol_db: float = 0.05  # the lowest degree within this of the full degree's validation PSNR
+    val_views: int = 8  # validation subset of the *training* views
 
 
-def prune_steps(cfg: TrainConfig) -> list[int]:
-    """Steps ending with a --compact prune round: the first at `iterations`, the
-    others spread over the first half of the fine-tune, so the final set still
-    gets at least half of it. Pruning in rounds lets the survivors take over the
-    pruned Gaussians' work before the next cut (one cut loses more)."""
-    spacing = cfg.compact_finetune // (2 * cfg.compact_rounds)
-    if spacing == 0:  # too short a fine-tune for rounds: one cut
-        return [cfg.iterations]
-    return [cfg.iterations + r * spacing for r in range(cfg.compact_rounds)]
+@dataclass
+class ShAutoState(RowState):
+    degree: int | None = None  # chosen, once done
+    psnr: dict[str, float] = field(default_factory=dict)  # validation PSNR per degree
 
 
-def at_step(project: Project, cfg: TrainConfig, data: TrainData, state: TrainState, step: int,
-            on_event: EventSink | None, before: tuple[float, float] | None = None) -> None:
-    """The loop's one hook: post-processing at `iterations`, later prune rounds."""
-    if step == cfg.iterations:
-        after_training(project, cfg, data, state, on_event, before)
-    elif cfg.compact and step > cfg.iterations:
-        sched = prune_steps(cfg)
-        if step in sched[1:] and state.extra.get("compact_round", 0) < sched.index(step) + 1:
-            _prune_round(cfg, data, state, sched.index(step) + 1, on_event)
+class ShAutoStep(Strategy):
+    name = "sh_auto"
+
+    def __init__(self, config: ShAutoConfig, at: int, ctx: Context) -> None:
+        self.config, self.at, self.ctx = config, at, ctx
+
+    def initial_state(self, n: int, device: torch.device, seed: int) -> ShAutoState:
+        return ShAutoState()
+
+    def step_post_backward(self, splats: Splats, state: ShAutoState, step: int, info: StepInfo) -> None:
+        if step == self.at:
+            self.catch_up(splats, state, step)
+
+    def catch_up(self, splats: Splats, state: ShAutoState, step: int) -> None:
+        if step < self.at or state.degree is not None:
+            return
+        cap = sh_degree_of(splats)
+        scores = {d: self.ctx.score(f"val:{self.config.val_views}", d)[0] for d in range(cap + 1)}
+        chosen = min(d for d, p in scores.items() if p >= scores[cap] - self.config.tol_db)
+        state.psnr = {str(d): round(p, 4) for d, p in scores.items()}
+        state.degree = chosen
+        if chosen < cap:
+            ops.truncate_bands(splats, "shN", (chosen + 1) ** 2 - 1)
+        self.ctx.note(f"--sh-degree auto: degree {chosen} (validation PSNR "
+                      + ", ".join(f"{d}: {p:.2f}" for d, p in scores.items()) + " dB)")
+
+    def summary(self, state: ShAutoState, num_gaussians: int, sh_degree: int, psnr: float | None) -> dict:
+        return {"sh_auto_psnr": state.psnr or None}
 
 
-def _prune_round(cfg: TrainConfig, data: TrainData, state: TrainState, r: int, on_event: EventSink | None) -> None:
-    """Round r of R: keep the n0 * keep^(r/R) Gaussians with the most blending weight."""
-    n0 = state.extra["compact_before"]["count"]
-    rounds = len(prune_steps(cfg))
-    k = max(1, int(n0 * cfg.compact_keep ** (r / rounds)))  # the last round keeps exactly int(keep * n0)
-    n = state.num_gaussians
-    if k < n:
-        weight = blending_weights(state, data.train, data.background)
-        keep = torch.zeros(n, dtype=torch.bool, device=weight.device)
-        keep[torch.argsort(weight, descending=True, stable=True)[:k]] = True
-        ops.keep(state.params, state.optimizers, keep)
-        z = state.sstate.grad2d.new_zeros(state.num_gaussians)
-        state.sstate.grad2d, state.sstate.count, state.sstate.radii = z, z.clone(), z.clone()
-        state.extra["compact_before"][f"kept_weight_{r}"] = float(weight[keep].sum() / weight.sum().clamp_min(1e-12))
-    state.extra["compact_round"] = r
-    emit(on_event, Note(f"--compact round {r}/{rounds}: kept {state.num_gaussians} of {n0} Gaussians "
-                        f"by blending weight"))
+@dataclass(frozen=True)
+class CompactConfig:
+    enabled: bool = False
+    keep: float = 1 / 3  # fraction of Gaussians kept, ranked by total blending weight
+    finetune: int = 3000  # steps after the first cut (lego: 1000 lost 0.42 dB, 3000 0.04)
+    rounds: int = 3  # cuts, spread over the first half of the fine-tune
 
 
-def subset(views: list[View], k: int) -> list[View]:
-    """`k` evenly spaced views (all when k <= 0 or there are fewer)."""
-    if k <= 0 or len(views) <= k:
-        return list(views)
-    idx = np.linspace(0, len(views) - 1, k).round().astype(int)
-    return [views[i] for i in idx]
+@dataclass
+class CompactState(RowState):
+    round: int = 0  # cuts done
+    before_count: int = 0  # the model when the main schedule ended
+    before_bytes: int = 0
+    before_psnr: float | None = None  # held-out
+    kept_weight: list[float] = field(default_factory=list)  # fraction of the blending weight each cut kept
 
 
-def blending_weights(state: TrainState, views: list[View], bg: Tensor) -> Tensor:  # -> [N]
-    """sum over views and pixels of alpha_i T_i per Gaussian (render.weights)."""
-    p = state.params
-    return render_weights(p["means"], p["quats"], p["log_scales"], p["opacity_logits"],
-                          ((v.viewmat, v.K, v.camera.width, v.camera.height) for v in views))
+@dataclass
+class CompactReport:
+    """--compact: the model before the blending-weight prune and after fine-tuning."""
+
+    before_count: int
+    before_bytes: int
+    before_psnr: float | None  # held-out
+    after_count: int
+    after_bytes: int
+    after_psnr: float | None
+
+
+class CompactStep(Strategy):
+    name = "compact"
+
+    def __init__(self, config: CompactConfig, start: int, ctx: Context) -> None:
+        self.config, self.start, self.ctx = config, start, ctx
+
+    def initial_state(self, n: int, device: torch.device, seed: int) -> CompactState:
+        return CompactState()
+
+    def prune_steps(self) -> list[int]:
+        """Steps ending with a cut: the first at `start`, the others spread over the
+        first half of the fine-tune, so the final set still gets at least half of it.
+        Cutting in rounds lets the survivors take over the pruned Gaussians' work
+        before the next cut (one cut loses more)."""
+        spacing = self.config.finetune // (2 * self.config.rounds)
+        if spacing == 0:  # too short a fine-tune for rounds: one cut
+            return [self.start]
+        return [self.start + r * spacing for r in range(self.config.rounds)]
+
+    def step_post_backward(self, splats: Splats, state: CompactState, step: int, info: StepInfo) -> RefineStats | None:
+        sched = self.prune_steps()
+        if step in sched and state.round < sched.index(step) + 1:
+            return self._cut(splats, state, step, sched.index(step) + 1, info.heldout)
+        return None
+
+    def catch_up(self, splats: Splats, state: CompactState, step: int) -> RefineStats | None:
+        if step == self.start and state.round == 0:  # a finished run resumed with --compact
+            return self._cut(splats, state, step, 1, None)
+        return None
+
+    def _cut(self, splats: Splats, state: CompactState, step: int, r: int,
+             heldout: tuple[float, float] | None) -> RefineStats:
+        """Round r of R: keep the n0 * keep^(r/R) Gaussians with the most blending weight."""
+        n = len(splats)
+        if r == 1:
+            if heldout is None:
+                heldout = self.ctx.score("test", sh_degree_of(splats))
+            state.before_count, state.before_bytes = n, ply_bytes(n, sh_degree_of(splats))
+            state.before_psnr = heldout[0] if heldout is not None else None
+        n0, rounds = state.before_count, len(self.prune_steps())
+        k = max(1, int(n0 * self.config.keep ** (r / rounds)))  # the last round keeps exactly int(keep * n0)
+        stats = RefineStats(step=step, before=n, after=n)
+        if k < n:
+            weight = self.ctx.weights()
+            keep = torch.zeros(n, dtype=torch.bool, device=weight.device)
+            keep[torch.argsort(weight, descending=True, stable=True)[:k]] = True
+            state.kept_weight.append(float(weight[keep].sum() / weight.sum().clamp_min(1e-12)))
+            ops.keep(splats, keep)
+            stats.pruned, stats.after = n - k, k
+        state.round = r
+        self.ctx.note(f"--compact round {r}/{rounds}: kept {len(splats)} of {n0} Gaussians by blending weight")
+        return stats
+
+    def summary(self, state: CompactState, num_gaussians: int, sh_degree: int, psnr: float | None) -> dict:
+        if state.round == 0:
+            return {}
+        return {"compact": CompactReport(before_count=state.before_count, before_bytes=state.before_bytes,
+                                         before_psnr=state.before_psnr, after_count=num_gaussians,
+                                         after_bytes=ply_bytes(num_gaussians, sh_degree), after_psnr=psnr)}

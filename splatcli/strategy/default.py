@@ -1,28 +1,20 @@
 """The 3DGS adaptive density control (Kerbl et al. 2023, sec. 5.2), with a budget.
 
-Hyperparameters are a frozen dataclass; everything that changes during training
-(gradient accumulators, the split RNG) lives in a separate `DefaultStrategyState`
-that checkpoints as plain tensors. The loop calls exactly two methods:
-
-    strategy.step_pre_backward(params, optimizers, state, step, info)
-    stats = strategy.step_post_backward(params, optimizers, state, step, info)
-
-`step_post_backward` runs after the optimiser step of `step`; it accumulates the
-view-space gradient and, on refinement steps, clones, splits, prunes and resets
-through `ops` (the only code that edits parameters and Adam state).
+`step_post_backward` runs after the optimiser step; it accumulates the view-space
+gradient and, on refinement steps, clones, splits, prunes and resets through `ops`.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 from torch import Tensor
 
-from ..render.output import RenderOutput
 from . import ops
-from .ops import Optimizers, Params
+from .base import RefineStats, RowState, Splats, StepInfo, Strategy
 
 
 @dataclass(frozen=True)
@@ -43,49 +35,22 @@ class DefaultStrategyConfig:
 
 
 @dataclass
-class StepInfo:
-    """What the loop tells the strategy about one step."""
+class DefaultStrategyState(RowState):
+    ROWS: ClassVar[tuple[str, ...]] = ("grad2d", "count", "radii")
 
-    render: RenderOutput  # means2d [N, 2] (grad retained), radii [N], visible [N]
-    width: int
-    height: int
-    finite: bool = True  # False on a skipped (non-finite) step: accumulate nothing
-
-
-@dataclass
-class RefineStats:
-    step: int
-    before: int
-    cloned: int = 0
-    split: int = 0
-    pruned: int = 0
-    after: int = 0
-    reset_opacity: bool = False
-    held_by_budget: int = 0  # growth candidates refused because of max_gaussians
-
-    @property
-    def changed(self) -> bool:
-        return self.cloned + self.split + self.pruned > 0 or self.reset_opacity
-
-
-@dataclass
-class DefaultStrategyState:
     grad2d: Tensor  # [N] accumulated view-space gradient norms
     count: Tensor  # [N] number of views each Gaussian was visible in
     radii: Tensor  # [N] largest screen radius seen, as a fraction of max(W, H)
     generator: torch.Generator  # split sampling
 
-    def state_dict(self) -> dict:
-        return {"grad2d": self.grad2d, "count": self.count, "radii": self.radii,
-                "generator": self.generator.get_state()}
-
-    def load_state_dict(self, d: dict) -> None:
-        dev = self.grad2d.device
-        self.grad2d, self.count, self.radii = (d[k].to(dev) for k in ("grad2d", "count", "radii"))
-        self.generator.set_state(d["generator"])
+    def reset(self) -> None:
+        for name in self.ROWS:
+            getattr(self, name).zero_()
 
 
-class DefaultStrategy:
+class DefaultStrategy(Strategy):
+    name = "default"
+
     def __init__(self, config: DefaultStrategyConfig, scene_extent: float) -> None:
         self.config = config
         self.scene_extent = float(scene_extent)
@@ -99,36 +64,32 @@ class DefaultStrategy:
     def active(self, step: int) -> bool:
         return step < self.config.refine_stop
 
-    # ---- the two calls the loop makes ---------------------------------------
-    def step_pre_backward(
-        self, params: Params, optimizers: Optimizers, state: DefaultStrategyState, step: int, info: StepInfo
-    ) -> None:
+    def step_pre_backward(self, splats: Splats, state: DefaultStrategyState, step: int, info: StepInfo) -> None:
         """Ask autograd to keep the screen-space mean gradient we accumulate."""
         if self.active(step) and info.render.means2d.requires_grad:
             info.render.means2d.retain_grad()
 
     def step_post_backward(
-        self, params: Params, optimizers: Optimizers, state: DefaultStrategyState, step: int, info: StepInfo
+        self, splats: Splats, state: DefaultStrategyState, step: int, info: StepInfo
     ) -> RefineStats:
-        n = int(params["means"].shape[0])
-        stats = RefineStats(step=step, before=n, after=n)
         cfg = self.config
+        n = len(splats)
+        stats = RefineStats(step=step, before=n, after=n)
         if not self.active(step):
             return stats
         if info.finite:
             self._accumulate(state, info)
         if step > cfg.refine_start and step % cfg.refine_every == 0:
-            self._refine(params, optimizers, state, step, stats)
+            self._refine(splats, state, step, stats)
         if step % cfg.reset_every == 0:
             # Clamp every opacity low so that the following densification has to
             # re-earn each Gaussian's opacity: floaters near cameras fade and get pruned.
             lim = math.log(cfg.reset_opacity / (1 - cfg.reset_opacity))
-            ops.set_rows(params, optimizers, "opacity_logits", lambda v: v.clamp_max(lim))
+            ops.set_rows(splats, "opacity_logits", lambda v: v.clamp_max(lim))
             stats.reset_opacity = True
-        stats.after = int(params["means"].shape[0])
+        stats.after = len(splats)
         return stats
 
-    # ---- internals --------------------------------------------------------------
     @torch.no_grad()
     def _accumulate(self, state: DefaultStrategyState, info: StepInfo) -> None:
         r = info.render
@@ -145,10 +106,9 @@ class DefaultStrategy:
         torch.maximum(state.radii, torch.where(vis, rel, torch.zeros_like(rel)), out=state.radii)
 
     @torch.no_grad()
-    def _refine(
-        self, params: Params, optimizers: Optimizers, state: DefaultStrategyState, step: int, stats: RefineStats
-    ) -> None:
+    def _refine(self, splats: Splats, state: DefaultStrategyState, step: int, stats: RefineStats) -> None:
         cfg = self.config
+        params = splats.params
         n = stats.before
         opacity = torch.sigmoid(params["opacity_logits"])  # [N]
         max_scale = params["log_scales"].exp().amax(dim=-1)  # [N] world units
@@ -177,9 +137,6 @@ class DefaultStrategy:
         if stats.cloned + stats.split + stats.pruned:
             rows = ops.cat_rows([ops.clone_rows(params, clone),
                                  ops.split_rows(params, split, state.generator, cfg.split_samples)])
-            ops.keep(params, optimizers, ~(prune | split))
-            ops.append(params, optimizers, rows)
-        # 3DGS restarts the statistics after every refinement.
-        m = int(params["means"].shape[0])
-        z = state.grad2d.new_zeros(m)
-        state.grad2d, state.count, state.radii = z, z.clone(), z.clone()
+            ops.keep(splats, ~(prune | split))
+            ops.append(splats, rows)
+        state.reset()  # 3DGS restarts the statistics after every refinement

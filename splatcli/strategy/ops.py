@@ -1,11 +1,10 @@
-"""Edits of the Gaussian set that keep parameters and Adam state in step.
+"""Edits of the Gaussian set that keep parameters, Adam state and strategy state in step.
 
-Training parameters live in `params: dict[str, nn.Parameter]` (rows = Gaussians)
-with one Adam per entry in `optimizers`. Growing, pruning or resetting rows must
-edit the Adam moments (`exp_avg`, `exp_avg_sq`) the same way, or the optimiser
-would apply stale momentum to the wrong Gaussian. `_edit` is the one function
-that replaces parameters and moments together; every public op here is built on
-it and nothing else in splatcli touches either.
+Growing, pruning or resetting rows must edit the Adam moments (`exp_avg`,
+`exp_avg_sq`) the same way, or the optimiser would apply stale momentum to the
+wrong Gaussian, and every strategy's per-Gaussian rows (`RowState.ROWS`) too.
+`_edit` is the one function that replaces parameters and moments; `keep` and
+`append` also edit the strategy rows; nothing else in splatcli touches any of them.
 """
 
 from __future__ import annotations
@@ -16,24 +15,23 @@ import torch
 from torch import Tensor, nn
 
 from ..render.project import quat_to_rotmat
-
-Params = dict[str, nn.Parameter]
-Optimizers = dict[str, torch.optim.Optimizer]
+from .base import Splats
 
 _MOMENTS = ("exp_avg", "exp_avg_sq")
 
 
 @torch.no_grad()
 def _edit(
-    params: Params,
-    optimizers: Optimizers,
+    splats: Splats,
     param_fn: Callable[[str, Tensor], Tensor],  # (name, value [N, ...]) -> new value [M, ...]
     moment_fn: Callable[[str, Tensor], Tensor],  # (name, moment [N, ...]) -> new moment [M, ...]
+    row_fn: Callable[[Tensor], Tensor] | None,  # strategy row [N, ...] -> [M, ...]; None: rows unchanged
     names: Iterable[str] | None = None,
 ) -> None:
-    """Replace each named parameter by `param_fn(name, p)` and each of its Adam
-    moments by `moment_fn(name, m)`, rebinding the optimiser to the new tensor.
-    The Adam `step` counter is kept (it is per tensor, not per row)."""
+    """Replace each named parameter by `param_fn(name, p)` and each of its Adam moments
+    by `moment_fn(name, m)`, rebinding the optimiser to the new tensor, and every
+    strategy row by `row_fn(row)`. The Adam `step` counter is per tensor and kept."""
+    params, optimizers = splats.params, splats.optimizers
     for name in list(params if names is None else names):
         old = params[name]
         new = nn.Parameter(param_fn(name, old.detach()), requires_grad=old.requires_grad)
@@ -51,24 +49,30 @@ def _edit(
                         opt.state[new] = state
                     group["params"][i] = new
         params[name] = new
+    if row_fn is not None:
+        for st in splats.states:
+            for field_name in st.ROWS:
+                setattr(st, field_name, row_fn(getattr(st, field_name)))
 
 
-def append(params: Params, optimizers: Optimizers, rows: dict[str, Tensor]) -> None:
-    """Add Gaussians (`rows[name]` [M, ...] for every parameter) with zero moments."""
+def append(splats: Splats, rows: dict[str, Tensor]) -> None:
+    """Add Gaussians (`rows[name]` [M, ...] for every parameter) with zero moments
+    and empty strategy rows."""
+    m = next(iter(rows.values())).shape[0]
     _edit(
-        params,
-        optimizers,
+        splats,
         lambda n, p: torch.cat([p, rows[n].to(p)], dim=0),
-        lambda n, m: torch.cat([m, m.new_zeros((rows[n].shape[0], *m.shape[1:]))], dim=0),
+        lambda n, v: torch.cat([v, v.new_zeros((rows[n].shape[0], *v.shape[1:]))], dim=0),
+        lambda r: torch.cat([r, r.new_zeros((m, *r.shape[1:]))], dim=0),
     )
 
 
-def keep(params: Params, optimizers: Optimizers, mask: Tensor) -> None:  # mask [N] bool (or index [M])
-    """Keep only the selected Gaussians (prune the rest), moments included."""
-    _edit(params, optimizers, lambda n, p: p[mask], lambda n, m: m[mask])
+def keep(splats: Splats, mask: Tensor) -> None:  # mask [N] bool (or index [M])
+    """Keep only the selected Gaussians (prune the rest): moments and strategy rows too."""
+    _edit(splats, lambda n, p: p[mask], lambda n, v: v[mask], lambda r: r[mask])
 
 
-def clone_rows(params: Params, sel: Tensor) -> dict[str, Tensor]:  # sel [N] bool
+def clone_rows(params: dict[str, Tensor], sel: Tensor) -> dict[str, Tensor]:  # sel [N] bool
     """Clone: exact copies of the selected Gaussians (3DGS clones in place and lets
     the gradient pull the pair apart)."""
     return {n: p.detach()[sel] for n, p in params.items()}
@@ -76,7 +80,7 @@ def clone_rows(params: Params, sel: Tensor) -> dict[str, Tensor]:  # sel [N] boo
 
 @torch.no_grad()
 def split_rows(
-    params: Params,
+    params: dict[str, Tensor],
     sel: Tensor,  # [N] bool
     generator: torch.Generator | None,
     samples: int = 2,
@@ -101,39 +105,29 @@ def split_rows(
     return rows
 
 
-def duplicate(params: Params, optimizers: Optimizers, sel: Tensor) -> None:  # sel [N] bool
-    """Append clones of the selected Gaussians (fresh moments)."""
-    append(params, optimizers, clone_rows(params, sel))
-
-
-def split(
-    params: Params, optimizers: Optimizers, sel: Tensor, generator: torch.Generator | None, samples: int = 2
-) -> None:  # sel [N] bool
-    """Replace each selected Gaussian by `samples` smaller ones inside it."""
-    rows = split_rows(params, sel, generator, samples)
-    keep(params, optimizers, ~sel)
-    append(params, optimizers, rows)
-
-
 def cat_rows(parts: list[dict[str, Tensor]]) -> dict[str, Tensor]:
     return {n: torch.cat([p[n] for p in parts], dim=0) for n in parts[0]}
 
 
-def set_rows(
-    params: Params, optimizers: Optimizers, name: str, fn: Callable[[Tensor], Tensor]
-) -> None:
+def split(splats: Splats, sel: Tensor, generator: torch.Generator | None, samples: int = 2) -> None:  # sel [N] bool
+    """Replace each selected Gaussian by `samples` smaller ones inside it."""
+    rows = split_rows(splats.params, sel, generator, samples)
+    keep(splats, ~sel)
+    append(splats, rows)
+
+
+def set_rows(splats: Splats, name: str, fn: Callable[[Tensor], Tensor]) -> None:
     """Overwrite one parameter with `fn(value)` (same shape) and zero its moments
     (the opacity reset: stale momentum would undo it at once)."""
-    _edit(params, optimizers, lambda n, p: fn(p), lambda n, m: torch.zeros_like(m), names=[name])
+    _edit(splats, lambda n, p: fn(p), lambda n, v: torch.zeros_like(v), None, names=[name])
 
 
-
-def truncate_bands(params: Params, optimizers: Optimizers, name: str, bands: int) -> None:
+def truncate_bands(splats: Splats, name: str, bands: int) -> None:
     """Keep the first `bands` columns (dim 1) of one parameter and of its moments
     (dropping unused SH bands); `bands == 0` removes the parameter entirely."""
     if bands > 0:
-        _edit(params, optimizers, lambda n, p: p[:, :bands].contiguous(), lambda n, m: m[:, :bands].contiguous(),
+        _edit(splats, lambda n, p: p[:, :bands].contiguous(), lambda n, v: v[:, :bands].contiguous(), None,
               names=[name])
     else:
-        del params[name]
-        optimizers.pop(name, None)
+        del splats.params[name]
+        splats.optimizers.pop(name, None)

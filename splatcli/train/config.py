@@ -1,9 +1,13 @@
 """What `splatcli train` is asked to do, and what it reports back.
 
 `TrainConfig` holds every training default once, named after the 3DGS paper
-(Kerbl et al. 2023) where it comes from one; presets override a few of them.
+(Kerbl et al. 2023) where it comes from one; the strategies' hyperparameters are
+nested in it, declared once in strategy/. Presets override a few of them.
 `TrainSummary` is the contract other commands read from the manifest
-(`steps.train.summary`); `TrainLogLine` is one line of reports/train_log.jsonl.
+(`steps.train.summary`).
+
+Options are given flat, as on the command line (`max_gaussians`, `compact`,
+`compact_finetune`, `refine_stop`); `OPTION_PATHS` says where each one lives.
 """
 
 from __future__ import annotations
@@ -12,6 +16,8 @@ from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any
 
 from ..errors import SplatError
+from ..gaussians import Histogram
+from ..strategy import CompactConfig, CompactReport, DefaultStrategyConfig, ShAutoConfig
 
 MAX_SH_DEGREE = 3
 
@@ -21,7 +27,7 @@ class TrainConfig:
     # ---- schedule ------------------------------------------------------------
     iterations: int = 30_000  # the paper's schedule
     preset: str = "default"
-    sh_degree: int | str = 3  # 0..3, or "auto" (train at 3, keep the lowest degree within sh_auto_tol_db)
+    sh_degree: int | str = 3  # 0..3, or "auto" (train at 3, keep the lowest degree within sh_auto.tol_db)
     sh_degree_interval: int = 1000  # the active SH degree grows by one every this many steps
 
     # ---- data ----------------------------------------------------------------
@@ -37,7 +43,7 @@ class TrainConfig:
     init_opacity: float = 0.1  # sigma^-1(0.1), the paper's
     init_random_points: int = 100_000  # Blender scenes with no SfM points: uniform in the bounds (3DGS)
     init_knn: int = 3  # log scale from the RMS distance to the 3 nearest neighbours
-    init_ply: str | None = None  # start from a 3DGS .ply instead
+    init_ply: str | None = None  # start from a splat file instead
 
     # ---- optimiser (Adam, per attribute) -------------------------------------
     lr_means: float = 1.6e-4  # x scene extent, decays exponentially ...
@@ -52,21 +58,10 @@ class TrainConfig:
     # ---- loss ----------------------------------------------------------------
     lambda_dssim: float = 0.2  # loss = (1 - l) L1 + l (1 - SSIM)
 
-    # ---- adaptive density control (strategy.DefaultStrategyConfig) -------------
-    refine_start: int = 500
-    refine_stop: int = 15_000
-    refine_every: int = 100
-    reset_every: int = 3000
-    grow_grad2d: float = 2e-4
-    max_gaussians: int | None = None  # hard budget, never exceeded
-
-    # ---- model only what is needed ---------------------------------------------
-    compact: bool = False
-    compact_keep: float = 1 / 3  # fraction of Gaussians kept, ranked by total blending weight
-    compact_finetune: int = 3000  # steps of fine-tuning after the first prune round (lego: 1000 lost 0.42 dB, 3000 0.04)
-    compact_rounds: int = 3  # prune in rounds over the first half of the fine-tune (compact.prune_steps)
-    sh_auto_tol_db: float = 0.05
-    val_max_views: int = 8  # validation subset of the *training* views (sh auto)
+    # ---- strategies (strategy/) ----------------------------------------------
+    strategy: DefaultStrategyConfig = field(default_factory=DefaultStrategyConfig)  # adaptive density control
+    sh_auto: ShAutoConfig = field(default_factory=ShAutoConfig)  # used with sh_degree "auto"
+    compact: CompactConfig = field(default_factory=CompactConfig)  # --compact
 
     # ---- reliability ---------------------------------------------------------
     max_bad_steps: int = 20  # consecutive non-finite steps before TrainingDiverged
@@ -83,15 +78,67 @@ class TrainConfig:
     @property
     def total_steps(self) -> int:
         """Optimiser steps including the compaction fine-tune."""
-        return self.iterations + (self.compact_finetune if self.compact else 0)
+        return self.iterations + (self.compact.finetune if self.compact.enabled else 0)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
 
     @staticmethod
     def from_dict(d: dict[str, Any]) -> "TrainConfig":
-        known = {f.name for f in fields(TrainConfig)}
-        return TrainConfig(**{k: v for k, v in d.items() if k in known})
+        """The stored form back (unknown keys ignored; flat option names accepted)."""
+        nested = {f.name: f.type for f in fields(TrainConfig) if f.name in _NESTED}
+        flat = {k: v for k, v in d.items() if k not in nested}
+        cfg = with_options(TrainConfig(), {k: v for k, v in flat.items() if k in OPTION_PATHS})
+        for name in nested:
+            sub = d.get(name)
+            if isinstance(sub, dict):
+                cls = type(getattr(cfg, name))
+                known = {f.name for f in fields(cls)}
+                cfg = replace(cfg, **{name: replace(getattr(cfg, name), **{k: v for k, v in sub.items() if k in known})})
+        return cfg
+
+
+_NESTED = {"strategy": "", "sh_auto": "sh_auto_", "compact": "compact_"}  # nested config -> option prefix
+
+
+def _option_paths() -> dict[str, tuple[str, ...]]:
+    paths: dict[str, tuple[str, ...]] = {}
+    for f in fields(TrainConfig):
+        if f.name not in _NESTED:
+            paths[f.name] = (f.name,)
+    defaults = TrainConfig()
+    for name, prefix in _NESTED.items():
+        for sub in fields(type(getattr(defaults, name))):
+            paths[prefix + sub.name] = (name, sub.name)
+    paths["compact"] = ("compact", "enabled")  # --compact
+    paths.pop("compact_enabled")
+    return paths
+
+
+OPTION_PATHS = _option_paths()
+
+
+def with_options(cfg: TrainConfig, options: dict[str, Any]) -> TrainConfig:
+    """`cfg` with flat options applied (see OPTION_PATHS); an unknown name is a bug."""
+    top: dict[str, Any] = {}
+    subs: dict[str, dict[str, Any]] = {}
+    for k, v in options.items():
+        path = OPTION_PATHS[k]
+        if len(path) == 1:
+            top[path[0]] = v
+        else:
+            subs.setdefault(path[0], {})[path[1]] = v
+    for name, vals in subs.items():
+        top[name] = replace(getattr(cfg, name), **vals)
+    return replace(cfg, **top)
+
+
+def option(cfg: TrainConfig, name: str) -> Any:
+    """The value of a flat option (see OPTION_PATHS)."""
+    v: Any = cfg
+    for part in OPTION_PATHS[name]:
+        v = getattr(v, part)
+    return v
 
 
 # Presets override the defaults above; explicit options override the preset.
@@ -117,7 +164,7 @@ def make_config(preset: str = "default", **options: Any) -> TrainConfig:
     """The preset, then every option that is not None. Validates ranges."""
     if preset not in PRESETS:
         raise SplatError(f"--preset {preset!r} is not known; choose one of {', '.join(PRESETS)}")
-    cfg = replace(TrainConfig(), preset=preset, **PRESETS[preset])
+    cfg = with_options(replace(TrainConfig(), preset=preset), PRESETS[preset])
     given = {k: v for k, v in options.items() if v is not None}
     sh = given.get("sh_degree")
     if isinstance(sh, str):
@@ -128,7 +175,7 @@ def make_config(preset: str = "default", **options: Any) -> TrainConfig:
             given["sh_degree"] = int(s)
         else:
             raise SplatError(f"--sh-degree {sh!r}: expected 0, 1, 2, 3 or auto")
-    cfg = replace(cfg, **given)
+    cfg = with_options(cfg, given)
     _check(cfg)
     return cfg
 
@@ -138,61 +185,25 @@ def _check(cfg: TrainConfig) -> None:
         raise SplatError(f"--iterations {cfg.iterations}: must be at least 1")
     if isinstance(cfg.sh_degree, int) and not 0 <= cfg.sh_degree <= MAX_SH_DEGREE:
         raise SplatError(f"--sh-degree {cfg.sh_degree}: expected 0..{MAX_SH_DEGREE} or auto")
-    if cfg.max_gaussians is not None and cfg.max_gaussians < 1:
-        raise SplatError(f"--max-gaussians {cfg.max_gaussians}: must be at least 1")
+    if cfg.strategy.max_gaussians is not None and cfg.strategy.max_gaussians < 1:
+        raise SplatError(f"--max-gaussians {cfg.strategy.max_gaussians}: must be at least 1")
     if cfg.downscale <= 0 or cfg.downscale > 64:
         raise SplatError(f"--downscale {cfg.downscale}: must be in (0, 64]")
     if cfg.max_size < 16:
         raise SplatError(f"--max-size {cfg.max_size}: must be at least 16 pixels")
     if cfg.eval_every < 0:
         raise SplatError(f"--eval-every {cfg.eval_every}: must be 0 or more")
-    if not 0 < cfg.compact_keep <= 1:
-        raise SplatError(f"compact_keep {cfg.compact_keep}: must be in (0, 1]")
+    if not 0 < cfg.compact.keep <= 1:
+        raise SplatError(f"compact_keep {cfg.compact.keep}: must be in (0, 1]")
 
 
 # ---- the contract other commands read -------------------------------------------
 
 
 @dataclass
-class TrainLogLine:
-    """One line of reports/train_log.jsonl (the speed-against-error curve)."""
-
-    step: int
-    elapsed_s: float  # training seconds only: evaluation and checkpoint writes excluded
-    loss: float  # mean loss over the steps since the previous line
-    num_gaussians: int
-    psnr: float | None = None  # held-out, every --eval-every steps
-    ssim: float | None = None
-    bad_steps: int = 0  # non-finite steps skipped so far
-    rss_mb: int | None = None  # the process's resident memory now (flat once densification stops)
-
-    def to_json(self) -> dict[str, Any]:
-        d = asdict(self)
-        return {k: v for k, v in d.items() if v is not None}
-
-
-@dataclass
-class Histogram:
-    edges: list[float]  # len(counts) + 1
-    counts: list[int]
-
-
-@dataclass
-class CompactReport:
-    """--compact: the model before the blending-weight prune and after fine-tuning."""
-
-    before_count: int
-    before_bytes: int
-    before_psnr: float | None  # held-out
-    after_count: int
-    after_bytes: int
-    after_psnr: float | None
-
-
-@dataclass
 class TrainSummary:
     """`steps.train.summary` in the manifest; reports/train.json holds it plus the
-    histograms and the log's last lines. Eval and the benchmarks read these keys."""
+    histograms and the config. Eval and the benchmarks read these keys."""
 
     steps: int  # optimiser steps done (including the compaction fine-tune)
     train_seconds: float  # training only, evaluation excluded
@@ -224,3 +235,4 @@ class TrainReport:
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
+

@@ -1,4 +1,4 @@
-"""The first Gaussians: from SfM points, random points in the scene bounds, or a .ply.
+"""The first Gaussians: from SfM points, random points in the scene bounds, or a splat file.
 
 3DGS recipe: one Gaussian per point, isotropic log scale from the RMS distance
 to the 3 nearest neighbours, identity rotation, opacity sigma^-1(0.1), SH DC
@@ -8,7 +8,6 @@ from the point colour and zero higher bands.
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -16,6 +15,9 @@ from torch import Tensor
 
 from ..errors import SplatError
 from ..gaussians import SH_C0, Gaussians, num_sh_bases
+from ..io.model import load_model
+from .config import TrainConfig
+from .data import TrainData
 
 KNN_BLOCK = 512  # query points per distance block (memory: BLOCK x candidates floats)
 CDIST_MODE = "donot_use_mm_for_euclid_dist"  # exact differences: the matmul form loses digits for flat, offset clouds
@@ -68,12 +70,24 @@ def subsample(g: Gaussians, n: int, seed: int) -> Gaussians:
     return g if len(g) <= n else g.select(subsample_index(len(g), n, seed).to(g.device))
 
 
-def gaussians_from_ply(path: str | Path, sh_degree: int, device: torch.device) -> Gaussians:
-    """Start from a trained 3DGS .ply (its SH truncated or zero-padded to `sh_degree`)."""
-    from ..io.ply import read_ply
-
-    g = read_ply(path, device).gaussians
-    return g.with_sh_degree(sh_degree).to(device, torch.float32)
+def initial_gaussians(cfg: TrainConfig, data: TrainData, device: torch.device) -> Gaussians:
+    """From --init-ply (any splat file we read), else the SfM points, else random points
+    in the scene box (seeded); then a seeded subset if there are more than --max-gaussians.
+    SH is at the trained degree."""
+    budget = cfg.strategy.max_gaussians
+    if cfg.init_ply:
+        g = load_model(cfg.init_ply, device).gaussians.with_sh_degree(cfg.max_sh_degree).to(device, torch.float32)
+        return subsample(g, budget, cfg.seed) if budget is not None else g
+    if len(data.points):
+        pts = torch.as_tensor(data.points, dtype=torch.float32, device=device)
+        cols = torch.as_tensor(data.colors, dtype=torch.float32, device=device) / 255.0
+    else:
+        n = cfg.init_random_points if budget is None else min(cfg.init_random_points, budget)
+        pts, cols = random_points(n, data.bounds_min, data.bounds_max, cfg.seed, device)
+    if budget is not None and pts.shape[0] > budget:  # subset first: kNN scales then match the kept density
+        idx = subsample_index(pts.shape[0], budget, cfg.seed).to(device)
+        pts, cols = pts[idx], cols[idx]
+    return gaussians_from_points(pts, cols, cfg.max_sh_degree, cfg.init_opacity, cfg.init_knn)
 
 
 # ---- nearest neighbours -----------------------------------------------------------

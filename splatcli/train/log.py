@@ -1,5 +1,5 @@
-"""Training's outputs besides checkpoints: the JSONL log, train.json and the
-manifest summary (the contract in train_config.py)."""
+"""Training's outputs besides checkpoints: the JSONL log (eval/curve.py holds its
+line and its reader), train.json and the manifest summary (config.py)."""
 
 from __future__ import annotations
 
@@ -10,30 +10,33 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 
+from ..eval.curve import TrainLogLine, read_log
 from ..events import EventSink, Note, emit
+from ..gaussians import histogram
 from ..io.atomic import append_line, atomic_write_json, atomic_write_text
 from ..io.ply import ply_bytes
 from ..project import Project
-from .config import CompactReport, Histogram, TrainConfig, TrainLogLine, TrainReport, TrainSummary
+from ..strategy import RefineStats
+from .config import TrainConfig, TrainReport, TrainSummary
 from .state import TrainState
 
-HIST_BINS = 40
 PROGRESS_PERIOD_S = 0.25  # progress-bar refresh; a loss read is a host sync on CUDA
+REFINED = ("cloned", "split", "pruned")
 
 
 class LogWriter:
-    """Accumulates the loss without a host sync per step; writes one JSONL line
-    every `log_every` steps, at evaluations and at the end."""
+    """Accumulates the loss without a host sync per step, and the refinement counts;
+    writes one JSONL line every `log_every` steps, at evaluations and at the end."""
 
     def __init__(self, path: Path, state: TrainState) -> None:
         self.path = path
-        self.state = state  # the running loss sum lives in the state, so it survives a resume
-        self.last = read_log(path)[-1] if path.exists() and read_log(path) else {}
-        self.psnr = self.last.get("psnr") if self.last else None
-        self.loss = self.last.get("loss") if self.last else None
+        self.state = state  # the running sums live in the state, so they survive a resume
+        last = read_log(path)
+        self.psnr = next((r["psnr"] for r in reversed(last) if "psnr" in r), None)
+        self.loss = last[-1].get("loss") if last else None
+        self.last_refine = ""  # the latest refinement, for the progress bar
         self._t_info = 0.0
         self._rate = (time.perf_counter(), state.elapsed_s, state.step)
         self._steps_per_s: float | None = None
@@ -44,6 +47,15 @@ class LogWriter:
             acc = self.state.loss_acc
             acc[0] += loss.to(acc.dtype)
             acc[1] += 1
+
+    def refined(self, stats: RefineStats | None) -> None:
+        """Count what a strategy call changed."""
+        if stats is None or not (stats.cloned or stats.split or stats.pruned):
+            return
+        acc = self.state.refine_acc
+        for k in REFINED:
+            acc[k] = acc.get(k, 0) + getattr(stats, k)
+        self.last_refine = f"+{stats.cloned}/+{stats.split}/-{stats.pruned}"
 
     def _mean_loss(self) -> float | None:
         s, n = self.state.loss_acc.tolist()
@@ -56,14 +68,15 @@ class LogWriter:
         loss = self._mean_loss()
         rec = TrainLogLine(step=step, elapsed_s=round(state.elapsed_s, 4),
                            loss=float("nan") if loss is None else round(loss, 6),
-                           num_gaussians=state.num_gaussians, bad_steps=state.bad_steps, rss_mb=rss_mb())
+                           num_gaussians=state.num_gaussians, bad_steps=state.bad_steps, rss_mb=rss_mb(),
+                           **{k: state.refine_acc.get(k, 0) for k in REFINED})
         if evaluated is not None:
             rec.psnr, rec.ssim = round(evaluated[0], 4), round(evaluated[1], 5)
             self.psnr = rec.psnr
         append_line(self.path, json.dumps(rec.to_json()))
-        self.last = rec.to_json()
         self.loss = loss
         self.state.loss_acc.zero_()
+        self.state.refine_acc.clear()
 
     def info(self, state: TrainState) -> dict[str, Any]:
         """Live figures for the progress bar, refreshed at most every PROGRESS_PERIOD_S."""
@@ -84,6 +97,8 @@ class LogWriter:
         if self.psnr is not None:
             info["psnr"] = round(self.psnr, 2)
         info["gaussians"] = state.num_gaussians
+        if self.last_refine:
+            info["refined"] = self.last_refine  # +cloned/+split/-pruned of the latest refinement
         self._info = info
         return info
 
@@ -97,27 +112,10 @@ def rss_mb() -> int | None:
         return None
 
 
-def read_log(path: Path) -> list[dict[str, Any]]:
-    """The log's complete lines (a torn last line from a crash is skipped)."""
-    out = []
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError:
-        return out
-    for line in text.splitlines():
-        try:
-            rec = json.loads(line)
-        except json.JSONDecodeError:
-            continue
-        if isinstance(rec, dict) and "step" in rec:
-            out.append(rec)
-    return out
-
-
 def trim_log(path: Path, step: int) -> None:
     """On resume: drop lines written after the checkpoint (that work is redone)."""
     if path.exists():
-        keep = [r for r in read_log(path) if int(r["step"]) <= step]
+        keep = [r for r in read_log(path) if r["step"] <= step]
         atomic_write_text(path, "".join(json.dumps(r) + "\n" for r in keep))
 
 
@@ -136,25 +134,16 @@ def prune_checkpoints(project: Project, keep: int) -> None:
         p.unlink(missing_ok=True)
 
 
-def histogram(values: np.ndarray, bins: int = HIST_BINS, range_: tuple[float, float] | None = None) -> Histogram:
-    values = values[np.isfinite(values)]
-    counts, edges = np.histogram(values, bins=bins, range=range_)
-    return Histogram(edges=[round(float(e), 6) for e in edges], counts=[int(c) for c in counts])
-
-
-def finish(project: Project, cfg: TrainConfig, data: Any, state: TrainState, resumed_from: int | None) -> TrainSummary:
+def finish(project: Project, cfg: TrainConfig, state: TrainState, resumed_from: int | None) -> TrainSummary:
     """Write reports/train.json and the manifest's train summary."""
     g = state.gaussians()
     deg = state.active_sh_degree(state.step, cfg.sh_degree_interval)
     log = read_log(project.train_log_path)
     last_eval = next((r for r in reversed(log) if "psnr" in r), None)
-    rec = state.extra
-    comp = None
-    if rec.get("compact_before"):
-        b = rec["compact_before"]
-        comp = CompactReport(before_count=b["count"], before_bytes=b["bytes"], before_psnr=b.get("psnr"),
-                             after_count=len(g), after_bytes=ply_bytes(len(g), deg),
-                             after_psnr=last_eval["psnr"] if last_eval else None)
+    psnr = last_eval.get("psnr") if last_eval else None
+    owned: dict[str, Any] = {}
+    for s, st in zip(state.strategies, state.splats.states):
+        owned.update(s.summary(st, len(g), deg, psnr))
     summary = TrainSummary(
         steps=state.step,
         train_seconds=round(state.elapsed_s, 3),
@@ -163,13 +152,12 @@ def finish(project: Project, cfg: TrainConfig, data: Any, state: TrainState, res
         ply_bytes=ply_bytes(len(g), deg),
         device=cfg.device,
         final_loss=float(log[-1]["loss"]) if log else math.nan,
-        psnr=last_eval.get("psnr") if last_eval else None,
+        psnr=psnr,
         ssim=last_eval.get("ssim") if last_eval else None,
         bad_steps=state.bad_steps,
         checkpoint=str(project.latest_checkpoint() or ""),
-        sh_auto_psnr=rec.get("sh_auto_psnr"),
-        compact=comp,
         resumed_from=resumed_from,
+        **owned,
     )
     max_scale = g.log_scales.amax(dim=1).double().cpu().numpy() / math.log(10)
     opac = torch.sigmoid(g.opacity_logits.double()).cpu().numpy()

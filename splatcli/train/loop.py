@@ -1,9 +1,9 @@
-"""The training loop: sample a view, render, loss, step, let the strategy refine.
+"""The training loop: sample a view, render, loss, step, let the strategies refine.
 
 `train()` sets up (fresh or `--resume`), runs `_loop`, and hands the result to
-`train_report.finish`. Setup details live in train_state.py (parameters,
-optimisers, checkpoints), data.py (cached images), init.py (first Gaussians),
-strategy/ (density control) and compact.py (--compact, --sh-degree auto).
+`log.finish`. Setup lives in state.py (parameters, optimisers, strategies,
+checkpoints), data.py (cached images) and init.py (first Gaussians); density and
+model control in strategy/.
 """
 
 from __future__ import annotations
@@ -16,20 +16,23 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any, Iterator
 
+import numpy as np
 import torch
+from torch import Tensor
 
-from ..strategy import compact
-from . import log as train_report
-from .data import TrainData, View, load_train_data
 from ..errors import Interrupted, TrainingDiverged
+from ..eval.metrics import psnr, ssim
 from ..events import EventSink, Note, Progress, Stage, StageDone, emit
 from ..io.checkpoint import load_checkpoint
-from .loss import photometric_loss
-from ..eval.metrics import psnr, ssim
 from ..project import Project
 from ..render import RenderOutput, rasterize
-from ..strategy import StepInfo
-from .config import TrainConfig, TrainSummary
+from ..render.weights import blending_weights
+from ..strategy import Context, StepInfo
+from . import log
+from .config import TrainConfig, TrainSummary, with_options
+from .data import TrainData, TrainView, load_train_data
+from .init import initial_gaussians
+from .loss import photometric_loss
 from .state import TrainState, means_lr, new_state, save_state, state_from_checkpoint
 
 STAGE = "train"
@@ -45,8 +48,9 @@ def train(
     on_event: EventSink | None = None,
 ) -> TrainSummary:
     """Train (or resume) the project's model; return the summary also recorded in
-    the manifest. `overrides` are the options given explicitly, applied on top of
-    a resumed run's stored config. SIGINT/SIGTERM: checkpoint, raise Interrupted."""
+    the manifest. `overrides` are the options given explicitly (flat names, as
+    `make_config` takes them), applied on top of a resumed run's stored config.
+    SIGINT/SIGTERM: checkpoint, raise Interrupted."""
     project = Project.open(project_dir)
     project.require_processed()
     resumed_from = None
@@ -58,30 +62,31 @@ def train(
         else:
             ck = load_checkpoint(path, device)
             stored = TrainConfig.from_dict(ck.config)
-            overrides = dict(overrides or {})
-            if overrides.get("compact") and not stored.compact:
+            new = with_options(stored, overrides or {})
+            if new.compact.enabled and not stored.compact.enabled:
                 # --compact added on resume brings its own settings (this version's),
                 # not the ones stored unused with the run.
-                for k in ("compact_keep", "compact_finetune", "compact_rounds"):
-                    overrides.setdefault(k, getattr(cfg, k))
-            cfg = replace(stored, **overrides, device=str(device))
+                new = replace(new, compact=replace(cfg.compact, enabled=True))
+            cfg = replace(new, device=str(device))
             resumed_from = ck.step
     # Reading the scene imports pycolmap, whose glog installs its own SIGTERM handler:
     # ours goes in after it.
     data = load_train_data(project, cfg.downscale, cfg.max_size, device, cfg.eval_max_views)
+    box: list[TrainState] = []
+    ctx = _context(data, box, on_event)
     with _stop_on_signal() as stop:  # from here on a signal means: checkpoint, exit 130
         if ck is not None:
-            state = state_from_checkpoint(ck, cfg, data.extent, device)
-            train_report.trim_log(project.train_log_path, ck.step)
+            state = state_from_checkpoint(ck, cfg, data.extent, device, ctx)
+            log.trim_log(project.train_log_path, ck.step)
         else:
-            state = new_state(compact.initial_gaussians(cfg, data, device), cfg, data.extent, device,
-                              len(data.train))
-            train_report.start_fresh(project, on_event)
+            state = new_state(initial_gaussians(cfg, data, device), cfg, data.extent, device, len(data.train), ctx)
+            log.start_fresh(project, on_event)
+        box.append(state)
         _loop(project, cfg, data, state, stop, on_event)
-    return train_report.finish(project, cfg, data, state, resumed_from)
+    return log.finish(project, cfg, state, resumed_from)
 
 
-def render_view(state: TrainState, view: View, bg: torch.Tensor, sh_degree: int) -> RenderOutput:  # bg [3]
+def render_view(state: TrainState, view: TrainView, bg: Tensor, sh_degree: int) -> RenderOutput:  # bg [3]
     """The current Gaussians seen from `view` at the training resolution."""
     p = state.params
     return rasterize(p["means"], p["quats"], p["log_scales"], p["opacity_logits"], state.sh(), view.viewmat,
@@ -92,24 +97,19 @@ def _loop(project: Project, cfg: TrainConfig, data: TrainData, state: TrainState
           stop: threading.Event, on_event: EventSink | None) -> None:
     total = cfg.total_steps
     emit(on_event, Stage(STAGE, total))
-    log = train_report.LogWriter(project.train_log_path, state)
-    if state.step == cfg.iterations < total or (state.step == cfg.iterations and cfg.sh_degree == "auto"):
-        # A finished run resumed with --compact / --sh-degree auto: post-process now
-        # (exactly what an uninterrupted run does at this step; no-op if done).
-        compact.after_training(project, cfg, data, state, on_event)
+    writer = log.LogWriter(project.train_log_path, state)
+    for strategy, st in zip(state.strategies, state.splats.states):  # a resumed run: what is due now
+        writer.refined(strategy.catch_up(state.splats, st, state.step))
     if stop.is_set():  # signalled during setup: keep what there is (a resume starts here)
         _interrupt(project, cfg, state)
     for step in range(state.step + 1, total + 1):
         t0 = time.perf_counter()
-        # The strategy never acts on the last step of the schedule (a reset there would
-        # be the final model) nor during the compaction fine-tune.
-        refining = step < cfg.iterations
         state.optimizers["means"].param_groups[0]["lr"] = means_lr(cfg, step, data.extent)
         view = data.train[state.next_view(len(data.train))]
         out = render_view(state, view, data.background, state.active_sh_degree(step, cfg.sh_degree_interval))
         info = StepInfo(out, view.camera.width, view.camera.height)
-        if refining:
-            state.strategy.step_pre_backward(state.params, state.optimizers, state.sstate, step, info)
+        for strategy, st in zip(state.strategies, state.splats.states):
+            strategy.step_pre_backward(state.splats, st, step, info)
         loss = photometric_loss(out.image, view.target(), cfg.lambda_dssim)
         loss.backward()
         info.finite = _all_finite(loss, state)
@@ -124,43 +124,70 @@ def _loop(project: Project, cfg: TrainConfig, data: TrainData, state: TrainState
             opt.zero_grad(set_to_none=True)
         state.step = step
         state.elapsed_s += time.perf_counter() - t0
-        log.add(loss.detach() if info.finite else None)
+        writer.add(loss.detach() if info.finite else None)
         if state.bad_run >= cfg.max_bad_steps:
-            path = save_state(project.checkpoint_path(step), state, cfg, cfg.sh_degree_interval)
+            path = save_state(project.checkpoint_path(step), state, cfg)
             raise TrainingDiverged(
                 f"training diverged: {state.bad_run} consecutive steps with a non-finite loss or gradient "
                 f"(step {step}); the last good parameters are in {path}; try a lower learning rate or --resume"
             )
-        # Measure what this step's update produced, before its densification or opacity
-        # reset (right after a reset every view is nearly transparent); the final model
-        # is measured after post-processing. Evaluation is not training time.
-        evaluated = _measure(cfg, data, state, step, total, force=step == cfg.iterations and cfg.compact)
+        # Measure what this step's update produced, before its refinement or opacity
+        # reset (right after a reset every view is nearly transparent); the end of the
+        # main schedule is measured before a fine-tune starts, the final model after
+        # its last refinement. Evaluation is not training time.
+        info.heldout = _measure(cfg, data, state, step, total, force=step == cfg.iterations < total)
         t1 = time.perf_counter()
-        if refining:
-            state.strategy.step_post_backward(state.params, state.optimizers, state.sstate, step, info)
-        compact.at_step(project, cfg, data, state, step, on_event, before=evaluated)  # timed: training
+        for strategy, st in zip(state.strategies, state.splats.states):
+            writer.refined(strategy.step_post_backward(state.splats, st, step, info))
         state.elapsed_s += time.perf_counter() - t1
+        evaluated = info.heldout
         if step == total:
             evaluated = _measure(cfg, data, state, step, total, force=True)
-        log.line(step, state, evaluated, cfg.log_every, force=step == total)
-        emit(on_event, Progress(STAGE, step, total, log.info(state)))
+        writer.line(step, state, evaluated, cfg.log_every, force=step == total)
+        emit(on_event, Progress(STAGE, step, total, writer.info(state)))
         if stop.is_set():
             _interrupt(project, cfg, state)
         if step % cfg.checkpoint_every == 0 or step == total:
-            save_state(project.checkpoint_path(step), state, cfg, cfg.sh_degree_interval)
-            train_report.prune_checkpoints(project, cfg.keep_checkpoints)
+            save_state(project.checkpoint_path(step), state, cfg)
+            log.prune_checkpoints(project, cfg.keep_checkpoints)
     emit(on_event, StageDone(STAGE, state.elapsed_s))
+
+
+def _context(data: TrainData, box: list[TrainState], on_event: EventSink | None) -> Context:
+    """What the strategies may ask of this run (`box` holds the state once it exists)."""
+
+    def score(which: str, sh_degree: int) -> tuple[float, float] | None:
+        if which == "test":
+            views = data.test
+        else:  # "val:K": K evenly spaced training views
+            views = subset(data.train, int(which.split(":")[1]))
+        return evaluate_views(box[0], views, data.background, sh_degree) if views else None
+
+    def weights() -> Tensor:  # [N]
+        p = box[0].params
+        return blending_weights(p["means"], p["quats"], p["log_scales"], p["opacity_logits"],
+                                ((v.viewmat, v.K, v.camera.width, v.camera.height) for v in data.train))
+
+    return Context(score=score, weights=weights, note=lambda m: emit(on_event, Note(m)))
+
+
+def subset(views: list[TrainView], k: int) -> list[TrainView]:
+    """`k` evenly spaced views (all when k <= 0 or there are fewer)."""
+    if k <= 0 or len(views) <= k:
+        return list(views)
+    idx = np.linspace(0, len(views) - 1, k).round().astype(int)
+    return [views[i] for i in idx]
 
 
 def _interrupt(project: Project, cfg: TrainConfig, state: TrainState) -> None:
     """Checkpoint the last whole step and stop (the CLI exits 130)."""
-    path = save_state(project.checkpoint_path(state.step), state, cfg, cfg.sh_degree_interval)
-    train_report.prune_checkpoints(project, cfg.keep_checkpoints)
+    path = save_state(project.checkpoint_path(state.step), state, cfg)
+    log.prune_checkpoints(project, cfg.keep_checkpoints)
     raise Interrupted(f"interrupted at step {state.step}; saved {path}; "
                       f"continue with `splatcli train {project.root} --resume`")
 
 
-def _all_finite(loss: torch.Tensor, state: TrainState) -> bool:  # loss: [] scalar
+def _all_finite(loss: Tensor, state: TrainState) -> bool:  # loss: [] scalar
     """One reduction over the loss and every gradient (a single host sync)."""
     checks = [torch.isfinite(loss).reshape(1)]
     checks += [torch.isfinite(p.grad).all().reshape(1) for p in state.params.values() if p.grad is not None]
@@ -177,7 +204,7 @@ def _measure(cfg: TrainConfig, data: TrainData, state: TrainState, step: int, to
 
 @torch.no_grad()
 def evaluate_views(
-    state: TrainState, views: list[View], bg: torch.Tensor, sh_degree: int  # bg [3] in [0, 1]
+    state: TrainState, views: list[TrainView], bg: Tensor, sh_degree: int  # bg [3] in [0, 1]
 ) -> tuple[float, float]:
     """Mean PSNR (dB) and SSIM over `views`, images clamped to [0, 1] as saved."""
     ps, ss = [], []
@@ -211,6 +238,3 @@ def _stop_on_signal() -> Iterator[threading.Event]:
     finally:
         for s, h in previous.items():
             signal.signal(s, h)
-
-
-__all__ = ["train", "evaluate_views", "render_view"]

@@ -1,1 +1,2 @@
-"""TODO"""
+"""What `render` looks from and writes: camera sources, generated paths, and the
+views rendered to PNGs and videos."""

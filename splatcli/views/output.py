@@ -1,10 +1,10 @@
-"""Render a trained model (or any 3DGS .ply) from a list of views to PNGs and a video.
+"""The `render` command's core: a model (io/model.py) seen from a list of views,
+written to PNGs and a video.
 
-`load_model` opens the source (a project's latest checkpoint or a .ply);
-`render_views` rasterizes every view, writes the images atomically and
-reports frames per second. The frame rate counts rasterization only (with the
-device synchronised), not PNG encoding or disk writes, so it is the figure a
-viewer would get from this renderer.
+`plan_render` checks options, loads the model and picks the views; `render_views`
+rasterizes every view, writes the images atomically and reports frames per second.
+The frame rate counts rasterization only (with the device synchronised), not PNG
+encoding or disk writes, so it is the figure a viewer would get from this renderer.
 """
 
 from __future__ import annotations
@@ -20,95 +20,18 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..device import describe_device, synchronize
 from ..errors import SplatError
 from ..events import EventSink, Note, Progress, Stage, StageDone, emit
 from ..gaussians import Gaussians
 from ..io.atomic import atomic_write_bytes
-from ..project import Project, is_project
-from ..render import RenderOutput, rasterize
-from .sources import View
+from ..io.model import LoadedModel, load_model
+from ..project import Project
+from ..render import render_camera
+from .paths import PATHS, cameras_around_points, generate_path
+from .sources import SPLITS, View, dataset_views, resize_views, transforms_views
 
-BACKGROUNDS = {"black": (0.0, 0.0, 0.0), "white": (1.0, 1.0, 1.0), "gray": (0.5, 0.5, 0.5), "grey": (0.5, 0.5, 0.5)}
 VIDEO_CODECS = {".mp4": "mp4v", ".avi": "MJPG", ".mov": "mp4v", ".mkv": "mp4v"}
-
-
-def parse_background(text: str) -> tuple[float, float, float]:
-    """`white`, `black`, `gray`, or `r,g,b` floats in [0, 1]."""
-    t = text.strip().lower()
-    if t in BACKGROUNDS:
-        return BACKGROUNDS[t]
-    parts = [p.strip() for p in t.split(",")]
-    allowed = "allowed values: white, black, gray, or r,g,b floats in [0, 1] such as 0.5,0.5,0.5"
-    if len(parts) != 3:
-        raise SplatError(f"--background {text!r} is not known; {allowed}")
-    try:
-        rgb = tuple(float(p) for p in parts)
-    except ValueError:
-        raise SplatError(f"--background {text!r}: not three numbers; {allowed}") from None
-    if not all(math.isfinite(v) and 0.0 <= v <= 1.0 for v in rgb):
-        raise SplatError(f"--background {text!r}: each value must be in [0, 1]; {allowed}")
-    return rgb  # type: ignore[return-value]
-
-
-def project_background(project: Project | None) -> tuple[float, float, float] | None:
-    """The scene's background (white for Blender scenes) recorded by `process`."""
-    if project is None:
-        return None
-    bg = (project.manifest().get("scene") or {}).get("background")
-    if isinstance(bg, (list, tuple)) and len(bg) == 3 and all(isinstance(v, (int, float)) for v in bg):
-        return tuple(float(v) for v in bg)  # type: ignore[return-value]
-    return None
-
-
-# ---------------------------------------------------------------------------
-# the model
-# ---------------------------------------------------------------------------
-
-
-@dataclass
-class LoadedModel:
-    gaussians: Gaussians
-    kind: str  # "checkpoint" | "ply"
-    path: Path  # the checkpoint or .ply read
-    project: Project | None  # the project, when the source is one
-    step: int | None = None  # training step of the checkpoint
-    notes: list[str] = field(default_factory=list)
-
-
-def load_model(source: str | os.PathLike, device: torch.device) -> LoadedModel:
-    """A project directory (its latest checkpoint) or a 3DGS .ply file."""
-    from ..io.checkpoint import load_checkpoint
-    from ..io.ply import read_ply
-
-    source = Path(source)
-    if source.is_dir() and source.suffix.lower() == ".ply" and not is_project(source):
-        raise SplatError(f"{source}: is a directory, not a .ply file")
-    if source.is_dir() or is_project(source):
-        project = Project.open(source)
-        ck_path = project.require_trained()
-        ck = load_checkpoint(ck_path, device)
-        return LoadedModel(gaussians=ck.model(), kind="checkpoint", path=ck_path, project=project, step=ck.step)
-    if not source.exists():
-        if source.suffix.lower() == ".ply":
-            raise SplatError(f"{source}: no such .ply file")
-        Project.open(source)  # raises: no such project, run `splatcli process` first
-    if source.suffix.lower() != ".ply" and not _starts_like_ply(source):
-        raise SplatError(f"{source}: neither a splatcli project directory nor a 3DGS .ply file")
-    r = read_ply(source, device)
-    return LoadedModel(gaussians=r.gaussians, kind="ply", path=source, project=None, notes=list(r.notes))
-
-
-def _starts_like_ply(path: Path) -> bool:
-    try:
-        with open(path, "rb") as f:
-            return f.read(5).startswith((b"ply\n", b"ply\r\n"))
-    except OSError:
-        return True  # let the .ply reader name the problem
-
-
-# ---------------------------------------------------------------------------
-# rendering
-# ---------------------------------------------------------------------------
 
 
 @dataclass(frozen=True)
@@ -122,7 +45,7 @@ class RenderConfig:
     # ---- image size -----------------------------------------------------------
     width: int | None = None  # px; with only one of width/height the aspect is kept
     height: int | None = None
-    downscale: float = 1.0  # divide the cameras' size by this first
+    downscale: float | None = None  # divide the cameras' size by this first (None: a project's cameras at the trained resolution)
     # ---- output ---------------------------------------------------------------
     out: Path | None = None  # default: PROJECT/renders/<name>/ (beside the .ply for a .ply)
     background: tuple[float, float, float] | None = None  # None: the scene's (project), else black
@@ -151,27 +74,6 @@ class RenderResult:
     device_name: str = ""  # e.g. "cpu (2 threads)", "cuda:0 (NVIDIA H200)"
     source: str = ""  # what was rendered: "checkpoint step 7000", "scene.ply"
     cameras: str = ""  # where the views came from: "test split", "orbit path", ...
-
-
-def render_camera(g: Gaussians, view: View, background: Tensor, *, sh_degree: int | None = None) -> RenderOutput:
-    """One view without gradients. background: [3] on the model's device."""
-    vm, K = view.camera.torch(g.device, g.means.dtype)
-    with torch.no_grad():
-        return rasterize(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh, vm, K,
-                         view.camera.width, view.camera.height, background, sh_degree=sh_degree)
-
-
-def describe_device(device: torch.device) -> str:
-    """The device in words, for reports: "cpu (2 threads)", "cuda:0 (NVIDIA H200)"."""
-    if device.type == "cuda":
-        return f"{device} ({torch.cuda.get_device_name(device)})"
-    n = torch.get_num_threads()
-    return f"{device.type} ({n} thread{'' if n == 1 else 's'})"
-
-
-def _sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
 
 
 def to_uint8(img: Tensor) -> np.ndarray:  # [H, W, C] in [0, 1] -> [H, W, C] uint8
@@ -273,14 +175,14 @@ def render_views(
     near_far: tuple[float, float] | None = None
     t_wall = time.perf_counter()
     emit(on_event, Stage("render", total=len(views)))
-    render_camera(gaussians, views[0], bg, sh_degree=config.sh_degree)  # warm-up: first calls pay one-off set-up
+    render_camera(gaussians, views[0].camera, bg, sh_degree=config.sh_degree)  # warm-up: first calls pay one-off set-up
     ok = False
     try:
         for i, view in enumerate(views):
-            _sync(device)
+            synchronize(device)
             t0 = time.perf_counter()
-            out = render_camera(gaussians, view, bg, sh_degree=config.sh_degree)
-            _sync(device)
+            out = render_camera(gaussians, view.camera, bg, sh_degree=config.sh_degree)
+            synchronize(device)
             render_s += time.perf_counter() - t0
             rgb = to_uint8(out.image)
             if write:
@@ -328,15 +230,13 @@ def render_views(
 
 def check_config(config: RenderConfig) -> None:
     """Refuse out-of-range options before any work, naming the allowed values."""
-    from .sources import PATHS, SPLITS
-
     if config.split is not None and config.split not in SPLITS:
         raise SplatError(f"--split {config.split!r} is not known; allowed values: {', '.join(SPLITS)}")
     if config.path is not None and config.path not in PATHS:
         raise SplatError(f"--path {config.path!r} is not known; allowed values: {', '.join(PATHS)}")
     if not 1 <= config.frames <= 100_000:
         raise SplatError(f"--frames {config.frames}: must be between 1 and 100000")
-    if not (math.isfinite(config.downscale) and 0 < config.downscale <= 64):
+    if config.downscale is not None and not (math.isfinite(config.downscale) and 0 < config.downscale <= 64):
         raise SplatError(f"--downscale {config.downscale}: must be in (0, 64]")
     for opt, v in (("--width", config.width), ("--height", config.height)):
         if v is not None and not 1 <= v <= 16384:
@@ -354,18 +254,19 @@ def check_config(config: RenderConfig) -> None:
 def select_views(model: LoadedModel, config: RenderConfig, notes: list[str]) -> tuple[list[View], str, Project | None]:
     """The views of the request, the name of their folder, and the project that
     supplied cameras (if any)."""
-    from .sources import cameras_around_points, dataset_views, generate_path, read_transforms, resize_views
-
     project = model.project
     if project is None and config.project is not None:
         project = Project.open(config.project)
     if config.cameras is not None:
         size = (config.width, config.height) if config.width and config.height else None
-        base = read_transforms(config.cameras, notes=notes, default_size=size)
+        base = transforms_views(config.cameras, notes=notes, default_size=size)
         name = Path(config.cameras).stem
     elif project is not None:
         split = config.split or ("all" if config.path else "test")  # a path is built around every camera
         base = dataset_views(project, split)
+        if config.downscale is None and config.width is None and config.height is None:
+            res = project.trained_resolution()  # the resolution eval scores at
+            base = [replace(v, camera=v.camera.at_resolution(*res)) for v in base]
         name = split
     else:
         if config.split is not None:
@@ -382,7 +283,7 @@ def select_views(model: LoadedModel, config: RenderConfig, notes: list[str]) -> 
         name = kind
     else:
         views = base
-    views = resize_views(views, width=config.width, height=config.height, downscale=config.downscale)
+    views = resize_views(views, width=config.width, height=config.height, downscale=config.downscale or 1.0)
     return views, name, project
 
 
@@ -405,7 +306,7 @@ def plan_render(source: str | os.PathLike, config: RenderConfig, device: torch.d
     model = load_model(source, device)
     notes = list(model.notes)
     views, name, project = select_views(model, config, notes)
-    background = config.background if config.background is not None else project_background(project)
+    background = config.background if config.background is not None else (project.background() if project else None)
     if config.out is not None:
         out_dir = Path(config.out)
     elif model.project is not None:
@@ -430,7 +331,7 @@ def run_render(plan: RenderPlan, *, on_event: EventSink | None = None) -> Render
         emit(on_event, Note(n))
     result = render_views(plan.model.gaussians, plan.views, plan.config, plan.out_dir, on_event=on_event)
     m = plan.model
-    result.source = f"checkpoint step {m.step}" if m.kind == "checkpoint" else str(m.path)
+    result.source = m.name
     result.cameras = plan.cameras
     return result
 

@@ -3,6 +3,8 @@
 SfM recovers poses up to a similarity (scale, rotation, translation), so poses
 are compared with ground truth only after the best such transform is found.
 The alignment is Umeyama's closed-form least squares on the camera centres.
+
+A helper for tests and bench/process.py (not part of the installed package).
 """
 
 from __future__ import annotations
@@ -11,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..camera import Camera, scene_extent
+from splatcli.camera import Camera, scene_extent
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,107 @@
+"""Photos or a video: structure from motion with pycolmap (sfm/reconstruct.py)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from ..errors import SplatError
+from ..events import Stages
+from ..io.images import IMAGE_EXTS, StagedImage, fit_size, list_folder
+from ..project import Project
+from ..sfm.reconstruct import SfmOptions, run_sfm
+from .config import MIN_IMAGES, ProcessConfig
+from .dataset import Dataset, finish_model, stage_images
+from .detect import InputSpec
+from .video import extract_frames
+
+
+def safe_names(names: list[str]) -> list[str]:
+    """Names COLMAP's pair lists can carry: whitespace becomes '_' (a pair list
+    is space-separated), kept unique."""
+    out: list[str] = []
+    taken = set(names)
+    for n in names:
+        safe = "_".join(n.split())
+        if safe != n:
+            stem, dot, ext = safe.rpartition(".")
+            k = 1
+            while safe in taken:
+                safe = f"{stem}_{k}.{ext}" if dot else f"{safe}_{k}"
+                k += 1
+            taken.add(safe)
+        out.append(safe)
+    return out
+
+
+def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: tuple[float, float, float] | None,
+                  run: Stages) -> Dataset:
+    work = stage / "work"
+    st = Project(stage)
+    skipped: list[str] = []
+    dropped = 0
+    if spec.kind == "video":
+        with run.stage("video frames", None) as s:
+            frames = extract_frames(
+                spec.path, work / "input", every_fps=cfg.fps, num_frames=None if cfg.fps else cfg.num_frames,
+                max_size=None, blur_ratio=cfg.blur_ratio,
+                on_progress=lambda k, n: s.progress(k, n),
+            )
+        dropped = len(frames.dropped)
+        run.note(f"extracted {frames.sampled} of {frames.total_frames} frames; dropped {dropped} blurry frame(s)")
+        if len(frames.names) < MIN_IMAGES:
+            raise SplatError(f"{spec.path}: only {len(frames.names)} usable frame(s); need at least {MIN_IMAGES}")
+        w, h = frames.width, frames.height
+        staged = [StagedImage(n, w, h, w, h, False) for n in frames.names]
+    else:
+        assert spec.images_dir is not None
+        files, others = list_folder(spec.images_dir)
+        if not files:
+            raise SplatError(f"{spec.images_dir}: no images found (looked for {', '.join(IMAGE_EXTS)})")
+        staged, bad = stage_images(list(zip(files, safe_names([p.name for p in files]))), work, run,
+                                    background=background, orient=True)
+        skipped = bad
+        if len(staged) < MIN_IMAGES:  # before the notes: a failed run says one line
+            why = f" ({'; '.join(bad[:3])})" if bad else ""
+            raise SplatError(
+                f"{spec.images_dir}: structure from motion needs at least {MIN_IMAGES} readable images, "
+                f"found {len(staged)}{why}"
+            )
+        if others:
+            shown = ", ".join(p.name for p in others[:5]) + (", ..." if len(others) > 5 else "")
+            run.note(f"skipped {len(others)} file(s) that are not images: {shown}")
+        for b in bad:
+            run.note(f"skipped {b}")
+    names = [s.name for s in staged]
+    sizes = {(s.width, s.height) for s in staged}
+    if len(sizes) > 1:
+        run.note(f"images come in {len(sizes)} sizes; using one camera per image")
+    sfm_opts = SfmOptions(
+        matcher=cfg.matcher, ordered=spec.kind == "video", max_image_size=cfg.max_size,
+        max_features=cfg.max_features, first_octave=cfg.first_octave,
+        sequential_overlap=cfg.sequential_overlap, seed=cfg.seed, num_threads=cfg.num_threads,
+    )
+    sift_side = min(min(fit_size(w, h, cfg.max_size)) for w, h in sizes)  # smallest side SIFT will see
+    res = run_sfm(work / "input", names, work, sfm_opts, single_camera=len(sizes) == 1, min_side=sift_side,
+                  where=spec.images_dir or spec.path, on_event=run.sink)
+    for k, v in res.seconds.items():
+        run.seconds[k] = run.seconds.get(k, 0.0) + v
+    model = res.model
+    if len(res.model_sizes) > 1:
+        run.note(f"mapping split into {len(res.model_sizes)} models of {', '.join(map(str, res.model_sizes))} "
+                 f"images; keeping the largest")
+    if res.unregistered:
+        shown = ", ".join(res.unregistered[:10]) + (", ..." if len(res.unregistered) > 10 else "")
+        run.note(f"{len(res.unregistered)} image(s) did not register: {shown}")
+    if model.num_registered < len(names) / 2:
+        run.note(f"only {model.num_registered} of {len(names)} images registered; the photos may overlap too "
+                 "little or be too blurry", "warning")
+    st.sfm_dir.mkdir(parents=True, exist_ok=True)
+    os.replace(work / "database.db", st.database_path)
+    has_masks = any(s.has_alpha for s in staged if s.name in set(model.registered_names()))
+    undistorted = finish_model(model, st, work, cfg, run, masks=has_masks)
+    return Dataset(registered=model.num_registered, total=len(names), undistorted=undistorted, masks=has_masks,
+                    background=background, mean_reprojection_error=model.mean_reprojection_error(),
+                    mean_track_length=model.mean_track_length(), skipped=skipped, matcher=res.matcher,
+                    pairs=res.num_pairs, keypoints_median=res.keypoints_median, model_sizes=res.model_sizes,
+                    unregistered=res.unregistered, dropped_blurry=dropped)

@@ -1,0 +1,76 @@
+"""What `splatcli process` is asked to do, and what it reports back."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ..errors import SplatError
+from ..sfm.reconstruct import MATCHERS
+
+MIN_IMAGES = 2
+
+
+@dataclass(frozen=True)
+class ProcessConfig:
+    input_type: str = "auto"  # auto | images | video | colmap | transforms
+    max_size: int = 1600  # SfM: longest side, pixels, of the image SIFT sees (the dataset keeps full resolution)
+    matcher: str = "auto"  # auto | exhaustive | sequential
+    fps: float | None = None  # video: frames per second of video to extract
+    num_frames: int = 100  # video: frames to extract when fps is not given
+    background: tuple[float, float, float] | None = None  # RGB in [0, 1]; None: white for RGBA inputs, else black
+    overwrite: bool = False
+    seed: int = 0
+    max_features: int = 4096  # SIFT features per image
+    first_octave: int | None = None  # SIFT: None picks 0, or -1 (upsampled) for images under 400 px
+    sequential_overlap: int = 5  # neighbours each image is matched with (plus 2^k further ones)
+    blur_ratio: float = 0.6  # video: drop frames less sharp than this x their neighbours' median
+    num_threads: int = -1  # -1: all cores
+
+
+@dataclass
+class ProcessResult:
+    project: Path
+    input: Path
+    input_kind: str
+    registered: int  # images in the dataset
+    total: int  # images the input offered (after skipping unreadable files)
+    points: int  # sparse 3D points
+    mean_reprojection_error: float | None  # pixels; None without points
+    mean_track_length: float | None
+    seconds: dict[str, float]  # per stage, and "total"
+    train: int
+    test: int
+    init: str  # "sfm" (from points) or "random"
+    undistorted: bool
+    masks: bool
+    matcher: str | None = None  # the image pairs matched (SfM only)
+    pairs: int = 0
+    keypoints_median: float | None = None  # SIFT features per image (SfM only)
+    model_sizes: list[int] = field(default_factory=list)  # images per SfM model, largest first
+    unregistered: list[str] = field(default_factory=list)
+    skipped: list[str] = field(default_factory=list)  # "name: reason"
+    missing: int = 0  # files listed by the input but absent
+    dropped_blurry: int = 0
+    warnings: list[str] = field(default_factory=list)
+
+    def summary(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["project"] = str(self.project)
+        d["input"] = str(self.input)
+        return d
+
+
+def check_config(cfg: ProcessConfig) -> None:
+    if cfg.matcher not in MATCHERS:
+        raise SplatError(f"--matcher {cfg.matcher!r}: expected one of {', '.join(MATCHERS)}")
+    if cfg.max_size < 32:
+        raise SplatError(f"--max-size {cfg.max_size}: must be at least 32 pixels")
+    if cfg.fps is not None and not (cfg.fps > 0 and math.isfinite(cfg.fps)):
+        raise SplatError(f"--fps {cfg.fps}: must be a positive number")
+    if cfg.num_frames < MIN_IMAGES:
+        raise SplatError(f"--num-frames {cfg.num_frames}: must be at least {MIN_IMAGES}")
+    if cfg.max_features < 64:
+        raise SplatError(f"max_features {cfg.max_features}: must be at least 64")

@@ -1,0 +1,110 @@
+"""What every input kind ends with: its images staged, and the model written as
+images/, masks/ and sfm/sparse/0 (undistorted to PINHOLE when needed) in the stage folder."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..events import Stages
+from ..io.images import ImageError, StagedImage, stage_image, write_image
+from ..project import Project
+from ..sfm import colmap
+from ..sfm.colmap import Model
+from .config import ProcessConfig
+
+
+@dataclass
+class Dataset:
+    """What a stage folder holds once an input is converted."""
+
+    registered: int
+    total: int
+    undistorted: bool
+    masks: bool
+    test: list[str] | None = None  # the input's own held-out images
+    background: tuple[float, float, float] | None = None  # None: decided from alpha
+    mean_reprojection_error: float | None = None  # pixels, of the model's points (None without points)
+    mean_track_length: float | None = None
+    skipped: list[str] = field(default_factory=list)  # "file: reason"
+    missing: int = 0
+    matcher: str | None = None  # SfM only, from here on
+    pairs: int = 0
+    keypoints_median: float | None = None
+    model_sizes: list[int] = field(default_factory=list)
+    unregistered: list[str] = field(default_factory=list)
+    dropped_blurry: int = 0
+
+
+def stage_images(files: list[tuple[Path, str]], work: Path, run: Stages, *,
+                  background: tuple[float, float, float] | None, orient: bool,
+                  expect: dict[str, tuple[int, int]] | None = None) -> tuple[list[StagedImage], list[str]]:
+    """Stage (source, name) pairs into work/input, masks into work/masks.
+
+    Unusable images are skipped and returned as "name: reason". RGBA images are
+    composited over `background` (white when None)."""
+    bg = background if background is not None else (1.0, 1.0, 1.0)
+    out: list[StagedImage] = []
+    bad: list[str] = []
+    with run.stage("read images", len(files)) as s:
+        for i, (src, name) in enumerate(files):
+            try:
+                out.append(stage_image(
+                    src, name, work / "input" / name, work / "masks" / name,
+                    max_size=None,  # the dataset keeps full resolution; train caps what it loads
+                    background=bg, orient=orient, expect_size=(expect or {}).get(name),
+                ))
+            except ImageError as exc:
+                bad.append(f"{src.name}: {exc}")
+            s.progress(i + 1)
+    return out, bad
+
+
+def finish_model(model: Model, st: Project, work: Path, cfg: ProcessConfig, run: Stages, *, masks: bool) -> bool:
+    """Write images/, masks/ and sfm/sparse/0 (PINHOLE) into the stage folder.
+    Returns whether undistortion happened."""
+    names = model.registered_names()
+    if masks:  # some images had alpha: give the others an opaque mask, so every image has one
+        for name, (w, h) in model.camera_sizes().items():
+            if not (work / "masks" / name).exists():
+                write_image(work / "masks" / name, np.full((h, w), 255, np.uint8))
+    if model.is_pinhole():
+        model.to_pinhole()
+        with run.stage("copy images", len(names)) as s:
+            for i, name in enumerate(names):
+                _move(work / "input" / name, st.images_dir / name)
+                if masks and (work / "masks" / name).exists():
+                    _move(work / "masks" / name, st.mask_path(name))
+                s.progress(i + 1)
+        model.write(st.sparse_dir)
+        return False
+    model.write(st.distorted_dir)
+    with run.stage("undistort", len(names)) as s:
+        out = colmap.undistort(model, work / "input", work / "undistorted", num_threads=cfg.num_threads)
+        st.sparse_dir.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(out, st.sparse_dir)
+        os.replace(work / "undistorted" / "images", st.images_dir)
+        if masks and (work / "masks").is_dir():
+            mdir = colmap.undistort_masks(model, work / "masks", work / "undistorted_masks",
+                                          num_threads=cfg.num_threads)
+            for name in names:
+                if (mdir / name).exists():
+                    _convert_mask(mdir / name, st.mask_path(name))
+        s.progress(len(names))
+    return True
+
+
+def _move(src: Path, dst: Path) -> None:
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    os.replace(src, dst)
+
+
+def _convert_mask(src: Path, dst: Path) -> None:
+    import cv2
+
+    m = cv2.imread(str(src), cv2.IMREAD_GRAYSCALE)
+    if m is not None:
+        write_image(dst, m)

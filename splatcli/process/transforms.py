@@ -1,0 +1,75 @@
+"""A transforms.json (nerfstudio, instant-ngp, Blender): poses imported as they are,
+through the one reader io/transforms.py."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import SplatError
+from ..events import Stages
+from ..io.transforms import read_transforms
+from ..project import Project
+from ..sfm import colmap
+from ..sfm.colmap import CameraSpec
+from .config import ProcessConfig
+from .dataset import Dataset, finish_model, stage_images
+from .detect import InputSpec
+
+
+def from_transforms(spec: InputSpec, stage: Path, cfg: ProcessConfig,
+                     background: tuple[float, float, float] | None, run: Stages) -> Dataset:
+    assert spec.transforms is not None
+    work = stage / "work"
+    st = Project(stage)
+    scene = read_transforms(spec.transforms)
+    frames = {f.name: f for f in scene.frames}
+    staged, bad = stage_images([(f.source, f.name) for f in scene.frames], work, run, background=background,
+                                orient=False)
+    if not staged:
+        raise SplatError(f"{spec.transforms}: none of the listed images could be read ({bad[0]})")
+    specs = []
+    for s in staged:
+        f = frames[s.name]
+        model_name, params = f.intrinsics.resolve(s.width, s.height, f"{spec.transforms}: {f.source.name}")
+        specs.append(CameraSpec(s.name, s.width, s.height, model_name, params, f.viewmat))
+    # Notes once the input is known to be usable: a failed run says one line.
+    for n in scene.notes:
+        run.note(n)
+    if scene.missing:
+        run.note(f"{len(scene.missing)} image(s) listed in {spec.transforms.name} do not exist and were skipped "
+                 f"(first: {scene.missing[0]})", "warning")
+    for b in bad:
+        run.note(f"skipped {b}", "warning")
+    points = colors = None
+    if scene.ply_path is not None:
+        points, colors = _read_ply_points(scene.ply_path, run)
+    model = colmap.build_model(specs, points, colors)
+    has_masks = any(s.has_alpha for s in staged)
+    undistorted = finish_model(model, st, work, cfg, run, masks=has_masks)
+    kept = {s.name for s in staged}
+    test = sorted(f.name for f in scene.frames if f.split == "test" and f.name in kept) if scene.has_test_split else None
+    bg = background
+    if bg is None and has_masks:
+        bg = (1.0, 1.0, 1.0)
+    return Dataset(registered=len(staged), total=len(scene.frames) + len(scene.missing), undistorted=undistorted,
+                    masks=has_masks, test=test or None, background=bg, skipped=bad, missing=len(scene.missing))
+
+
+def _read_ply_points(path: Path, run: Stages) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """x, y, z and red, green, blue of a point cloud shipped with a transforms file."""
+    try:
+        from plyfile import PlyData
+
+        v = PlyData.read(str(path))["vertex"]
+        pts = np.stack([v["x"], v["y"], v["z"]], 1).astype(np.float64)
+        if all(k in v.data.dtype.names for k in ("red", "green", "blue")):
+            cols = np.stack([v["red"], v["green"], v["blue"]], 1).astype(np.uint8)
+        else:
+            cols = np.full((len(pts), 3), 128, np.uint8)
+        ok = np.isfinite(pts).all(1)
+        return pts[ok], cols[ok]
+    except Exception as exc:  # a broken optional extra: import the poses anyway
+        run.note(f"{path}: cannot read the point cloud ({type(exc).__name__}); no sparse points", "warning")
+        return None, None

@@ -1,0 +1,134 @@
+"""What every strategy shares: the trainable set that `ops` edits, what the loop tells
+a strategy at each step, and what a refinement did.
+
+A strategy keeps its hyperparameters in a frozen dataclass and its running state in
+a `RowState`. The loop calls every strategy of the run at the same fixed points:
+
+    strategy.step_pre_backward(splats, state, step, info)
+    stats = strategy.step_post_backward(splats, state, step, info)
+
+and, once when a run resumes, `strategy.catch_up(splats, state, step)`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any, Callable, ClassVar
+
+import torch
+from torch import Tensor, nn
+
+from ..render.output import RenderOutput
+
+Params = dict[str, nn.Parameter]
+Optimizers = dict[str, torch.optim.Optimizer]
+
+
+@dataclass
+class RowState:
+    """Base of a strategy's running state (a dataclass). `ROWS` names its tensor fields
+    that hold one row per Gaussian: `ops` slices and grows them together with the
+    parameters, so no strategy resets another's accumulators by hand. Fields are
+    checkpointed as they are (tensors, plain values; a generator as its state)."""
+
+    ROWS: ClassVar[tuple[str, ...]] = ()
+
+    def state_dict(self) -> dict[str, Any]:
+        out = {}
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            out[f.name] = v.get_state() if isinstance(v, torch.Generator) else v
+        return out
+
+    def load_state_dict(self, d: dict[str, Any]) -> None:
+        for f in dataclasses.fields(self):
+            if f.name not in d:
+                continue
+            v = getattr(self, f.name)
+            if isinstance(v, torch.Generator):
+                v.set_state(d[f.name])
+            elif isinstance(v, Tensor):
+                setattr(self, f.name, d[f.name].to(v.device))
+            else:
+                setattr(self, f.name, d[f.name])
+
+
+@dataclass
+class Splats:
+    """The trainable set: one `nn.Parameter` per attribute (rows = Gaussians), one Adam
+    per parameter, and every strategy's per-Gaussian state. `ops` edits all three in
+    one call, and nothing else edits any of them."""
+
+    params: Params
+    optimizers: Optimizers
+    states: list[RowState] = field(default_factory=list)
+
+    def __len__(self) -> int:
+        return int(self.params["means"].shape[0])
+
+
+@dataclass
+class StepInfo:
+    """What the loop tells the strategies about one step."""
+
+    render: RenderOutput  # means2d [N, 2] (grad retained), radii [N], visible [N]
+    width: int
+    height: int
+    finite: bool = True  # False on a skipped (non-finite) step: accumulate nothing
+    heldout: tuple[float, float] | None = None  # (PSNR, SSIM) measured after this step's update, if any
+
+
+@dataclass
+class RefineStats:
+    """What one call changed; the loop logs it (train_log.jsonl, progress bar)."""
+
+    step: int
+    before: int
+    cloned: int = 0
+    split: int = 0
+    pruned: int = 0
+    after: int = 0
+    reset_opacity: bool = False
+    held_by_budget: int = 0  # growth candidates refused because of max_gaussians
+
+    @property
+    def changed(self) -> bool:
+        return self.cloned + self.split + self.pruned > 0 or self.reset_opacity
+
+
+@dataclass(frozen=True)
+class Context:
+    """What a step acting on the whole model may ask of the run (the loop provides it,
+    so strategies never import the trainer)."""
+
+    # (views, SH degree) -> mean held-out (PSNR, SSIM); views are "test", or "val:K"
+    # (K evenly spaced training views); None when there are no such views.
+    score: Callable[[str, int], tuple[float, float] | None]
+    weights: Callable[[], Tensor]  # -> [N] total blending weight of each Gaussian over the training views
+    note: Callable[[str], None]  # a line for the user
+
+
+class Strategy:
+    """A step of density or model control. Defaults do nothing."""
+
+    name: ClassVar[str] = "strategy"
+
+    def initial_state(self, n: int, device: torch.device, seed: int) -> RowState:
+        return RowState()
+
+    def step_pre_backward(self, splats: Splats, state: Any, step: int, info: StepInfo) -> None:
+        """Before backward: e.g. ask autograd to keep a gradient."""
+
+    def step_post_backward(self, splats: Splats, state: Any, step: int, info: StepInfo) -> RefineStats | None:
+        """After the optimiser step of `step`."""
+        return None
+
+    def catch_up(self, splats: Splats, state: Any, step: int) -> RefineStats | None:
+        """On resume at `step`: do what an uninterrupted run would already have done
+        by now but this checkpoint has not (a finished run resumed with --compact)."""
+        return None
+
+    def summary(self, state: Any, num_gaussians: int, sh_degree: int, psnr: float | None) -> dict[str, Any]:
+        """Entries of the train summary this strategy owns."""
+        return {}
