@@ -132,3 +132,16 @@ class Strategy:
     def summary(self, state: Any, num_gaussians: int, sh_degree: int, psnr: float | None) -> dict[str, Any]:
         """Entries of the train summary this strategy owns."""
         return {}
+
+
+class ModelStep(Strategy):
+    """A step on the whole model from step `at` on (--sh-degree auto, --compact): its
+    state is a fresh `state_type` and it asks the run through `ctx`."""
+
+    state_type: ClassVar[type[RowState]] = RowState
+
+    def __init__(self, config: Any, at: int, ctx: Context) -> None:
+        self.config, self.at, self.ctx = config, at, ctx
+
+    def initial_state(self, n: int, device: torch.device, seed: int) -> RowState:
+        return self.state_type()

@@ -19,7 +19,7 @@ import torch
 from ..gaussians import sh_degree_from_bases
 from ..io.ply import ply_bytes
 from . import ops
-from .base import Context, RefineStats, RowState, Splats, StepInfo, Strategy
+from .base import ModelStep, RefineStats, RowState, Splats, StepInfo
 
 
 def sh_degree_of(splats: Splats) -> int:
@@ -40,14 +40,10 @@ class ShAutoState(RowState):
     psnr: dict[str, float] = field(default_factory=dict)  # validation PSNR per degree
 
 
-class ShAutoStep(Strategy):
+class ShAutoStep(ModelStep):
     name = "sh_auto"
-
-    def __init__(self, config: ShAutoConfig, at: int, ctx: Context) -> None:
-        self.config, self.at, self.ctx = config, at, ctx
-
-    def initial_state(self, n: int, device: torch.device, seed: int) -> ShAutoState:
-        return ShAutoState()
+    state_type = ShAutoState
+    config: ShAutoConfig
 
     def step_post_backward(self, splats: Splats, state: ShAutoState, step: int, info: StepInfo) -> None:
         if step == self.at:
@@ -99,24 +95,20 @@ class CompactReport:
     after_psnr: float | None
 
 
-class CompactStep(Strategy):
+class CompactStep(ModelStep):
     name = "compact"
-
-    def __init__(self, config: CompactConfig, start: int, ctx: Context) -> None:
-        self.config, self.start, self.ctx = config, start, ctx
-
-    def initial_state(self, n: int, device: torch.device, seed: int) -> CompactState:
-        return CompactState()
+    state_type = CompactState
+    config: CompactConfig
 
     def prune_steps(self) -> list[int]:
-        """Steps ending with a cut: the first at `start`, the others spread over the
+        """Steps ending with a cut: the first at `at`, the others spread over the
         first half of the fine-tune, so the final set still gets at least half of it.
         Cutting in rounds lets the survivors take over the pruned Gaussians' work
         before the next cut (one cut loses more)."""
         spacing = self.config.finetune // (2 * self.config.rounds)
         if spacing == 0:  # too short a fine-tune for rounds: one cut
-            return [self.start]
-        return [self.start + r * spacing for r in range(self.config.rounds)]
+            return [self.at]
+        return [self.at + r * spacing for r in range(self.config.rounds)]
 
     def step_post_backward(self, splats: Splats, state: CompactState, step: int, info: StepInfo) -> RefineStats | None:
         sched = self.prune_steps()
@@ -125,7 +117,7 @@ class CompactStep(Strategy):
         return None
 
     def catch_up(self, splats: Splats, state: CompactState, step: int) -> RefineStats | None:
-        if step == self.start and state.round == 0:  # a finished run resumed with --compact
+        if step == self.at and state.round == 0:  # a finished run resumed with --compact
             return self._cut(splats, state, step, 1, None)
         return None
 
