@@ -77,6 +77,8 @@ def test_eval_report_keys_and_numbers(evaluated) -> None:
     assert b[0]["psnr"] == data["psnr"] and b[0]["psnr"] > b[-1]["psnr"]
     assert all(x["render_fps"] > 0 and x["ply_bytes"] == ply_bytes(x["num_gaussians"], 1) for x in b)
     assert [p["step"] for p in data["training_curve"]] == [0, 100, 200]
+    # the model's step, not the stride of the views that rank Gaussians for the default budgets
+    assert data["step"] == int(proj.latest_checkpoint().stem.split("-")[1])
     st = data["stats"]
     assert sum(st["opacity_hist"]["counts"]) == 300 and sum(st["log10_scale_hist"]["counts"]) == 900
     assert sum(st["sh_degree_counts"]) == 300
@@ -106,6 +108,10 @@ def test_eval_of_a_ply_matches_the_checkpoint(evaluated, tmp_path: Path) -> None
     assert s["step"] is None and s["train_seconds"] is None
     assert (tmp_path / "rep" / "eval.json").is_file() and (tmp_path / "rep" / "eval.md").is_file()
     assert proj.step("eval") == before  # the project's own record is untouched
+    r = run_cli("eval", proj.root, "--model", tmp_path / "m.ply", "--out", tmp_path / "rep2", "--json")
+    assert r.exit_code == 0, r.output
+    s = json.loads(r.stdout)  # default budgets: a .ply has no step, whatever the ranking views' stride
+    assert s["step"] is None and s["train_steps"] is None
     assert_user_error(run_cli("eval", proj.root, "--model", tmp_path / "none.ply"), "--model", "no such .ply")
 
 
