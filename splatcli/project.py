@@ -38,6 +38,11 @@ def now_iso() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
 
 
+def _at(*parts: str) -> property:
+    """A path below the project root."""
+    return property(lambda self: self.root.joinpath(*parts))
+
+
 @dataclass(frozen=True)
 class Project:
     """A project directory. Construct with `Project.create` (process) or
@@ -45,76 +50,27 @@ class Project:
 
     root: Path
 
-    # ---- paths -------------------------------------------------------------
-    @property
-    def manifest_path(self) -> Path:
-        return self.root / MANIFEST_NAME
-
-    @property
-    def images_dir(self) -> Path:
-        return self.root / "images"
-
-    @property
-    def masks_dir(self) -> Path:
-        return self.root / "masks"
+    # ---- paths (the layout in the module docstring) ---------------------------
+    manifest_path = _at(MANIFEST_NAME)
+    images_dir = _at("images")
+    masks_dir = _at("masks")
+    sfm_dir = _at("sfm")
+    database_path = _at("sfm", "database.db")
+    sparse_dir = _at("sfm", "sparse", "0")  # the PINHOLE COLMAP model that matches images/
+    distorted_dir = _at("sfm", "distorted")  # the raw model, kept when undistortion happened
+    checkpoints_dir = _at("checkpoints")
+    renders_dir = _at("renders")
+    exports_dir = _at("exports")
+    reports_dir = _at("reports")
+    train_log_path = _at("reports", "train_log.jsonl")
+    train_report_path = _at("reports", "train.json")
+    process_report_path = _at("reports", "process.json")
+    eval_json_path = _at("reports", "eval.json")
+    eval_md_path = _at("reports", "eval.md")
 
     def mask_path(self, image_name: str) -> Path:
         """The alpha mask of images/<image_name>: masks/<image_name>.png."""
         return self.masks_dir / f"{image_name}.png"
-
-    @property
-    def sfm_dir(self) -> Path:
-        return self.root / "sfm"
-
-    @property
-    def database_path(self) -> Path:
-        return self.sfm_dir / "database.db"
-
-    @property
-    def sparse_dir(self) -> Path:
-        """The PINHOLE COLMAP model that matches images/."""
-        return self.sfm_dir / "sparse" / "0"
-
-    @property
-    def distorted_dir(self) -> Path:
-        """The raw (distorted) model, kept when undistortion happened."""
-        return self.sfm_dir / "distorted"
-
-    @property
-    def checkpoints_dir(self) -> Path:
-        return self.root / "checkpoints"
-
-    @property
-    def renders_dir(self) -> Path:
-        return self.root / "renders"
-
-    @property
-    def exports_dir(self) -> Path:
-        return self.root / "exports"
-
-    @property
-    def reports_dir(self) -> Path:
-        return self.root / "reports"
-
-    @property
-    def train_log_path(self) -> Path:
-        return self.reports_dir / "train_log.jsonl"
-
-    @property
-    def train_report_path(self) -> Path:
-        return self.reports_dir / "train.json"
-
-    @property
-    def process_report_path(self) -> Path:
-        return self.reports_dir / "process.json"
-
-    @property
-    def eval_json_path(self) -> Path:
-        return self.reports_dir / "eval.json"
-
-    @property
-    def eval_md_path(self) -> Path:
-        return self.reports_dir / "eval.md"
 
     def plot_path(self, name: str) -> Path:
         return self.reports_dir / f"{name}.png"

@@ -55,6 +55,7 @@ def assert_contract(project: Path) -> dict:
     proj = Project.open(project)
     proj.require_processed()
     scene = read_scene(proj.sparse_dir)
+    assert proj.manifest()["scene"]["model_sha256"] == colmap.model_digest(proj.sparse_dir)  # later reads skip the walk
     names = sorted(p.relative_to(proj.images_dir).as_posix() for p in proj.images_dir.rglob("*") if p.is_file())
     assert [c.name for c in scene.cameras] == names
     for c in scene.cameras:
@@ -350,3 +351,23 @@ def test_core_raises_splaterror_for_wrong_forced_type(tmp_path):
     make_workspace(ws)
     with pytest.raises(SplatError, match="no transforms.json"):
         process(ws, tmp_path / "p", ProcessConfig(input_type="transforms"))
+
+
+def test_a_model_we_wrote_is_not_walked_again(tmp_path, monkeypatch):
+    """The model `process` wrote and recorded (by digest) is read without the file walk;
+    a model changed since then is walked again."""
+    import splatcli.sfm.colmap as sfm_colmap
+    from tiny_project import make_tiny_project
+
+    proj = make_tiny_project(tmp_path / "p", trained=False)
+    scene = proj.manifest()["scene"]
+    proj.update_manifest(scene={**scene, "model_sha256": sfm_colmap.model_digest(proj.sparse_dir)})
+    walked = []
+    real = sfm_colmap.check_model
+    monkeypatch.setattr(sfm_colmap, "check_model", lambda d: walked.append(d) or real(d))
+    cams = sfm_colmap.read_project_scene(proj).cameras
+    assert walked == [] and len(cams) == len(proj.splits()["train"]) + len(proj.splits()["test"])
+    proj.update_manifest(scene={**scene, "model_sha256": "0" * 64})
+    assert [c.name for c in sfm_colmap.read_project_scene(proj).cameras] == [c.name for c in cams]
+    assert walked == [proj.sparse_dir]
+

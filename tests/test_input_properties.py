@@ -183,6 +183,28 @@ def test_transforms_random_structure(data: dict) -> None:
 
 
 @SETTINGS
+@given(TRANSFORMS)
+def test_transforms_random_structure_as_render_cameras(data: dict) -> None:
+    """The same reader as `render --cameras` uses it: cameras only, images may be absent."""
+    from splatcli.views.sources import transforms_views
+
+    with tempfile.TemporaryDirectory() as d:
+        root = Path(d) / "in"
+        root.mkdir()
+        tf = root / "transforms.json"
+        tf.write_text(json.dumps(data))
+        try:
+            views = transforms_views(tf, default_size=(32, 24))
+        except SplatError as e:
+            _one_line_error(e, tf)
+            return
+        assert len(views) == len(data["frames"])
+        for v in views:
+            assert v.camera.width >= 1 and v.camera.height >= 1 and np.isfinite(v.camera.K).all()
+            assert v.camera.K[0, 0] > 0 and v.camera.K[1, 1] > 0 and np.isfinite(v.camera.viewmat).all()
+
+
+@SETTINGS
 @given(st.binary(max_size=256))
 def test_transforms_random_bytes(data: bytes) -> None:
     with tempfile.TemporaryDirectory() as d:

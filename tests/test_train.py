@@ -56,6 +56,11 @@ def test_train_writes_checkpoint_log_report_and_summary(tmp_path):
     assert all({"step", "elapsed_s", "loss", "num_gaussians"} <= set(r) for r in log)
     assert [r["step"] for r in log if "psnr" in r] == [15, 30]
     assert all(b["elapsed_s"] > a["elapsed_s"] for a, b in zip(log, log[1:]))
+    # refinement is visible: each line's clone / split / prune counts explain the change in count
+    # (a split replaces one Gaussian by two)
+    assert sum(r["cloned"] + r["split"] for r in log) > 0
+    for a, b in zip(log, log[1:]):
+        assert b["num_gaussians"] == a["num_gaussians"] + b["cloned"] + b["split"] - b["pruned"]
     summary = proj.step("train")["summary"]
     for k in ("steps", "train_seconds", "num_gaussians", "sh_degree", "ply_bytes", "device", "final_loss"):
         assert k in summary

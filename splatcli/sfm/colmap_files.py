@@ -1,7 +1,9 @@
 """Check a COLMAP model's files before pycolmap reads them.
 
-pycolmap trusts the counts written in `.bin` files: a garbled count can make it
-allocate terabytes, loop for ages or crash the interpreter. So we walk every
+pycolmap trusts the counts written in `.bin` files, so a library read does not
+serve here: with the point count of a 30-point points3D.bin set to 2^40, pycolmap
+4.2 ran 109 s and peaked at 16.9 GB of memory before failing (measured on the
+2-core, 24 GB machine); a larger file or a smaller machine is killed instead. So we walk every
 file first, with each count bounded by the bytes actually left in the file,
 and check that the three files agree (camera ids, image ids, point indices).
 Every problem becomes a one-line `SplatError` naming the file.
