@@ -236,3 +236,20 @@ def test_compact_prunes_in_rounds_to_a_third(tmp_path):
     assert counts[30] == int(c.before_count * (1 / 3) ** (1 / 3))  # round 1 of 3 right after training
     assert c.before_psnr is not None and c.after_psnr is not None
     assert s.ply_bytes == ply_bytes(c.after_count, s.sh_degree) == c.after_bytes
+
+
+def test_coarse_to_fine_trains_and_resumes_bitwise(tmp_path):
+    """Steps before `coarse_until` render at a fraction of the resolution; an interrupted
+    coarse run resumes to the same bits."""
+    cfg = make_config(**{**SMALL, "iterations": 20, "coarse_scale": 0.5, "coarse_until": 0.5})
+    a = tiny(tmp_path, "a")
+    sa = train(a.root, cfg, CPU)
+    assert sa.steps == 20 and sa.psnr is not None and math.isfinite(sa.psnr)
+    b = tiny(tmp_path, "b")
+    with pytest.raises(Interrupted):
+        train(b.root, cfg, CPU, on_event=_interrupt_at(6))
+    train(b.root, cfg, CPU, resume=True)
+    _, pa = _params(a.latest_checkpoint())
+    _, pb = _params(b.latest_checkpoint())
+    for k in pa:
+        assert torch.equal(pa[k], pb[k]), k

@@ -133,3 +133,25 @@ def test_load_train_data_uses_the_splits(tmp_path):
     assert data.train[0].image.shape == (20, 24, 3) and data.train[0].image.dtype == torch.uint8
     assert data.background.tolist() == [1.0, 1.0, 1.0] and data.extent > 0
     assert load_train_data(proj, 1.0, None, CPU, eval_max_views=1).test[0].camera.name == names["test"][0]
+
+
+def test_coarse_views_are_area_filtered_and_cameras_scaled(tmp_path):
+    proj = make_tiny_project(tmp_path / "p", trained=False)
+    v = load_train_data(proj, 1.0, None, CPU).train[0]
+    h = v.at_scale(0.5)
+    assert (h.camera.width, h.camera.height) == (round(v.camera.width / 2), round(v.camera.height / 2))
+    np.testing.assert_allclose(h.camera.K[:2], v.camera.K[:2] * np.array([[h.camera.width / v.camera.width],
+                                                                          [h.camera.height / v.camera.height]]))
+    # a 2x2 block mean, rounded (the widths here are even)
+    blocks = v.image.float().reshape(h.camera.height, 2, h.camera.width, 2, 3).mean(dim=(1, 3))
+    assert torch.equal(h.image, blocks.round().to(torch.uint8))
+    assert v.at_scale(0.5) is h and v.at_scale(1.0) is v  # cached; full scale is the view itself
+
+
+def test_coarse_schedule_rises_to_full_resolution():
+    cfg = make_config("fast", coarse_scale=0.25, coarse_until=0.5)
+    scales = [cfg.train_scale(s) for s in range(0, cfg.iterations + 1, 50)]
+    assert scales[0] == 0.25 and all(b >= a for a, b in zip(scales, scales[1:]))
+    assert all(s == 1.0 for s, step in zip(scales, range(0, cfg.iterations + 1, 50)) if step >= 3500)
+    assert all(s * 8 == int(s * 8) for s in scales)  # a few cached levels, not one per step
+    assert make_config("fast").train_scale(0) == 1.0  # off unless asked

@@ -12,6 +12,7 @@ Options are given flat, as on the command line (`max_gaussians`, `compact`,
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any
 
@@ -33,6 +34,8 @@ class TrainConfig:
     # ---- data ----------------------------------------------------------------
     downscale: float = 1.0  # divide the stored image size by this
     max_size: int = 1600  # then cap the longest side (pixels), as 3DGS does for large photos
+    coarse_scale: float = 1.0  # coarse-to-fine: resolution (fraction of the above) at step 0; 1 = off
+    coarse_until: float = 0.5  # ... rising linearly (in steps of 1/8) to full resolution by this fraction of `iterations`
     eval_every: int = 1000  # held-out PSNR/SSIM every this many steps (0: only at the end)
     eval_max_views: int = 0  # 0: every held-out view; else an evenly spaced subset
     log_every: int = 100  # one train_log.jsonl line every this many steps
@@ -74,6 +77,14 @@ class TrainConfig:
     def max_sh_degree(self) -> int:
         """The degree trained (auto trains the full degree and chooses after)."""
         return MAX_SH_DEGREE if self.sh_degree == "auto" else int(self.sh_degree)
+
+    def train_scale(self, step: int) -> float:
+        """The resolution (a fraction of the training resolution) step `step` renders at."""
+        end = self.coarse_until * self.iterations
+        if self.coarse_scale >= 1.0 or step >= end:
+            return 1.0
+        s = self.coarse_scale + (1.0 - self.coarse_scale) * step / end
+        return min(1.0, math.ceil(s * 8) / 8)
 
     @property
     def total_steps(self) -> int:
@@ -193,6 +204,8 @@ def _check(cfg: TrainConfig) -> None:
         raise SplatError(f"--max-size {cfg.max_size}: must be at least 16 pixels")
     if cfg.eval_every < 0:
         raise SplatError(f"--eval-every {cfg.eval_every}: must be 0 or more")
+    if not 0.1 <= cfg.coarse_scale <= 1 or not 0 < cfg.coarse_until <= 1:
+        raise SplatError(f"coarse_scale {cfg.coarse_scale} / coarse_until {cfg.coarse_until}: must be in [0.1, 1] / (0, 1]")
     if not 0 < cfg.compact.keep <= 1:
         raise SplatError(f"compact_keep {cfg.compact.keep}: must be in (0, 1]")
 

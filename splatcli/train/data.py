@@ -11,10 +11,11 @@ Only the training split is ever fitted; the test split is measured.
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from ..camera import Camera, scene_extent
@@ -31,8 +32,23 @@ class TrainView:
     viewmat: Tensor  # [4, 4] float32
     K: Tensor  # [3, 3] float32
 
+    _scaled: dict[float, "TrainView"] = field(default_factory=dict, repr=False, compare=False)
+
     def target(self) -> Tensor:  # [H, W, 3] float32 in [0, 1]
         return self.image.to(torch.float32) / 255.0
+
+    def at_scale(self, scale: float) -> "TrainView":
+        """This view at `scale` times the training resolution (area-filtered image,
+        K scaled with the size; cached). Coarse-to-fine training renders these."""
+        if scale >= 1.0:
+            return self
+        if scale not in self._scaled:
+            cam = self.camera.scaled(scale)
+            img = F.interpolate(self.image.permute(2, 0, 1)[None].to(torch.float32), size=(cam.height, cam.width),
+                                mode="area")[0].permute(1, 2, 0).round().clamp(0, 255).to(torch.uint8).contiguous()
+            vm, K = cam.torch(self.image.device)
+            self._scaled[scale] = TrainView(cam, img, vm, K)
+        return self._scaled[scale]
 
 
 @dataclass

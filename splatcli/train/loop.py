@@ -105,7 +105,7 @@ def _loop(project: Project, cfg: TrainConfig, data: TrainData, state: TrainState
     for step in range(state.step + 1, total + 1):
         t0 = time.perf_counter()
         state.optimizers["means"].param_groups[0]["lr"] = means_lr(cfg, step, data.extent)
-        view = data.train[state.next_view(len(data.train))]
+        view = data.train[state.next_view(len(data.train))].at_scale(cfg.train_scale(step))
         out = render_view(state, view, data.background, state.active_sh_degree(step, cfg.sh_degree_interval))
         info = StepInfo(out, view.camera.width, view.camera.height)
         for strategy, st in zip(state.strategies, state.splats.states):
