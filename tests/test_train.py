@@ -253,3 +253,24 @@ def test_coarse_to_fine_trains_and_resumes_bitwise(tmp_path):
     _, pb = _params(b.latest_checkpoint())
     for k in pa:
         assert torch.equal(pa[k], pb[k]), k
+
+
+def test_time_budget_plans_a_compressed_schedule(tmp_path):
+    """--time-budget: the preset's schedule scaled to what fits; the plan is recorded and the
+    training seconds end near the budget."""
+    proj = tiny(tmp_path)
+    budget = 3.0
+    # a preset-shaped template far longer than the budget allows
+    template = {**SMALL, "iterations": 3000, "refine_start": 300, "refine_every": 100, "reset_every": 1500,
+                "refine_stop": 2000, "sh_degree_interval": 600}
+    s = train(proj.root, make_config(**template, time_budget=budget), CPU)
+    plan = s.plan
+    assert plan is not None and plan["budget_s"] == budget and plan["template"]["iterations"] == 3000
+    assert len(plan["history"]) >= 2 and all(h["steps_per_s"] > 0 for h in plan["history"])
+    assert s.steps == plan["history"][-1]["iterations"] < 3000
+    assert s.train_seconds <= 1.25 * budget  # a tiny scene: plans are coarse at this scale
+    cfg = proj.step("train")["config"]
+    ratio = cfg["iterations"] / 3000
+    assert cfg["strategy"]["refine_every"] == max(1, round(100 * ratio))
+    assert cfg["strategy"]["refine_stop"] == max(1, round(2000 * ratio))
+    assert cfg["sh_degree_interval"] == max(1, round(600 * ratio))

@@ -27,6 +27,7 @@ def train(
     downscale: Optional[float] = typer.Option(None, "--downscale", help="Train at the image size divided by this."),
     max_size: Optional[int] = typer.Option(None, "--max-size", help=f"Cap the longest image side at this (pixels; default {_D.max_size})."),
     eval_every: Optional[int] = typer.Option(None, "--eval-every", help="Held-out PSNR/SSIM every this many steps (0: at the end)."),
+    time_budget: Optional[float] = typer.Option(None, "--time-budget", help="Training seconds to fit in: the run measures its speed and plans the preset's schedule, compressed, to end within them (evaluation not counted)."),
     resume: bool = typer.Option(False, "--resume", help="Continue from the latest checkpoint (its settings; options given here override)."),
     init_ply: Optional[Path] = typer.Option(None, "--init-ply", help="Start from a 3DGS .ply instead of the SfM/random points."),
     device: str = DeviceOpt,
@@ -40,7 +41,7 @@ def train(
     ui = Ui(quiet=quiet, json_out=json_out)
     dev = resolve_device(device)
     given = dict(iterations=iterations, sh_degree=sh_degree, max_gaussians=max_gaussians, compact=compact or None,
-                 downscale=downscale, max_size=max_size, eval_every=eval_every,
+                 downscale=downscale, max_size=max_size, eval_every=eval_every, time_budget=time_budget,
                  init_ply=str(init_ply) if init_ply else None)
     cfg = make_config(preset, seed=seed, device=str(dev), **given)
     overrides = {k: option(cfg, k) for k, v in given.items() if v is not None}

@@ -31,6 +31,8 @@ class TrainConfig:
     sh_degree: int | str = 3  # 0..3, or "auto" (train at 3, keep the lowest degree within sh_auto.tol_db)
     sh_degree_interval: int = 1000  # the active SH degree grows by one every this many steps
 
+    time_budget: float | None = None  # training seconds: plan the schedule to end within them (train/plan.py)
+
     # ---- data ----------------------------------------------------------------
     downscale: float = 1.0  # divide the stored image size by this
     max_size: int = 1600  # then cap the longest side (pixels), as 3DGS does for large photos
@@ -192,6 +194,8 @@ def make_config(preset: str = "default", **options: Any) -> TrainConfig:
 
 
 def _check(cfg: TrainConfig) -> None:
+    if cfg.time_budget is not None and not (math.isfinite(cfg.time_budget) and cfg.time_budget > 0):
+        raise SplatError(f"--time-budget {cfg.time_budget}: must be a positive number of seconds")
     if cfg.iterations < 1:
         raise SplatError(f"--iterations {cfg.iterations}: must be at least 1")
     if isinstance(cfg.sh_degree, int) and not 0 <= cfg.sh_degree <= MAX_SH_DEGREE:
@@ -232,6 +236,7 @@ class TrainSummary:
     sh_auto_psnr: dict[str, float] | None = None  # --sh-degree auto: validation PSNR per degree
     compact: CompactReport | None = None
     resumed_from: int | None = None  # step of the checkpoint a --resume started from
+    plan: dict[str, Any] | None = None  # --time-budget: the budget, the template schedule and every plan made
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)

@@ -157,6 +157,7 @@ def finish(project: Project, cfg: TrainConfig, state: TrainState, resumed_from: 
         bad_steps=state.bad_steps,
         checkpoint=str(project.latest_checkpoint() or ""),
         resumed_from=resumed_from,
+        plan=state.plan.record() if state.plan is not None else None,
         **owned,
     )
     max_scale = g.log_scales.amax(dim=1).double().cpu().numpy() / math.log(10)

@@ -33,7 +33,7 @@ from .config import TrainConfig, TrainSummary, with_options
 from .data import TrainData, TrainView, load_train_data
 from .init import initial_gaussians
 from .loss import photometric_loss
-from .state import TrainState, means_lr, new_state, save_state, state_from_checkpoint
+from .state import TrainState, make_strategies, means_lr, new_state, save_state, state_from_checkpoint
 
 STAGE = "train"
 
@@ -82,7 +82,7 @@ def train(
             state = new_state(initial_gaussians(cfg, data, device), cfg, data.extent, device, len(data.train), ctx)
             log.start_fresh(project, on_event)
         box.append(state)
-        _loop(project, cfg, data, state, stop, on_event)
+        cfg = _loop(project, cfg, data, state, ctx, stop, on_event)
     return log.finish(project, cfg, state, resumed_from)
 
 
@@ -93,8 +93,9 @@ def render_view(state: TrainState, view: TrainView, bg: Tensor, sh_degree: int) 
                      view.K, view.camera.width, view.camera.height, bg, sh_degree=sh_degree)
 
 
-def _loop(project: Project, cfg: TrainConfig, data: TrainData, state: TrainState,
-          stop: threading.Event, on_event: EventSink | None) -> None:
+def _loop(project: Project, cfg: TrainConfig, data: TrainData, state: TrainState, ctx: Context,
+          stop: threading.Event, on_event: EventSink | None) -> TrainConfig:
+    """Run the steps; returns the config in force at the end (a --time-budget plan changes it)."""
     total = cfg.total_steps
     emit(on_event, Stage(STAGE, total))
     writer = log.LogWriter(project.train_log_path, state)
@@ -102,7 +103,8 @@ def _loop(project: Project, cfg: TrainConfig, data: TrainData, state: TrainState
         writer.refined(strategy.catch_up(state.splats, st, state.step))
     if stop.is_set():  # signalled during setup: keep what there is (a resume starts here)
         _interrupt(project, cfg, state)
-    for step in range(state.step + 1, total + 1):
+    while state.step < total:
+        step = state.step + 1
         t0 = time.perf_counter()
         state.optimizers["means"].param_groups[0]["lr"] = means_lr(cfg, step, data.extent)
         view = data.train[state.next_view(len(data.train))].at_scale(cfg.train_scale(step))
@@ -140,6 +142,10 @@ def _loop(project: Project, cfg: TrainConfig, data: TrainData, state: TrainState
         for strategy, st in zip(state.strategies, state.splats.states):
             writer.refined(strategy.step_post_backward(state.splats, st, step, info))
         state.elapsed_s += time.perf_counter() - t1
+        if state.plan is not None and state.plan.due(step, state.elapsed_s):
+            cfg = state.plan.replan(cfg, step, state.elapsed_s)
+            state.strategies = make_strategies(cfg, data.extent, ctx)
+            total = cfg.total_steps
         evaluated = info.heldout
         if step == total:
             evaluated = _measure(cfg, data, state, step, total, force=True)
@@ -151,6 +157,7 @@ def _loop(project: Project, cfg: TrainConfig, data: TrainData, state: TrainState
             save_state(project.checkpoint_path(step), state, cfg)
             log.prune_checkpoints(project, cfg.keep_checkpoints)
     emit(on_event, StageDone(STAGE, state.elapsed_s))
+    return cfg
 
 
 def _context(data: TrainData, box: list[TrainState], on_event: EventSink | None) -> Context:

@@ -21,6 +21,7 @@ from ..gaussians import Gaussians
 from ..io.checkpoint import Checkpoint, save_checkpoint
 from ..strategy import CompactStep, Context, DefaultStrategy, ShAutoStep, Splats, Strategy, sh_degree_of
 from .config import TrainConfig
+from .plan import Plan
 
 
 @dataclass
@@ -36,6 +37,7 @@ class TrainState:
     bad_run: int = 0  # ... consecutive
     loss_acc: Tensor = field(default_factory=lambda: torch.zeros(2, dtype=torch.float64))  # [sum, count] since the last log line
     refine_acc: dict[str, int] = field(default_factory=dict)  # cloned / split / pruned since the last log line
+    plan: Plan | None = None  # --time-budget
 
     @property
     def params(self) -> dict[str, nn.Parameter]:
@@ -124,7 +126,8 @@ def new_state(g: Gaussians, cfg: TrainConfig, extent: float, device: torch.devic
     view_gen = torch.Generator().manual_seed(int(cfg.seed) + 1)
     return TrainState(splats=splats, strategies=strategies, view_gen=view_gen,
                       perm=torch.randperm(n_train, generator=view_gen), pos=0,
-                      loss_acc=torch.zeros(2, dtype=torch.float64, device=device))
+                      loss_acc=torch.zeros(2, dtype=torch.float64, device=device),
+                      plan=Plan.start(cfg) if cfg.time_budget is not None else None)
 
 
 def save_state(path: Path, state: TrainState, cfg: TrainConfig) -> Path:
@@ -146,6 +149,7 @@ def save_state(path: Path, state: TrainState, cfg: TrainConfig) -> Path:
             "perm": state.perm, "pos": state.pos, "elapsed_s": state.elapsed_s, "bad_steps": state.bad_steps,
             "bad_run": state.bad_run, "param_names": list(state.params), "loss_acc": state.loss_acc,
             "refine_acc": dict(state.refine_acc),
+            "plan": state.plan.record() if state.plan is not None else None,
         },
     )
 
@@ -187,4 +191,15 @@ def state_from_checkpoint(ck: Checkpoint, cfg: TrainConfig, extent: float, devic
         bad_run=int(ex.get("bad_run", 0)),
         loss_acc=ex.get("loss_acc", torch.zeros(2, dtype=torch.float64)).to(device),
         refine_acc={k: int(v) for k, v in (ex.get("refine_acc") or {}).items()},
+        plan=_resumed_plan(cfg, ex.get("plan")),
     )
+
+
+def _resumed_plan(cfg: TrainConfig, record: Any) -> Plan | None:
+    if cfg.time_budget is None:
+        return None
+    if isinstance(record, dict):
+        plan = Plan.from_record(record)
+        plan.budget_s = float(cfg.time_budget)
+        return plan
+    return Plan.start(cfg)

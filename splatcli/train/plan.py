@@ -1,0 +1,81 @@
+"""`train --time-budget SECONDS`: a schedule planned to end within a training time on
+the machine the run is on.
+
+The preset's schedule is kept in shape and scaled in length: every step count of
+it (iterations, refinement start/stop/period, opacity reset, SH growth, the
+compaction fine-tune) is multiplied by one factor, so a budgeted run is the preset
+compressed in time, learning-rate decay included. The run measures its own speed
+over its first steps (`probe_s`), plans the step count that fits the rest of the
+budget, and plans again every `replan_every` of the budget: steps slow down as
+densification adds Gaussians, and a shared machine changes speed. Once the budget
+is spent the main schedule ends at that step. Training seconds are counted, as in
+train_log.jsonl (held-out evaluation is not training); the plan and its outcome
+are recorded in train.json.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from .config import TrainConfig, option, with_options
+
+# Step counts of the schedule, scaled together (flat option names, see config.OPTION_PATHS).
+SCHEDULE = ("iterations", "refine_start", "refine_stop", "refine_every", "reset_every", "sh_degree_interval",
+            "compact_finetune")
+MIN_ITERATIONS = 30  # a plan never shrinks the run below this
+
+
+@dataclass
+class Plan:
+    budget_s: float
+    template: dict[str, int]  # the preset's schedule, unscaled
+    probe_s: float = 0.0  # training seconds measured before the first plan
+    replan_every: float = 0.1  # fraction of the budget between plans
+    history: list[dict[str, Any]] = field(default_factory=list)  # one entry per plan
+    _mark: tuple[int, float] | None = None  # (step, elapsed) at the previous plan
+
+    @staticmethod
+    def start(cfg: TrainConfig) -> "Plan":
+        return Plan(budget_s=float(cfg.time_budget), template={k: int(option(cfg, k)) for k in SCHEDULE},
+                    probe_s=min(5.0, 0.05 * float(cfg.time_budget)))
+
+    def scaled(self, cfg: TrainConfig, iterations: int) -> TrainConfig:
+        """`cfg` with the template schedule scaled to `iterations` main steps."""
+        f = iterations / self.template["iterations"]
+        return with_options(cfg, {k: max(1, round(v * f)) if k != "iterations" else iterations
+                                  for k, v in self.template.items()})
+
+    def due(self, step: int, elapsed: float) -> bool:
+        nxt = self.probe_s if not self.history else self.history[-1]["elapsed_s"] + self.replan_every * self.budget_s
+        return elapsed >= nxt or elapsed >= self.budget_s
+
+    def replan(self, cfg: TrainConfig, step: int, elapsed: float) -> TrainConfig:
+        """The schedule that ends the main steps when the budget is spent, at the speed of
+        the steps since the last plan; at once when it is spent already."""
+        s0, e0 = self._mark or (0, 0.0)
+        rate = (step - s0) / max(elapsed - e0, 1e-9)  # steps per training second, recently
+        self._mark = (step, elapsed)
+        if step >= cfg.iterations:  # the main schedule is over (a fine-tune may follow): nothing to plan
+            return cfg
+        # The compaction fine-tune (if any) runs after the main steps at about the same speed.
+        share = self.template["iterations"] / (self.template["iterations"] + (
+            self.template["compact_finetune"] if cfg.compact.enabled else 0))
+        # At least one more step: this step's post-processing hooks have run already.
+        iterations = step + max(1, int(rate * (self.budget_s - elapsed) * share))
+        iterations = max(iterations, min(MIN_ITERATIONS, self.template["iterations"]))
+        self.history.append({"step": step, "elapsed_s": round(elapsed, 3), "steps_per_s": round(rate, 3),
+                             "iterations": iterations})
+        return self.scaled(cfg, iterations)
+
+    def record(self) -> dict[str, Any]:
+        return {"budget_s": self.budget_s, "template": self.template, "probe_s": self.probe_s,
+                "history": list(self.history)}
+
+    @staticmethod
+    def from_record(d: dict[str, Any]) -> "Plan":
+        p = Plan(budget_s=float(d["budget_s"]), template={k: int(v) for k, v in d["template"].items()},
+                 probe_s=float(d["probe_s"]), history=list(d["history"]))
+        if p.history:
+            p._mark = (int(p.history[-1]["step"]), float(p.history[-1]["elapsed_s"]))
+        return p
