@@ -154,4 +154,5 @@ def test_coarse_schedule_rises_to_full_resolution():
     assert scales[0] == 0.25 and all(b >= a for a, b in zip(scales, scales[1:]))
     assert all(s == 1.0 for s, step in zip(scales, range(0, cfg.iterations + 1, 50)) if step >= 3500)
     assert all(s * 8 == int(s * 8) for s in scales)  # a few cached levels, not one per step
-    assert make_config("fast").train_scale(0) == 1.0  # off unless asked
+    assert make_config("default").train_scale(0) == 1.0  # the paper's schedule stays at full resolution
+    assert make_config("fast").train_scale(0) == 0.25  # the CPU preset starts coarse

@@ -1,0 +1,157 @@
+"""Time to quality, side by side: this version against an earlier commit, in one run.
+
+    .venv/bin/python bench/versus.py --against 333d7bf [--scenes lego,fox] [--train-args "--preset fast"]
+                                     [--new-args ""] [--eval-every 250] [--no-write]
+
+For each scene (processed once, as bench/train.py does) it trains the earlier commit
+(a git worktree under bench/out/versus/, run with PYTHONPATH pointing at it) and then
+this version, one after the other on the same machine, with the same arguments
+(`--new-args` go to this version only). It plots held-out PSNR against training
+seconds for both in one figure (docs/figures/versus_<scene>.png) and reports the
+training seconds each takes to reach the earlier version's final PSNR (within 0.1 dB).
+Results go to bench/out/versus/results.json and the "## time to quality" section of
+docs/benchmarks.md, with the load average before and after each run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+from _doc import write_section  # noqa: E402  (bench/ is on sys.path when run as a script)
+import time
+
+from train import SCENES, RssSampler, ensure_processed, read_log  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+OUT = REPO / "bench" / "out" / "versus"
+FIGURES = REPO / "docs" / "figures"
+TOL_DB = 0.1
+
+
+def worktree(rev: str) -> Path:
+    path = OUT / f"wt-{rev}"
+    if not (path / "splatcli").is_dir():
+        subprocess.run(["git", "worktree", "add", "--detach", "-f", str(path), rev], cwd=REPO, check=True,
+                       capture_output=True)
+    return path
+
+
+def train_once(scene: str, label: str, code: Path, args: list[str]) -> dict:
+    proj = OUT / scene / label.replace(" ", "_")
+    proj.parent.mkdir(parents=True, exist_ok=True)
+    base = ensure_processed(scene)
+    subprocess.run(["rm", "-rf", str(proj)], check=True)
+    subprocess.run(["cp", "-r", str(base), str(proj)], check=True)
+    for sub in ("checkpoints", "reports", "renders", "exports"):
+        subprocess.run(["rm", "-rf", str(proj / sub)], check=True)
+    # Run from inside `code`: `python -m` puts the working directory first on sys.path,
+    # ahead of the editable install of this checkout.
+    env = {**os.environ, "PYTHONPATH": str(code), "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1")}
+    load0 = os.getloadavg()
+    cmd = [sys.executable, "-m", "splatcli.cli.main", "train", str(proj), "--device", "cpu", "--json", "-q", *args]
+    print(f"[{scene}/{label}] {' '.join(cmd[3:])}", flush=True)
+    t0 = time.monotonic()
+    with open(OUT / scene / f"{label}.log", "w") as err:
+        p = subprocess.Popen(cmd, cwd=code, env=env, stdout=subprocess.PIPE, stderr=err, text=True)
+        sampler = RssSampler(p.pid)
+        sampler.start()
+        out, _ = p.communicate()
+        sampler.stop()
+    rc, wall, peak_mb = p.returncode, time.monotonic() - t0, sampler.peak_kb // 1024
+    if rc != 0:
+        raise SystemExit(f"{scene}/{label} failed (exit {rc}); see {OUT / scene / f'{label}.log'}")
+    s = json.loads(out)
+    curve = [(r["elapsed_s"], r["psnr"]) for r in read_log(proj / "reports" / "train_log.jsonl") if "psnr" in r]
+    return {"label": label, "steps": s["steps"], "train_seconds": s["train_seconds"], "final_psnr": s["psnr"],
+            "num_gaussians": s["num_gaussians"], "wall_seconds": round(wall, 1), "peak_rss_mb": peak_mb,
+            "curve": curve, "load_before": [round(x, 2) for x in load0],
+            "load_after": [round(x, 2) for x in os.getloadavg()]}
+
+
+def seconds_to(curve: list[tuple[float, float]], target: float) -> float | None:
+    """Training seconds of the first held-out evaluation within TOL_DB of `target`."""
+    return next((t for t, p in curve if p >= target - TOL_DB), None)
+
+
+def plot(scene: str, runs: list[dict], path: Path) -> bool:
+    try:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+    except ImportError:
+        return False
+    fig = Figure(figsize=(6, 4), dpi=100)
+    FigureCanvasAgg(fig)
+    ax = fig.subplots()
+    for r in runs:
+        ax.plot([t for t, _ in r["curve"]], [p for _, p in r["curve"]], "o-", label=r["label"])
+    ax.set_xlabel("training time (s)")
+    ax.set_ylabel("held-out PSNR (dB)")
+    ax.set_title(f"{scene}: PSNR against training time")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, format="png")
+    return True
+
+
+def markdown(results: dict) -> str:
+    lines = ["## time to quality", "",
+             "Measured by `python bench/versus.py`: the earlier commit and this version train the same processed "
+             "scene one after the other in one run (same machine, 2 cores, one torch thread). Seconds are training "
+             "seconds (held-out evaluation excluded); *to base* is the first held-out evaluation within "
+             f"{TOL_DB} dB of the earlier version's final PSNR.", "",
+             "| scene | version | arguments | steps | train s | final PSNR | s to base | speed-up | Gaussians | "
+             "peak RSS MB | load before → after |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for scene, r in results.items():
+        old, new = r["runs"]
+        target = old["final_psnr"]
+        t_old, t_new = seconds_to(old["curve"], target), seconds_to(new["curve"], target)
+        for run_, t in ((old, t_old), (new, t_new)):
+            sp = f"{t_old / t:.2f}x" if t and t_old and run_ is new else ("1x" if run_ is old else "–")
+            lines.append(f"| {scene} | {run_['label']} | `{' '.join(run_['args'])}` | {run_['steps']} | "
+                         f"{run_['train_seconds']:.0f} | {run_['final_psnr']:.2f} | "
+                         f"{'–' if t is None else f'{t:.0f}'} | {sp} | {run_['num_gaussians']} | "
+                         f"{run_['peak_rss_mb']} | {run_['load_before'][0]} → {run_['load_after'][0]} |")
+        if r.get("figure"):
+            lines += ["", f"![{scene}](figures/{Path(r['figure']).name})", ""]
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--against", required=True, help="the earlier commit")
+    ap.add_argument("--scenes", default="lego")
+    ap.add_argument("--train-args", default="--preset fast", help="arguments for both versions")
+    ap.add_argument("--new-args", default="", help="extra arguments for this version only")
+    ap.add_argument("--eval-every", type=int, default=250)
+    ap.add_argument("--no-write", action="store_true")
+    args = ap.parse_args()
+    OUT.mkdir(parents=True, exist_ok=True)
+    old_code = worktree(args.against)
+    path = OUT / "results.json"
+    results = json.loads(path.read_text()) if path.exists() else {}
+    for scene in [s for s in args.scenes.split(",") if s]:
+        common = shlex.split(args.train_args) + [*SCENES[scene][2], "--eval-every", str(args.eval_every)]
+        old = train_once(scene, args.against, old_code, common)
+        old["args"] = common
+        new = train_once(scene, "this version", REPO, common + shlex.split(args.new_args))
+        new["args"] = common + shlex.split(args.new_args)
+        fig = FIGURES / f"versus_{scene}.png"
+        results[scene] = {"runs": [old, new], "figure": str(fig) if plot(scene, [old, new], fig) else None}
+        path.write_text(json.dumps(results, indent=1))
+    text = markdown(results)
+    if not args.no_write:
+        write_section("## time to quality", text)
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
