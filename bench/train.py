@@ -10,6 +10,7 @@ runs `splatcli train` as a subprocess per variant on a copy of that project:
   default   the preset as is
   compact   + --compact
   budget    + --max-gaussians (a third of the default run's final count)
+  time      + --time-budget (lego 75 s, fox 240 s, sample 60 s: the issue-12 targets)
 
 and records steps/s, held-out PSNR/SSIM at 1k, 3k and 7k steps, the training
 seconds to reach 30 dB, wall time, peak RSS (sampled every 0.5 s from /proc),
@@ -56,6 +57,7 @@ SCENES = {
     "fox": (lambda: data_dir() / "fox", [], ["--max-size", "480"], None),
     "sample": (lambda: REPO / "sample_data" / "scene", [], [], "demo"),
 }
+TIME_BUDGETS = {"lego": 75, "fox": 240, "sample": 60}  # seconds, for the `time` variant
 
 
 class RssSampler(threading.Thread):
@@ -280,6 +282,14 @@ def goals(results: list[dict]) -> list[str]:
             out.append(f"- {scene} --max-gaussians {b['args'][-1]} (a third of the default's final count): "
                        f"{b['num_gaussians']} Gaussians, {(b['final_psnr'] or 0) - (d['final_psnr'] or 0):+.2f} dB, "
                        f"{b['steps_per_s'] / max(d['steps_per_s'], 1e-9):.2f}x the steps/s.")
+        t = by.get((scene, "time"))
+        if t:
+            budget = TIME_BUDGETS[scene]
+            within = abs(t["train_seconds"] - budget) <= 0.1 * budget
+            out.append(f"- {scene} --time-budget {budget}: {t['steps']} steps in {t['train_seconds']:.0f} training s "
+                       f"({'within' if within else 'NOT within'} 10% of the budget), held-out PSNR "
+                       f"{fmt(t['final_psnr'])} dB (goal: at least 30 dB): "
+                       f"{'met' if within and (t['final_psnr'] or 0) >= 30 else 'NOT met'}.")
     return out
 
 
@@ -303,9 +313,10 @@ def main() -> None:
     results_path = OUT / "results.json"
     for scene in [x for x in args.scenes.split(",") if x]:
         for variant in [x for x in args.variants.split(",") if x]:
-            if scene == "sample" and variant != "default":
+            if scene == "sample" and variant not in ("default", "time"):
                 continue
-            extra = {"default": [], "compact": ["--compact"]}.get(variant)
+            extra = {"default": [], "compact": ["--compact"],
+                     "time": ["--time-budget", str(TIME_BUDGETS[scene])]}.get(variant)
             if variant == "budget":
                 old = json.loads(results_path.read_text())["results"] if results_path.exists() else []
                 prev = [r for r in old if r["scene"] == scene and r["variant"] == "default"]
@@ -319,7 +330,8 @@ def main() -> None:
     meta = {"machine": f"{platform.machine()} ({platform.processor() or platform.system()})",
             "cores": os.cpu_count(), "shared": True, "torch": torch.__version__, "notes": args.notes}
     order = {s: i for i, s in enumerate(SCENES)}
-    allres = sorted(old["results"], key=lambda r: (order.get(r["scene"], 9), ["default", "compact", "budget"].index(r["variant"])))
+    allres = sorted(old["results"], key=lambda r: (order.get(r["scene"], 9),
+                                                   ["default", "compact", "budget", "time"].index(r["variant"])))
     if not args.no_write:
         write_section("## train", markdown(allres, meta))
     print(markdown(allres, meta))
