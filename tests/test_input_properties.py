@@ -6,10 +6,12 @@ one-line `SplatError` naming the file; never another exception, never a hang.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import shutil
 import tempfile
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 import pytest
@@ -165,15 +167,22 @@ TRANSFORMS = st.dictionaries(st.sampled_from(KEYS), JSON_VALUES, max_size=6).fla
     lambda top: st.lists(FRAME, max_size=4).map(lambda frames: {**top, "frames": frames}))
 
 
-@SETTINGS
-@given(TRANSFORMS)
-def test_transforms_random_structure(data: dict) -> None:
+@contextlib.contextmanager
+def _transforms_file(data: dict) -> Iterator[tuple[Path, Path]]:
+    """(input folder holding a.png, its transforms.json written from `data`)."""
     with tempfile.TemporaryDirectory() as d:
         root = Path(d) / "in"
         root.mkdir()
         (root / "a.png").write_bytes(b"\x89PNG\r\n\x1a\n")  # exists; content is staging's business
         tf = root / "transforms.json"
         tf.write_text(json.dumps(data))
+        yield root, tf
+
+
+@SETTINGS
+@given(TRANSFORMS)
+def test_transforms_random_structure(data: dict) -> None:
+    with _transforms_file(data) as (root, tf):
         try:
             scene = read_transforms(tf)
         except SplatError as e:
@@ -188,11 +197,7 @@ def test_transforms_random_structure_as_render_cameras(data: dict) -> None:
     """The same reader as `render --cameras` uses it: cameras only, images may be absent."""
     from splatcli.views.sources import transforms_views
 
-    with tempfile.TemporaryDirectory() as d:
-        root = Path(d) / "in"
-        root.mkdir()
-        tf = root / "transforms.json"
-        tf.write_text(json.dumps(data))
+    with _transforms_file(data) as (root, tf):
         try:
             views = transforms_views(tf, default_size=(32, 24))
         except SplatError as e:
