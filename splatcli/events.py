@@ -50,10 +50,6 @@ Event = Union[Stage, Progress, StageDone, Note]
 EventSink = Callable[[Event], None]
 
 
-def null_sink(event: Event) -> None:
-    """Default sink: drop everything."""
-
-
 def emit(sink: EventSink | None, event: Event) -> None:
     if sink is not None:
         sink(event)

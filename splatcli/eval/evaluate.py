@@ -287,12 +287,6 @@ def run_eval(plan: EvalPlan, *, on_event: EventSink | None = None) -> EvalReport
 
 
 
-def evaluate_project(root: str | Path, config: EvalConfig, device: torch.device, *,
-                     on_event: EventSink | None = None) -> EvalReport:
-    """`splatcli eval PROJECT` in one call: plan, then run."""
-    return run_eval(plan_eval(root, config, device), on_event=on_event)
-
-
 def compare_folders(pred_dir: str | Path, gt_dir: str | Path, *, background: Sequence[float] = (0.0, 0.0, 0.0),
                     on_event: EventSink | None = None) -> FolderReport:
     """PSNR/SSIM of every image in `pred_dir` against the image of the same name

@@ -219,9 +219,6 @@ class Model:
     def registered_names(self) -> list[str]:
         return sorted(im.name for im in self._rec.images.values() if im.has_pose)
 
-    def all_names(self) -> list[str]:
-        return sorted(im.name for im in self._rec.images.values())
-
     def mean_reprojection_error(self) -> float:
         return float(self._rec.compute_mean_reprojection_error()) if self.num_points else 0.0
 

@@ -8,7 +8,6 @@ y down, z forward), `viewmat` world-to-camera, pixel centres at +0.5.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -116,12 +115,8 @@ def transforms_views(path: str | Path, *, notes: list[str] | None = None,
 
 def resize_views(views: list[View], *, width: int | None = None, height: int | None = None,
                  downscale: float = 1.0) -> list[View]:
-    """Apply --downscale, then --width/--height (one of them alone keeps the aspect)."""
-    if downscale <= 0 or not math.isfinite(downscale):
-        raise SplatError(f"--downscale {downscale}: must be a positive number")
-    for opt, v in (("--width", width), ("--height", height)):
-        if v is not None and not 1 <= v <= 16384:
-            raise SplatError(f"{opt} {v}: must be between 1 and 16384 pixels")
+    """Apply --downscale, then --width/--height (one of them alone keeps the aspect);
+    `views.output.check_config` has checked their ranges."""
     out = []
     for v in views:
         c = v.camera.scaled(1.0 / downscale) if downscale != 1.0 else v.camera
