@@ -5,6 +5,10 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 DEMO ?= demo-project
 PYTEST_ARGS ?=
+# make bench: an OpenSplat checkout for the same-run peer comparison (skipped when empty),
+# and the earlier commit bench/versus.py trains beside this version.
+OPENSPLAT_SOURCE ?=
+BASELINE ?= 333d7bf
 # One torch thread per process unless you say otherwise (docs/guide.md, "Threads").
 export OMP_NUM_THREADS ?= 1
 
@@ -36,8 +40,10 @@ demo: setup
 
 bench: setup
 	$(BIN)/python bench/rasterize.py
+	$(BIN)/python bench/peers.py --source "$(OPENSPLAT_SOURCE)"
 	$(BIN)/python bench/process.py
 	$(BIN)/python bench/train.py
+	$(BIN)/python bench/versus.py --against $(BASELINE) --scenes lego,fox
 
 clean:
 	rm -rf $(VENV) $(DEMO) *.egg-info

@@ -162,8 +162,9 @@ PRESETS: dict[str, dict[str, Any]] = {
     # the first 7k steps (the paper reports its 7k numbers for that reason); densifying
     # for the first ~half keeps the paper's grow-then-settle ratio and gives the
     # last 3k steps to refine a fixed set, which is where SSIM improves.
-    # Coarse to fine: the first half renders at a resolution rising from 1/4 (lego 200 px, 2k steps
-    # in one run: 1.35x less time to the full-resolution run's final PSNR, and +0.3 dB at the end).
+    # Coarse to fine: the first half renders at a resolution rising from 1/4 (bench/versus.py, lego
+    # 200 px, 2k steps: the PSNR-against-time curve above the full-resolution one everywhere,
+    # 1.15-1.5x sooner to a given PSNR; docs/benchmarks.md, "time to quality").
     "fast": {"iterations": 7000, "refine_stop": 4000, "reset_every": 3000, "checkpoint_every": 1000,
              "init_random_points": 10_000, "coarse_scale": 0.25, "coarse_until": 0.5},
     # `make demo` on sample_data (320x240, ~2k SfM points): a few minutes on 2 cores.

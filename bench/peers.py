@@ -1,0 +1,185 @@
+"""The rasterizer against a peer, in one run: OpenSplat's CPU rasterizer and ours.
+
+    .venv/bin/python bench/peers.py --source PATH/TO/OpenSplat [--threads 1,2] [--reps 5] [--no-write]
+
+OpenSplat is built from a checkout the user gives (recorded commit: 15b7e80; it is
+AGPL-licensed and never vendored here) into bench/out/peers/build: its CPU
+projection and rasterizer sources (`project_gaussians.cpp`, `rasterize_gaussians.cpp`,
+`rasterizer/gsplat-cpu/gsplat_cpu.cpp`), the files its CMake compiles for
+`-DGPU_RUNTIME=CPU`'s `gsplat_cpu` library, plus a 20-line binding written here,
+compiled by torch's own extension builder against the libtorch inside the pip
+torch wheel (g++ and ninja are needed; no OpenCV: the peer's image I/O is not timed).
+Where the peer cannot be built, the script says why and exits 0.
+
+Both sides render the issue-7 workloads (bench/rasterize.py) forward and backward:
+the peer as its model.cpp does on CPU (project, SH degree 0 colours, rasterize);
+ours through `splatcli.render.rasterize`. They alternate, rep by rep, at each
+thread count, so both see the same machine; medians are reported with the load
+average. At the recorded commit the peer's CPU path blends in a wrong depth order
+(its projection returns a strided depth view that the rasterizer reads as
+contiguous), so its pictures differ from ours: it is timed as users build it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+import torch  # noqa: E402
+
+from rasterize import workloads  # noqa: E402  (bench/ is on sys.path when run as a script)
+from _doc import write_section  # noqa: E402
+from splatcli.gaussians import SH_C0  # noqa: E402
+from splatcli.render import rasterize  # noqa: E402
+
+OUT = REPO / "bench" / "out" / "peers"
+SOURCES = ["project_gaussians.cpp", "rasterize_gaussians.cpp", "rasterizer/gsplat-cpu/gsplat_cpu.cpp"]
+BINDING = r"""
+#include <torch/extension.h>
+#include "project_gaussians.hpp"
+#include "rasterize_gaussians.hpp"
+
+std::vector<torch::Tensor> project(torch::Tensor means, torch::Tensor scales, torch::Tensor quats,
+                                   torch::Tensor viewmat, torch::Tensor fullmat, double fx, double fy,
+                                   double cx, double cy, int64_t height, int64_t width) {
+    return ProjectGaussiansCPU::apply(means, scales, 1, quats, viewmat, fullmat, fx, fy, cx, cy, height, width);
+}
+
+torch::Tensor rasterize(torch::Tensor xys, torch::Tensor radii, torch::Tensor conics, torch::Tensor colors,
+                        torch::Tensor opacity, torch::Tensor cov2d, torch::Tensor depths, int64_t height,
+                        int64_t width, torch::Tensor background) {
+    return RasterizeGaussiansCPU::apply(xys, radii, conics, colors, opacity, cov2d, depths, height, width, background);
+}
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+    m.def("project", &project);
+    m.def("rasterize", &rasterize);
+}
+"""
+
+
+def build(source: Path):
+    """The peer as a torch extension module, or a reason it cannot be built."""
+    missing = [s for s in SOURCES if not (source / s).is_file()]
+    if missing:
+        return None, f"{source}: not an OpenSplat checkout (missing {', '.join(missing)})"
+    if shutil.which("g++") is None and shutil.which("c++") is None:
+        return None, "no C++ compiler (g++)"
+    try:
+        import ninja  # noqa: F401
+    except ImportError:
+        if shutil.which("ninja") is None:
+            return None, "ninja is missing (pip install ninja)"
+    from torch.utils.cpp_extension import load
+
+    build_dir = OUT / "build"
+    build_dir.mkdir(parents=True, exist_ok=True)
+    (build_dir / "binding.cpp").write_text(BINDING)
+    rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=source, capture_output=True, text=True)
+    try:
+        mod = load(name="opensplat_cpu_peer", sources=[str(build_dir / "binding.cpp")] + [str(source / s) for s in SOURCES],
+                   extra_include_paths=[str(source), str(source / "rasterizer")], extra_cflags=["-O3"],
+                   build_directory=str(build_dir), verbose=False)
+    except Exception as exc:  # a compiler error: say it and skip
+        return None, f"building the peer failed: {' '.join(str(exc).split())[:300]}"
+    return (mod, rev.stdout.strip() if rev.returncode == 0 else ""), None
+
+
+def projection(K: torch.Tensor, width: int, height: int) -> torch.Tensor:  # [4, 4], as model.cpp builds it
+    fx, fy = float(K[0, 0]), float(K[1, 1])
+    near, far = 0.001, 1000.0
+    t = near * (height / (2 * fy))
+    r = near * (width / (2 * fx))
+    return torch.tensor([[near / r, 0, 0, 0], [0, near / t, 0, 0],
+                         [0, 0, (far + near) / (far - near), -far * near / (far - near)], [0, 0, 1, 0]])
+
+
+def peer_step(mod, args, width: int, height: int) -> None:
+    """One forward+backward through the peer, as its model.cpp runs on CPU (SH degree 0)."""
+    means, quats, log_scales, logits, sh, viewmat, K = [a.detach().clone().requires_grad_(a.dim() > 1 and i < 5)
+                                                        for i, a in enumerate(args)]
+    logits.requires_grad_(True)
+    p = mod.project(means, log_scales.exp(), quats / quats.norm(dim=-1, keepdim=True), viewmat,
+                    projection(K, width, height) @ viewmat, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]),
+                    float(K[1, 2]), height, width)
+    xys, radii, conics, cov2d, depths = p
+    rgb = (SH_C0 * sh[:, 0, :] + 0.5).clamp_min(0.0)
+    img = mod.rasterize(xys, radii, conics, rgb, torch.sigmoid(logits), cov2d, depths, height, width, torch.zeros(3))
+    img.sum().backward()
+
+
+def ours_step(args, width: int, height: int) -> None:
+    a = [t.detach().clone().requires_grad_(i < 5) for i, t in enumerate(args)]
+    rasterize(*a, width, height).image.sum().backward()
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--source", default=os.environ.get("OPENSPLAT_SOURCE") or "",
+                    help="an OpenSplat checkout (or $OPENSPLAT_SOURCE)")
+    ap.add_argument("--rev", default="", help="the peer's commit, when the source is not a git checkout")
+    ap.add_argument("--threads", default="1,2")
+    ap.add_argument("--reps", type=int, default=5)
+    ap.add_argument("--only", default="", help="comma-separated workload names")
+    ap.add_argument("--no-write", action="store_true")
+    args = ap.parse_args()
+    if not args.source:
+        print("peers: skipped: no OpenSplat source (--source or $OPENSPLAT_SOURCE)")
+        return
+    built, why = build(Path(args.source))
+    if built is None:
+        print(f"peers: skipped: {why}")
+        return
+    mod, rev = built
+    rev = rev or args.rev or "unknown"
+    rows = []
+    load0 = os.getloadavg()[0]
+    for wl in workloads([x for x in args.only.split(",") if x] or None):
+        if wl.args[4].shape[1] != 1:  # the peer's path here is SH degree 0
+            continue
+        for nt in [int(x) for x in args.threads.split(",")]:
+            torch.set_num_threads(nt)
+            peer_step(mod, wl.args, wl.width, wl.height)  # warm-up, both
+            ours_step(wl.args, wl.width, wl.height)
+            tp, to = [], []
+            for _ in range(args.reps):  # alternating, rep by rep
+                t = time.perf_counter()
+                peer_step(mod, wl.args, wl.width, wl.height)
+                tp.append(time.perf_counter() - t)
+                t = time.perf_counter()
+                ours_step(wl.args, wl.width, wl.height)
+                to.append(time.perf_counter() - t)
+            p, o = statistics.median(tp), statistics.median(to)
+            rows.append((wl.name, nt, p, o))
+            print(f"{wl.name:20s} threads {nt}: OpenSplat {p * 1e3:8.1f} ms  splatcli {o * 1e3:8.1f} ms  "
+                  f"ratio {p / o:.2f}x", flush=True)
+    load1 = os.getloadavg()[0]
+    out = ["## Rasterizer against OpenSplat (same run)", "",
+           f"Measured by `python bench/peers.py --source OpenSplat` (OpenSplat commit {rev}, its CPU rasterizer "
+           f"built here against the pip wheel's libtorch; torch {torch.__version__}), on {os.cpu_count()} cores, "
+           f"load average {load0:.2f} at the start and {load1:.2f} at the end. Forward+backward, medians of "
+           f"{args.reps} reps after a warm-up, the two sides alternating rep by rep. The peer's CPU path blends "
+           "in a wrong depth order at this commit (a strided depth view read as contiguous), so its pictures "
+           "differ from ours; it is timed as users build it.", "",
+           "| workload | threads | OpenSplat ms | splatcli ms | splatcli is faster by |", "| --- | --- | --- | --- | --- |"]
+    out += [f"| {n} | {t} | {p * 1e3:.0f} | {o * 1e3:.0f} | {p / o:.2f}x |" for n, t, p, o in rows]
+    for nt in sorted({r[1] for r in rows}):
+        worst = min((p / o, n) for n, t, p, o in rows if t == nt)
+        out += ["", f"Goal (issue 12): at least 3x on every workload at {nt} thread(s): worst {worst[0]:.2f}x "
+                    f"({worst[1]}): {'met' if worst[0] >= 3 else 'NOT met'}."]
+    text = "\n".join(out) + "\n"
+    print(text)
+    if not args.no_write and rows:
+        write_section("## Rasterizer against OpenSplat (same run)", text)
+
+
+if __name__ == "__main__":
+    main()
