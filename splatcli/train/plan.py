@@ -28,7 +28,7 @@ MIN_REFINE_EVERY = 25  # steps between refinements, at least (or the template's,
 
 
 @dataclass
-class Plan:
+class TimePlan:
     budget_s: float
     template: dict[str, int]  # the preset's schedule, unscaled
     probe_s: float = 0.0  # training seconds measured before the first plan
@@ -37,8 +37,8 @@ class Plan:
     _mark: tuple[int, float] | None = None  # (step, elapsed) at the previous plan
 
     @staticmethod
-    def start(cfg: TrainConfig) -> "Plan":
-        return Plan(budget_s=float(cfg.time_budget), template={k: int(option(cfg, k)) for k in SCHEDULE},
+    def start(cfg: TrainConfig) -> "TimePlan":
+        return TimePlan(budget_s=float(cfg.time_budget), template={k: int(option(cfg, k)) for k in SCHEDULE},
                     probe_s=min(5.0, 0.05 * float(cfg.time_budget)))
 
     def scaled(self, cfg: TrainConfig, iterations: int) -> TrainConfig:
@@ -79,8 +79,8 @@ class Plan:
                 "history": list(self.history)}
 
     @staticmethod
-    def from_record(d: dict[str, Any]) -> "Plan":
-        p = Plan(budget_s=float(d["budget_s"]), template={k: int(v) for k, v in d["template"].items()},
+    def from_record(d: dict[str, Any]) -> "TimePlan":
+        p = TimePlan(budget_s=float(d["budget_s"]), template={k: int(v) for k, v in d["template"].items()},
                  probe_s=float(d["probe_s"]), history=list(d["history"]))
         if p.history:
             p._mark = (int(p.history[-1]["step"]), float(p.history[-1]["elapsed_s"]))

@@ -21,7 +21,7 @@ from ..gaussians import Gaussians
 from ..io.checkpoint import Checkpoint, save_checkpoint
 from ..strategy import CompactStep, Context, DefaultStrategy, ShAutoStep, Splats, Strategy, sh_degree_of
 from .config import TrainConfig
-from .plan import Plan
+from .plan import TimePlan
 
 
 @dataclass
@@ -37,7 +37,7 @@ class TrainState:
     bad_run: int = 0  # ... consecutive
     loss_acc: Tensor = field(default_factory=lambda: torch.zeros(2, dtype=torch.float64))  # [sum, count] since the last log line
     refine_acc: dict[str, int] = field(default_factory=dict)  # cloned / split / pruned since the last log line
-    plan: Plan | None = None  # --time-budget
+    plan: TimePlan | None = None  # --time-budget
 
     @property
     def params(self) -> dict[str, nn.Parameter]:
@@ -127,7 +127,7 @@ def new_state(g: Gaussians, cfg: TrainConfig, extent: float, device: torch.devic
     return TrainState(splats=splats, strategies=strategies, view_gen=view_gen,
                       perm=torch.randperm(n_train, generator=view_gen), pos=0,
                       loss_acc=torch.zeros(2, dtype=torch.float64, device=device),
-                      plan=Plan.start(cfg) if cfg.time_budget is not None else None)
+                      plan=TimePlan.start(cfg) if cfg.time_budget is not None else None)
 
 
 def save_state(path: Path, state: TrainState, cfg: TrainConfig) -> Path:
@@ -195,11 +195,11 @@ def state_from_checkpoint(ck: Checkpoint, cfg: TrainConfig, extent: float, devic
     )
 
 
-def _resumed_plan(cfg: TrainConfig, record: Any) -> Plan | None:
+def _resumed_plan(cfg: TrainConfig, record: Any) -> TimePlan | None:
     if cfg.time_budget is None:
         return None
     if isinstance(record, dict):
-        plan = Plan.from_record(record)
+        plan = TimePlan.from_record(record)
         plan.budget_s = float(cfg.time_budget)
         return plan
-    return Plan.start(cfg)
+    return TimePlan.start(cfg)
