@@ -146,6 +146,10 @@ def test_coarse_views_are_area_filtered_and_cameras_scaled(tmp_path):
     blocks = v.image.float().reshape(h.camera.height, 2, h.camera.width, 2, 3).mean(dim=(1, 3))
     assert torch.equal(h.image, blocks.round().to(torch.uint8))
     assert v.at_scale(0.5) is h and v.at_scale(1.0) is v  # cached; full scale is the view itself
+    assert v._scaled == {}  # ... and frees the coarse copy
+    q = v.at_scale(0.25)
+    v.at_scale(0.5)
+    assert list(v._scaled) == [0.5] and q.image.shape[0] == round(v.camera.height / 4)  # one level at a time
 
 
 def test_coarse_schedule_rises_to_full_resolution():

@@ -39,10 +39,14 @@ class TrainView:
 
     def at_scale(self, scale: float) -> "TrainView":
         """This view at `scale` times the training resolution (area-filtered image,
-        K scaled with the size; cached). Coarse-to-fine training renders these."""
+        K scaled with the size). Coarse-to-fine training renders these. One coarse level
+        is cached at a time, since the schedule only rises: at most 0.77x the images'
+        memory more (level 7/8), and none once training is at full resolution."""
         if scale >= 1.0:
+            self._scaled.clear()
             return self
         if scale not in self._scaled:
+            self._scaled.clear()
             cam = self.camera.scaled(scale)
             img = F.interpolate(self.image.permute(2, 0, 1)[None].to(torch.float32), size=(cam.height, cam.width),
                                 mode="area")[0].permute(1, 2, 0).round().clamp(0, 255).to(torch.uint8).contiguous()
