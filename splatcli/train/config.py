@@ -99,16 +99,14 @@ class TrainConfig:
     @staticmethod
     def from_dict(d: dict[str, Any]) -> "TrainConfig":
         """The stored form back (unknown keys ignored; flat option names accepted)."""
-        nested = {f.name: f.type for f in fields(TrainConfig) if f.name in _NESTED}
-        flat = {k: v for k, v in d.items() if k not in nested}
-        cfg = with_options(TrainConfig(), {k: v for k, v in flat.items() if k in OPTION_PATHS})
-        for name in nested:
-            sub = d.get(name)
-            if isinstance(sub, dict):
-                cls = type(getattr(cfg, name))
-                known = {f.name for f in fields(cls)}
-                cfg = replace(cfg, **{name: replace(getattr(cfg, name), **{k: v for k, v in sub.items() if k in known})})
-        return cfg
+        by_path = {path: name for name, path in OPTION_PATHS.items()}
+        opts: dict[str, Any] = {}
+        for k, v in d.items():
+            if k in _NESTED and isinstance(v, dict):
+                opts.update({by_path[(k, s)]: x for s, x in v.items() if (k, s) in by_path})
+            elif k in OPTION_PATHS:
+                opts[k] = v
+        return with_options(TrainConfig(), opts)
 
 
 _NESTED = {"strategy": "", "sh_auto": "sh_auto_", "compact": "compact_"}  # nested config -> option prefix

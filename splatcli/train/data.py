@@ -55,6 +55,13 @@ class TrainView:
         return self._scaled[scale]
 
 
+def subset(items: list, k: int) -> list:
+    """`k` evenly spaced items (all when k <= 0 or there are fewer)."""
+    if k <= 0 or len(items) <= k:
+        return list(items)
+    return [items[i] for i in np.linspace(0, len(items) - 1, k).round().astype(int)]
+
+
 @dataclass
 class TrainData:
     train: list[TrainView]
@@ -88,9 +95,7 @@ def load_train_data(
         test_names = [n for i, n in enumerate(names) if i % 8 == 0 and len(names) > 1]
     if not train_names:
         raise SplatError(f"{project.manifest_path}: the train split names no registered image")
-    if eval_max_views and len(test_names) > eval_max_views:
-        idx = np.linspace(0, len(test_names) - 1, eval_max_views).round().astype(int)
-        test_names = [test_names[i] for i in idx]
+    test_names = subset(test_names, eval_max_views)
 
     def view(name: str) -> TrainView:
         cam = by_name[name].at_resolution(downscale, max_size)

@@ -16,7 +16,6 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any, Iterator
 
-import numpy as np
 import torch
 from torch import Tensor
 
@@ -30,7 +29,7 @@ from ..render.weights import blending_weights
 from ..strategy import Context, StepInfo
 from . import log
 from .config import TrainConfig, TrainSummary, with_options
-from .data import TrainData, TrainView, load_train_data
+from .data import TrainData, TrainView, load_train_data, subset
 from .init import initial_gaussians
 from .loss import photometric_loss
 from .state import TrainState, make_strategies, means_lr, new_state, save_state, state_from_checkpoint
@@ -143,9 +142,11 @@ def _loop(project: Project, cfg: TrainConfig, data: TrainData, state: TrainState
             writer.refined(strategy.step_post_backward(state.splats, st, step, info))
         state.elapsed_s += time.perf_counter() - t1
         if state.plan is not None and state.plan.due(step, state.elapsed_s):
-            cfg = state.plan.replan(cfg, step, state.elapsed_s)
-            state.strategies = make_strategies(cfg, data.extent, ctx)
-            total = cfg.total_steps
+            planned = state.plan.replan(cfg, step, state.elapsed_s)
+            if planned is not None:  # the strategies' schedules follow the new plan
+                cfg = planned
+                state.strategies = make_strategies(cfg, data.extent, ctx)
+                total = cfg.total_steps
         evaluated = info.heldout
         if step == total:
             evaluated = _measure(cfg, data, state, step, total, force=True)
@@ -176,14 +177,6 @@ def _context(data: TrainData, box: list[TrainState], on_event: EventSink | None)
                                 ((v.viewmat, v.K, v.camera.width, v.camera.height) for v in data.train))
 
     return Context(score=score, weights=weights, note=lambda m: emit(on_event, Note(m)))
-
-
-def subset(views: list[TrainView], k: int) -> list[TrainView]:
-    """`k` evenly spaced views (all when k <= 0 or there are fewer)."""
-    if k <= 0 or len(views) <= k:
-        return list(views)
-    idx = np.linspace(0, len(views) - 1, k).round().astype(int)
-    return [views[i] for i in idx]
 
 
 def _interrupt(project: Project, cfg: TrainConfig, state: TrainState) -> None:

@@ -34,12 +34,11 @@ class TimePlan:
     probe_s: float = 0.0  # training seconds measured before the first plan
     replan_every: float = 0.1  # fraction of the budget between plans
     history: list[dict[str, Any]] = field(default_factory=list)  # one entry per plan
-    _mark: tuple[int, float] | None = None  # (step, elapsed) at the previous plan
 
     @staticmethod
     def start(cfg: TrainConfig) -> "TimePlan":
         return TimePlan(budget_s=float(cfg.time_budget), template={k: int(option(cfg, k)) for k in SCHEDULE},
-                    probe_s=min(5.0, 0.05 * float(cfg.time_budget)))
+                        probe_s=min(5.0, 0.05 * float(cfg.time_budget)))
 
     def scaled(self, cfg: TrainConfig, iterations: int) -> TrainConfig:
         """`cfg` with the template schedule scaled to `iterations` main steps. Refinement
@@ -56,14 +55,14 @@ class TimePlan:
         nxt = self.probe_s if not self.history else self.history[-1]["elapsed_s"] + self.replan_every * self.budget_s
         return elapsed >= nxt or elapsed >= self.budget_s
 
-    def replan(self, cfg: TrainConfig, step: int, elapsed: float) -> TrainConfig:
+    def replan(self, cfg: TrainConfig, step: int, elapsed: float) -> TrainConfig | None:
         """The schedule that ends the main steps when the budget is spent, at the speed of
-        the steps since the last plan; at once when it is spent already."""
-        s0, e0 = self._mark or (0, 0.0)
-        rate = (step - s0) / max(elapsed - e0, 1e-9)  # steps per training second, recently
-        self._mark = (step, elapsed)
-        if step >= cfg.iterations:  # the main schedule is over (a fine-tune may follow): nothing to plan
-            return cfg
+        the steps since the last plan; at once when it is spent already. None once the
+        main schedule is over (a fine-tune may follow): nothing is left to plan."""
+        if step >= cfg.iterations:
+            return None
+        last = self.history[-1] if self.history else {"step": 0, "elapsed_s": 0.0}
+        rate = (step - last["step"]) / max(elapsed - last["elapsed_s"], 1e-9)  # steps per training second, recently
         # The compaction fine-tune (if any) runs after the main steps at about the same speed.
         share = self.template["iterations"] / (self.template["iterations"] + (
             self.template["compact_finetune"] if cfg.compact.enabled else 0))
@@ -80,8 +79,5 @@ class TimePlan:
 
     @staticmethod
     def from_record(d: dict[str, Any]) -> "TimePlan":
-        p = TimePlan(budget_s=float(d["budget_s"]), template={k: int(v) for k, v in d["template"].items()},
-                 probe_s=float(d["probe_s"]), history=list(d["history"]))
-        if p.history:
-            p._mark = (int(p.history[-1]["step"]), float(p.history[-1]["elapsed_s"]))
-        return p
+        return TimePlan(budget_s=float(d["budget_s"]), template={k: int(v) for k, v in d["template"].items()},
+                        probe_s=float(d["probe_s"]), history=list(d["history"]))

@@ -15,6 +15,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..errors import SplatError
+from ..io.images import ImageError, read_image
 from ..io.transforms import read_transforms
 from ..project import Project
 from ..sfm.colmap import read_project_scene
@@ -69,13 +70,15 @@ def dataset_views(project: Project, split: str) -> list[View]:
 
 
 def _image_size(path: Path | None) -> tuple[int, int] | None:
-    """(width, height) of an image file, or None when it cannot be read."""
-    import cv2
-
+    """(width, height) of an image file as the one image loader reads it (oriented),
+    or None when it cannot be read."""
     if path is None or not path.is_file():
         return None
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    return None if img is None else (int(img.shape[1]), int(img.shape[0]))
+    try:
+        img, _, _ = read_image(path, orient=True)
+    except ImageError:
+        return None
+    return int(img.shape[1]), int(img.shape[0])
 
 
 def transforms_views(path: str | Path, *, notes: list[str] | None = None,
