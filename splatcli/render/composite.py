@@ -332,9 +332,10 @@ def _rowsel(x: Tensor, act: Tensor | None) -> Tensor:
     return x if act is None else x.index_select(0, act)
 
 
-def _terminate(act: Tensor | None, Tc: Tensor, *carry: Tensor):
-    """Early termination: drop the blocks whose every pixel has stopped blending."""
-    alive = Tc.amax(1) > 0
+def _terminate(act: Tensor | None, Tc: Tensor, more: Tensor, *carry: Tensor):
+    """Early termination: drop the blocks whose every pixel has stopped blending, and
+    those whose list has ended (`more` false): the rest of their slots are padding."""
+    alive = (Tc.amax(1) > 0) & more
     if bool(alive.all()):
         return act, Tc, carry
     act = torch.nonzero(alive).squeeze(1) if act is None else act[alive]
@@ -357,6 +358,7 @@ class _Composite(torch.autograd.Function):
         for bl, K in plan.chunks:
             gid, centre = _chunk_ids(plan, bl, K, N)
             centre = centre.to(dt)
+            cnt = plan.block_count.index_select(0, bl)  # [nb] list lengths
             out = None
             act, Tc = None, None
             k0 = 0
@@ -375,7 +377,7 @@ class _Composite(torch.autograd.Function):
                 else:
                     out.index_add_(0, act, o)
                 if k1 < K:
-                    act, Tc, _ = _terminate(act, U[:, :, -1])
+                    act, Tc, _ = _terminate(act, U[:, :, -1], _rowsel(cnt, act) > k1)
                     if act is not None and act.numel() == 0:
                         break
                 k0 = k1
@@ -406,6 +408,7 @@ class _Composite(torch.autograd.Function):
             centre = centre.to(dt)
             g4b, g4tb = g4.index_select(0, bl), g4t_all.index_select(0, bl).contiguous()  # [nb, 4, P], [nb, P, 4]
             base = base_all.index_select(0, bl)  # [nb, P]
+            cnt = plan.block_count.index_select(0, bl)  # [nb] list lengths
             act, Tc, pc = None, None, None
             k0 = 0
             while k0 < K:
@@ -432,7 +435,7 @@ class _Composite(torch.autograd.Function):
                 ds = torch.bmm(_rowsel(g4b, act), w)  # [na, 4, k]
                 dg.index_add_(0, sl.gid.reshape(-1), sl.grads(Rs, ds).reshape(-1, 10))
                 if k1 < K:
-                    act, Tc, (pc,) = _terminate(act, Tlast, pc)
+                    act, Tc, (pc,) = _terminate(act, Tlast, _rowsel(cnt, act) > k1, pc)
                     if act is not None and act.numel() == 0:
                         break
                 k0 = k1
