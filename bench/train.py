@@ -1,7 +1,7 @@
 """Training benchmark: speed against held-out error on real scenes, and what
 --compact and --max-gaussians cost.
 
-    .venv/bin/python bench/train.py [--scenes lego,fox,sample] [--variants default,compact,budget]
+    .venv/bin/python bench/train.py [--scenes lego,fox,fox-photos,sample] [--variants default,compact,budget]
                                     [--preset fast] [--iterations N] [--no-write]
 
 For each scene it processes the data once (bench/out/train/<scene>/base), then
@@ -21,6 +21,7 @@ bench/out/train/results.json and the "## train" section of docs/benchmarks.md.
 Scenes (../shared/data, or $SPLATCLI_DATA):
   lego    NeRF synthetic, trained at 200x200 on a white background, every 8th image held out
   fox     instant-ngp's fox, 50 photos, trained at ~270x480
+  fox-photos  the same photos without their poses (structure from motion at 400 px), trained at ~270x480
   sample  sample_data/scene (what `make demo` uses), --preset demo
 """
 
@@ -55,9 +56,12 @@ def data_dir() -> Path:
 SCENES = {
     "lego": (lambda: data_dir() / "lego", [], ["--max-size", "200"], None),
     "fox": (lambda: data_dir() / "fox", [], ["--max-size", "480"], None),
+    # the same 50 photos without their poses: structure from motion at 400 px (issue 12's "real capture")
+    "fox-photos": (lambda: data_dir() / "fox" / "images", ["--input-type", "images", "--max-size", "400"],
+                   ["--max-size", "480"], None),
     "sample": (lambda: REPO / "sample_data" / "scene", [], [], "demo"),
 }
-TIME_BUDGETS = {"lego": 75, "fox": 240, "sample": 60}  # seconds, for the `time` variant
+TIME_BUDGETS = {"lego": 75, "fox": 240, "fox-photos": 240, "sample": 60}  # seconds, for the `time` variant
 
 
 class RssSampler(threading.Thread):

@@ -18,8 +18,9 @@ class SplatError(Exception):
 
     def __init__(self, message: str, *, hint: str | None = None) -> None:
         message = " ".join(str(message).split())  # one line, always
-        if hint:
-            message = f"{message} ({' '.join(hint.split())})"
+        self.hint = " ".join(hint.split()) if hint else None  # also given alone to --json readers
+        if self.hint:
+            message = f"{message} ({self.hint})"
         super().__init__(message)
 
 
@@ -29,6 +30,11 @@ class NotReadyError(SplatError):
     def __init__(self, what: str, command: str) -> None:
         super().__init__(f"{what}; run `splatcli {command}` first")
         self.command = command
+        self.hint = f"run `splatcli {command}` first"
+
+
+class ProjectBusy(SplatError):
+    """Another command holds the project's writer lock."""
 
 
 class Interrupted(Exception):

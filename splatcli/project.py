@@ -11,25 +11,34 @@
       renders/<name>/  rendered PNGs and videos
       exports/         scene.ply, scene.splat
       reports/         eval.json, eval.md, train_log.jsonl, plots
+      .splatcli.lock   held (flock) by the one command writing the project
 
 Everyone else asks a `Project` for paths; no file name appears in two places.
 """
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import math
+import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
+
+try:
+    import fcntl
+except ImportError:  # Windows: no advisory locks; writer_lock is a no-op there
+    fcntl = None  # type: ignore[assignment]
 
 from . import __version__
-from .errors import NotReadyError, SplatError
+from .errors import NotReadyError, ProjectBusy, SplatError
 from .io.atomic import atomic_write_json, read_json_file
 
 SCHEMA_VERSION = 1
 MANIFEST_NAME = "splatcli.json"
+LOCK_NAME = ".splatcli.lock"
 FRAME_CONVENTION = "opencv"  # x right, y down, z forward; viewmat maps world to camera
 _CKPT_RE = re.compile(r"^step-(\d{9})\.pt$")
 
@@ -67,6 +76,7 @@ class Project:
     process_report_path = _at("reports", "process.json")
     eval_json_path = _at("reports", "eval.json")
     eval_md_path = _at("reports", "eval.md")
+    lock_path = _at(LOCK_NAME)
 
     def mask_path(self, image_name: str) -> Path:
         """The alpha mask of images/<image_name>: masks/<image_name>.png."""
@@ -244,6 +254,35 @@ def _check_manifest_fields(path: Path, data: dict[str, Any]) -> None:
         for k in ("config", "summary"):
             if k in step and not isinstance(step[k], dict):
                 raise bad(f"steps.{name}.{k}", step[k], "an object")
+
+
+@contextlib.contextmanager
+def writer_lock(root: str | Path, command: str) -> Iterator[None]:
+    """One writer per project: an exclusive `flock` on ROOT/.splatcli.lock while
+    `command` (process, train, export, eval) writes the project. The kernel drops the
+    lock when its process dies, so it never goes stale; a second writer is refused
+    at once with the holder's PID and command. Readers (render elsewhere) take no
+    lock: every file they read is replaced atomically. A no-op without `fcntl`."""
+    if fcntl is None:
+        yield
+        return
+    path = Project(Path(root)).lock_path
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as exc:
+        raise SplatError(f"{path}: cannot create the project lock ({exc.strerror or exc})") from exc
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 200, 0).decode("utf-8", "replace").strip() or "another process"
+            raise ProjectBusy(f"{root}: in use by {holder}; wait for it to end (one command writes a project "
+                              "at a time; render to another folder may run alongside)") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"PID {os.getpid()} (splatcli {command})\n".encode(), 0)
+        yield
+    finally:
+        os.close(fd)  # releases the lock
 
 
 def is_project(path: str | Path) -> bool:

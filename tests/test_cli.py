@@ -115,3 +115,38 @@ def test_json_is_one_object_on_stdout(capsys):
     out = capsys.readouterr().out
     assert json.loads(out) == {"a": 1, "b": [1.5]}
     assert out.count("\n") == 1
+
+
+def _json_error(r) -> dict:
+    lines = r.stdout.strip().splitlines()
+    assert len(lines) == 1, r.stdout  # one object, nothing else on stdout
+    return json.loads(lines[0])
+
+
+def test_json_failures_are_one_object_with_code_and_hint(monkeypatch, runner, tmp_path):
+    # bad input: exit 2, the same line as stderr, and the hint alone
+    r = runner.invoke(app, ["train", str(tmp_path / "nowhere"), "--json"])
+    assert r.exit_code == 2
+    d = _json_error(r)
+    assert set(d) == {"error", "exit_code", "hint"} and d["exit_code"] == 2
+    assert r.stderr.strip() == f"error: {d['error']}"
+    # a missing earlier step names the command to run
+    from tiny_project import make_tiny_project
+
+    proj = make_tiny_project(tmp_path / "p", trained=False, photos=False)
+    r = runner.invoke(app, ["export", str(proj.root), "--json"])
+    assert r.exit_code == 2 and _json_error(r)["hint"] == "run `splatcli train` first"
+    # usage errors too
+    r = runner.invoke(app, ["eval", str(proj.root), "--json", "--no-such-option"])
+    assert r.exit_code == 2 and _json_error(r)["exit_code"] == 2
+    # a crash is 1, never 2: scripts tell them apart by the code
+    import splatcli.project as project
+
+    monkeypatch.setattr(project.Project, "open", classmethod(lambda cls, root: (_ for _ in ()).throw(RuntimeError("x"))))
+    r = runner.invoke(app, ["train", str(tmp_path), "--json"])
+    assert r.exit_code == 1
+    d = _json_error(r)
+    assert d["exit_code"] == 1 and "--debug" in d["hint"]
+    # without --json, stdout stays empty on failure
+    r = runner.invoke(app, ["train", str(tmp_path)])
+    assert r.stdout == ""

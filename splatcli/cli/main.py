@@ -1,7 +1,8 @@
 """The `splatcli` entry point: the Typer app and the exit-code policy.
 
 Exit codes: 0 success; 2 bad input or usage (one line `error: ...` on stderr,
-no traceback unless --debug); 130 interrupted; 1 internal error.
+no traceback unless --debug); 130 interrupted; 1 internal error. With --json a
+failure also prints one object on stdout: {"error": ..., "exit_code": ..., "hint": ...}.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import os
 # wakes them); two jobs at once, 16.5 s each with 1 thread, 110-138 s with 2. One
 # thread is never far from the best and never collapses when jobs share the cores.
 os.environ.setdefault("OMP_NUM_THREADS", "1")
+import json
 import sys
 import traceback
 from typing import Any
@@ -42,14 +44,15 @@ class _Group(TyperGroup):
              standalone_mode: bool = True, **extra: Any) -> Any:  # noqa: D401
         argv = list(sys.argv[1:] if args is None else args)
         debug = "--debug" in argv or os.environ.get("SPLATCLI_DEBUG") == "1"
+        error: str | None = None  # the one line for stderr (and the --json object)
+        hint: str | None = None
         try:
             rv = super().main(args=argv, prog_name=prog_name or "splatcli", complete_var=complete_var,
                               standalone_mode=False, **extra)
         except typer.Exit as exc:  # --help, --version, typer.Exit
             code = exc.exit_code
         except typer.Abort:
-            sys.stderr.write("error: interrupted\n")
-            code = 130
+            error, code = "interrupted", 130
         except _cx.UsageError as exc:
             if type(exc).__name__ == "NoArgsIsHelpError":  # bare `splatcli` or `splatcli CMD`: show help
                 sys.stdout.write(exc.format_message() + "\n")
@@ -59,33 +62,32 @@ class _Group(TyperGroup):
                     sys.exit(code)
                 return code
             ctx = exc.ctx
-            where = f" (see `{ctx.command_path} --help`)" if ctx is not None else ""
-            sys.stderr.write(f"error: {_one_line(exc.format_message())}{where}\n")
+            hint = f"see `{ctx.command_path} --help`" if ctx is not None else None
+            error = _one_line(exc.format_message()) + (f" ({hint})" if hint else "")
             code = 2
         except _cx.ClickException as exc:
-            sys.stderr.write(f"error: {_one_line(exc.format_message())}\n")
-            code = 2
+            error, code = _one_line(exc.format_message()), 2
         except SplatError as exc:
             if debug:
                 traceback.print_exc()
-            sys.stderr.write(f"error: {_one_line(str(exc))}\n")
-            code = 2
+            error, code, hint = _one_line(str(exc)), 2, exc.hint
         except (KeyboardInterrupt, Interrupted) as exc:
-            msg = _one_line(str(exc)) if isinstance(exc, Interrupted) and str(exc) else "interrupted"
-            sys.stderr.write(f"error: {msg}\n")
+            error = _one_line(str(exc)) if isinstance(exc, Interrupted) and str(exc) else "interrupted"
             code = 130
         except Exception as exc:  # a bug: keep the message, hide the traceback unless asked
             if debug:
                 traceback.print_exc()
-            sys.stderr.write(
-                f"error: internal error: {type(exc).__name__}: {_one_line(str(exc))} (rerun with --debug for the traceback)\n"
-            )
-            code = 1
+            hint = "rerun with --debug for the traceback"
+            error, code = f"internal error: {type(exc).__name__}: {_one_line(str(exc))} ({hint})", 1
         else:
             # Not standalone, typer reports Ctrl-C by returning 130 instead of raising.
             code = rv if isinstance(rv, int) and not isinstance(rv, bool) else 0
             if code == 130:
-                sys.stderr.write("error: interrupted\n")
+                error = "interrupted"
+        if error is not None:
+            sys.stderr.write(f"error: {error}\n")
+            if "--json" in argv:  # scripts tell "bad input" (2) from "crash" (1) without reading English
+                sys.stdout.write(json.dumps({"error": error, "exit_code": code, "hint": hint}) + "\n")
         sys.stderr.flush()
         sys.stdout.flush()
         if standalone_mode:

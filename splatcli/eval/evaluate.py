@@ -20,6 +20,7 @@ sees (and the original 3DGS metrics script) are.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from dataclasses import asdict, dataclass
@@ -38,7 +39,7 @@ from ..io.atomic import atomic_write_json, atomic_write_text
 from ..io.images import load_rgb
 from ..io.model import load_model
 from ..io.ply import ply_bytes
-from ..project import Project
+from ..project import Project, writer_lock
 from ..render import render_camera
 from ..views.sources import SPLITS, View, dataset_views
 from .budgets import contributions, prune_to
@@ -200,7 +201,14 @@ def plan_eval(root: str | Path, config: EvalConfig, device: torch.device) -> Eva
 
 def run_eval(plan: EvalPlan, *, on_event: EventSink | None = None) -> EvalReport:
     """Score a plan (see module docstring) and write eval.json, eval.md and the
-    plots into `config.out` (default the project's reports/)."""
+    plots into `config.out` (default the project's reports/, under the project's
+    writer lock)."""
+    own = plan.config.write and plan.config.out is None
+    with writer_lock(plan.project.root, "eval") if own else contextlib.nullcontext():
+        return _run_eval(plan, on_event)
+
+
+def _run_eval(plan: EvalPlan, on_event: EventSink | None) -> EvalReport:
     project, config, g, views = plan.project, plan.config, plan.gaussians, plan.views
     step, model_name, notes, tsum = plan.step, plan.model_name, list(plan.notes), plan.train_summary
     downscale, max_size, bg_rgb = plan.downscale, plan.max_size, plan.background

@@ -19,7 +19,7 @@ import torch
 
 from ..errors import SplatError
 from ..events import EventSink, Note, Stage, StageDone, emit
-from ..project import Project
+from ..project import Project, writer_lock
 from .model import load_model
 from .ply import write_ply
 from .splat import write_splat
@@ -59,6 +59,11 @@ def export_project(root: str | os.PathLike, config: ExportConfig, *, on_event: E
     """Write the latest checkpoint of the project at `root` as .ply or .splat."""
     check_export_config(config)
     project = Project.open(root)
+    with writer_lock(project.root, "export"):
+        return _export(project, config, on_event)
+
+
+def _export(project: Project, config: ExportConfig, on_event: EventSink | None) -> ExportResult:
     m = load_model(project.root, torch.device("cpu"))
     g, ck_path, step = m.gaussians, m.path, m.step
     out = Path(config.out) if config.out is not None else project.export_path(config.format)

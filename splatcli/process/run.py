@@ -30,7 +30,7 @@ from typing import Any, Iterator
 
 from ..errors import Interrupted, SplatError
 from ..events import EventSink, Stages
-from ..project import Project, is_project
+from ..project import LOCK_NAME, Project, is_project, writer_lock
 from ..sfm import colmap
 from .capture import from_capture
 from .config import ProcessConfig, ProcessResult, check_config
@@ -51,7 +51,7 @@ def _check_output(root: Path, spec: InputSpec, overwrite: bool) -> None:
         q = Path(os.path.abspath(p))
         if q == r or r in q.parents:
             raise SplatError(f"{root}: the output folder holds the input ({p}); choose another -o")
-    if not root.is_dir() or not any(p.name != STAGE_DIR for p in root.iterdir()):
+    if not root.is_dir() or not any(p.name not in (STAGE_DIR, LOCK_NAME) for p in root.iterdir()):
         return
     if not is_project(root):
         if not overwrite:
@@ -113,6 +113,17 @@ def _process(spec: InputSpec, root: Path, cfg: ProcessConfig, background: tuple[
     stage = root / STAGE_DIR
     root.mkdir(parents=True, exist_ok=True)
     try:
+        with writer_lock(root, "process"):
+            return _stage_and_publish(spec, root, stage, cfg, background, run, t_start)
+    except BaseException:
+        if created:
+            shutil.rmtree(root, ignore_errors=True)
+        raise
+
+
+def _stage_and_publish(spec: InputSpec, root: Path, stage: Path, cfg: ProcessConfig,
+                       background: tuple[float, float, float] | None, run: Stages, t_start: float) -> ProcessResult:
+    try:
         if stage.exists():
             shutil.rmtree(stage)  # left by an interrupted run: never reuse its database
         stage.mkdir()
@@ -125,8 +136,6 @@ def _process(spec: InputSpec, root: Path, cfg: ProcessConfig, background: tuple[
         result = publish(root, stage, spec, cfg, ds, run, t_start)
     except BaseException as exc:
         shutil.rmtree(stage, ignore_errors=True)
-        if created:
-            shutil.rmtree(root, ignore_errors=True)
         if isinstance(exc, OSError):  # disk full, permissions: the user's to fix, not a bug
             raise SplatError(f"{exc.filename or root}: {exc.strerror or exc}") from exc
         raise

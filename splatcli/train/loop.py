@@ -23,7 +23,7 @@ from ..errors import Interrupted, TrainingDiverged
 from ..eval.metrics import psnr, ssim
 from ..events import EventSink, Note, Progress, Stage, StageDone, emit
 from ..io.checkpoint import load_checkpoint
-from ..project import Project
+from ..project import Project, writer_lock
 from ..render import RenderOutput, rasterize
 from ..render.weights import blending_weights
 from ..strategy import Context, StepInfo
@@ -51,6 +51,12 @@ def train(
     `make_config` takes them), applied on top of a resumed run's stored config.
     SIGINT/SIGTERM: checkpoint, raise Interrupted."""
     project = Project.open(project_dir)
+    with writer_lock(project.root, "train"):
+        return _train(project, cfg, device, resume, overrides, on_event)
+
+
+def _train(project: Project, cfg: TrainConfig, device: torch.device, resume: bool,
+           overrides: dict[str, Any] | None, on_event: EventSink | None) -> TrainSummary:
     project.require_processed()
     resumed_from = None
     ck = None
