@@ -43,7 +43,8 @@ bench: setup
 	$(BIN)/python bench/peers.py --source "$(OPENSPLAT_SOURCE)"
 	$(BIN)/python bench/process.py
 	$(BIN)/python bench/train.py
-	$(BIN)/python bench/versus.py --against $(BASELINE) --scenes lego,fox
+	$(BIN)/python bench/versus.py --against $(BASELINE) --scenes lego,fox,fox-photos
+	$(BIN)/python bench/step.py bench/out/versus/lego/this_version
 
 clean:
 	rm -rf $(VENV) $(DEMO) *.egg-info

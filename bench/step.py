@@ -1,0 +1,124 @@
+"""Where one training step goes: projection, planning, compositing, loss, backward.
+
+    .venv/bin/python bench/step.py PROJECT [--max-size 200] [--scales 0.25,0.5,1] [--views 12]
+                                           [--fractions 0.25,0.5,1] [--no-write]
+
+PROJECT is a trained project (its latest checkpoint is the model; e.g. one that
+bench/versus.py or bench/train.py left under bench/out/). For each share of the
+Gaussians (a seeded random subset) and each resolution (a fraction of the trained
+size, as coarse-to-fine renders), it times the stages of a training step on the
+first training views, one torch thread, and prints medians in ms. The backward is
+split by running it in three parts: the loss, the compositor and the projection.
+Results go to the "## Where a training step goes" section of docs/benchmarks.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import torch  # noqa: E402
+
+from _doc import write_section  # noqa: E402  (bench/ is on sys.path when run as a script)
+from splatcli.io.checkpoint import load_checkpoint  # noqa: E402
+from splatcli.project import Project  # noqa: E402
+from splatcli.render.composite import choose_block, composite, make_plan  # noqa: E402
+from splatcli.render.project import project, tile_rect  # noqa: E402
+from splatcli.train.data import load_train_data  # noqa: E402
+from splatcli.train.loss import photometric_loss  # noqa: E402
+
+STAGES = ("project", "plan", "composite", "loss", "loss bwd", "composite bwd", "project bwd")
+NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh")
+
+
+def step_times(p: dict, view, bg) -> tuple[dict, int]:
+    """One step's stages (seconds) and its (Gaussian, block) pair count."""
+    t, out = time.perf_counter(), {}
+    W, H = view.camera.width, view.camera.height
+
+    def lap(name):
+        nonlocal t
+        now = time.perf_counter()
+        out[name] = now - t
+        t = now
+
+    pr = project(*(p[k] for k in NAMES), view.viewmat, view.K, W, H, 3)
+    lap("project")
+    rect = tile_rect(pr.means2d, pr.radii, W, H)
+    vis = pr.valid & (rect[:, 2] > rect[:, 0]) & (rect[:, 3] > rect[:, 1])
+    plan = make_plan(pr.means2d, pr.cov2d, pr.conics, pr.opacities, pr.depths, rect, vis, W, H,
+                     choose_block(pr.cov2d, pr.opacities, vis, W, H))
+    lap("plan")
+    mid = [x.detach().requires_grad_(True) for x in (pr.means2d, pr.conics, pr.opacities, pr.colors, pr.depths)]
+    img = composite(plan, *mid, bg)[0]
+    lap("composite")
+    leaf = img.detach().requires_grad_(True)
+    loss = photometric_loss(leaf, view.target(), 0.2)
+    lap("loss")
+    loss.backward()
+    lap("loss bwd")
+    grads = torch.autograd.grad(img, mid, leaf.grad)
+    lap("composite bwd")
+    torch.autograd.backward([pr.means2d, pr.conics, pr.opacities, pr.colors, pr.depths], list(grads))
+    lap("project bwd")
+    return out, plan.n_pairs
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("project")
+    ap.add_argument("--max-size", type=int, default=200)
+    ap.add_argument("--scales", default="0.25,0.5,1")
+    ap.add_argument("--fractions", default="0.25,0.5,1", help="shares of the model's Gaussians")
+    ap.add_argument("--views", type=int, default=12)
+    ap.add_argument("--no-write", action="store_true")
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    dev = torch.device("cpu")
+    proj = Project.open(args.project)
+    data = load_train_data(proj, 1.0, args.max_size, dev, 0)
+    g = load_checkpoint(proj.latest_checkpoint(), dev).gaussians
+    full = {k: getattr(g, k).detach() for k in NAMES}
+    n_all = len(full["means"])
+    load0 = os.getloadavg()[0]
+    rows = []
+    for frac in [float(x) for x in args.fractions.split(",")]:
+        n = max(1, round(frac * n_all))
+        idx = torch.randperm(n_all, generator=torch.Generator().manual_seed(0))[:n]
+        p = {k: v[idx].clone().requires_grad_(True) for k, v in full.items()}
+        for scale in [float(x) for x in args.scales.split(",")]:
+            views = [v.at_scale(scale) for v in data.train[: args.views + 2]]
+            runs, pairs = [], []
+            for i, v in enumerate(views):
+                st, m = step_times(p, v, data.background)
+                if i >= 2:  # two warm-ups
+                    runs.append(st)
+                    pairs.append(m)
+            med = {k: 1e3 * statistics.median(r[k] for r in runs) for k in STAGES}
+            rows.append((n, f"{views[0].camera.width}x{views[0].camera.height}", statistics.median(pairs), med))
+            print(f"N {n:7d}  {rows[-1][1]:>9s}  " + "  ".join(f"{k} {med[k]:.1f}" for k in STAGES)
+                  + f"  total {sum(med.values()):.1f} ms", flush=True)
+    load1 = os.getloadavg()[0]
+    out = ["## Where a training step goes", "",
+           f"Measured by `python bench/step.py {args.project} --max-size {args.max_size}` (one torch thread; medians "
+           f"over {args.views} training views after 2 warm-ups; load average {load0:.2f} at the start, {load1:.2f} at "
+           "the end). Milliseconds per stage of one training step; *pairs* are (Gaussian, block) pairs planned.", "",
+           "| Gaussians | image | pairs | " + " | ".join(STAGES) + " | total |",
+           "| ---: | --- | ---: | " + " | ".join("---:" for _ in STAGES) + " | ---: |"]
+    for n, size, m, med in rows:
+        out.append(f"| {n:,} | {size} | {m:,.0f} | " + " | ".join(f"{med[k]:.1f}" for k in STAGES)
+                   + f" | {sum(med.values()):.1f} |")
+    text = "\n".join(out) + "\n"
+    if not args.no_write:
+        write_section("## Where a training step goes", text)
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
