@@ -317,3 +317,39 @@ def test_images_left_out_by_sequential_matching_are_matched_with_every_image(sce
     assert res.matcher == "sequential+exhaustive" and res.unregistered == []
     assert any("left 8 image(s) out" in n.message for n in notes if isinstance(n, Note))
     assert res.num_pairs < len(names) * (len(names) - 1) // 2  # never all pairs
+
+
+def test_strict_refuses_unreadable_images_in_one_line(scene, tmp_path):
+    """--strict: a truncated and a zero-byte photo are an error naming them; nothing is created."""
+    src = tmp_path / "capture"
+    shutil.copytree(scene / "images", src)
+    data = (src / "000.jpg").read_bytes()
+    (src / "zzz_cut.jpg").write_bytes(data[: len(data) // 2])
+    (src / "zzz_empty.jpg").write_bytes(b"")
+    r = run_cli("process", src, "-o", tmp_path / "p", "--strict")
+    assert_user_error(r, "2 unreadable input(s) and --strict", "zzz_cut.jpg", "zzz_empty.jpg", alone=False)
+    assert not (tmp_path / "p").exists()
+
+
+def _truncated_video(path: Path, frames: int = 30) -> Path:
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10, (64, 48))
+    for i in range(frames):
+        img = np.full((48, 64, 3), 8 * i, np.uint8)
+        cv2.circle(img, (10 + i, 20), 5, (255, 255, 255), -1)
+        w.write(img)
+    w.release()
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])  # the second half of the frames is gone
+    return path
+
+
+def test_truncated_video_frames_are_listed_and_strict_refuses_them(tmp_path):
+    from splatcli.process.video import extract_frames
+
+    clip = _truncated_video(tmp_path / "clip.avi")
+    fr = extract_frames(clip, tmp_path / "frames", every_fps=None, num_frames=10, max_size=None)
+    assert fr.names and fr.unreadable  # some frames decoded, the lost ones listed
+    assert not set(fr.unreadable) & {int(n[6:12]) for n in fr.names}
+    r = run_cli("process", clip, "-o", tmp_path / "p", "--strict", "--num-frames", "10")
+    assert_user_error(r, f"{len(fr.unreadable)} unreadable input(s) and --strict", "could not be decoded", alone=False)
+    assert not (tmp_path / "p").exists()

@@ -24,6 +24,7 @@ def process(
     num_frames: int = typer.Option(_D.num_frames, "--num-frames", help="Video: frames to extract, evenly spaced (without --fps)."),
     background: str = typer.Option("auto", "--background", help="auto (white for RGBA inputs, else black), white, black, gray or R,G,B in [0, 1]."),
     overwrite: bool = typer.Option(_D.overwrite, "--overwrite", help="Replace an existing project (or use a non-empty folder)."),
+    strict: bool = typer.Option(_D.strict, "--strict", help="Fail on an unreadable, truncated or empty image or video frame (default: skip it with a warning; the manifest lists it)."),
     seed: int = SeedOpt,
     quiet: bool = QuietOpt,
     json_out: bool = JsonOpt,
@@ -33,7 +34,8 @@ def process(
     ui = Ui(quiet=quiet, json_out=json_out)
     colmap.set_verbose(debug)
     cfg = ProcessConfig(input_type=input_type, max_size=max_size, matcher=matcher, fps=fps, num_frames=num_frames,
-                        background=parse_background(background, auto=True), overwrite=overwrite, seed=seed)
+                        background=parse_background(background, auto=True), overwrite=overwrite, seed=seed,
+                        strict=strict)
     with ui.progress() as sink:
         r = run_process(input, output, cfg, on_event=sink)
     lines = [f"{r.train} train / {r.test} test images, {r.points} points"

@@ -11,7 +11,7 @@ from ..io.images import IMAGE_EXTS, StagedImage, fit_size, list_folder
 from ..project import Project
 from ..sfm.reconstruct import SfmOptions, run_sfm
 from .config import MIN_IMAGES, ProcessConfig
-from .dataset import Dataset, finish_model, stage_images
+from .dataset import Dataset, finish_model, refuse_if_strict, stage_images
 from .detect import InputSpec
 from .video import extract_frames
 
@@ -48,7 +48,12 @@ def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
                 on_progress=lambda k, n: s.progress(k, n),
             )
         dropped = len(frames.dropped)
+        skipped = [f"frame {i}: could not be decoded (corrupt or truncated video)" for i in frames.unreadable]
+        refuse_if_strict(spec.path, skipped, cfg.strict)
         run.note(f"extracted {frames.sampled} of {frames.total_frames} frames; dropped {dropped} blurry frame(s)")
+        if skipped:
+            shown = ", ".join(str(i) for i in frames.unreadable[:10]) + (", ..." if len(skipped) > 10 else "")
+            run.note(f"skipped {len(skipped)} frame(s) that could not be decoded: {shown}", "warning")
         if len(frames.names) < MIN_IMAGES:
             raise SplatError(f"{spec.path}: only {len(frames.names)} usable frame(s); need at least {MIN_IMAGES}")
         w, h = frames.width, frames.height
@@ -60,6 +65,7 @@ def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
             raise SplatError(f"{spec.images_dir}: no images found (looked for {', '.join(IMAGE_EXTS)})")
         staged, bad = stage_images(list(zip(files, safe_names([p.name for p in files]))), work, run,
                                     background=background, orient=True)
+        refuse_if_strict(spec.images_dir, bad, cfg.strict)
         skipped = bad
         if len(staged) < MIN_IMAGES:  # before the notes: a failed run says one line
             why = f" ({'; '.join(bad[:3])})" if bad else ""
@@ -71,7 +77,7 @@ def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
             shown = ", ".join(p.name for p in others[:5]) + (", ..." if len(others) > 5 else "")
             run.note(f"skipped {len(others)} file(s) that are not images: {shown}")
         for b in bad:
-            run.note(f"skipped {b}")
+            run.note(f"skipped {b}", "warning")
     names = [s.name for s in staged]
     sizes = {(s.width, s.height) for s in staged}
     if len(sizes) > 1:

@@ -28,6 +28,7 @@ class ProcessConfig:
     sequential_overlap: int = 5  # neighbours each image is matched with (plus 2^k further ones)
     blur_ratio: float = 0.6  # video: drop frames less sharp than this x their neighbours' median
     num_threads: int = -1  # -1: all cores
+    strict: bool = False  # an unreadable image or video frame is an error instead of a skipped input
 
 
 @dataclass

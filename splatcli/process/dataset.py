@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import SplatError
 from ..events import Stages
 from ..io.images import ImageError, StagedImage, stage_image, write_image
 from ..project import Project
@@ -37,6 +38,13 @@ class Dataset:
     model_sizes: list[int] = field(default_factory=list)
     unregistered: list[str] = field(default_factory=list)
     dropped_blurry: int = 0
+
+
+def refuse_if_strict(where: Path | str, skipped: list[str], strict: bool) -> None:
+    """--strict: any unreadable image or video frame is an error naming the first few."""
+    if strict and skipped:
+        shown = "; ".join(skipped[:3]) + (f"; and {len(skipped) - 3} more" if len(skipped) > 3 else "")
+        raise SplatError(f"{where}: {len(skipped)} unreadable input(s) and --strict: {shown}")
 
 
 def stage_images(files: list[tuple[Path, str]], work: Path, run: Stages, *,

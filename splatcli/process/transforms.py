@@ -14,7 +14,7 @@ from ..project import Project
 from ..sfm import colmap
 from ..sfm.colmap import CameraSpec
 from .config import ProcessConfig
-from .dataset import Dataset, finish_model, stage_images
+from .dataset import Dataset, finish_model, refuse_if_strict, stage_images
 from .detect import InputSpec
 
 
@@ -27,6 +27,7 @@ def from_transforms(spec: InputSpec, stage: Path, cfg: ProcessConfig,
     frames = {f.name: f for f in scene.frames}
     staged, bad = stage_images([(f.source, f.name) for f in scene.frames], work, run, background=background,
                                 orient=False)
+    refuse_if_strict(spec.transforms, bad, cfg.strict)
     if not staged:
         raise SplatError(f"{spec.transforms}: none of the listed images could be read ({bad[0]})")
     specs = []

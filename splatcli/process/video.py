@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -24,6 +24,7 @@ class VideoFrames:
     total_frames: int  # frames in the video
     sampled: int  # frames taken before dropping blurry ones
     dropped: list[str]  # names of the frames dropped as blurry (deleted)
+    unreadable: list[int] = field(default_factory=list)  # wanted frame indices that could not be decoded
 
 
 def is_video_name(path: Path) -> bool:
@@ -94,12 +95,16 @@ def extract_frames(path: Path, out_dir: Path, *, every_fps: float | None, num_fr
     scores: list[float] = []
     size = (0, 0)
     idx = 0
+    failed: list[int] = []
     while idx <= wanted[-1]:
-        if not cap.grab():
+        if not cap.grab():  # a truncated file ends early: the rest of the wanted frames are lost
+            failed += [i for i in wanted if i >= idx]
             break
         if idx in want:
             ok, img = cap.retrieve()
-            if ok and img is not None and img.size:
+            if not (ok and img is not None and img.size):
+                failed.append(idx)
+            else:
                 w, h = fit_size(img.shape[1], img.shape[0], max_size)
                 if (w, h) != (img.shape[1], img.shape[0]):
                     img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
@@ -120,5 +125,5 @@ def extract_frames(path: Path, out_dir: Path, *, every_fps: float | None, num_fr
     names = [n for i, n in enumerate(written) if i not in drop]
     return VideoFrames(
         names=names, width=size[0], height=size[1], fps=fps, total_frames=total, sampled=len(written),
-        dropped=[written[i] for i in sorted(drop)],
+        dropped=[written[i] for i in sorted(drop)], unreadable=failed,
     )

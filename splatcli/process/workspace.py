@@ -11,7 +11,7 @@ from ..project import Project
 from ..sfm import colmap
 from ..sfm.colmap_files import check_image_name, check_model
 from .config import ProcessConfig
-from .dataset import Dataset, finish_model, stage_images
+from .dataset import Dataset, finish_model, refuse_if_strict, stage_images
 from .detect import InputSpec
 
 
@@ -42,6 +42,7 @@ def from_colmap(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: tu
     sizes = model.camera_sizes()
     staged, bad = stage_images([(spec.images_dir / n, n) for n in present], work, run, background=background,
                                 orient=False, expect=sizes)
+    refuse_if_strict(spec.images_dir, bad, cfg.strict)
     if not staged:  # before the warnings: a failed run says one line
         raise SplatError(f"{spec.images_dir}: none of the model's images could be read ({bad[0]})")
     if missing:
