@@ -19,19 +19,21 @@ from typing import Any, Iterator
 import torch
 from torch import Tensor
 
-from ..errors import Interrupted, TrainingDiverged
+from ..errors import Interrupted, SplatError, TrainingDiverged
 from ..eval.metrics import psnr, ssim
 from ..events import EventSink, Note, Progress, Stage, StageDone, emit
 from ..io.checkpoint import load_checkpoint
 from ..project import Project, writer_lock
 from ..render import RenderOutput, rasterize
 from ..render.weights import blending_weights
+from ..sfm.colmap import read_project_scene
 from ..strategy import Context, StepInfo
 from . import log
 from .config import TrainConfig, TrainSummary, with_options
 from .data import TrainData, TrainView, load_train_data, subset
 from .init import initial_gaussians
 from .loss import photometric_loss
+from .memory import check_memory, is_out_of_memory, plan_memory
 from .state import TrainState, make_strategies, means_lr, new_state, save_state, state_from_checkpoint
 
 STAGE = "train"
@@ -76,6 +78,12 @@ def _train(project: Project, cfg: TrainConfig, device: torch.device, resume: boo
             resumed_from = ck.step
     # Reading the scene imports pycolmap, whose glog installs its own SIGTERM handler:
     # ours goes in after it.
+    if device.type == "cpu":  # a run that cannot fit stops here, before loading anything
+        cams = [c.at_resolution(cfg.downscale, cfg.max_size) for c in read_project_scene(project).cameras]
+        facts = project.manifest().get("scene") or {}
+        init = len(ck.gaussians) if ck is not None else int(facts.get("num_points") or cfg.init_random_points)
+        check_memory(plan_memory(cams, init, cfg.strategy.max_gaussians), cfg.max_size,
+                     max((max(c.width, c.height) for c in cams), default=0))
     data = load_train_data(project, cfg.downscale, cfg.max_size, device, cfg.eval_max_views)
     box: list[TrainState] = []
     ctx = _context(data, box, on_event)
@@ -113,12 +121,17 @@ def _loop(project: Project, cfg: TrainConfig, data: TrainData, state: TrainState
         t0 = time.perf_counter()
         state.optimizers["means"].param_groups[0]["lr"] = means_lr(cfg, step, data.extent)
         view = data.train[state.next_view(len(data.train))].at_scale(cfg.train_scale(step))
-        out = render_view(state, view, data.background, state.active_sh_degree(step, cfg.sh_degree_interval))
-        info = StepInfo(out, view.camera.width, view.camera.height)
-        for strategy, st in zip(state.strategies, state.splats.states):
-            strategy.step_pre_backward(state.splats, st, step, info)
-        loss = photometric_loss(out.image, view.target(), cfg.lambda_dssim)
-        loss.backward()
+        try:
+            out = render_view(state, view, data.background, state.active_sh_degree(step, cfg.sh_degree_interval))
+            info = StepInfo(out, view.camera.width, view.camera.height)
+            for strategy, st in zip(state.strategies, state.splats.states):
+                strategy.step_pre_backward(state.splats, st, step, info)
+            loss = photometric_loss(out.image, view.target(), cfg.lambda_dssim)
+            loss.backward()
+        except Exception as exc:  # nothing is updated yet: the state is the last whole step
+            if not is_out_of_memory(exc):
+                raise
+            raise _out_of_memory(project, cfg, state, step, exc, save=True) from None
         info.finite = _all_finite(loss, state)
         if info.finite:
             for opt in state.optimizers.values():
@@ -144,8 +157,13 @@ def _loop(project: Project, cfg: TrainConfig, data: TrainData, state: TrainState
         # its last refinement. Evaluation is not training time.
         info.heldout = _measure(cfg, data, state, step, total, force=step == cfg.iterations < total)
         t1 = time.perf_counter()
-        for strategy, st in zip(state.strategies, state.splats.states):
-            writer.refined(strategy.step_post_backward(state.splats, st, step, info))
+        try:
+            for strategy, st in zip(state.strategies, state.splats.states):
+                writer.refined(strategy.step_post_backward(state.splats, st, step, info))
+        except Exception as exc:  # mid-refinement the state may be half edited: keep the last checkpoint
+            if not is_out_of_memory(exc):
+                raise
+            raise _out_of_memory(project, cfg, state, step, exc, save=False) from None
         state.elapsed_s += time.perf_counter() - t1
         if state.plan is not None and state.plan.due(step, state.elapsed_s):
             planned = state.plan.replan(cfg, step, state.elapsed_s)
@@ -191,6 +209,24 @@ def _interrupt(project: Project, cfg: TrainConfig, state: TrainState) -> None:
     log.prune_checkpoints(project, cfg.keep_checkpoints)
     raise Interrupted(f"interrupted at step {state.step}; saved {path}; "
                       f"continue with `splatcli train {project.root} --resume`")
+
+
+def _out_of_memory(project: Project, cfg: TrainConfig, state: TrainState, step: int, exc: BaseException,
+                   save: bool) -> SplatError:
+    """Keep what there is and say what to change (exit 2, never a traceback)."""
+    for opt in state.optimizers.values():
+        opt.zero_grad(set_to_none=True)  # frees the gradients before writing
+    path = None
+    if save and state.step > 0:
+        try:
+            path = save_state(project.checkpoint_path(state.step), state, cfg)
+        except (OSError, SplatError, RuntimeError, MemoryError):
+            path = None
+    path = path or project.latest_checkpoint()
+    kept = f"the last good checkpoint is {path}" if path else "no checkpoint was written yet"
+    return SplatError(f"out of memory at step {step} with {len(state.splats):,} Gaussians "
+                      f"({type(exc).__name__}); {kept}",
+                      hint=f"lower --max-size or set --max-gaussians, then `splatcli train {project.root} --resume`")
 
 
 def _all_finite(loss: Tensor, state: TrainState) -> bool:  # loss: [] scalar

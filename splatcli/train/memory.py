@@ -1,0 +1,131 @@
+"""Memory: a plan before training, not a kill during it.
+
+`check_memory` estimates what a run will add to this process (the cached images and
+the Gaussians with their gradients, Adam moments and per-step buffers) and compares
+it with what this process may still take: the cgroup limit (containers, batch
+schedulers), RLIMIT_AS (`ulimit -v`) and the kernel's MemAvailable. A run that cannot
+fit stops before loading anything, in one line that names a setting that would fit.
+`is_out_of_memory` recognises the allocation errors a run can still meet (the loop
+then keeps its last whole step and exits 2 with the same advice).
+"""
+
+from __future__ import annotations
+
+import math
+import resource
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from ..camera import Camera
+from ..errors import SplatError
+
+# Bytes per Gaussian over a run: parameters (59 floats), their gradients and two Adam
+# moments (4 x 236 B), strategy rows, and the per-step projection and compositing
+# buffers that grow with the count. RSS grew by 2.7-3.2 KB per Gaussian while lego
+# and fox densified (docs/benchmarks.md, "Memory over the run"); rounded up.
+BYTES_PER_GAUSSIAN = 3584
+# A cached training image is uint8 RGB; a coarse-to-fine level adds at most 0.77x.
+IMAGE_FACTOR = 1.8
+# Without --max-gaussians, densification is assumed to reach this many Gaussians per
+# pixel of one training image (lego at 200 px: 2.2, fox at 480 px: 1.2, the fast preset).
+GAUSSIANS_PER_PIXEL = 2.5
+
+
+@dataclass(frozen=True)
+class MemoryPlan:
+    need: int  # bytes the run adds
+    images: int  # of which the cached images
+    gaussians: int  # the Gaussian count assumed
+    budgeted: bool  # the count is --max-gaussians (else an estimate)
+    free: int | None  # bytes this process may still take (None: unknown)
+    limit: str  # what bounds `free`
+
+
+def _read_int(path: Path) -> int | None:
+    try:
+        text = path.read_text().split()[0]
+    except (OSError, IndexError):
+        return None
+    return int(text) if text.isdigit() else None  # "max": no limit
+
+
+def _cgroup_free() -> int | None:
+    """memory.max - memory.current of this process's cgroup (v2, or v1's names)."""
+    try:
+        rel = next((ln.split(":", 2)[2].strip() for ln in Path("/proc/self/cgroup").read_text().splitlines()
+                    if ln.startswith("0::")), None)
+    except OSError:
+        rel = None
+    for base, lim, cur in ((Path("/sys/fs/cgroup") / (rel or "/").lstrip("/"), "memory.max", "memory.current"),
+                           (Path("/sys/fs/cgroup"), "memory.max", "memory.current"),
+                           (Path("/sys/fs/cgroup/memory"), "memory.limit_in_bytes", "memory.usage_in_bytes")):
+        limit, used = _read_int(base / lim), _read_int(base / cur)
+        if limit is not None and used is not None and limit < 1 << 60:
+            return max(0, limit - used)
+    return None
+
+
+def _rlimit_free() -> int | None:
+    soft = resource.getrlimit(resource.RLIMIT_AS)[0]
+    if soft == resource.RLIM_INFINITY:
+        return None
+    try:
+        vm = next(int(ln.split()[1]) * 1024 for ln in Path("/proc/self/status").read_text().splitlines()
+                  if ln.startswith("VmSize:"))
+    except (OSError, StopIteration):
+        return None
+    return max(0, soft - vm)
+
+
+def _available() -> int | None:
+    try:
+        return next(int(ln.split()[1]) * 1024 for ln in Path("/proc/meminfo").read_text().splitlines()
+                    if ln.startswith("MemAvailable:"))
+    except (OSError, StopIteration):
+        return None
+
+
+def free_memory() -> tuple[int | None, str]:
+    """Bytes this process may still allocate, and which limit says so."""
+    found = [(v, name) for v, name in ((_cgroup_free(), "the cgroup's memory limit"),
+                                       (_rlimit_free(), "RLIMIT_AS (ulimit -v)"),
+                                       (_available(), "available RAM")) if v is not None]
+    return min(found) if found else (None, "unknown")
+
+
+def plan_memory(cameras: list[Camera], init_count: int, max_gaussians: int | None) -> MemoryPlan:
+    """The bytes a run on these cameras (at the training resolution) adds."""
+    pixels = [c.width * c.height for c in cameras]
+    images = int(IMAGE_FACTOR * 3 * sum(pixels))
+    if max_gaussians is not None:
+        n, budgeted = max(int(max_gaussians), init_count), True
+    else:
+        n, budgeted = max(init_count, int(GAUSSIANS_PER_PIXEL * max(pixels, default=0))), False
+    free, limit = free_memory()
+    return MemoryPlan(images + n * BYTES_PER_GAUSSIAN, images, n, budgeted, free, limit)
+
+
+def check_memory(plan: MemoryPlan, max_size: int, longest: int) -> None:
+    """Refuse a run that cannot fit, naming a --max-gaussians or --max-size that would."""
+    if plan.free is None or plan.need <= plan.free:
+        return
+    gb = lambda b: f"{b / 2**30:.1f} GB"  # noqa: E731
+    what = f"{plan.gaussians:,} Gaussians" + ("" if plan.budgeted else " (estimated; no --max-gaussians)")
+    room = plan.free - plan.images
+    if room >= 20_000 * BYTES_PER_GAUSSIAN:
+        fix = f"--max-gaussians {room // BYTES_PER_GAUSSIAN // 1000 * 1000}"
+    else:  # the images nearly fill it: half of what is free for smaller images, half for the Gaussians
+        side = max(16, int(longest * math.sqrt(0.5 * plan.free / max(plan.images, 1))))
+        fix = f"--max-size {min(side, max_size)} and --max-gaussians {max(1000, plan.free // 2 // BYTES_PER_GAUSSIAN // 1000 * 1000)}"
+    raise SplatError(f"training needs about {gb(plan.need)} ({what} and {gb(plan.images)} of images) but "
+                     f"{plan.limit} leaves {gb(plan.free)}; try {fix}")
+
+
+def is_out_of_memory(exc: BaseException) -> bool:
+    """An allocation failure (CPU or CUDA), not another error."""
+    if isinstance(exc, (MemoryError, torch.OutOfMemoryError)):
+        return True
+    msg = str(exc)
+    return isinstance(exc, RuntimeError) and ("can't allocate memory" in msg or "out of memory" in msg.lower())
