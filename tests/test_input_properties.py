@@ -244,3 +244,104 @@ def test_manifest_random_json(data) -> None:
             assert "\n" not in str(e), str(e)
         finally:
             shutil.rmtree(root)
+
+
+# ---- the stored train config (checkpoints carry it; --resume reads it) ----------------
+
+from splatcli.train.config import OPTION_PATHS, TrainConfig  # noqa: E402
+
+CONFIG_VALUES = (st.none() | st.booleans() | st.integers(-3, 5) | st.integers(-2**70, 2**70)
+                 | st.floats(allow_nan=True, allow_infinity=True) | st.text(max_size=6)
+                 | st.lists(st.integers(), max_size=2) | st.dictionaries(st.text(max_size=3), st.integers(), max_size=2))
+
+
+@SETTINGS
+@given(st.dictionaries(st.sampled_from(sorted(OPTION_PATHS) + ["strategy", "compact", "sh_auto"]), CONFIG_VALUES,
+                       max_size=6))
+def test_stored_train_config_random_values(d: dict) -> None:
+    """Garbled values either give a config the loop can run with, or one line naming the key."""
+    try:
+        cfg = TrainConfig.from_dict(d, where="CKPT: stored train config")
+    except SplatError as e:
+        msg = str(e)
+        assert "\n" not in msg and msg.startswith("CKPT: stored train config"), msg
+        return
+    assert cfg.iterations >= 1 and cfg.strategy.refine_every >= 1 and cfg.checkpoint_every >= 1 and cfg.log_every >= 1
+    assert cfg.sh_degree == "auto" or 0 <= int(cfg.sh_degree) <= 3
+    assert cfg.train_scale(1) > 0  # the schedule evaluates
+
+
+# ---- images (train, eval and render read photos through io.images.load_rgb) -----------
+
+import resource  # noqa: E402
+import time  # noqa: E402
+
+import cv2  # noqa: E402
+
+from splatcli.io.images import load_rgb  # noqa: E402
+
+
+def _image_corpus() -> dict[str, bytes]:
+    """Small files of every kind we read, made here, plus real photos from ../shared/data."""
+    rng = np.random.default_rng(0)
+    img = cv2.GaussianBlur(rng.integers(0, 255, (40, 56, 3), dtype=np.uint8), (5, 5), 1)
+    out = {
+        "rgb.png": cv2.imencode(".png", img)[1].tobytes(),
+        "rgba.png": cv2.imencode(".png", np.dstack([img, img[..., 0]]))[1].tobytes(),
+        "grey16.png": cv2.imencode(".png", (img[..., 0].astype(np.uint16) * 257))[1].tobytes(),
+        "photo.jpg": cv2.imencode(".jpg", img)[1].tobytes(),
+    }
+    data = Path(__file__).resolve().parents[2] / "shared" / "data"
+    for src in (data / "lego" / "train" / "r_0.png", data / "fox" / "images" / "0001.jpg"):
+        if src.is_file():
+            out[f"real{src.suffix}"] = src.read_bytes()
+    return out
+
+
+IMAGES = _image_corpus()
+
+
+def _load_image(name: str, data: bytes) -> None:
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / name
+        p.write_bytes(data)
+        t0 = time.monotonic()
+        try:
+            img = load_rgb(p, None, (1.0, 1.0, 1.0))
+        except SplatError as e:
+            _one_line_error(e, p)
+        else:
+            assert img.dtype == np.uint8 and img.ndim == 3 and img.shape[2] == 3
+        assert time.monotonic() - t0 < 10.0, "no input may hang a reader"
+
+
+@SETTINGS
+@given(name=st.sampled_from(sorted(IMAGES)), frac=st.floats(0, 1))
+def test_image_truncations(name: str, frac: float) -> None:
+    data = IMAGES[name]
+    _load_image(name, data[: int(len(data) * frac)])
+
+
+@SETTINGS
+@given(name=st.sampled_from(sorted(IMAGES)),
+       muts=st.lists(st.tuples(st.floats(0, 1, exclude_max=True), st.integers(0, 255)), min_size=1, max_size=8))
+def test_image_byte_mutations(name: str, muts: list[tuple[float, int]]) -> None:
+    data = bytearray(IMAGES[name])
+    for pos, val in muts:
+        data[int(pos * len(data))] = val
+    _load_image(name, bytes(data))
+
+
+@pytest.mark.parametrize("w,h", [(65535, 65535), (1, 2**31 - 1), (2**31 - 1, 2**31 - 1)])
+def test_image_with_a_lying_header_is_refused_without_allocating(w: int, h: int) -> None:
+    """A PNG whose header claims gigapixels: refused from the header, memory stays small."""
+    import struct
+    import zlib
+
+    data = bytearray(IMAGES["rgb.png"])
+    ihdr = data.index(b"IHDR")
+    data[ihdr + 4: ihdr + 12] = struct.pack(">II", w, h)
+    data[ihdr + 17: ihdr + 21] = struct.pack(">I", zlib.crc32(bytes(data[ihdr: ihdr + 17])))
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    _load_image("big.png", bytes(data))
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before < 200 * 1024  # KB: under 200 MB more

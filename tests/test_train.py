@@ -274,3 +274,29 @@ def test_time_budget_plans_a_compressed_schedule(tmp_path):
     assert cfg["strategy"]["refine_every"] == max(25, round(100 * ratio))  # never below 25 steps
     assert cfg["strategy"]["refine_stop"] == max(1, round(2000 * ratio))
     assert cfg["sh_degree_interval"] == max(1, round(600 * ratio))
+
+
+@pytest.mark.parametrize("key,value", [("refine_every", 0), ("iterations", "many"), ("sh_degree", "seven"),
+                                       ("checkpoint_every", -1), ("lr_means", float("nan"))])
+def test_resume_from_a_checkpoint_with_a_garbled_config_is_one_line(tmp_path, key, value):
+    """The stored train config is read like any other input: exit 2 naming the file and key."""
+    from splatcli.io.checkpoint import save_checkpoint
+
+    proj = make_tiny_project(tmp_path / "p", trained=False, photos=False)
+    proj.update_manifest(scene={**proj.manifest()["scene"], "bounds_min": [-1.0] * 3, "bounds_max": [1.0] * 3})
+    args = ["train", str(proj.root), "--max-gaussians", "150", "--eval-every", "0", "--quiet", "--device", "cpu"]
+    assert CliRunner().invoke(app, [*args, "--iterations", "3"]).exit_code == 0
+    path = proj.latest_checkpoint()
+    ck = load_checkpoint(path)
+    cfg = dict(ck.config)
+    if key in cfg:
+        cfg[key] = value
+    else:
+        cfg["strategy"] = {**cfg["strategy"], key: value}
+    save_checkpoint(path, step=ck.step, gaussians=ck.gaussians, sh_degree=ck.sh_degree, optimizer=ck.optimizer,
+                    strategy=ck.strategy, rng=ck.rng, config=cfg, extra=ck.extra)
+    r = CliRunner().invoke(app, [*args, "--resume", "--iterations", "5"])
+    assert r.exit_code == 2, r.output
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and str(path) in lines[0], r.stderr
+    assert key in lines[0] or key.replace("_", "-") in lines[0], r.stderr

@@ -97,8 +97,10 @@ class TrainConfig:
         return asdict(self)
 
     @staticmethod
-    def from_dict(d: dict[str, Any]) -> "TrainConfig":
-        """The stored form back (unknown keys ignored; flat option names accepted)."""
+    def from_dict(d: dict[str, Any], where: str = "stored train config") -> "TrainConfig":
+        """The stored form back (unknown keys ignored; flat option names accepted). A
+        value of the wrong type or out of range (a damaged or hand-edited file) is a
+        one-line SplatError naming `where` and the key."""
         by_path = {path: name for name, path in OPTION_PATHS.items()}
         opts: dict[str, Any] = {}
         for k, v in d.items():
@@ -106,7 +108,16 @@ class TrainConfig:
                 opts.update({by_path[(k, s)]: x for s, x in v.items() if (k, s) in by_path})
             elif k in OPTION_PATHS:
                 opts[k] = v
-        return with_options(TrainConfig(), opts)
+        for k, v in opts.items():
+            if not _type_ok(v, OPTION_TYPES[k]):
+                shown = " ".join(repr(v).split())[:40]
+                raise SplatError(f"{where}: {k} is {shown}, expected {OPTION_TYPES[k]}")
+        cfg = with_options(TrainConfig(), opts)
+        try:
+            _check(cfg)
+        except SplatError as exc:
+            raise SplatError(f"{where}: {exc}") from None
+        return cfg
 
 
 _NESTED = {"strategy": "", "sh_auto": "sh_auto_", "compact": "compact_"}  # nested config -> option prefix
@@ -127,6 +138,35 @@ def _option_paths() -> dict[str, tuple[str, ...]]:
 
 
 OPTION_PATHS = _option_paths()
+
+
+def _option_types() -> dict[str, str]:
+    """Each flat option's annotation, as written in the dataclasses ("int | None", ...)."""
+    types: dict[str, str] = {}
+    for name, path in OPTION_PATHS.items():
+        owner: Any = TrainConfig
+        for part in path[:-1]:
+            owner = {f.name: f for f in fields(owner)}[part].default_factory  # type: ignore[union-attr]
+        types[name] = str({f.name: f for f in fields(owner)}[path[-1]].type)
+    return types
+
+
+OPTION_TYPES = _option_types()
+
+
+def _type_ok(v: Any, annotation: str) -> bool:
+    kinds = {k.strip() for k in annotation.split("|")}
+    if v is None:
+        return "None" in kinds
+    if isinstance(v, bool):
+        return "bool" in kinds
+    if isinstance(v, int):
+        return bool(kinds & {"int", "float"})
+    if isinstance(v, float):
+        return "float" in kinds and math.isfinite(v)
+    if isinstance(v, str):
+        return "str" in kinds
+    return False
 
 
 def with_options(cfg: TrainConfig, options: dict[str, Any]) -> TrainConfig:
@@ -194,7 +234,20 @@ def make_config(preset: str = "default", **options: Any) -> TrainConfig:
     return cfg
 
 
+# Counts that must be at least 1 / at least 0 (flat option names).
+_AT_LEAST_1 = ("sh_degree_interval", "log_every", "checkpoint_every", "keep_checkpoints", "refine_every",
+               "reset_every", "split_samples", "init_knn", "compact_rounds", "sh_auto_val_views")
+_AT_LEAST_0 = ("eval_max_views", "init_random_points", "refine_start", "refine_stop", "compact_finetune",
+               "max_bad_steps")
+
+
 def _check(cfg: TrainConfig) -> None:
+    if isinstance(cfg.sh_degree, str) and cfg.sh_degree != "auto":
+        raise SplatError(f"--sh-degree {cfg.sh_degree!r}: expected 0, 1, 2, 3 or auto")
+    for name in _AT_LEAST_1 + _AT_LEAST_0:
+        v, low = option(cfg, name), 1 if name in _AT_LEAST_1 else 0
+        if not isinstance(v, int) or v < low:
+            raise SplatError(f"{name} {v!r}: must be a whole number of at least {low}")
     if cfg.time_budget is not None and not (math.isfinite(cfg.time_budget) and cfg.time_budget > 0):
         raise SplatError(f"--time-budget {cfg.time_budget}: must be a positive number of seconds")
     if cfg.iterations < 1:

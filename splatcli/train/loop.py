@@ -68,7 +68,7 @@ def _train(project: Project, cfg: TrainConfig, device: torch.device, resume: boo
             emit(on_event, Note("--resume: no checkpoint yet; starting a new run", "warning"))
         else:
             ck = load_checkpoint(path, device)
-            stored = TrainConfig.from_dict(ck.config)
+            stored = TrainConfig.from_dict(ck.config, where=f"{path}: stored train config")
             new = with_options(stored, overrides or {})
             if new.compact.enabled and not stored.compact.enabled:
                 # --compact added on resume brings its own settings (this version's),
