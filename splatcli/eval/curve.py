@@ -22,6 +22,7 @@ class TrainLogLine:
     ssim: float | None = None
     bad_steps: int = 0  # non-finite steps skipped so far
     rss_mb: int | None = None  # the process's resident memory now (flat once densification stops)
+    open_fds: int | None = None  # the process's open file descriptors now (flat: nothing leaks)
     cloned: int = 0  # Gaussians cloned, split and pruned since the previous line
     split: int = 0
     pruned: int = 0

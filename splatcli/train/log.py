@@ -69,6 +69,7 @@ class LogWriter:
         rec = TrainLogLine(step=step, elapsed_s=round(state.elapsed_s, 4),
                            loss=float("nan") if loss is None else round(loss, 6),
                            num_gaussians=state.num_gaussians, bad_steps=state.bad_steps, rss_mb=rss_mb(),
+                           open_fds=open_fds(),
                            **{k: state.refine_acc.get(k, 0) for k in REFINED})
         if evaluated is not None:
             rec.psnr, rec.ssim = round(evaluated[0], 4), round(evaluated[1], 5)
@@ -109,6 +110,14 @@ def rss_mb() -> int | None:
         with open("/proc/self/statm") as f:
             return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") // (1 << 20)
     except (OSError, ValueError, IndexError):
+        return None
+
+
+def open_fds() -> int | None:
+    """Open file descriptors of this process (Linux /proc; None elsewhere)."""
+    try:
+        return len(os.listdir("/proc/self/fd"))
+    except OSError:
         return None
 
 
