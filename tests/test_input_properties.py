@@ -345,3 +345,35 @@ def test_image_with_a_lying_header_is_refused_without_allocating(w: int, h: int)
     before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     _load_image("big.png", bytes(data))
     assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before < 200 * 1024  # KB: under 200 MB more
+
+
+# ---- real transforms files, mutated (skipped where ../shared/data is absent) -------------
+
+REAL_TRANSFORMS = [p for p in (Path(__file__).resolve().parents[2] / "shared" / "data" / "fox" / "transforms.json",
+                               Path(__file__).resolve().parents[2] / "shared" / "data" / "lego" / "transforms_train.json")
+                   if p.is_file()]
+
+
+@pytest.mark.skipif(not REAL_TRANSFORMS, reason="../shared/data (real captures) is absent")
+@SETTINGS
+@given(which=st.integers(0, 1), muts=st.lists(st.tuples(st.floats(0, 1, exclude_max=True), st.integers(0, 255)),
+                                               min_size=1, max_size=6), cut=st.floats(0.2, 1))
+def test_real_transforms_mutated_in_both_uses(which: int, muts: list[tuple[float, int]], cut: float) -> None:
+    """Byte mutations and truncations of real transforms files, through the reader as
+    `process` uses it and as `render --cameras` does: loaded, or one line naming the file."""
+    from splatcli.views.sources import transforms_views
+
+    src = REAL_TRANSFORMS[which % len(REAL_TRANSFORMS)]
+    data = bytearray(src.read_bytes())
+    for pos, val in muts:
+        data[int(pos * len(data))] = val
+    with tempfile.TemporaryDirectory() as d:
+        tf = Path(d) / src.name
+        tf.write_bytes(bytes(data[: max(1, int(len(data) * cut))]))
+        for read in (lambda: read_transforms(tf, images=False), lambda: transforms_views(tf, default_size=(32, 24))):
+            t0 = time.monotonic()
+            try:
+                read()
+            except SplatError as e:
+                _one_line_error(e, tf)
+            assert time.monotonic() - t0 < 10.0
