@@ -28,7 +28,7 @@ import time
 from pathlib import Path
 from typing import Any, Iterator
 
-from ..errors import Interrupted, SplatError
+from ..errors import Interrupted, ProjectBusy, SplatError
 from ..events import EventSink, Stages
 from ..project import LOCK_NAME, Project, is_project, writer_lock
 from ..sfm import colmap
@@ -115,6 +115,8 @@ def _process(spec: InputSpec, root: Path, cfg: ProcessConfig, background: tuple[
     try:
         with writer_lock(root, "process"):
             return _stage_and_publish(spec, root, stage, cfg, background, run, t_start)
+    except ProjectBusy:  # another process is writing there: its folder is not ours to remove
+        raise
     except BaseException:
         if created:
             shutil.rmtree(root, ignore_errors=True)
