@@ -75,6 +75,8 @@ between runs; ratios within one run are the reliable part). fwd / fwd+bwd in ms.
 | 11 | `torch.compile` (inductor, CPU) of the per-chunk forward kernel | [64, 64, 64] chunk | 7.8 vs 30 ns/element for the same naive eager code, but 45 s to compile and 5.5 s per new shape (dynamic=True); the tuned eager kernel runs at about 2 ns/element in isolation | no |
 | 12 | textbook flattened formulation (see the line above the table) | 10k, 256^2 | see above | no (baseline) |
 | 13 | 2 torch threads while the cores are oversubscribed | 10k, 256^2 | 6x more CPU time than 1 thread (OpenMP workers spin) | measure 1 thread; use 2 on idle cores |
+| 14 | a block also leaves the segment loop when its list has ended, not only when its pixels saturate (before, a chunk padded every block to its longest list, and short lists ran to the end on padding: at 50 px one chunk held 169 blocks padded to K = 4,365 for 89k pairs) | lego checkpoint, 36.6k Gaussians, 12 training views at 50 / 100 / 200 px, block 4, before -> after, consecutive runs | composite fwd 84 -> 34, 61 -> 28, 61 -> 43; backward (loss included) 224 -> 115, 187 -> 102, 192 -> 148; whole fwd+bwd step at 9.1k Gaussians 119 -> 62 (50 px), 122 -> 94 (200 px) | yes (issue 12) |
+| 15 | glibc keeps freed memory (`mallopt`: mmap threshold 32 MB, trim threshold 1 GB) instead of page-faulting each segment's fresh tensors in again | compositor alone, fresh process / whole `train` runs | 1.4x faster compositor in a short microbenchmark; `train --preset fast --iterations 400` on lego: 71.8 and 68.8 s default, 70.2 and 73.5 s tuned (alternating): no gain, since a long run's dynamic mmap threshold already adapts | no |
 """
 
 
