@@ -257,12 +257,15 @@ def _check_manifest_fields(path: Path, data: dict[str, Any]) -> None:
 
 
 @contextlib.contextmanager
-def writer_lock(root: str | Path, command: str) -> Iterator[None]:
-    """One writer per project: an exclusive `flock` on ROOT/.splatcli.lock while
-    `command` (process, train, export, eval) writes the project. The kernel drops the
-    lock when its process dies, so it never goes stale; a second writer is refused
-    at once with the holder's PID and command. Readers (render elsewhere) take no
-    lock: every file they read is replaced atomically. A no-op without `fcntl`."""
+def writer_lock(root: str | Path, command: str, *, shared: bool = False) -> Iterator[None]:
+    """One writer per project: a `flock` on ROOT/.splatcli.lock while `command` writes
+    the project. process and train rewrite the dataset and the model: they hold it
+    exclusively. export and eval only add files derived from the model (`shared`): they
+    may run beside each other (a Makefile's `-j` runs them together), never beside
+    process or train. The kernel drops the lock when its process dies, so it never goes
+    stale; a conflicting writer is refused at once with the holder's PID and command.
+    Readers (render elsewhere) take no lock: every file they read is replaced
+    atomically. A no-op without `fcntl`."""
     if fcntl is None:
         yield
         return
@@ -273,16 +276,36 @@ def writer_lock(root: str | Path, command: str) -> Iterator[None]:
         raise SplatError(f"{path}: cannot create the project lock ({exc.strerror or exc})") from exc
     try:
         try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            fcntl.flock(fd, (fcntl.LOCK_SH if shared else fcntl.LOCK_EX) | fcntl.LOCK_NB)
         except BlockingIOError:
-            holder = os.pread(fd, 200, 0).decode("utf-8", "replace").strip() or "another process"
-            raise ProjectBusy(f"{root}: in use by {holder}; wait for it to end (one command writes a project "
-                              "at a time; render to another folder may run alongside)") from None
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"PID {os.getpid()} (splatcli {command})\n".encode(), 0)
+            holder = " and ".join(_live_holders(os.pread(fd, 4096, 0).decode("utf-8", "replace"))) or "another process"
+            raise ProjectBusy(f"{root}: in use by {holder}; wait for it to end (process and train need the "
+                              "project to themselves; export and eval may run together)") from None
+        line = f"PID {os.getpid()} (splatcli {command})\n".encode()
+        if shared:  # beside other shared holders: each adds its line
+            os.pwrite(fd, line, os.fstat(fd).st_size)
+        else:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, line, 0)
         yield
     finally:
         os.close(fd)  # releases the lock
+
+
+def _live_holders(text: str) -> list[str]:
+    """The lock file's "PID n (splatcli cmd)" lines whose process still runs."""
+    out = []
+    for line in text.splitlines():
+        m = re.match(r"PID (\d+) \(", line)
+        if m:
+            try:
+                os.kill(int(m.group(1)), 0)
+            except ProcessLookupError:
+                continue
+            except OSError:  # alive, another user's
+                pass
+            out.append(line.strip())
+    return out[-2:]
 
 
 def is_project(path: str | Path) -> bool:

@@ -34,7 +34,7 @@ from splatcli.cli.main import app
 from splatcli.io.checkpoint import CHECKPOINT_SCHEMA
 from splatcli.io.ply import gaussians_to_rows, ply_header, ply_property_names
 from splatcli.io.atomic import MAX_JSON_BYTES
-from splatcli.project import MANIFEST_NAME, SCHEMA_VERSION, Project
+from splatcli.project import LOCK_NAME, MANIFEST_NAME, SCHEMA_VERSION, Project
 
 from test_sfm import gl_c2w, jpeg_bytes, texture, with_exif_orientation
 from tiny_project import make_tiny_project, ring_cameras, tiny_gaussians
@@ -49,8 +49,8 @@ def cli(*args: object):
 
 
 def snapshot(*roots: Path) -> dict[str, tuple[str, int]]:
-    """Every file under `roots`: sha256 of its bytes and its mtime (ns); every folder
-    by its name only (a failed run may create and remove a temp folder inside)."""
+    """Every file under `roots` (but the writer lock): sha256 of its bytes and its mtime
+    (ns); every folder by its name only (a failed run may create and remove a temp folder inside)."""
     out: dict[str, tuple[str, int]] = {}
     for root in roots:
         root = Path(root)
@@ -60,6 +60,8 @@ def snapshot(*roots: Path) -> dict[str, tuple[str, int]]:
         for p in found:
             if p.is_dir():
                 out[str(p)] = ("folder", 0)
+                continue
+            if p.name == LOCK_NAME:  # the writer lock is not project content
                 continue
             h = hashlib.sha256()
             with open(p, "rb") as f:

@@ -48,6 +48,17 @@ def test_a_second_writer_is_refused_in_one_line_naming_the_holder(tmp_path):
     assert proj.export_path("ply").is_file()
 
 
+def test_export_and_eval_share_but_never_with_train(tmp_path):
+    """A Makefile's -j runs export and eval of one project together: they only add
+    files derived from the model. Neither may run beside train, nor train beside them."""
+    proj = make_tiny_project(tmp_path / "p")
+    with writer_lock(proj.root, "eval", shared=True):
+        r = _run("export", str(proj.root))
+        assert r.returncode == 0, r.stderr
+        r = _run("train", str(proj.root), "--iterations", "2", "--device", "cpu")
+        assert r.returncode == 2 and f"in use by PID {os.getpid()} (splatcli eval)" in r.stderr, r.stderr
+
+
 def test_readers_run_alongside_a_writer(tmp_path):
     proj = make_tiny_project(tmp_path / "p")
     with writer_lock(proj.root, "train"):

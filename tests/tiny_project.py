@@ -19,7 +19,7 @@ from splatcli.camera import Camera
 from splatcli.gaussians import Gaussians
 from splatcli.io.checkpoint import save_checkpoint
 from splatcli.io.ply import ply_bytes
-from splatcli.project import Project
+from splatcli.project import LOCK_NAME, Project
 from splatcli.render import rasterize
 from splatcli.views.paths import look_at
 
@@ -136,6 +136,7 @@ def assert_user_error(result, *fragments: str, alone: bool = True) -> None:
 
 
 def snapshot(root: Path) -> dict[str, tuple[int, int]]:
-    """Every file under `root` with its size and mtime: to prove nothing changed."""
+    """Every file under `root` with its size and mtime: to prove nothing changed. The
+    writer lock (`.splatcli.lock`, held while a command runs) is not project content."""
     return {str(p.relative_to(root)): (p.stat().st_size, p.stat().st_mtime_ns)
-            for p in sorted(Path(root).rglob("*")) if p.is_file()}
+            for p in sorted(Path(root).rglob("*")) if p.is_file() and p.name != LOCK_NAME}

@@ -204,7 +204,7 @@ def run_eval(plan: EvalPlan, *, on_event: EventSink | None = None) -> EvalReport
     plots into `config.out` (default the project's reports/, under the project's
     writer lock)."""
     own = plan.config.write and plan.config.out is None
-    with writer_lock(plan.project.root, "eval") if own else contextlib.nullcontext():
+    with writer_lock(plan.project.root, "eval", shared=True) if own else contextlib.nullcontext():
         return _run_eval(plan, on_event)
 
 

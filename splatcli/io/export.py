@@ -59,7 +59,7 @@ def export_project(root: str | os.PathLike, config: ExportConfig, *, on_event: E
     """Write the latest checkpoint of the project at `root` as .ply or .splat."""
     check_export_config(config)
     project = Project.open(root)
-    with writer_lock(project.root, "export"):
+    with writer_lock(project.root, "export", shared=True):
         return _export(project, config, on_event)
 
 
