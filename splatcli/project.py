@@ -141,11 +141,10 @@ class Project:
         """Open an existing project, checking it is one and of a schema we read."""
         root = Path(root)
         if not root.exists():
-            raise SplatError(f"{root}: no such project directory; run `splatcli process INPUT -o {root}` first")
+            raise SplatError(f"{root}: no such project directory", hint=f"run `splatcli process INPUT -o {root}` first")
         if not root.is_dir() or not (root / MANIFEST_NAME).is_file():
-            raise SplatError(
-                f"{root}: not a splatcli project (no {MANIFEST_NAME}); run `splatcli process INPUT -o {root}` first"
-            )
+            raise SplatError(f"{root}: not a splatcli project (no {MANIFEST_NAME})",
+                             hint=f"run `splatcli process INPUT -o {root}` first")
         proj = cls(root)
         proj.manifest()  # validates
         return proj
@@ -279,8 +278,8 @@ def writer_lock(root: str | Path, command: str, *, shared: bool = False) -> Iter
             fcntl.flock(fd, (fcntl.LOCK_SH if shared else fcntl.LOCK_EX) | fcntl.LOCK_NB)
         except BlockingIOError:
             holder = " and ".join(_live_holders(os.pread(fd, 4096, 0).decode("utf-8", "replace"))) or "another process"
-            raise ProjectBusy(f"{root}: in use by {holder}; wait for it to end (process and train need the "
-                              "project to themselves; export and eval may run together)") from None
+            raise ProjectBusy(f"{root}: in use by {holder}", hint="wait for it to end; process and train need the "
+                              "project to themselves, export and eval may run together") from None
         line = f"PID {os.getpid()} (splatcli {command})\n".encode()
         if shared:  # beside other shared holders: each adds its line
             os.pwrite(fd, line, os.fstat(fd).st_size)
