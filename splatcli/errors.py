@@ -28,9 +28,10 @@ class NotReadyError(SplatError):
     """A command needs the output of an earlier one that has not run."""
 
     def __init__(self, what: str, command: str) -> None:
-        super().__init__(f"{what}; run `splatcli {command}` first")
+        hint = f"run `splatcli {command}` first"
+        super().__init__(f"{what}; {hint}")
         self.command = command
-        self.hint = f"run `splatcli {command}` first"
+        self.hint = hint  # kept in the message as "; ...", not in parentheses
 
 
 class ProjectBusy(SplatError):

@@ -11,7 +11,7 @@
       renders/<name>/  rendered PNGs and videos
       exports/         scene.ply, scene.splat
       reports/         eval.json, eval.md, train_log.jsonl, plots
-      .splatcli.lock   held (flock) by the one command writing the project
+      .splatcli.lock   the writer lock (flock): process/train alone, export/eval shared
 
 Everyone else asks a `Project` for paths; no file name appears in two places.
 """

@@ -82,8 +82,7 @@ def _train(project: Project, cfg: TrainConfig, device: torch.device, resume: boo
         cams = [c.at_resolution(cfg.downscale, cfg.max_size) for c in read_project_scene(project).cameras]
         facts = project.manifest().get("scene") or {}
         init = len(ck.gaussians) if ck is not None else int(facts.get("num_points") or cfg.init_random_points)
-        check_memory(plan_memory(cams, init, cfg.strategy.max_gaussians), cfg.max_size,
-                     max((max(c.width, c.height) for c in cams), default=0))
+        check_memory(plan_memory(cams, init, cfg.strategy.max_gaussians), cfg.max_size)
     data = load_train_data(project, cfg.downscale, cfg.max_size, device, cfg.eval_max_views)
     box: list[TrainState] = []
     ctx = _context(data, box, on_event)
@@ -121,17 +120,13 @@ def _loop(project: Project, cfg: TrainConfig, data: TrainData, state: TrainState
         t0 = time.perf_counter()
         state.optimizers["means"].param_groups[0]["lr"] = means_lr(cfg, step, data.extent)
         view = data.train[state.next_view(len(data.train))].at_scale(cfg.train_scale(step))
-        try:
+        with _out_of_memory(project, cfg, state, step, save=True):  # nothing is updated yet: save this state
             out = render_view(state, view, data.background, state.active_sh_degree(step, cfg.sh_degree_interval))
             info = StepInfo(out, view.camera.width, view.camera.height)
             for strategy, st in zip(state.strategies, state.splats.states):
                 strategy.step_pre_backward(state.splats, st, step, info)
             loss = photometric_loss(out.image, view.target(), cfg.lambda_dssim)
             loss.backward()
-        except Exception as exc:  # nothing is updated yet: the state is the last whole step
-            if not is_out_of_memory(exc):
-                raise
-            raise _out_of_memory(project, cfg, state, step, exc, save=True) from None
         info.finite = _all_finite(loss, state)
         if info.finite:
             for opt in state.optimizers.values():
@@ -157,13 +152,9 @@ def _loop(project: Project, cfg: TrainConfig, data: TrainData, state: TrainState
         # its last refinement. Evaluation is not training time.
         info.heldout = _measure(cfg, data, state, step, total, force=step == cfg.iterations < total)
         t1 = time.perf_counter()
-        try:
+        with _out_of_memory(project, cfg, state, step, save=False):  # may be half edited: keep the last checkpoint
             for strategy, st in zip(state.strategies, state.splats.states):
                 writer.refined(strategy.step_post_backward(state.splats, st, step, info))
-        except Exception as exc:  # mid-refinement the state may be half edited: keep the last checkpoint
-            if not is_out_of_memory(exc):
-                raise
-            raise _out_of_memory(project, cfg, state, step, exc, save=False) from None
         state.elapsed_s += time.perf_counter() - t1
         if state.plan is not None and state.plan.due(step, state.elapsed_s):
             planned = state.plan.replan(cfg, step, state.elapsed_s)
@@ -211,9 +202,20 @@ def _interrupt(project: Project, cfg: TrainConfig, state: TrainState) -> None:
                       f"continue with `splatcli train {project.root} --resume`")
 
 
-def _out_of_memory(project: Project, cfg: TrainConfig, state: TrainState, step: int, exc: BaseException,
-                   save: bool) -> SplatError:
-    """Keep what there is and say what to change (exit 2, never a traceback)."""
+@contextlib.contextmanager
+def _out_of_memory(project: Project, cfg: TrainConfig, state: TrainState, step: int, save: bool) -> Iterator[None]:
+    """An allocation failure inside becomes a one-line SplatError (exit 2) naming the last
+    good checkpoint, written now from `state` when `save` (the state is a whole step)."""
+    try:
+        yield
+    except Exception as exc:
+        if not is_out_of_memory(exc):
+            raise
+        raise _out_of_memory_error(project, cfg, state, step, exc, save) from None
+
+
+def _out_of_memory_error(project: Project, cfg: TrainConfig, state: TrainState, step: int, exc: BaseException,
+                         save: bool) -> SplatError:
     for opt in state.optimizers.values():
         opt.zero_grad(set_to_none=True)  # frees the gradients before writing
     path = None

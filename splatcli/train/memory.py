@@ -12,11 +12,15 @@ then keeps its last whole step and exits 2 with the same advice).
 from __future__ import annotations
 
 import math
-import resource
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
+
+try:
+    import resource
+except ImportError:  # Windows: no RLIMIT_AS; the other limits still apply
+    resource = None  # type: ignore[assignment]
 
 from ..camera import Camera
 from ..errors import SplatError
@@ -41,6 +45,7 @@ class MemoryPlan:
     budgeted: bool  # the count is --max-gaussians (else an estimate)
     free: int | None  # bytes this process may still take (None: unknown)
     limit: str  # what bounds `free`
+    longest: int  # the longest image side trained, px
 
 
 def _read_int(path: Path) -> int | None:
@@ -68,6 +73,8 @@ def _cgroup_free() -> int | None:
 
 
 def _rlimit_free() -> int | None:
+    if resource is None:
+        return None
     soft = resource.getrlimit(resource.RLIMIT_AS)[0]
     if soft == resource.RLIM_INFINITY:
         return None
@@ -104,10 +111,11 @@ def plan_memory(cameras: list[Camera], init_count: int, max_gaussians: int | Non
     else:
         n, budgeted = max(init_count, int(GAUSSIANS_PER_PIXEL * max(pixels, default=0))), False
     free, limit = free_memory()
-    return MemoryPlan(images + n * BYTES_PER_GAUSSIAN, images, n, budgeted, free, limit)
+    longest = max((max(c.width, c.height) for c in cameras), default=0)
+    return MemoryPlan(images + n * BYTES_PER_GAUSSIAN, images, n, budgeted, free, limit, longest)
 
 
-def check_memory(plan: MemoryPlan, max_size: int, longest: int) -> None:
+def check_memory(plan: MemoryPlan, max_size: int) -> None:
     """Refuse a run that cannot fit, naming a --max-gaussians or --max-size that would."""
     if plan.free is None or plan.need <= plan.free:
         return
@@ -117,7 +125,7 @@ def check_memory(plan: MemoryPlan, max_size: int, longest: int) -> None:
     if room >= 20_000 * BYTES_PER_GAUSSIAN:
         fix = f"--max-gaussians {room // BYTES_PER_GAUSSIAN // 1000 * 1000}"
     else:  # the images nearly fill it: half of what is free for smaller images, half for the Gaussians
-        side = max(16, int(longest * math.sqrt(0.5 * plan.free / max(plan.images, 1))))
+        side = max(16, int(plan.longest * math.sqrt(0.5 * plan.free / max(plan.images, 1))))
         fix = f"--max-size {min(side, max_size)} and --max-gaussians {max(1000, plan.free // 2 // BYTES_PER_GAUSSIAN // 1000 * 1000)}"
     raise SplatError(f"training needs about {gb(plan.need)} ({what} and {gb(plan.images)} of images) but "
                      f"{plan.limit} leaves {gb(plan.free)}; try {fix}")
