@@ -30,6 +30,7 @@ except ImportError:  # pragma: no cover
 
 from .. import __version__
 from ..errors import Interrupted, SplatError
+from ..train.launch import ERRORS_ENV
 
 
 def _one_line(msg: str) -> str:
@@ -70,7 +71,7 @@ class _Group(TyperGroup):
         except SplatError as exc:
             if debug:
                 traceback.print_exc()
-            error, code, hint = _one_line(str(exc)), 2, exc.hint
+            error, code, hint = _one_line(str(exc)), exc.exit_code, exc.hint
         except (KeyboardInterrupt, Interrupted) as exc:
             error = _one_line(str(exc)) if isinstance(exc, Interrupted) and str(exc) else "interrupted"
             code = 130
@@ -84,7 +85,11 @@ class _Group(TyperGroup):
             code = rv if isinstance(rv, int) and not isinstance(rv, bool) else 0
             if code == 130:
                 error = "interrupted"
-        if error is not None:
+        to = os.environ.get(ERRORS_ENV)
+        if error is not None and to:  # a worker of `train --nproc`: the launcher reports (train/launch.py)
+            with open(os.path.join(to, f"rank{os.environ.get('RANK', '0')}.json"), "w") as f:
+                json.dump({"error": error, "exit_code": code, "hint": hint}, f)
+        elif error is not None:
             sys.stderr.write(f"error: {error}\n")
             if "--json" in argv:  # scripts tell "bad input" (2) from "crash" (1) without reading English
                 sys.stdout.write(json.dumps({"error": error, "exit_code": code, "hint": hint}) + "\n")

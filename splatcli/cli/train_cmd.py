@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Optional
 
@@ -9,6 +10,8 @@ import typer
 
 from ..device import resolve_device
 from ..project import Project
+from ..train.distributed import in_worker, join
+from ..train.launch import launch
 from ..train.loop import train as run_train
 from ..train.config import PRESETS, TrainConfig, make_config, option
 from .common import DebugOpt, DeviceOpt, JsonOpt, QuietOpt, SeedOpt, Ui
@@ -31,6 +34,10 @@ def train(
     time_budget: Optional[float] = typer.Option(None, "--time-budget", help="Training seconds to fit in: the run measures its speed and plans the preset's schedule, compressed, to end within them (evaluation not counted)."),
     resume: bool = typer.Option(False, "--resume", help="Continue from the latest checkpoint (its settings; options given here override)."),
     init_ply: Optional[Path] = typer.Option(None, "--init-ply", help="Start from a 3DGS .ply instead of the SfM/random points."),
+    nproc: Optional[int] = typer.Option(None, "--nproc", help="Train with this many processes on this machine (data-parallel over views, "
+                                        "one torch thread each, through torch's elastic launcher): each step sees that many views, and the "
+                                        "schedule is scaled so that the run sees as many images as one process (docs/guide.md)."),
+    port: int = typer.Option(0, "--port", help="With --nproc: the loopback port the processes meet on (default: a free one)."),
     device: str = DeviceOpt,
     seed: int = SeedOpt,
     quiet: bool = QuietOpt,
@@ -47,8 +54,13 @@ def train(
     cfg = make_config(preset, seed=seed, device=str(dev), **given)
     overrides = {k: option(cfg, k) for k, v in given.items() if v is not None}
     Project.open(project).require_processed()  # input errors before the progress display starts
+    if nproc is not None and not in_worker():
+        return launch(sys.argv[1:], nproc, port, project)  # K copies of this command; rank 0 reports
+    comm = join(dev)  # under torchrun: this process's rank (else a single process)
+    ui = Ui(quiet=quiet or not comm.main, json_out=json_out and comm.main)
     with ui.progress() as sink:
-        s = run_train(project, cfg, dev, resume=resume, overrides=overrides, on_event=sink)
+        s = run_train(project, cfg, dev, resume=resume, overrides=overrides, on_event=sink, comm=comm)
+    comm.close()
     psnr = f", held-out PSNR {s.psnr:.2f} dB" if s.psnr is not None else ""
     ui.summary(s.to_json(), title=f"trained {s.steps} steps in {s.train_seconds:.0f} s{psnr}",
                lines=[f"{s.num_gaussians} Gaussians, SH degree {s.sh_degree}, .ply {s.ply_bytes / 1e6:.2f} MB",

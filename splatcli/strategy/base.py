@@ -33,6 +33,9 @@ class RowState:
     checkpointed as they are (tensors, plain values; a generator as its state)."""
 
     ROWS: ClassVar[tuple[str, ...]] = ()
+    # Accumulators each data-parallel rank fills from its own views, and how the ranks'
+    # rows merge ("sum" or "max") before a decision: see StepInfo.combine.
+    REDUCE: ClassVar[dict[str, str]] = {}
 
     def state_dict(self) -> dict[str, Any]:
         out = {}
@@ -77,6 +80,9 @@ class StepInfo:
     height: int
     finite: bool = True  # False on a skipped (non-finite) step: accumulate nothing
     heldout: tuple[float, float] | None = None  # (PSNR, SSIM) measured after this step's update, if any
+    # A strategy calls combine(state) before deciding from accumulated rows: in a
+    # data-parallel run it merges every rank's `REDUCE` rows (the same on every rank).
+    combine: Callable[[RowState], None] = lambda state: None
 
 
 @dataclass

@@ -37,6 +37,7 @@ class DefaultStrategyConfig:
 @dataclass
 class DefaultStrategyState(RowState):
     ROWS: ClassVar[tuple[str, ...]] = ("grad2d", "count", "radii")
+    REDUCE: ClassVar[dict[str, str]] = {"grad2d": "sum", "count": "sum", "radii": "max"}
 
     grad2d: Tensor  # [N] accumulated view-space gradient norms
     count: Tensor  # [N] number of views each Gaussian was visible in
@@ -80,6 +81,7 @@ class DefaultStrategy(Strategy):
         if info.finite:
             self._accumulate(state, info)
         if step > cfg.refine_start and step % cfg.refine_every == 0:
+            info.combine(state)  # every rank decides from every rank's views
             self._refine(splats, state, step, stats)
         if step % cfg.reset_every == 0:
             # Clamp every opacity low so that the following densification has to

@@ -59,6 +59,8 @@ class TrainConfig:
     lr_scales: float = 5e-3
     lr_quats: float = 1e-3
     adam_eps: float = 1e-15  # as 3DGS: moments of tiny gradients must still move parameters
+    adam_beta1: float = 0.9
+    adam_beta2: float = 0.999
 
     # ---- loss ----------------------------------------------------------------
     lambda_dssim: float = 0.2  # loss = (1 - l) L1 + l (1 - SSIM)
@@ -92,6 +94,23 @@ class TrainConfig:
     def total_steps(self) -> int:
         """Optimiser steps including the compaction fine-tune."""
         return self.iterations + (self.compact.finetune if self.compact.enabled else 0)
+
+    def for_world(self, k: int) -> "TrainConfig":
+        """The schedule K data-parallel ranks run so as to see the same images as one
+        process: each step averages K views' gradients, so every step count is divided
+        by K, and Adam follows the square-root scaling rule for a K-times larger batch
+        (Malladi et al. 2022, as gsplat and Grendel-GS apply it): learning rates times
+        sqrt(K), epsilon divided by sqrt(K), betas raised to the power K (one step then
+        forgets as much history as K steps did). K = 1 returns the config unchanged."""
+        if k == 1:
+            return self
+        steps = {name: max(1, round(option(self, name) / k)) for name in _STEP_COUNTS if option(self, name) > 0}
+        steps["refine_stop"] = round(self.strategy.refine_stop / k)
+        r = math.sqrt(k)
+        lrs = {name: option(self, name) * r for name in ("lr_means", "lr_means_final", "lr_sh0", "lr_opacity",
+                                                           "lr_scales", "lr_quats")}
+        return with_options(self, {**steps, **lrs, "adam_eps": self.adam_eps / r,
+                                   "adam_beta1": self.adam_beta1 ** k, "adam_beta2": self.adam_beta2 ** k})
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -234,6 +253,10 @@ def make_config(preset: str = "default", **options: Any) -> TrainConfig:
     return cfg
 
 
+# Options counted in optimiser steps (TrainConfig.for_world divides them by the ranks).
+_STEP_COUNTS = ("iterations", "sh_degree_interval", "eval_every", "log_every", "checkpoint_every", "refine_start",
+                "refine_every", "reset_every", "compact_finetune")
+
 # Counts that must be at least 1 / at least 0 (flat option names).
 _AT_LEAST_1 = ("sh_degree_interval", "log_every", "checkpoint_every", "keep_checkpoints", "refine_every",
                "reset_every", "split_samples", "init_knn", "compact_rounds", "sh_auto_val_views")
@@ -264,6 +287,8 @@ def _check(cfg: TrainConfig) -> None:
         raise SplatError(f"--eval-every {cfg.eval_every}: must be 0 or more")
     if not 0.1 <= cfg.coarse_scale <= 1 or not 0 < cfg.coarse_until <= 1:
         raise SplatError(f"coarse_scale {cfg.coarse_scale} / coarse_until {cfg.coarse_until}: must be in [0.1, 1] / (0, 1]")
+    if not (0 <= cfg.adam_beta1 < 1 and 0 <= cfg.adam_beta2 < 1):
+        raise SplatError(f"adam_beta1 {cfg.adam_beta1} / adam_beta2 {cfg.adam_beta2}: must be in [0, 1)")
     if not 0 < cfg.compact.keep <= 1:
         raise SplatError(f"compact_keep {cfg.compact.keep}: must be in (0, 1]")
 
@@ -291,6 +316,9 @@ class TrainSummary:
     compact: CompactReport | None = None
     resumed_from: int | None = None  # step of the checkpoint a --resume started from
     plan: dict[str, Any] | None = None  # --time-budget: the budget, the template schedule and every plan made
+    nproc: int = 1  # data-parallel training processes (steps count views seen, whatever this is)
+    comm_seconds: float | None = None  # time rank 0 spent in collectives (exchanging and waiting)
+    rank_checks: int | None = None  # checkpoints at which every rank's parameters equalled rank 0's
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)

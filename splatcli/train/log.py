@@ -20,6 +20,7 @@ from ..io.ply import ply_bytes
 from ..project import Project
 from ..strategy import RefineStats
 from .config import TrainConfig, TrainReport, TrainSummary
+from .distributed import Comm
 from .state import TrainState
 
 PROGRESS_PERIOD_S = 0.25  # progress-bar refresh; a loss read is a host sync on CUDA
@@ -30,15 +31,16 @@ class LogWriter:
     """Accumulates the loss without a host sync per step, and the refinement counts;
     writes one JSONL line every `log_every` steps, at evaluations and at the end."""
 
-    def __init__(self, path: Path, state: TrainState) -> None:
+    def __init__(self, path: Path, state: TrainState, enabled: bool = True) -> None:
         self.path = path
+        self.enabled = enabled  # only rank 0 of a data-parallel run writes
         self.state = state  # the running sums live in the state, so they survive a resume
-        last = read_log(path)
+        last = read_log(path) if enabled else []
         self.psnr = next((r["psnr"] for r in reversed(last) if "psnr" in r), None)
         self.loss = last[-1].get("loss") if last else None
         self.last_refine = ""  # the latest refinement, for the progress bar
         self._t_info = 0.0
-        self._rate = (time.perf_counter(), state.elapsed_s, state.step)
+        self._rate = (time.perf_counter(), state.elapsed_s, state.images)
         self._steps_per_s: float | None = None
         self._info: dict[str, Any] = {}
 
@@ -66,7 +68,7 @@ class LogWriter:
         if not (force or evaluated is not None or (log_every and step % log_every == 0)):
             return
         loss = self._mean_loss()
-        rec = TrainLogLine(step=step, elapsed_s=round(state.elapsed_s, 4),
+        rec = TrainLogLine(step=state.images, elapsed_s=round(state.elapsed_s, 4),
                            loss=float("nan") if loss is None else round(loss, 6),
                            num_gaussians=state.num_gaussians, bad_steps=state.bad_steps, rss_mb=rss_mb(),
                            open_fds=open_fds(),
@@ -74,7 +76,8 @@ class LogWriter:
         if evaluated is not None:
             rec.psnr, rec.ssim = round(evaluated[0], 4), round(evaluated[1], 5)
             self.psnr = rec.psnr
-        append_line(self.path, json.dumps(rec.to_json()))
+        if self.enabled:
+            append_line(self.path, json.dumps(rec.to_json()))
         self.loss = loss
         self.state.loss_acc.zero_()
         self.state.refine_acc.clear()
@@ -87,8 +90,8 @@ class LogWriter:
         self._t_info = now
         _, e0, s0 = self._rate
         if state.elapsed_s - e0 > 1.0:  # training-time rate over the last second or more
-            self._steps_per_s = (state.step - s0) / (state.elapsed_s - e0)
-            self._rate = (now, state.elapsed_s, state.step)
+            self._steps_per_s = (state.images - s0) / (state.elapsed_s - e0)
+            self._rate = (now, state.elapsed_s, state.images)
         info: dict[str, Any] = {}
         if self._steps_per_s is not None:
             info["steps/s"] = round(self._steps_per_s, 2)
@@ -143,10 +146,13 @@ def prune_checkpoints(project: Project, keep: int) -> None:
         p.unlink(missing_ok=True)
 
 
-def finish(project: Project, cfg: TrainConfig, state: TrainState, resumed_from: int | None) -> TrainSummary:
-    """Write reports/train.json and the manifest's train summary."""
+def finish(project: Project, cfg: TrainConfig, state: TrainState, resumed_from: int | None,
+           comm: Comm | None = None) -> TrainSummary:
+    """Write reports/train.json and the manifest's train summary (rank 0 of a
+    data-parallel run; the others only return it). Steps count views seen."""
+    comm = comm or Comm()
     g = state.gaussians()
-    deg = state.active_sh_degree(state.step, cfg.sh_degree_interval)
+    deg = state.active_sh_degree(state.images, cfg.sh_degree_interval)
     log = read_log(project.train_log_path)
     last_eval = next((r for r in reversed(log) if "psnr" in r), None)
     psnr = last_eval.get("psnr") if last_eval else None
@@ -154,7 +160,7 @@ def finish(project: Project, cfg: TrainConfig, state: TrainState, resumed_from: 
     for s, st in zip(state.strategies, state.splats.states):
         owned.update(s.summary(st, len(g), deg, psnr))
     summary = TrainSummary(
-        steps=state.step,
+        steps=state.images,
         train_seconds=round(state.elapsed_s, 3),
         num_gaussians=len(g),
         sh_degree=deg,
@@ -167,8 +173,13 @@ def finish(project: Project, cfg: TrainConfig, state: TrainState, resumed_from: 
         checkpoint=str(project.latest_checkpoint() or ""),
         resumed_from=resumed_from,
         plan=state.plan.record() if state.plan is not None else None,
+        nproc=comm.world,
+        comm_seconds=round(comm.seconds, 3) if comm.world > 1 else None,
+        rank_checks=comm.checks if comm.world > 1 else None,
         **owned,
     )
+    if not comm.main:
+        return summary
     max_scale = g.log_scales.amax(dim=1).double().cpu().numpy() / math.log(10)
     opac = torch.sigmoid(g.opacity_logits.double()).cpu().numpy()
     report = TrainReport(summary=summary, scale_hist=histogram(max_scale),

@@ -31,6 +31,7 @@ from ..strategy import Context, StepInfo
 from . import log
 from .config import TrainConfig, TrainSummary, with_options
 from .data import TrainData, TrainView, load_train_data, subset
+from .distributed import Comm
 from .init import initial_gaussians
 from .loss import photometric_loss
 from .memory import check_memory, is_out_of_memory, plan_memory
@@ -47,18 +48,21 @@ def train(
     resume: bool = False,
     overrides: dict[str, Any] | None = None,
     on_event: EventSink | None = None,
+    comm: Comm | None = None,
 ) -> TrainSummary:
     """Train (or resume) the project's model; return the summary also recorded in
     the manifest. `overrides` are the options given explicitly (flat names, as
     `make_config` takes them), applied on top of a resumed run's stored config.
-    SIGINT/SIGTERM: checkpoint, raise Interrupted."""
+    `comm`: this process's rank in a data-parallel run (distributed.py); rank 0
+    alone writes the project. SIGINT/SIGTERM: checkpoint, raise Interrupted."""
     project = Project.open(project_dir)
-    with writer_lock(project.root, "train"):
-        return _train(project, cfg, device, resume, overrides, on_event)
+    comm = comm or Comm()
+    with writer_lock(project.root, "train") if comm.main else contextlib.nullcontext():
+        return _train(project, cfg, device, resume, overrides, on_event, comm)
 
 
 def _train(project: Project, cfg: TrainConfig, device: torch.device, resume: bool,
-           overrides: dict[str, Any] | None, on_event: EventSink | None) -> TrainSummary:
+           overrides: dict[str, Any] | None, on_event: EventSink | None, comm: Comm) -> TrainSummary:
     project.require_processed()
     resumed_from = None
     ck = None
@@ -76,26 +80,34 @@ def _train(project: Project, cfg: TrainConfig, device: torch.device, resume: boo
                 new = replace(new, compact=replace(cfg.compact, enabled=True))
             cfg = replace(new, device=str(device))
             resumed_from = ck.step
+    if comm.world > 1 and cfg.time_budget is not None:
+        raise SplatError("--time-budget plans one process's schedule; it cannot be combined with more than one "
+                         "training process yet", hint="drop --time-budget or --nproc")
+    run = cfg.for_world(comm.world)  # the schedule K ranks follow (config.py)
     # Reading the scene imports pycolmap, whose glog installs its own SIGTERM handler:
     # ours goes in after it.
     if device.type == "cpu":  # a run that cannot fit stops here, before loading anything
         cams = [c.at_resolution(cfg.downscale, cfg.max_size) for c in read_project_scene(project).cameras]
         facts = project.manifest().get("scene") or {}
         init = len(ck.gaussians) if ck is not None else int(facts.get("num_points") or cfg.init_random_points)
-        check_memory(plan_memory(cams, init, cfg.strategy.max_gaussians), cfg.max_size)
+        check_memory(plan_memory(cams, init, cfg.strategy.max_gaussians, copies=comm.local_world), cfg.max_size)
     data = load_train_data(project, cfg.downscale, cfg.max_size, device, cfg.eval_max_views)
     box: list[TrainState] = []
-    ctx = _context(data, box, on_event)
+    ctx = _context(data, box, on_event, comm)
     with _stop_on_signal() as stop:  # from here on a signal means: checkpoint, exit 130
         if ck is not None:
-            state = state_from_checkpoint(ck, cfg, data.extent, device, ctx)
-            log.trim_log(project.train_log_path, ck.step)
+            state = state_from_checkpoint(ck, run, data.extent, device, ctx, comm.world)
+            if comm.main:
+                log.trim_log(project.train_log_path, ck.step)
         else:
-            state = new_state(initial_gaussians(cfg, data, device), cfg, data.extent, device, len(data.train), ctx)
-            log.start_fresh(project, on_event)
+            state = new_state(initial_gaussians(cfg, data, device), run, data.extent, device, len(data.train), ctx,
+                              comm.world)
+            if comm.main:
+                log.start_fresh(project, on_event)
+        comm.broadcast_params(state.params)  # identical from the first step, whatever each rank computed
         box.append(state)
-        cfg = _loop(project, cfg, data, state, ctx, stop, on_event)
-    return log.finish(project, cfg, state, resumed_from)
+        cfg = _loop(project, cfg, run, data, state, ctx, stop, on_event, comm)
+    return log.finish(project, cfg, state, resumed_from, comm)
 
 
 def render_view(state: TrainState, view: TrainView, bg: Tensor, sh_degree: int) -> RenderOutput:  # bg [3]
@@ -105,28 +117,32 @@ def render_view(state: TrainState, view: TrainView, bg: Tensor, sh_degree: int) 
                      view.K, view.camera.width, view.camera.height, bg, sh_degree=sh_degree)
 
 
-def _loop(project: Project, cfg: TrainConfig, data: TrainData, state: TrainState, ctx: Context,
-          stop: threading.Event, on_event: EventSink | None) -> TrainConfig:
-    """Run the steps; returns the config in force at the end (a --time-budget plan changes it)."""
+def _loop(project: Project, base: TrainConfig, cfg: TrainConfig, data: TrainData, state: TrainState, ctx: Context,
+          stop: threading.Event, on_event: EventSink | None, comm: Comm) -> TrainConfig:
+    """Run the steps of `cfg` (`base` as given, scaled for the ranks: TrainConfig.for_world);
+    returns the config in force at the end (a --time-budget plan changes it)."""
     total = cfg.total_steps
-    emit(on_event, Stage(STAGE, total))
-    writer = log.LogWriter(project.train_log_path, state)
+    k = comm.world
+    emit(on_event, Stage(STAGE, total * k))
+    writer = log.LogWriter(project.train_log_path, state, enabled=comm.main)
     for strategy, st in zip(state.strategies, state.splats.states):  # a resumed run: what is due now
         writer.refined(strategy.catch_up(state.splats, st, state.step))
-    if stop.is_set():  # signalled during setup: keep what there is (a resume starts here)
-        _interrupt(project, cfg, state)
+    if _agreed_stop(comm, stop):  # signalled during setup: keep what there is (a resume starts here)
+        _interrupt(project, base, state, comm)
     while state.step < total:
         step = state.step + 1
         t0 = time.perf_counter()
         state.optimizers["means"].param_groups[0]["lr"] = means_lr(cfg, step, data.extent)
-        view = data.train[state.next_view(len(data.train))].at_scale(cfg.train_scale(step))
-        with _out_of_memory(project, cfg, state, step, save=True):  # nothing is updated yet: save this state
+        views = [state.next_view(len(data.train)) for _ in range(k)]  # the one-process stream, dealt out
+        view = data.train[views[comm.rank]].at_scale(cfg.train_scale(step))
+        with _out_of_memory(project, base, state, step, save=True, comm=comm):  # nothing is updated yet: save this state
             out = render_view(state, view, data.background, state.active_sh_degree(step, cfg.sh_degree_interval))
-            info = StepInfo(out, view.camera.width, view.camera.height)
+            info = StepInfo(out, view.camera.width, view.camera.height, combine=comm.combine_rows)
             for strategy, st in zip(state.strategies, state.splats.states):
                 strategy.step_pre_backward(state.splats, st, step, info)
             loss = photometric_loss(out.image, view.target(), cfg.lambda_dssim)
             loss.backward()
+        loss, stopping = comm.reduce_step(state.params, loss, stop.is_set())
         info.finite = _all_finite(loss, state)
         if info.finite:
             for opt in state.optimizers.values():
@@ -141,77 +157,98 @@ def _loop(project: Project, cfg: TrainConfig, data: TrainData, state: TrainState
         state.elapsed_s += time.perf_counter() - t0
         writer.add(loss.detach() if info.finite else None)
         if state.bad_run >= cfg.max_bad_steps:
-            path = save_state(project.checkpoint_path(step), state, cfg)
+            path = _save(project, base, state, comm)
             raise TrainingDiverged(
                 f"training diverged: {state.bad_run} consecutive steps with a non-finite loss or gradient "
-                f"(step {step}); the last good parameters are in {path}; try a lower learning rate or --resume"
+                f"(step {state.images}); the last good parameters are in {path}; try a lower learning rate or --resume"
             )
         # Measure what this step's update produced, before its refinement or opacity
         # reset (right after a reset every view is nearly transparent); the end of the
         # main schedule is measured before a fine-tune starts, the final model after
         # its last refinement. Evaluation is not training time.
-        info.heldout = _measure(cfg, data, state, step, total, force=step == cfg.iterations < total)
+        info.heldout = _measure(cfg, data, state, step, total, comm, force=step == cfg.iterations < total)
         t1 = time.perf_counter()
-        with _out_of_memory(project, cfg, state, step, save=False):  # may be half edited: keep the last checkpoint
+        with _out_of_memory(project, base, state, step, save=False, comm=comm):  # may be half edited: keep the last checkpoint
             for strategy, st in zip(state.strategies, state.splats.states):
                 writer.refined(strategy.step_post_backward(state.splats, st, step, info))
         state.elapsed_s += time.perf_counter() - t1
         if state.plan is not None and state.plan.due(step, state.elapsed_s):
             planned = state.plan.replan(cfg, step, state.elapsed_s)
-            if planned is not None:  # the strategies' schedules follow the new plan
-                cfg = planned
+            if planned is not None:  # the strategies' schedules follow the new plan (one process only)
+                cfg = base = planned
                 state.strategies = make_strategies(cfg, data.extent, ctx)
                 total = cfg.total_steps
         evaluated = info.heldout
         if step == total:
-            evaluated = _measure(cfg, data, state, step, total, force=True)
+            evaluated = _measure(cfg, data, state, step, total, comm, force=True)
         writer.line(step, state, evaluated, cfg.log_every, force=step == total)
-        emit(on_event, Progress(STAGE, step, total, writer.info(state)))
-        if stop.is_set():
-            _interrupt(project, cfg, state)
+        emit(on_event, Progress(STAGE, state.images, total * k, writer.info(state)))
+        if stopping or (k == 1 and stop.is_set()):
+            _interrupt(project, base, state, comm)
         if step % cfg.checkpoint_every == 0 or step == total:
-            save_state(project.checkpoint_path(step), state, cfg)
-            log.prune_checkpoints(project, cfg.keep_checkpoints)
+            _save(project, base, state, comm)
     emit(on_event, StageDone(STAGE, state.elapsed_s))
-    return cfg
+    return base
 
 
-def _context(data: TrainData, box: list[TrainState], on_event: EventSink | None) -> Context:
-    """What the strategies may ask of this run (`box` holds the state once it exists)."""
+def _save(project: Project, cfg: TrainConfig, state: TrainState, comm: Comm) -> Path:
+    """A checkpoint of the run as one process would have written it: every rank folds its
+    accumulators into rank 0's and confirms its parameters equal rank 0's; rank 0 writes."""
+    comm.fold_rows(state.splats.states)
+    comm.check_agree(state.params)
+    path = project.checkpoint_path(state.images)
+    if comm.main:
+        save_state(path, state, cfg)
+        log.prune_checkpoints(project, cfg.keep_checkpoints)
+    return path
+
+
+def _agreed_stop(comm: Comm, stop: threading.Event) -> bool:
+    """Whether any rank was signalled (every rank learns the same answer)."""
+    if comm.world == 1:
+        return stop.is_set()
+    return bool(comm.total(torch.tensor([float(stop.is_set())])) > 0)
+
+
+def _context(data: TrainData, box: list[TrainState], on_event: EventSink | None, comm: Comm) -> Context:
+    """What the strategies may ask of this run (`box` holds the state once it exists);
+    the ranks share the views and combine the answers, so every rank gets the same one."""
 
     def score(which: str, sh_degree: int) -> tuple[float, float] | None:
         if which == "test":
             views = data.test
         else:  # "val:K": K evenly spaced training views
             views = subset(data.train, int(which.split(":")[1]))
-        return evaluate_views(box[0], views, data.background, sh_degree) if views else None
+        return evaluate_views(box[0], views, data.background, sh_degree, comm) if views else None
 
     def weights() -> Tensor:  # [N]
         p = box[0].params
-        return blending_weights(p["means"], p["quats"], p["log_scales"], p["opacity_logits"],
-                                ((v.viewmat, v.K, v.camera.width, v.camera.height) for v in data.train))
+        return comm.total(blending_weights(p["means"], p["quats"], p["log_scales"], p["opacity_logits"],
+                                           ((v.viewmat, v.K, v.camera.width, v.camera.height)
+                                            for v in comm.share(data.train))))
 
     return Context(score=score, weights=weights, note=lambda m: emit(on_event, Note(m)))
 
 
-def _interrupt(project: Project, cfg: TrainConfig, state: TrainState) -> None:
+def _interrupt(project: Project, cfg: TrainConfig, state: TrainState, comm: Comm) -> None:
     """Checkpoint the last whole step and stop (the CLI exits 130)."""
-    path = save_state(project.checkpoint_path(state.step), state, cfg)
-    log.prune_checkpoints(project, cfg.keep_checkpoints)
-    raise Interrupted(f"interrupted at step {state.step}; saved {path}; "
+    path = _save(project, cfg, state, comm)
+    raise Interrupted(f"interrupted at step {state.images}; saved {path}; "
                       f"continue with `splatcli train {project.root} --resume`")
 
 
 @contextlib.contextmanager
-def _out_of_memory(project: Project, cfg: TrainConfig, state: TrainState, step: int, save: bool) -> Iterator[None]:
+def _out_of_memory(project: Project, cfg: TrainConfig, state: TrainState, step: int, save: bool,
+                   comm: Comm) -> Iterator[None]:
     """An allocation failure inside becomes a one-line SplatError (exit 2) naming the last
-    good checkpoint, written now from `state` when `save` (the state is a whole step)."""
+    good checkpoint, written now from `state` when `save` (the state is a whole step;
+    one process only: the other ranks are not at a point where they could agree)."""
     try:
         yield
     except Exception as exc:
         if not is_out_of_memory(exc):
             raise
-        raise _out_of_memory_error(project, cfg, state, step, exc, save) from None
+        raise _out_of_memory_error(project, cfg, state, step, exc, save and comm.world == 1) from None
 
 
 def _out_of_memory_error(project: Project, cfg: TrainConfig, state: TrainState, step: int, exc: BaseException,
@@ -221,12 +258,12 @@ def _out_of_memory_error(project: Project, cfg: TrainConfig, state: TrainState, 
     path = None
     if save and state.step > 0:
         try:
-            path = save_state(project.checkpoint_path(state.step), state, cfg)
+            path = save_state(project.checkpoint_path(state.images), state, cfg)
         except (OSError, SplatError, RuntimeError, MemoryError):
             path = None
     path = path or project.latest_checkpoint()
     kept = f"the last good checkpoint is {path}" if path else "no checkpoint was written yet"
-    return SplatError(f"out of memory at step {step} with {len(state.splats):,} Gaussians "
+    return SplatError(f"out of memory at step {step * state.world} with {len(state.splats):,} Gaussians "
                       f"({type(exc).__name__}); {kept}",
                       hint=f"lower --max-size or set --max-gaussians, then `splatcli train {project.root} --resume`")
 
@@ -238,26 +275,31 @@ def _all_finite(loss: Tensor, state: TrainState) -> bool:  # loss: [] scalar
     return bool(torch.cat(checks).all())
 
 
-def _measure(cfg: TrainConfig, data: TrainData, state: TrainState, step: int, total: int,
+def _measure(cfg: TrainConfig, data: TrainData, state: TrainState, step: int, total: int, comm: Comm,
              force: bool = False) -> tuple[float, float] | None:
     """Held-out PSNR / SSIM every `eval_every` steps (and when forced)."""
     if not data.test or not (force or (cfg.eval_every and step % cfg.eval_every == 0 and step < total)):
         return None
-    return evaluate_views(state, data.test, data.background, state.active_sh_degree(step, cfg.sh_degree_interval))
+    return evaluate_views(state, data.test, data.background, state.active_sh_degree(step, cfg.sh_degree_interval),
+                          comm)
 
 
 @torch.no_grad()
 def evaluate_views(
-    state: TrainState, views: list[TrainView], bg: Tensor, sh_degree: int  # bg [3] in [0, 1]
+    state: TrainState, views: list[TrainView], bg: Tensor, sh_degree: int,  # bg [3] in [0, 1]
+    comm: Comm | None = None,
 ) -> tuple[float, float]:
-    """Mean PSNR (dB) and SSIM over `views`, images clamped to [0, 1] as saved."""
+    """Mean PSNR (dB) and SSIM over `views`, images clamped to [0, 1] as saved (each
+    rank of a data-parallel run renders its share)."""
+    comm = comm or Comm()
     ps, ss = [], []
-    for v in views:
+    for v in comm.share(views):
         img = render_view(state, v, bg, sh_degree).image.clamp(0, 1)
         t = v.target()
         ps.append(float(psnr(img, t)))
         ss.append(float(ssim(img, t)))
-    return sum(ps) / len(ps), sum(ss) / len(ss)
+    p, s = comm.mean(torch.tensor([sum(ps), sum(ss), float(len(ps))], dtype=torch.float64)).tolist()
+    return p, s
 
 
 @contextlib.contextmanager

@@ -46,6 +46,7 @@ class MemoryPlan:
     free: int | None  # bytes this process may still take (None: unknown)
     limit: str  # what bounds `free`
     longest: int  # the longest image side trained, px
+    copies: int = 1  # data-parallel ranks on this machine, each holding images and model
 
 
 def _read_int(path: Path) -> int | None:
@@ -102,8 +103,9 @@ def free_memory() -> tuple[int | None, str]:
     return min(found) if found else (None, "unknown")
 
 
-def plan_memory(cameras: list[Camera], init_count: int, max_gaussians: int | None) -> MemoryPlan:
-    """The bytes a run on these cameras (at the training resolution) adds."""
+def plan_memory(cameras: list[Camera], init_count: int, max_gaussians: int | None, copies: int = 1) -> MemoryPlan:
+    """The bytes a run on these cameras (at the training resolution) adds; `copies`
+    data-parallel ranks on this machine each hold the images and the model."""
     pixels = [c.width * c.height for c in cameras]
     images = int(IMAGE_FACTOR * 3 * sum(pixels))
     if max_gaussians is not None:
@@ -112,7 +114,8 @@ def plan_memory(cameras: list[Camera], init_count: int, max_gaussians: int | Non
         n, budgeted = max(init_count, int(GAUSSIANS_PER_PIXEL * max(pixels, default=0))), False
     free, limit = free_memory()
     longest = max((max(c.width, c.height) for c in cameras), default=0)
-    return MemoryPlan(images + n * BYTES_PER_GAUSSIAN, images, n, budgeted, free, limit, longest)
+    return MemoryPlan(copies * (images + n * BYTES_PER_GAUSSIAN), copies * images, n, budgeted, free, limit, longest,
+                      copies)
 
 
 def check_memory(plan: MemoryPlan, max_size: int) -> None:
@@ -121,12 +124,12 @@ def check_memory(plan: MemoryPlan, max_size: int) -> None:
         return
     gb = lambda b: f"{b / 2**30:.1f} GB"  # noqa: E731
     what = f"{plan.gaussians:,} Gaussians" + ("" if plan.budgeted else " (estimated; no --max-gaussians)")
-    room = plan.free - plan.images
+    room = (plan.free - plan.images) // plan.copies
     if room >= 20_000 * BYTES_PER_GAUSSIAN:
         fix = f"--max-gaussians {room // BYTES_PER_GAUSSIAN // 1000 * 1000}"
     else:  # the images nearly fill it: half of what is free for smaller images, half for the Gaussians
         side = max(16, int(plan.longest * math.sqrt(0.5 * plan.free / max(plan.images, 1))))
-        fix = f"--max-size {min(side, max_size)} and --max-gaussians {max(1000, plan.free // 2 // BYTES_PER_GAUSSIAN // 1000 * 1000)}"
+        fix = f"--max-size {min(side, max_size)} and --max-gaussians {max(1000, plan.free // 2 // plan.copies // BYTES_PER_GAUSSIAN // 1000 * 1000)}"
     raise SplatError(f"training needs about {gb(plan.need)} ({what} and {gb(plan.images)} of images) but "
                      f"{plan.limit} leaves {gb(plan.free)}; try {fix}")
 

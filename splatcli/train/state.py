@@ -32,6 +32,7 @@ class TrainState:
     perm: Tensor  # [n_train] current epoch's view order
     pos: int  # next index into perm
     step: int = 0  # optimiser steps done
+    world: int = 1  # data-parallel ranks: each step sees this many views
     elapsed_s: float = 0.0  # training seconds so far (evaluation excluded)
     bad_steps: int = 0  # non-finite steps skipped, total
     bad_run: int = 0  # ... consecutive
@@ -46,6 +47,12 @@ class TrainState:
     @property
     def optimizers(self) -> dict[str, torch.optim.Optimizer]:
         return self.splats.optimizers
+
+    @property
+    def images(self) -> int:
+        """Views seen so far: the step a one-process run would be at (what checkpoints,
+        logs and reports count, whatever the number of ranks)."""
+        return self.step * self.world
 
     @property
     def num_gaussians(self) -> int:
@@ -105,7 +112,8 @@ def _make_optimizers(params: dict[str, nn.Parameter], cfg: TrainConfig, extent: 
         "shN": cfg.lr_sh0 / cfg.lr_shN_div,
     }
     # fused: one kernel per tensor (CPU and CUDA), the fastest Adam torch has.
-    return {k: torch.optim.Adam([p], lr=lrs[k], eps=cfg.adam_eps, fused=True) for k, p in params.items()}
+    return {k: torch.optim.Adam([p], lr=lrs[k], eps=cfg.adam_eps,
+                                betas=(cfg.adam_beta1, cfg.adam_beta2), fused=True) for k, p in params.items()}
 
 
 def _params(g: Gaussians, names: list[str]) -> dict[str, nn.Parameter]:
@@ -115,7 +123,7 @@ def _params(g: Gaussians, names: list[str]) -> dict[str, nn.Parameter]:
 
 
 def new_state(g: Gaussians, cfg: TrainConfig, extent: float, device: torch.device, n_train: int,
-              ctx: Context) -> TrainState:
+              ctx: Context, world: int = 1) -> TrainState:
     """A fresh run from initial Gaussians `g` (SH at the trained degree)."""
     g = g.with_sh_degree(cfg.max_sh_degree).to(device, torch.float32)
     names = ["means", "quats", "log_scales", "opacity_logits", "sh0"] + (["shN"] if cfg.max_sh_degree > 0 else [])
@@ -125,22 +133,23 @@ def new_state(g: Gaussians, cfg: TrainConfig, extent: float, device: torch.devic
                     [s.initial_state(len(g), device, cfg.seed) for s in strategies])
     view_gen = torch.Generator().manual_seed(int(cfg.seed) + 1)
     return TrainState(splats=splats, strategies=strategies, view_gen=view_gen,
-                      perm=torch.randperm(n_train, generator=view_gen), pos=0,
+                      perm=torch.randperm(n_train, generator=view_gen), pos=0, world=world,
                       loss_acc=torch.zeros(2, dtype=torch.float64, device=device),
                       plan=TimePlan.start(cfg) if cfg.time_budget is not None else None)
 
 
 def save_state(path: Path, state: TrainState, cfg: TrainConfig) -> Path:
-    """Write the state as a checkpoint (atomic). The active SH degree recorded is
+    """Write the state as a checkpoint (atomic), counting steps in views seen, with `cfg`
+    the run's config as given (for one process). The active SH degree recorded is
     the one the model renders with now, so `Checkpoint.model()` drops unused bands."""
     rng: dict[str, Any] = {"torch": torch.get_rng_state(), "view": state.view_gen.get_state()}
     if torch.cuda.is_available() and state.params["means"].is_cuda:
         rng["cuda"] = torch.cuda.get_rng_state_all()
     return save_checkpoint(
         path,
-        step=state.step,
+        step=state.images,
         gaussians=state.gaussians(),
-        sh_degree=state.active_sh_degree(state.step, cfg.sh_degree_interval),
+        sh_degree=state.active_sh_degree(state.images, cfg.sh_degree_interval),
         optimizer={k: o.state_dict() for k, o in state.optimizers.items()},
         strategy={s.name: st.state_dict() for s, st in zip(state.strategies, state.splats.states)},
         rng=rng,
@@ -155,9 +164,11 @@ def save_state(path: Path, state: TrainState, cfg: TrainConfig) -> Path:
 
 
 def state_from_checkpoint(ck: Checkpoint, cfg: TrainConfig, extent: float, device: torch.device,
-                          ctx: Context) -> TrainState:
+                          ctx: Context, world: int = 1) -> TrainState:
     """Rebuild the exact state a checkpoint was written from (strategies the
-    checkpoint has no state for, such as --compact added on resume, start fresh)."""
+    checkpoint has no state for, such as --compact added on resume, start fresh),
+    for `world` ranks running `cfg` (already scaled for them): the step resumes at the
+    views seen divided by the ranks, whatever the number of ranks that wrote it."""
     ex = ck.extra
     names = ex.get("param_names") or (["means", "quats", "log_scales", "opacity_logits", "sh0"]
                                       + (["shN"] if ck.gaussians.sh.shape[1] > 1 else []))
@@ -185,7 +196,8 @@ def state_from_checkpoint(ck: Checkpoint, cfg: TrainConfig, extent: float, devic
         view_gen=view_gen,
         perm=ex.get("perm", torch.zeros(0, dtype=torch.long)),
         pos=int(ex.get("pos", 0)),
-        step=ck.step,
+        step=ck.step // world,
+        world=world,
         elapsed_s=float(ex.get("elapsed_s", 0.0)),
         bad_steps=int(ex.get("bad_steps", 0)),
         bad_run=int(ex.get("bad_run", 0)),

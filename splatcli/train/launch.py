@@ -1,0 +1,138 @@
+"""`splatcli train --nproc K`: K worker processes on this machine through PyTorch's own
+elastic launcher (what `torchrun --standalone` runs), each the same `splatcli train`
+command with one torch thread.
+
+The launcher reports one line: rank 0's own result, or, when a rank died, which rank
+and the last checkpoint. SIGINT/SIGTERM reach the workers once (they are in their own
+session); they agree on a step, rank 0 checkpoints, and the launcher exits 130.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import socket
+import sys
+import tempfile
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..errors import Interrupted, SplatError
+
+# Where a worker of a launched run writes its one-line error instead of the console
+# (cli/main.py): the launcher then prints the one that explains the failure.
+ERRORS_ENV = "SPLATCLI_ERRORS_TO"
+
+
+@dataclass
+class WorkerError:
+    rank: int
+    exit_code: int
+    message: str | None  # the worker's own one line; None when it died without one
+    hint: str | None = None
+
+
+def free_port(port: int) -> int:
+    """`port`, checked free on 127.0.0.1, or any free port when 0."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError as exc:
+            raise SplatError(f"--port {port}: cannot listen on 127.0.0.1:{port} ({exc.strerror or exc})",
+                             hint="choose another --port, or leave it out to use a free one") from None
+        return int(s.getsockname()[1])
+
+
+def launch(argv: list[str], nproc: int, port: int, checkpoint_dir: Path) -> None:
+    """Run `python -m splatcli <argv>` as `nproc` ranks; return when all succeed. A
+    failure raises Interrupted (exit 130) or SplatError (exit 2) with one line; a dead
+    rank raises RuntimeError-free SplatError naming the rank and the last checkpoint."""
+    from torch.distributed.elastic.multiprocessing.api import DefaultLogsSpecs, SignalException
+    from torch.distributed.elastic.multiprocessing.errors import ChildFailedError
+    from torch.distributed.launcher.api import LaunchConfig, elastic_launch
+
+    if nproc < 1:
+        raise SplatError(f"--nproc {nproc}: must be at least 1")
+    for name in list(logging.root.manager.loggerDict):  # their warnings and tables are not for users
+        if name.startswith("torch.distributed"):
+            logging.getLogger(name).setLevel(logging.CRITICAL)
+    port = free_port(port)
+    with tempfile.TemporaryDirectory(prefix="splatcli-ranks-") as tmp:
+        errors = Path(tmp) / "errors"
+        errors.mkdir()
+        env_before = {k: os.environ.get(k) for k in (ERRORS_ENV, "OMP_NUM_THREADS")}
+        os.environ[ERRORS_ENV] = str(errors)
+        os.environ.setdefault("OMP_NUM_THREADS", "1")
+        config = LaunchConfig(
+            min_nodes=1, max_nodes=1, nproc_per_node=nproc, run_id=uuid.uuid4().hex,
+            rdzv_backend="c10d", rdzv_endpoint=f"127.0.0.1:{port}", rdzv_timeout=120,
+            max_restarts=0, monitor_interval=0.2, start_method="spawn",
+            logs_specs=DefaultLogsSpecs(log_dir=str(Path(tmp) / "logs")),
+        )
+        try:
+            elastic_launch(config, sys.executable)("-m", "splatcli", *argv)
+        except SignalException as exc:
+            raise _report(errors, {}, checkpoint_dir, signalled=exc.sigval) from None
+        except ChildFailedError as exc:
+            codes = {int(rank): int(f.exitcode) for rank, f in exc.failures.items()}
+            raise _report(errors, codes, checkpoint_dir) from None
+        except Exception as exc:  # the rendezvous did not form, a port was taken meanwhile, ...
+            raise SplatError(f"could not start {nproc} training processes: {type(exc).__name__}: "
+                             f"{' '.join(str(exc).split())[:200]}") from None
+        finally:
+            for k, v in env_before.items():
+                if v is None:
+                    os.environ.pop(k, None)
+                else:
+                    os.environ[k] = v
+
+
+def _read(errors: Path) -> dict[int, WorkerError]:
+    out = {}
+    for p in errors.glob("rank*.json"):
+        try:
+            d = json.loads(p.read_text())
+            out[int(p.stem[4:])] = WorkerError(int(p.stem[4:]), int(d["exit_code"]), d.get("error"), d.get("hint"))
+        except (OSError, ValueError, KeyError):
+            continue
+    return out
+
+
+def _latest(checkpoint_dir: Path) -> str:
+    from ..project import Project
+
+    path = Project(checkpoint_dir).latest_checkpoint()
+    return f"the last checkpoint is {path}" if path else "no checkpoint was written yet"
+
+
+def _report(errors: Path, codes: dict[int, int], checkpoint_dir: Path,
+            signalled: signal.Signals | None = None) -> Exception:
+    """The one exception that explains a failed run: a rank that died without a word
+    (killed) first, then the lowest rank's own error."""
+    said = _read(errors)
+    for rank, code in sorted(codes.items()):
+        if rank not in said:
+            how = f"was killed by {signal.Signals(-code).name}" if code < 0 and -code in signal.Signals._value2member_map_ \
+                else f"exited with code {code}"
+            return RankDied(f"training rank {rank} {how}; the run was stopped; {_latest(checkpoint_dir)}",
+                            hint=f"continue with `splatcli train {checkpoint_dir} --resume`")
+    if any(e.exit_code == 130 for e in said.values()) or signalled is not None:
+        first = said.get(0) or next(iter(said.values()), None)
+        return Interrupted(first.message if first and first.message and first.exit_code == 130
+                           else f"interrupted; {_latest(checkpoint_dir)}")
+    if said:
+        e = said[min(said, key=lambda r: (said[r].exit_code != 2, r))]  # a user error explains more than its echo
+        err = SplatError(e.message or "training failed")
+        err.hint = e.hint
+        err.exit_code = e.exit_code
+        return err
+    return SplatError(f"training failed ({codes})")
+
+
+class RankDied(SplatError):
+    """A training rank died without reporting (killed, crashed hard)."""
+
+    exit_code = 1
