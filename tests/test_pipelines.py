@@ -89,3 +89,29 @@ def test_batch_with_a_corrupt_frame_a_duplicate_job_and_a_scene_too_big(tmp_path
     assert not (tmp_path / "projects" / "huge" / "exports" / "scene.ply").exists()
     good = [f"projects/{n}/exports/scene.ply" for n in ("alpha", "beta")]
     assert subprocess.run(["make", "-q", f"SPLATCLI={splatcli}", *good], cwd=tmp_path, env=env).returncode == 0
+
+
+SNAKEMAKE = shutil.which("snakemake") or (str(Path(sys.executable).with_name("snakemake"))
+                                          if Path(sys.executable).with_name("snakemake").exists() else None)
+
+
+@pytest.mark.skipif(SNAKEMAKE is None, reason="needs snakemake (pip install -e '.[dev]' installs it)")
+def test_snakefile_builds_two_captures_and_a_second_run_does_nothing(tmp_path):
+    make_scene = load_make_scene()
+    for i, name in enumerate(["alpha", "beta"]):
+        make_scene.render_scene(tmp_path / "captures" / name, num_views=12, width=160, height=120, seed=i)
+    splatcli = Path(sys.executable).with_name("splatcli")
+    args = [SNAKEMAKE, "-s", str(REPO / "pipelines" / "Snakefile"), "--cores", "2", "--directory", str(tmp_path),
+            "--config", f"splatcli={splatcli}", f"captures={tmp_path / 'captures'}", f"out={tmp_path / 'projects'}",
+            "train_flags=--preset demo --iterations 40 --eval-every 0"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    r = subprocess.run(args, capture_output=True, text=True, env=env, timeout=900)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    for name in ("alpha", "beta"):
+        proj = tmp_path / "projects" / name
+        assert (proj / "exports" / "scene.ply").stat().st_size > 1000
+        report = json.loads((proj / "reports" / "eval.json").read_text())
+        assert report["train_steps"] == 40 and report["psnr"] > 8
+    again = subprocess.run(args, capture_output=True, text=True, env=env, timeout=300)
+    assert again.returncode == 0 and "Nothing to be done" in again.stdout + again.stderr, again.stderr[-2000:]
+    assert "rule train" not in again.stdout + again.stderr

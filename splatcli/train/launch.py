@@ -46,10 +46,11 @@ def free_port(port: int) -> int:
         return int(s.getsockname()[1])
 
 
-def launch(argv: list[str], nproc: int, port: int, checkpoint_dir: Path) -> None:
-    """Run `python -m splatcli <argv>` as `nproc` ranks; return when all succeed. A
-    failure raises Interrupted (exit 130) or SplatError (exit 2) with one line; a dead
-    rank raises RuntimeError-free SplatError naming the rank and the last checkpoint."""
+def launch(argv: list[str], nproc: int, port: int, project_dir: Path) -> None:
+    """Run `python -m splatcli <argv>` (a train command of `project_dir`) as `nproc`
+    ranks; return when all succeed. A failure raises one exception with one line:
+    Interrupted (exit 130), the workers' own SplatError (exit 2), or RankDied (exit 1)
+    naming the rank that died and the last checkpoint."""
     from torch.distributed.elastic.multiprocessing.api import DefaultLogsSpecs, SignalException
     from torch.distributed.elastic.multiprocessing.errors import ChildFailedError
     from torch.distributed.launcher.api import LaunchConfig, elastic_launch
@@ -60,6 +61,10 @@ def launch(argv: list[str], nproc: int, port: int, checkpoint_dir: Path) -> None
         if name.startswith("torch.distributed"):
             logging.getLogger(name).setLevel(logging.CRITICAL)
     port = free_port(port)
+    from ..project import writer_lock
+
+    with writer_lock(project_dir, "train"):  # refuse at once, not after K processes start (rank 0 takes it)
+        pass
     with tempfile.TemporaryDirectory(prefix="splatcli-ranks-") as tmp:
         errors = Path(tmp) / "errors"
         errors.mkdir()
@@ -75,10 +80,10 @@ def launch(argv: list[str], nproc: int, port: int, checkpoint_dir: Path) -> None
         try:
             elastic_launch(config, sys.executable)("-m", "splatcli", *argv)
         except SignalException as exc:
-            raise _report(errors, {}, checkpoint_dir, signalled=exc.sigval) from None
+            raise _report(errors, {}, project_dir, signalled=exc.sigval) from None
         except ChildFailedError as exc:
             codes = {int(rank): int(f.exitcode) for rank, f in exc.failures.items()}
-            raise _report(errors, codes, checkpoint_dir) from None
+            raise _report(errors, codes, project_dir) from None
         except Exception as exc:  # the rendezvous did not form, a port was taken meanwhile, ...
             raise SplatError(f"could not start {nproc} training processes: {type(exc).__name__}: "
                              f"{' '.join(str(exc).split())[:200]}") from None
@@ -101,14 +106,14 @@ def _read(errors: Path) -> dict[int, WorkerError]:
     return out
 
 
-def _latest(checkpoint_dir: Path) -> str:
+def _latest(project_dir: Path) -> str:
     from ..project import Project
 
-    path = Project(checkpoint_dir).latest_checkpoint()
+    path = Project(project_dir).latest_checkpoint()
     return f"the last checkpoint is {path}" if path else "no checkpoint was written yet"
 
 
-def _report(errors: Path, codes: dict[int, int], checkpoint_dir: Path,
+def _report(errors: Path, codes: dict[int, int], project_dir: Path,
             signalled: signal.Signals | None = None) -> Exception:
     """The one exception that explains a failed run: a rank that died without a word
     (killed) first, then the lowest rank's own error."""
@@ -117,12 +122,12 @@ def _report(errors: Path, codes: dict[int, int], checkpoint_dir: Path,
         if rank not in said:
             how = f"was killed by {signal.Signals(-code).name}" if code < 0 and -code in signal.Signals._value2member_map_ \
                 else f"exited with code {code}"
-            return RankDied(f"training rank {rank} {how}; the run was stopped; {_latest(checkpoint_dir)}",
-                            hint=f"continue with `splatcli train {checkpoint_dir} --resume`")
+            return RankDied(f"training rank {rank} {how}; the run was stopped; {_latest(project_dir)}",
+                            hint=f"continue with `splatcli train {project_dir} --resume`")
     if any(e.exit_code == 130 for e in said.values()) or signalled is not None:
         first = said.get(0) or next(iter(said.values()), None)
         return Interrupted(first.message if first and first.message and first.exit_code == 130
-                           else f"interrupted; {_latest(checkpoint_dir)}")
+                           else f"interrupted; {_latest(project_dir)}")
     if said:
         e = said[min(said, key=lambda r: (said[r].exit_code != 2, r))]  # a user error explains more than its echo
         err = SplatError(e.message or "training failed")
