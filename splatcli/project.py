@@ -89,7 +89,8 @@ class Project:
         return self.renders_dir / name
 
     def export_path(self, fmt: str = "ply") -> Path:
-        return self.exports_dir / f"scene.{fmt}"
+        """exports/scene.<format's suffix> (compressed-ply: scene.compressed.ply)."""
+        return self.exports_dir / f"scene.{fmt.replace('-', '.')}"
 
     def checkpoint_path(self, step: int) -> Path:
         return self.checkpoints_dir / f"step-{int(step):09d}.pt"

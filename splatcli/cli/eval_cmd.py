@@ -29,7 +29,9 @@ def evaluate(
     downscale: Optional[float] = typer.Option(None, "--downscale", help="Score at the stored size divided by this (default: as trained)."),
     budgets: str = typer.Option(",".join(f"{b:g}" for b in _D.budgets), "--budgets", help="Fractions of the Gaussians for the render-time curve."),
     plots: bool = typer.Option(_D.plots, "--plots/--no-plots", help="Draw PNG plots beside eval.md (needs matplotlib)."),
-    model: Optional[Path] = typer.Option(None, "--model", help="Score this 3DGS .ply (from any tool) instead of the latest checkpoint."),
+    model: Optional[Path] = typer.Option(None, "--model", help="Score this splat file (.ply from any tool, .compressed.ply, .spz, .splat) instead of the latest checkpoint."),
+    formats: str = typer.Option("", "--formats", help="Also write the model as each of these formats (ply, spz, compressed-ply, splat), "
+                                "read it back and score it: size against error, in eval.md and eval.json."),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Folder for eval.json, eval.md and plots (default PROJECT/reports)."),
     pred: Optional[Path] = typer.Option(None, "--pred", help="Compare this folder of images ..."),
     gt: Optional[Path] = typer.Option(None, "--gt", help="... with this one, by file name (no project needed)."),
@@ -52,7 +54,7 @@ def evaluate(
     if project is None:
         raise SplatError("give a PROJECT, or --pred DIR --gt DIR")
     cfg = EvalConfig(split=split, background=bg, downscale=downscale, budgets=_budgets(budgets), plots=plots,
-                     model=model, out=out)
+                     model=model, out=out, formats=tuple(f.strip().lower() for f in formats.split(",") if f.strip()))
     plan = plan_eval(project, cfg, resolve_device(device))  # input errors surface before any output
     with ui.progress() as sink:
         r = run_eval(plan, on_event=sink)
@@ -61,4 +63,6 @@ def evaluate(
                       f"{r.render_fps:.2f} frames/s at {r.width}x{r.height} on {r.device}"]
                + [f"  {b.fraction:>4.0%}: {b.num_gaussians:>9,} Gaussians  {b.psnr:6.2f} dB  {b.ms_per_frame:8.1f} ms/frame"
                   for b in r.budgets]
+               + [f"  {f.format:>14}: {f.bytes / 1e6:8.2f} MB ({f.ratio:4.1f}x smaller than .ply)  {f.psnr:6.2f} dB "
+                  f"({-f.db_lost:+.2f})" for f in r.formats]
                + ([f"report: {r.report_path}"] if r.report_path else []))

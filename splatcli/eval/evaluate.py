@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import tempfile
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -37,6 +38,7 @@ from ..events import EventSink, Note, Progress, Stage, StageDone, emit
 from ..gaussians import Gaussians
 from ..io.atomic import atomic_write_json, atomic_write_text
 from ..io.images import load_rgb
+from ..io.formats import check_format, default_name, read_format, write_format
 from ..io.model import load_model
 from ..io.ply import ply_bytes
 from ..project import Project, writer_lock
@@ -45,7 +47,8 @@ from ..views.sources import SPLITS, View, dataset_views
 from .budgets import contributions, prune_to
 from .curve import read_curve
 from .metrics import psnr, ssim
-from .report import NO_PLOTS_HINT, BudgetPoint, EvalReport, ImageScore, model_stats, write_plots, write_report_md
+from .report import (NO_PLOTS_HINT, BudgetPoint, EvalReport, FormatPoint, ImageScore, model_stats, write_plots,
+                     write_report_md)
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")
 DEFAULT_BUDGETS = (1.0, 0.5, 0.25, 0.1)
@@ -62,6 +65,7 @@ class EvalConfig:
     write: bool = True  # write eval.json and eval.md
     model: Path | None = None  # score this 3DGS .ply (any tool's) instead of the latest checkpoint
     out: Path | None = None  # folder for eval.json, eval.md, plots (default PROJECT/reports)
+    formats: tuple[str, ...] = ()  # file formats to encode, decode and score (size against error)
 
 
 @dataclass
@@ -117,6 +121,28 @@ def _score_views(g: Gaussians, views: Sequence[View], gts: Sequence[Tensor], bg:
     return scores, float(np.median(times))
 
 
+def _score_formats(g: Gaussians, formats: Sequence[str], views: Sequence[View], gts: Sequence[Tensor], bg: Tensor,
+                   full_psnr: float, on_event: EventSink | None) -> list[FormatPoint]:
+    """Each format: write the model, read it back through our reader, score the views."""
+    out = []
+    ply_size = ply_bytes(len(g), g.sh_degree)
+    with tempfile.TemporaryDirectory(prefix="splatcli-formats-") as tmp:
+        for fmt in formats:
+            path = Path(tmp) / default_name("model", fmt)
+            t0 = time.perf_counter()
+            w = write_format(fmt, path, g.to("cpu"))
+            t1 = time.perf_counter()
+            back = read_format(path, g.device, fmt).gaussians
+            t2 = time.perf_counter()
+            sc, _ = _score_views(back, views, gts, bg, on_event, f"format {fmt}")
+            p = _mean_psnr(sc)
+            out.append(FormatPoint(format=fmt, bytes=w.bytes, bytes_per_gaussian=w.bytes / max(len(g), 1),
+                                   ratio=ply_size / max(w.bytes, 1), psnr=p, ssim=float(np.mean([x.ssim for x in sc])),
+                                   db_lost=full_psnr - p, encode_s=t1 - t0, decode_s=t2 - t1))
+            path.unlink(missing_ok=True)
+    return out
+
+
 def _mean_psnr(scores: Sequence[ImageScore]) -> float:
     """Mean of per-image PSNR (the 3DGS convention), dB."""
     return float(np.mean([s.psnr for s in scores]))
@@ -141,6 +167,8 @@ def check_eval_config(config: EvalConfig) -> None:
         raise SplatError(f"--model {config.model}: {what}")
     if config.out is not None and Path(config.out).exists() and not Path(config.out).is_dir():
         raise SplatError(f"--out {config.out}: exists and is not a directory")
+    for f in config.formats:
+        check_format(f, "--formats")
     if config.contribution_views < 1:
         raise SplatError(f"contribution_views {config.contribution_views}: must be at least 1")
 
@@ -249,6 +277,7 @@ def _run_eval(plan: EvalPlan, on_event: EventSink | None) -> EvalReport:
     if 1.0 not in config.budgets:
         budgets = budgets[1:]
 
+    formats = _score_formats(g, config.formats, views, gts, bg, mean_psnr, on_event)
     curve = read_curve(project.train_log_path) if config.model is None else []
     report = EvalReport(
         psnr=mean_psnr,
@@ -267,6 +296,7 @@ def _run_eval(plan: EvalPlan, on_event: EventSink | None) -> EvalReport:
         step=step,
         model=model_name,
         budgets=budgets,
+        formats=formats,
         training_curve=curve,
         stats=model_stats(g),
         notes=notes,
@@ -288,7 +318,7 @@ def _run_eval(plan: EvalPlan, on_event: EventSink | None) -> EvalReport:
         if config.model is None and config.out is None:  # the project's own model, in its own reports
             project.record_step("eval", config={"split": config.split, "background": list(bg_rgb),
                                                 "downscale": downscale, "max_size": max_size,
-                                                "budgets": list(config.budgets)},
+                                                "budgets": list(config.budgets), "formats": list(config.formats)},
                                 summary=report.summary())
     return report
 

@@ -44,6 +44,21 @@ class BudgetPoint:
 
 
 @dataclass
+class FormatPoint:
+    """One file format: the model encoded, decoded by our reader, and scored (eval --formats)."""
+
+    format: str
+    bytes: int
+    bytes_per_gaussian: float
+    ratio: float  # .ply bytes / these bytes
+    psnr: float
+    ssim: float
+    db_lost: float  # full precision's PSNR minus this one
+    encode_s: float
+    decode_s: float
+
+
+@dataclass
 class ModelStats:
     log10_scale_hist: Histogram  # all three axes, log10 world units
     opacity_hist: Histogram  # sigmoid(logit)
@@ -70,6 +85,7 @@ class EvalReport:
     step: int | None  # checkpoint step (None for a .ply)
     model: str = ""  # what was scored: "checkpoint step 7000" or the .ply path
     budgets: list[BudgetPoint] = field(default_factory=list)
+    formats: list[FormatPoint] = field(default_factory=list)  # size against error, by file format
     training_curve: list[CurvePoint] = field(default_factory=list)
     stats: ModelStats | None = None
     plots: list[str] = field(default_factory=list)  # file names beside eval.md
@@ -87,8 +103,8 @@ class EvalReport:
 
     def to_json(self) -> dict[str, Any]:
         d = asdict(self)
-        return {**self.summary(), **{k: d[k] for k in ("per_image", "budgets", "training_curve", "stats", "plots",
-                                                       "notes")}}
+        return {**self.summary(), **{k: d[k] for k in ("per_image", "budgets", "formats", "training_curve", "stats",
+                                                       "plots", "notes")}}
 
 
 def used_sh_degree(sh: Tensor) -> Tensor:  # [N, K, 3] -> [N] int
@@ -177,6 +193,21 @@ def write_plots(report: EvalReport, project: Project, out_dir: Path) -> list[str
     _save(fig, path("speed_vs_error"))
     names.append(path("speed_vs_error").name)
 
+    if report.formats:
+        fig = _figure(6, 4)
+        ax = fig.subplots()
+        for p in report.formats:
+            ax.plot([p.bytes / 1e6], [p.psnr], "o")
+            ax.annotate(f"{p.format} ({p.ratio:.1f}x)", (p.bytes / 1e6, p.psnr), textcoords="offset points",
+                        xytext=(4, 4), fontsize=8)
+        ax.set_xscale("log")
+        ax.set_xlabel("file size (MB, log scale)")
+        ax.set_ylabel("held-out PSNR (dB)")
+        ax.set_title("size against error, by file format")
+        ax.grid(alpha=0.3)
+        _save(fig, path("formats"))
+        names.append(path("formats").name)
+
     st = report.stats
     if st is not None:
         for name, h, xlabel, title in (
@@ -250,6 +281,18 @@ def write_report_md(report: EvalReport, project: Project) -> str:
         for b in sorted(r.budgets, key=lambda p: -p.fraction):
             lines.append(f"| {b.fraction:.0%} | {b.num_gaussians:,} | {_mb(b.ply_bytes)} | {b.psnr:.2f} | "
                          f"{b.ssim:.4f} | {b.ms_per_frame:.1f} | {b.render_fps:.2f} |")
+        lines.append("")
+    if r.formats:
+        lines += ["## Size against error, by file format", ""]
+        if "formats.png" in r.plots:
+            lines += ["![size against error](formats.png)", ""]
+        lines += ["The model written in each format, read back by splatcli's reader and scored on the same views "
+                  "(*lost*: dB below full precision).", "",
+                  "| format | size | bytes/Gaussian | smaller than .ply | PSNR (dB) | SSIM | lost (dB) | encode s | decode s |",
+                  "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+        for p in r.formats:
+            lines.append(f"| {p.format} | {_mb(p.bytes)} | {p.bytes_per_gaussian:.1f} | {p.ratio:.1f}x | {p.psnr:.2f} | "
+                         f"{p.ssim:.4f} | {p.db_lost:.2f} | {p.encode_s:.2f} | {p.decode_s:.2f} |")
         lines.append("")
     if r.training_curve:
         lines += ["Held-out PSNR while training (reports/train_log.jsonl):", "",

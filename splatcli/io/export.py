@@ -1,12 +1,18 @@
-"""`splatcli export`: the trained model as an interchange file.
+"""`splatcli export`: a model as an interchange file, or one file converted to another.
 
-* `ply`: the original 3DGS layout, byte-compatible with its writer (see
-  io/ply.py); every 3DGS viewer and tool reads it. Lossless.
-* `splat`: the 32-byte-per-Gaussian web-viewer format (see io/splat.py).
-  Lossy: SH bands above degree 0 are dropped (no view-dependent colour) and
-  colour, opacity and rotation are quantised to 8 bits.
+SOURCE is a project (its latest checkpoint) or a splat file of any format splatcli
+reads, so `export` also converts between formats. Formats (io/formats.py):
 
-Rows with NaN/Inf values are dropped and counted.
+* `ply`: the original 3DGS layout, byte-compatible with its writer (io/ply.py);
+  every 3DGS viewer and tool reads it. Lossless.
+* `spz`: Niantic's SPZ, about 10x smaller: positions in 24-bit fixed point,
+  colour, opacity and scale in 8 bits, rotations in 32, SH in 5/4 bits (io/spz.py).
+* `compressed-ply`: SuperSplat's chunked layout for the PlayCanvas viewers, about
+  4x smaller (io/compressed_ply.py).
+* `splat`: the 32-byte-per-Gaussian web-viewer format (io/splat.py). SH bands above
+  degree 0 are dropped and colour, opacity and rotation are 8-bit.
+
+Rows with NaN/Inf values are dropped and counted. Every write is atomic.
 """
 
 from __future__ import annotations
@@ -19,18 +25,19 @@ import torch
 
 from ..errors import SplatError
 from ..events import EventSink, Note, Stage, StageDone, emit
-from ..project import Project, writer_lock
+from ..project import Project, is_project, writer_lock
+from .formats import FORMATS, LOSSLESS, check_format, default_name, write_format
 from .model import load_model
-from .ply import write_ply
-from .splat import write_splat
+from .spz import SpzOptions
 
-EXPORT_FORMATS = ("ply", "splat")
+EXPORT_FORMATS = FORMATS
 
 
 @dataclass(frozen=True)
 class ExportConfig:
-    format: str = "ply"  # ply | splat
-    out: Path | None = None  # default PROJECT/exports/scene.<format>
+    format: str = "ply"  # ply | spz | compressed-ply | splat
+    out: Path | None = None  # default PROJECT/exports/scene.<suffix>, or beside a source file
+    spz: SpzOptions = SpzOptions()  # SH bits of .spz
 
 
 @dataclass
@@ -41,44 +48,60 @@ class ExportResult:
     num_dropped: int  # rows dropped for NaN/Inf
     sh_degree: int  # of the file (0 for .splat)
     bytes: int
-    checkpoint: Path
-    step: int
+    checkpoint: Path  # the checkpoint or file read
+    step: int | None  # of the checkpoint (None for a file)
     lossy: bool
 
 
 def check_export_config(config: ExportConfig) -> None:
-    if config.format not in EXPORT_FORMATS:
-        raise SplatError(f"--format {config.format!r} is not known; allowed values: {', '.join(EXPORT_FORMATS)}")
+    check_format(config.format)
     if config.out is not None:
         out = Path(config.out)
         if out.is_dir():
-            raise SplatError(f"-o {out}: is a directory; give a file name such as {out / ('scene.' + config.format)}")
+            raise SplatError(f"-o {out}: is a directory; give a file name such as {out / default_name('scene', config.format)}")
+    for name, bits in (("--spz-sh-bits", config.spz.sh1_bits), ("--spz-sh-bits", config.spz.sh_rest_bits)):
+        if not 1 <= bits <= 8:
+            raise SplatError(f"{name}: {bits} bits is not in 1-8")
 
 
 def export_project(root: str | os.PathLike, config: ExportConfig, *, on_event: EventSink | None = None) -> ExportResult:
-    """Write the latest checkpoint of the project at `root` as .ply or .splat."""
+    """Write the latest checkpoint of the project at `root`, or the splat file `root`,
+    in `config.format`."""
+    config = ExportConfig(check_format(config.format), config.out, config.spz)
     check_export_config(config)
-    project = Project.open(root)
-    with writer_lock(project.root, "export", shared=True):
-        return _export(project, config, on_event)
+    root = Path(root)
+    if root.is_dir() or is_project(root) or not root.exists():
+        project = Project.open(root)
+        with writer_lock(project.root, "export", shared=True):
+            out = Path(config.out) if config.out is not None else project.export_path(config.format)
+            return _export(project.root, out, config, on_event)
+    out = Path(config.out) if config.out is not None else root.with_name(default_name(_stem(root), config.format))
+    if out.resolve() == root.resolve():
+        raise SplatError(f"-o {out}: is the source file itself; give another name")
+    return _export(root, out, config, on_event)
 
 
-def _export(project: Project, config: ExportConfig, on_event: EventSink | None) -> ExportResult:
-    m = load_model(project.root, torch.device("cpu"))
-    g, ck_path, step = m.gaussians, m.path, m.step
-    out = Path(config.out) if config.out is not None else project.export_path(config.format)
+def _stem(path: Path) -> str:
+    name = path.name
+    for suffix in (".compressed.ply", ".ply", ".spz", ".splat"):
+        if name.lower().endswith(suffix):
+            return name[: -len(suffix)]
+    return path.stem
+
+
+def _export(source: Path, out: Path, config: ExportConfig, on_event: EventSink | None) -> ExportResult:
+    m = load_model(source, torch.device("cpu"))
+    g = m.gaussians
+    for n in m.notes:
+        emit(on_event, Note(n))
     emit(on_event, Stage(f"export {config.format}"))
-    if config.format == "ply":
-        r = write_ply(out, g)
-        result = ExportResult(path=out, format="ply", num_gaussians=r.num_written, num_dropped=r.num_dropped,
-                              sh_degree=r.sh_degree, bytes=r.bytes, checkpoint=ck_path, step=step, lossy=False)
-    else:
-        s = write_splat(out, g)
-        result = ExportResult(path=out, format="splat", num_gaussians=s.num_written, num_dropped=s.num_dropped,
-                              sh_degree=0, bytes=s.bytes, checkpoint=ck_path, step=step, lossy=True)
-        if g.sh_degree > 0:
-            emit(on_event, Note(f".splat keeps only SH degree 0: view-dependent colour (degree {g.sh_degree}) is dropped; "
-                                "colour, opacity and rotation are 8-bit"))
+    r = write_format(config.format, out, g, config.spz)
+    result = ExportResult(path=out, format=config.format, num_gaussians=r.num_written, num_dropped=r.num_dropped,
+                          sh_degree=r.sh_degree, bytes=r.bytes, checkpoint=m.path, step=m.step,
+                          lossy=config.format not in LOSSLESS)
+    if config.format == "splat" and g.sh_degree > 0:
+        emit(on_event, Note(f".splat keeps only SH degree 0: view-dependent colour (degree {g.sh_degree}) is dropped; "
+                            "colour, opacity and rotation are 8-bit"))
     if result.num_dropped:
         emit(on_event, Note(f"dropped {result.num_dropped} Gaussians with NaN/Inf values", "warning"))
     emit(on_event, StageDone(f"export {config.format}", 0.0))

@@ -16,13 +16,14 @@ from ..errors import SplatError
 from ..gaussians import Gaussians
 from ..project import Project, is_project
 from .checkpoint import load_checkpoint
-from .ply import read_ply
+from .compressed_ply import is_compressed_ply
+from .formats import SUFFIXES, format_of, read_format
 
 
 @dataclass
 class LoadedModel:
     gaussians: Gaussians  # truncated to the active SH degree
-    kind: str  # "checkpoint" | "ply"
+    kind: str  # "checkpoint", or the file's format (io/formats.py)
     path: Path  # the checkpoint or file read
     project: Project | None  # the project, when the source is one
     step: int | None = None  # training step of the checkpoint
@@ -35,8 +36,10 @@ class LoadedModel:
 
 
 def load_model(source: str | os.PathLike, device: torch.device) -> LoadedModel:
-    """A project directory (its latest checkpoint) or a 3DGS .ply file."""
+    """A project directory (its latest checkpoint) or a splat file of any format
+    io/formats.py reads (.ply, .compressed.ply, .spz, .splat)."""
     source = Path(source)
+    fmt = format_of(source) if not source.is_dir() else None
     if source.is_dir() and source.suffix.lower() == ".ply" and not is_project(source):
         raise SplatError(f"{source}: is a directory, not a .ply file")
     if source.is_dir() or is_project(source):
@@ -45,13 +48,16 @@ def load_model(source: str | os.PathLike, device: torch.device) -> LoadedModel:
         ck = load_checkpoint(ck_path, device)
         return LoadedModel(gaussians=ck.model(), kind="checkpoint", path=ck_path, project=project, step=ck.step)
     if not source.exists():
-        if source.suffix.lower() == ".ply":
-            raise SplatError(f"{source}: no such .ply file")
+        if fmt is not None:
+            raise SplatError(f"{source}: no such {SUFFIXES[fmt]} file")
         Project.open(source)  # raises: no such project, run `splatcli process` first
-    if source.suffix.lower() != ".ply" and not _starts_like_ply(source):
-        raise SplatError(f"{source}: neither a splatcli project directory nor a 3DGS .ply file")
-    r = read_ply(source, device)
-    return LoadedModel(gaussians=r.gaussians, kind="ply", path=source, project=None, notes=list(r.notes))
+    if fmt is None:
+        if not _starts_like_ply(source):
+            raise SplatError(f"{source}: neither a splatcli project directory nor a splat file "
+                             f"({', '.join(SUFFIXES.values())})")
+        fmt = "compressed-ply" if is_compressed_ply(source) else "ply"
+    r = read_format(source, device, fmt)
+    return LoadedModel(gaussians=r.gaussians, kind=fmt, path=source, project=None, notes=list(r.notes))
 
 
 def _starts_like_ply(path: Path) -> bool:

@@ -1,0 +1,106 @@
+"""What the compressed splat formats share: the Gaussians as float64 arrays, the
+frame change some formats need, smallest-three quaternions, and the one-line
+refusal of a file that does not hold what it claims.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..errors import SplatError
+from ..gaussians import Gaussians, num_sh_bases, sh_degree_from_bases
+
+# Sign of each SH basis function (degrees 1-3, 3DGS order) under (x, y, z) -> (x, -y, -z):
+# the change between OpenCV's right-down-front frame and the right-up-back frame of SPZ.
+# degree 1: y, z, x; degree 2: xy, yz, 3z^2-1, xz, x^2-y^2; degree 3: y(3x^2-y^2), xyz,
+# y(5z^2-1), z(5z^2-3), x(5z^2-1), z(x^2-y^2), x(x^2-3y^2).
+SH_FLIP_YZ = np.array([-1, -1, 1, -1, 1, 1, -1, 1, -1, 1, -1, -1, 1, -1, 1], dtype=np.float64)
+
+
+@dataclass
+class Arrays:
+    """Gaussians as contiguous float64 numpy arrays (the codecs' working form)."""
+
+    means: np.ndarray  # [N, 3]
+    quats: np.ndarray  # [N, 4] w, x, y, z, normalised, w >= 0 where it matters to a codec
+    log_scales: np.ndarray  # [N, 3]
+    opacity_logits: np.ndarray  # [N]
+    sh: np.ndarray  # [N, K, 3], DC first
+
+    @property
+    def sh_degree(self) -> int:
+        return sh_degree_from_bases(self.sh.shape[1])
+
+    def __len__(self) -> int:
+        return int(self.means.shape[0])
+
+    @staticmethod
+    def of(g: Gaussians) -> tuple["Arrays", int]:
+        """The finite rows of `g` (quaternions normalised), and how many were dropped."""
+        f64 = lambda t: t.detach().to(device="cpu", dtype=torch.float64).numpy()  # noqa: E731
+        means, quats, ls, op, sh = (f64(g.means), f64(g.quats), f64(g.log_scales), f64(g.opacity_logits), f64(g.sh))
+        qn = np.linalg.norm(quats, axis=1)
+        ok = (np.isfinite(means).all(1) & np.isfinite(quats).all(1) & np.isfinite(ls).all(1) & np.isfinite(op)
+              & np.isfinite(sh.reshape(len(sh), -1)).all(1) & (qn > 0))
+        a = Arrays(means[ok], quats[ok] / qn[ok, None], ls[ok], op[ok], sh[ok])
+        return a, int((~ok).sum())
+
+    def gaussians(self, device: torch.device | str = "cpu") -> Gaussians:
+        t = lambda x: torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32)).to(device)  # noqa: E731
+        return Gaussians(t(self.means), t(self.quats), t(self.log_scales), t(self.opacity_logits), t(self.sh))
+
+    def flip_yz(self) -> "Arrays":
+        """The same Gaussians with y and z negated (a half turn about x): OpenCV <-> SPZ."""
+        sh = self.sh.copy()
+        k = sh.shape[1] - 1
+        sh[:, 1:] *= SH_FLIP_YZ[:k, None]
+        q = self.quats * np.array([1.0, 1.0, -1.0, -1.0])
+        return Arrays(self.means * np.array([1.0, -1.0, -1.0]), q, self.log_scales, self.opacity_logits, sh)
+
+
+def sigmoid(x: np.ndarray) -> np.ndarray:
+    return 0.5 * (1.0 + np.tanh(0.5 * x))  # no overflow warnings for large |x|
+
+
+def logit(p: np.ndarray, eps: float) -> np.ndarray:
+    p = np.clip(p, eps, 1.0 - eps)  # a stored 0 or 1 stays finite
+    return np.log(p) - np.log1p(-p)
+
+
+def pack_smallest_three(q: np.ndarray, bits: int, order: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """Quaternions [N, 4] (w, x, y, z) -> (index of the largest component in `order`,
+    [N, 3] the other three in `order`, each in [-1/sqrt2, 1/sqrt2]). The quaternion is
+    negated where needed so that the dropped component is positive."""
+    a = q[:, list(order)]
+    big = np.abs(a).argmax(axis=1)
+    a = a * np.where(a[np.arange(len(a)), big] < 0, -1.0, 1.0)[:, None]
+    keep = np.ones_like(a, dtype=bool)
+    keep[np.arange(len(a)), big] = False
+    return big, a[keep].reshape(-1, 3)
+
+
+def unpack_smallest_three(big: np.ndarray, rest: np.ndarray, order: tuple[int, ...]) -> np.ndarray:
+    """Inverse of pack_smallest_three: -> [N, 4] (w, x, y, z)."""
+    n = len(big)
+    a = np.zeros((n, 4))
+    keep = np.ones((n, 4), dtype=bool)
+    keep[np.arange(n), big] = False
+    a[keep] = rest.reshape(-1)
+    a[np.arange(n), big] = np.sqrt(np.clip(1.0 - (rest ** 2).sum(1), 0.0, None))
+    q = np.zeros_like(a)
+    q[:, list(order)] = a
+    return q
+
+
+def check_sh_degree(degree: int, where: Path) -> int:
+    if not 0 <= degree <= 3:
+        raise SplatError(f"{where}: SH degree {degree} is not 0-3")
+    return num_sh_bases(degree)
+
+
+def refuse(path: Path, what: str) -> SplatError:
+    return SplatError(f"{path}: {what}")

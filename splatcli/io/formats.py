@@ -1,0 +1,117 @@
+"""Every splat file format splatcli writes and reads, in one table.
+
+    ply             the original 3DGS layout, lossless (io/ply.py)
+    compressed-ply  SuperSplat's chunked 8-11-bit layout, PlayCanvas viewers (io/compressed_ply.py)
+    spz             Niantic's gzip-packed fixed-point layout (io/spz.py)
+    splat           the 32-byte rows of the antimatter15 web viewers, SH degree 0 (io/splat.py)
+
+`format_of` names a file's format from its name (and, for `.ply`, its header);
+`write_format` / `read_format` are the one writer and reader per format that
+export, eval --formats and the model loader use.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..errors import SplatError
+from ..gaussians import SH_C0, Gaussians
+from .compressed_ply import is_compressed_ply, read_compressed_ply, write_compressed_ply
+from .ply import read_ply, write_ply
+from .splat import read_splat, write_splat
+from .spz import SpzOptions, read_spz, write_spz
+
+SUFFIXES = {"ply": ".ply", "compressed-ply": ".compressed.ply", "spz": ".spz", "splat": ".splat"}
+FORMATS = tuple(SUFFIXES)
+LOSSLESS = ("ply",)
+
+
+@dataclass(frozen=True)
+class WriteResult:
+    num_written: int
+    num_dropped: int  # rows with NaN/Inf values (or a zero quaternion)
+    bytes: int
+    sh_degree: int  # of the file
+
+
+@dataclass(frozen=True)
+class ReadResult:
+    gaussians: Gaussians
+    format: str
+    notes: list[str]
+
+
+def check_format(fmt: str, option: str = "--format") -> str:
+    f = fmt.strip().lower()
+    if f not in SUFFIXES:
+        raise SplatError(f"{option} {fmt!r} is not known; allowed values: {', '.join(FORMATS)}")
+    return f
+
+
+def format_of(path: str | os.PathLike) -> str | None:
+    """The format a file name says (".compressed.ply" before ".ply"; a ".ply" whose
+    header has the compressed layout's chunk element is compressed-ply)."""
+    name = Path(path).name.lower()
+    if name.endswith(".compressed.ply"):
+        return "compressed-ply"
+    if name.endswith(".ply"):
+        return "compressed-ply" if is_compressed_ply(path) else "ply"
+    for fmt, suffix in SUFFIXES.items():
+        if name.endswith(suffix):
+            return fmt
+    return None
+
+
+def default_name(stem: str, fmt: str) -> str:
+    return stem + SUFFIXES[fmt]
+
+
+def write_format(fmt: str, path: str | os.PathLike, g: Gaussians, spz: SpzOptions = SpzOptions()) -> WriteResult:
+    """Write `g` as `fmt` (atomically, as every export)."""
+    if fmt == "ply":
+        r = write_ply(path, g)
+        return WriteResult(r.num_written, r.num_dropped, r.bytes, r.sh_degree)
+    if fmt == "splat":
+        s = write_splat(path, g)
+        return WriteResult(s.num_written, s.num_dropped, s.bytes, 0)
+    if fmt == "spz":
+        return WriteResult(*write_spz(path, g, spz), g.sh_degree)
+    if fmt == "compressed-ply":
+        return WriteResult(*write_compressed_ply(path, g), g.sh_degree)
+    raise SplatError(f"--format {fmt!r} is not known; allowed values: {', '.join(FORMATS)}")
+
+
+def read_format(path: str | os.PathLike, device: torch.device | str = "cpu", fmt: str | None = None) -> ReadResult:
+    """A splat file of any format above as Gaussians (one-line SplatError when it is
+    not what it claims)."""
+    path = Path(path)
+    fmt = fmt or format_of(path)
+    if fmt == "ply":
+        r = read_ply(path, device)
+        return ReadResult(r.gaussians, fmt, list(r.notes))
+    if fmt == "compressed-ply":
+        return ReadResult(read_compressed_ply(path, device), fmt, [])
+    if fmt == "spz":
+        return ReadResult(read_spz(path, device), fmt, [])
+    if fmt == "splat":
+        return ReadResult(splat_gaussians(read_splat(path), device), fmt, [])
+    raise SplatError(f"{path}: not a splat file splatcli reads ({', '.join(SUFFIXES.values())})")
+
+
+def splat_gaussians(rows: np.ndarray, device: torch.device | str = "cpu") -> Gaussians:
+    """.splat rows (io/splat.SPLAT_DTYPE) back as Gaussians (SH degree 0)."""
+    scale = rows["scale"].astype(np.float64)
+    if not np.isfinite(rows["position"]).all() or not (np.isfinite(scale).all() and (scale > 0).all()):
+        raise SplatError("a .splat row holds a non-finite position or a scale that is not positive")
+    rgba = rows["rgba"].astype(np.float64) / 255.0
+    alpha = np.clip(rgba[:, 3], 0.5 / 255.0, 1 - 0.5 / 255.0)
+    q = (rows["rot"].astype(np.float64) - 128.0) / 128.0
+    q[np.linalg.norm(q, axis=1) == 0] = (1.0, 0.0, 0.0, 0.0)
+    t = lambda x: torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32)).to(device)  # noqa: E731
+    return Gaussians(t(rows["position"]), t(q), t(np.log(scale)), t(np.log(alpha) - np.log1p(-alpha)),
+                     t(((rgba[:, :3] - 0.5) / SH_C0)[:, None, :]))
