@@ -29,8 +29,8 @@ def evaluate(
     downscale: Optional[float] = typer.Option(None, "--downscale", help="Score at the stored size divided by this (default: as trained)."),
     budgets: str = typer.Option(",".join(f"{b:g}" for b in _D.budgets), "--budgets", help="Fractions of the Gaussians for the render-time curve."),
     plots: bool = typer.Option(_D.plots, "--plots/--no-plots", help="Draw PNG plots beside eval.md (needs matplotlib)."),
-    model: Optional[Path] = typer.Option(None, "--model", help="Score this splat file (.ply from any tool, .compressed.ply, .spz, .splat) instead of the latest checkpoint."),
-    formats: str = typer.Option("", "--formats", help="Also write the model as each of these formats (ply, spz, compressed-ply, splat), "
+    model: Optional[Path] = typer.Option(None, "--model", help="Score this splat file (.ply from any tool, .compressed.ply, .spz, .sog, .splat) instead of the latest checkpoint."),
+    formats: str = typer.Option("", "--formats", help="Also write the model as each of these formats (ply, spz, sog, compressed-ply, splat), "
                                 "read it back and score it: size against error, in eval.md and eval.json."),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Folder for eval.json, eval.md and plots (default PROJECT/reports)."),
     pred: Optional[Path] = typer.Option(None, "--pred", help="Compare this folder of images ..."),

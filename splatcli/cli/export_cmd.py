@@ -1,4 +1,4 @@
-"""`splatcli export`: a project's model, or any splat file, as .ply, .spz, .compressed.ply or .splat."""
+"""`splatcli export`: a project's model, or any splat file, as .ply, .spz, .sog, .compressed.ply or .splat."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import typer
 
 from ..events import Note
 from ..io.export import ExportConfig, check_export_config, export_project
+from ..io.sog import SogOptions
 from ..io.spz import SpzOptions
 from .common import DebugOpt, JsonOpt, QuietOpt, Ui
 
@@ -17,23 +18,27 @@ _D = ExportConfig()  # the defaults, written once in the config
 
 def export(
     source: Path = typer.Argument(..., help="A project directory (its latest checkpoint), or a splat file to convert "
-                                  "(.ply, .compressed.ply, .spz, .splat)."),
+                                  "(.ply, .compressed.ply, .spz, .sog, .splat)."),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Output file (default PROJECT/exports/scene.<suffix>, "
                                        "or the source file's name with the new suffix)."),
     fmt: str = typer.Option(_D.format, "--format", "-f",
-                            help="ply: 3DGS layout, lossless. spz: Niantic SPZ (~10x smaller). compressed-ply: "
+                            help="ply: 3DGS layout, lossless. spz: Niantic SPZ (~10x smaller). sog: PlayCanvas SOG (~15-20x smaller). compressed-ply: "
                                  "SuperSplat/PlayCanvas chunks (~4x smaller). splat: 32-byte web-viewer rows, SH degree 0 "
                                  "only. docs/guide.md says which viewer reads which."),
     spz_sh_bits: str = typer.Option(f"{_D.spz.sh1_bits},{_D.spz.sh_rest_bits}", "--spz-sh-bits",
                                     help="SPZ: bits per SH coefficient of degree 1, and of degrees 2-3 (fewer: smaller, "
                                          "less view-dependent colour)."),
+    sog_palette: Optional[int] = typer.Option(None, "--sog-palette", help="SOG: entries of the SH palette (k-means of the "
+                                              "Gaussians' SH; default a power of two near N/16, 256 to 2048; more: larger, "
+                                              "closer view-dependent colour)."),
     quiet: bool = QuietOpt,
     json_out: bool = JsonOpt,
     debug: bool = DebugOpt,
 ) -> None:
     """Write Gaussians in a format other tools read (also: convert one splat file into another)."""
     ui = Ui(quiet=quiet, json_out=json_out)
-    cfg = ExportConfig(format=fmt.strip().lower(), out=out, spz=SpzOptions(*_bits(spz_sh_bits)))
+    cfg = ExportConfig(format=fmt.strip().lower(), out=out, spz=SpzOptions(*_bits(spz_sh_bits)),
+                       sog=SogOptions(palette=sog_palette))
     check_export_config(cfg)
     # notes only: an export takes seconds, and errors must stay the only line
     sink = lambda ev: ui.note(ev.message, ev.level) if isinstance(ev, Note) else None  # noqa: E731

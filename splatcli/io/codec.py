@@ -23,7 +23,8 @@ SH_FLIP_YZ = np.array([-1, -1, 1, -1, 1, 1, -1, 1, -1, 1, -1, -1, 1, -1, 1], dty
 
 @dataclass
 class Arrays:
-    """Gaussians as contiguous float64 numpy arrays (the codecs' working form)."""
+    """Gaussians as float32 numpy arrays (the codecs' working form; float32 as trained,
+    so a million Gaussians cost their raw size once, not twice)."""
 
     means: np.ndarray  # [N, 3]
     quats: np.ndarray  # [N, 4] w, x, y, z, normalised, w >= 0 where it matters to a codec
@@ -41,25 +42,39 @@ class Arrays:
     @staticmethod
     def of(g: Gaussians) -> tuple["Arrays", int]:
         """The finite rows of `g` (quaternions normalised), and how many were dropped."""
-        f64 = lambda t: t.detach().to(device="cpu", dtype=torch.float64).numpy()  # noqa: E731
-        means, quats, ls, op, sh = (f64(g.means), f64(g.quats), f64(g.log_scales), f64(g.opacity_logits), f64(g.sh))
-        qn = np.linalg.norm(quats, axis=1)
+        f32 = lambda t: t.detach().to(device="cpu", dtype=torch.float32).numpy()  # noqa: E731  (no copy when already so)
+        means, quats, ls, op, sh = (f32(g.means), f32(g.quats), f32(g.log_scales), f32(g.opacity_logits), f32(g.sh))
+        qn = np.linalg.norm(quats.astype(np.float64), axis=1)
         ok = (np.isfinite(means).all(1) & np.isfinite(quats).all(1) & np.isfinite(ls).all(1) & np.isfinite(op)
               & np.isfinite(sh.reshape(len(sh), -1)).all(1) & (qn > 0))
-        a = Arrays(means[ok], quats[ok] / qn[ok, None], ls[ok], op[ok], sh[ok])
+        if ok.all():  # the common case: no copies
+            return Arrays(means, (quats / qn[:, None]).astype(np.float32), ls, op, sh), 0
+        a = Arrays(means[ok], (quats[ok] / qn[ok, None]).astype(np.float32), ls[ok], op[ok], sh[ok])
         return a, int((~ok).sum())
 
     def gaussians(self, device: torch.device | str = "cpu") -> Gaussians:
         t = lambda x: torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32)).to(device)  # noqa: E731
         return Gaussians(t(self.means), t(self.quats), t(self.log_scales), t(self.opacity_logits), t(self.sh))
 
-    def flip_yz(self) -> "Arrays":
-        """The same Gaussians with y and z negated (a half turn about x): OpenCV <-> SPZ."""
-        sh = self.sh.copy()
-        k = sh.shape[1] - 1
-        sh[:, 1:] *= SH_FLIP_YZ[:k, None]
-        q = self.quats * np.array([1.0, 1.0, -1.0, -1.0])
-        return Arrays(self.means * np.array([1.0, -1.0, -1.0]), q, self.log_scales, self.opacity_logits, sh)
+    def flip_yz(self, sh: bool = True) -> "Arrays":
+        """The same Gaussians with y and z negated (a half turn about x): OpenCV <-> SPZ.
+        With `sh=False` the SH is left as it is (a caller that flips it block by block,
+        with `flip_sh`, never holds a second copy)."""
+        q = self.quats * np.array([1.0, 1.0, -1.0, -1.0], self.quats.dtype)
+        return Arrays(self.means * np.array([1.0, -1.0, -1.0], self.means.dtype), q, self.log_scales,
+                      self.opacity_logits, flip_sh(self.sh.copy()) if sh else self.sh)
+
+
+def flip_sh(sh: np.ndarray) -> np.ndarray:  # [M, K, 3], flipped in place and returned
+    """SH coefficients under (x, y, z) -> (x, -y, -z) (SH_FLIP_YZ; DC unchanged)."""
+    k = sh.shape[1] - 1
+    sh[:, 1:] *= SH_FLIP_YZ[:k, None].astype(sh.dtype)
+    return sh
+
+
+def blocks(n: int, size: int = 65536) -> list[slice]:
+    """Row blocks: per-coefficient work on a million Gaussians in a few MB at a time."""
+    return [slice(i, min(i + size, n)) for i in range(0, n, size)]
 
 
 def sigmoid(x: np.ndarray) -> np.ndarray:
@@ -71,7 +86,7 @@ def logit(p: np.ndarray, eps: float) -> np.ndarray:
     return np.log(p) - np.log1p(-p)
 
 
-def pack_smallest_three(q: np.ndarray, bits: int, order: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+def pack_smallest_three(q: np.ndarray, order: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
     """Quaternions [N, 4] (w, x, y, z) -> (index of the largest component in `order`,
     [N, 3] the other three in `order`, each in [-1/sqrt2, 1/sqrt2]). The quaternion is
     negated where needed so that the dropped component is positive."""

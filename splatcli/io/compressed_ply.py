@@ -29,7 +29,7 @@ import torch
 
 from ..gaussians import SH_C0, Gaussians
 from .atomic import atomic_write_bytes
-from .codec import Arrays, logit, pack_smallest_three, refuse, sigmoid, unpack_smallest_three
+from .codec import Arrays, blocks, logit, pack_smallest_three, refuse, sigmoid, unpack_smallest_three
 
 CHUNK = 256
 CHUNK_PROPS = ["min_x", "min_y", "min_z", "max_x", "max_y", "max_z",
@@ -87,7 +87,7 @@ def encode_compressed_ply(g: Gaussians) -> tuple[bytes, int]:
     position = _unorm(p[:, 0], 11) << 21 | _unorm(p[:, 1], 10) << 11 | _unorm(p[:, 2], 11)
     scale = _unorm(s[:, 0], 11) << 21 | _unorm(s[:, 1], 10) << 11 | _unorm(s[:, 2], 11)
     color = _unorm(c[:, 0], 8) << 24 | _unorm(c[:, 1], 8) << 16 | _unorm(c[:, 2], 8) << 8 | _unorm(alpha, 8)
-    big, rest = pack_smallest_three(a.quats[pad], 10, WXYZ)
+    big, rest = pack_smallest_three(a.quats[pad], WXYZ)
     rotation = big.astype(np.uint32)
     for j in range(3):
         rotation = (rotation << 10) | _unorm(rest[:, j] / np.sqrt(2.0) + 0.5, 10)
@@ -100,8 +100,11 @@ def encode_compressed_ply(g: Gaussians) -> tuple[bytes, int]:
     parts = [chunks.tobytes(), vertex.tobytes()]
     if k > 1:
         header += [f"element sh {n}", *[f"property uchar f_rest_{i}" for i in range((k - 1) * 3)]]
-        rest_sh = a.sh[order, 1:].transpose(0, 2, 1).reshape(n, -1)  # channel-major, as f_rest
-        parts.append(np.clip(np.trunc((rest_sh / 8.0 + 0.5) * 256.0), 0, 255).astype(np.uint8).tobytes())
+        packed = np.empty((n, (k - 1) * 3), np.uint8)
+        for b in blocks(n):
+            rest_sh = a.sh[order[b], 1:].transpose(0, 2, 1).reshape(-1, (k - 1) * 3)  # channel-major, as f_rest
+            packed[b] = np.clip(np.trunc((rest_sh / 8.0 + 0.5) * 256.0), 0, 255)
+        parts.append(packed.tobytes())
     head = ("\n".join(header + ["end_header"]) + "\n").encode("ascii")
     return head + b"".join(parts), dropped
 
@@ -191,11 +194,13 @@ def read_compressed_ply(path: str | os.PathLike, device: torch.device | str = "c
     if len(cnames) == 18:
         rgb = lerp(chunks[:, 12:15], chunks[:, 15:18], rgb)
     k = 1 + len(sh_props) // 3
-    sh = np.zeros((n, k, 3))
+    sh = np.zeros((n, k, 3), np.float32)
     sh[:, 0] = (rgb - 0.5) / SH_C0
     if k > 1:
-        b = np.frombuffer(raw, np.uint8, n * len(sh_props), offset + sizes[0] + sizes[1]).reshape(n, -1)
-        t = np.where(b == 0, 0.0, np.where(b == 255, 1.0, (b.astype(np.float64) + 0.5) / 256.0))
-        sh[:, 1:] = ((t - 0.5) * 8.0).reshape(n, 3, k - 1).transpose(0, 2, 1)
+        raw_sh = np.frombuffer(raw, np.uint8, n * len(sh_props), offset + sizes[0] + sizes[1]).reshape(n, -1)
+        for blk in blocks(n):
+            b = raw_sh[blk]
+            t = np.where(b == 0, 0.0, np.where(b == 255, 1.0, (b.astype(np.float32) + 0.5) / 256.0)).astype(np.float32)
+            sh[blk, 1:] = ((t - 0.5) * 8.0).reshape(-1, 3, k - 1).transpose(0, 2, 1)
     opac = logit(unorm(c, 8), 0.5 / 255.0)
     return Arrays(means, quats, log_scales, opac, sh).gaussians(device)

@@ -9,6 +9,8 @@ reads, so `export` also converts between formats. Formats (io/formats.py):
   colour, opacity and scale in 8 bits, rotations in 32, SH in 5/4 bits (io/spz.py).
 * `compressed-ply`: SuperSplat's chunked layout for the PlayCanvas viewers, about
   4x smaller (io/compressed_ply.py).
+* `sog`: PlayCanvas's SOG, 15-20x smaller: lossless WebP images of 8-16-bit values
+  and k-means codebooks, the SH as a palette of SH vectors (io/sog.py).
 * `splat`: the 32-byte-per-Gaussian web-viewer format (io/splat.py). SH bands above
   degree 0 are dropped and colour, opacity and rotation are 8-bit.
 
@@ -28,6 +30,7 @@ from ..events import EventSink, Note, Stage, StageDone, emit
 from ..project import Project, is_project, writer_lock
 from .formats import FORMATS, LOSSLESS, check_format, default_name, write_format
 from .model import load_model
+from .sog import SogOptions
 from .spz import SpzOptions
 
 EXPORT_FORMATS = FORMATS
@@ -38,6 +41,7 @@ class ExportConfig:
     format: str = "ply"  # ply | spz | compressed-ply | splat
     out: Path | None = None  # default PROJECT/exports/scene.<suffix>, or beside a source file
     spz: SpzOptions = SpzOptions()  # SH bits of .spz
+    sog: SogOptions = SogOptions()  # SH palette size of .sog
 
 
 @dataclass
@@ -62,12 +66,14 @@ def check_export_config(config: ExportConfig) -> None:
     for name, bits in (("--spz-sh-bits", config.spz.sh1_bits), ("--spz-sh-bits", config.spz.sh_rest_bits)):
         if not 1 <= bits <= 8:
             raise SplatError(f"{name}: {bits} bits is not in 1-8")
+    if config.sog.palette is not None and not 1 <= config.sog.palette <= 65536:
+        raise SplatError(f"--sog-palette {config.sog.palette}: must be in 1-65536")
 
 
 def export_project(root: str | os.PathLike, config: ExportConfig, *, on_event: EventSink | None = None) -> ExportResult:
     """Write the latest checkpoint of the project at `root`, or the splat file `root`,
     in `config.format`."""
-    config = ExportConfig(check_format(config.format), config.out, config.spz)
+    config = ExportConfig(check_format(config.format), config.out, config.spz, config.sog)
     check_export_config(config)
     root = Path(root)
     if root.is_dir() or is_project(root) or not root.exists():
@@ -83,7 +89,7 @@ def export_project(root: str | os.PathLike, config: ExportConfig, *, on_event: E
 
 def _stem(path: Path) -> str:
     name = path.name
-    for suffix in (".compressed.ply", ".ply", ".spz", ".splat"):
+    for suffix in (".compressed.ply", ".ply", ".spz", ".sog", ".splat"):
         if name.lower().endswith(suffix):
             return name[: -len(suffix)]
     return path.stem
@@ -95,7 +101,7 @@ def _export(source: Path, out: Path, config: ExportConfig, on_event: EventSink |
     for n in m.notes:
         emit(on_event, Note(n))
     emit(on_event, Stage(f"export {config.format}"))
-    r = write_format(config.format, out, g, config.spz)
+    r = write_format(config.format, out, g, config.spz, config.sog)
     result = ExportResult(path=out, format=config.format, num_gaussians=r.num_written, num_dropped=r.num_dropped,
                           sh_degree=r.sh_degree, bytes=r.bytes, checkpoint=m.path, step=m.step,
                           lossy=config.format not in LOSSLESS)

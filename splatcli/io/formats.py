@@ -3,6 +3,7 @@
     ply             the original 3DGS layout, lossless (io/ply.py)
     compressed-ply  SuperSplat's chunked 8-11-bit layout, PlayCanvas viewers (io/compressed_ply.py)
     spz             Niantic's gzip-packed fixed-point layout (io/spz.py)
+    sog             PlayCanvas's WebP images with codebooks, zipped (io/sog.py)
     splat           the 32-byte rows of the antimatter15 web viewers, SH degree 0 (io/splat.py)
 
 `format_of` names a file's format from its name (and, for `.ply`, its header);
@@ -24,9 +25,10 @@ from ..gaussians import SH_C0, Gaussians
 from .compressed_ply import is_compressed_ply, read_compressed_ply, write_compressed_ply
 from .ply import read_ply, write_ply
 from .splat import read_splat, write_splat
+from .sog import SogOptions, read_sog, write_sog
 from .spz import SpzOptions, read_spz, write_spz
 
-SUFFIXES = {"ply": ".ply", "compressed-ply": ".compressed.ply", "spz": ".spz", "splat": ".splat"}
+SUFFIXES = {"ply": ".ply", "compressed-ply": ".compressed.ply", "spz": ".spz", "sog": ".sog", "splat": ".splat"}
 FORMATS = tuple(SUFFIXES)
 LOSSLESS = ("ply",)
 
@@ -61,6 +63,8 @@ def format_of(path: str | os.PathLike) -> str | None:
         return "compressed-ply"
     if name.endswith(".ply"):
         return "compressed-ply" if is_compressed_ply(path) else "ply"
+    if name == "meta.json":  # an unbundled SOG
+        return "sog"
     for fmt, suffix in SUFFIXES.items():
         if name.endswith(suffix):
             return fmt
@@ -71,7 +75,8 @@ def default_name(stem: str, fmt: str) -> str:
     return stem + SUFFIXES[fmt]
 
 
-def write_format(fmt: str, path: str | os.PathLike, g: Gaussians, spz: SpzOptions = SpzOptions()) -> WriteResult:
+def write_format(fmt: str, path: str | os.PathLike, g: Gaussians, spz: SpzOptions = SpzOptions(),
+                 sog: SogOptions = SogOptions()) -> WriteResult:
     """Write `g` as `fmt` (atomically, as every export)."""
     if fmt == "ply":
         r = write_ply(path, g)
@@ -83,6 +88,8 @@ def write_format(fmt: str, path: str | os.PathLike, g: Gaussians, spz: SpzOption
         return WriteResult(*write_spz(path, g, spz), g.sh_degree)
     if fmt == "compressed-ply":
         return WriteResult(*write_compressed_ply(path, g), g.sh_degree)
+    if fmt == "sog":
+        return WriteResult(*write_sog(path, g, sog), g.sh_degree)
     raise SplatError(f"--format {fmt!r} is not known; allowed values: {', '.join(FORMATS)}")
 
 
@@ -98,6 +105,8 @@ def read_format(path: str | os.PathLike, device: torch.device | str = "cpu", fmt
         return ReadResult(read_compressed_ply(path, device), fmt, [])
     if fmt == "spz":
         return ReadResult(read_spz(path, device), fmt, [])
+    if fmt == "sog":
+        return ReadResult(read_sog(path, device), fmt, [])
     if fmt == "splat":
         return ReadResult(splat_gaussians(read_splat(path), device), fmt, [])
     raise SplatError(f"{path}: not a splat file splatcli reads ({', '.join(SUFFIXES.values())})")
