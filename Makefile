@@ -33,7 +33,7 @@ demo: setup
 	$(BIN)/splatcli train $(DEMO) --preset demo
 	$(BIN)/splatcli render $(DEMO) --split test
 	$(BIN)/splatcli export $(DEMO)
-	$(BIN)/splatcli eval $(DEMO)
+	$(BIN)/splatcli eval $(DEMO) --formats ply,spz,sog,compressed-ply,splat
 	@echo ""
 	@echo "splat:  $(DEMO)/exports/scene.ply"
 	@echo "report: $(DEMO)/reports/eval.md ($(DEMO)/reports/eval.json)"

@@ -248,6 +248,8 @@ def test_export_converts_between_formats_and_loaders_read_them(tmp_path):
     assert r.exit_code == 0, r.output
     r = run_cli("eval", proj.root, "--model", cply, "--no-plots", "-o", tmp_path / "ev", "--json")
     assert r.exit_code == 0, r.output
+    r = run_cli("train", proj.root, "--init-ply", spz, "--iterations", "2", "--eval-every", "0")
+    assert r.exit_code == 0, r.output  # and training starts from any format
     assert_user_error(run_cli("export", spz, "--format", "spz", "-o", spz), "source file itself")
     assert_user_error(run_cli("export", proj.root, "--format", "spz", "--spz-sh-bits", "9,4"), "--spz-sh-bits")
 

@@ -33,7 +33,7 @@ def train(
     eval_every: Optional[int] = typer.Option(None, "--eval-every", help="Held-out PSNR/SSIM every this many steps (0: at the end)."),
     time_budget: Optional[float] = typer.Option(None, "--time-budget", help="Training seconds to fit in: the run measures its speed and plans the preset's schedule, compressed, to end within them (evaluation not counted)."),
     resume: bool = typer.Option(False, "--resume", help="Continue from the latest checkpoint (its settings; options given here override)."),
-    init_ply: Optional[Path] = typer.Option(None, "--init-ply", help="Start from a 3DGS .ply instead of the SfM/random points."),
+    init_ply: Optional[Path] = typer.Option(None, "--init-ply", help="Start from a splat file (.ply, .spz, .sog, .compressed.ply, .splat) instead of the SfM/random points."),
     nproc: Optional[int] = typer.Option(None, "--nproc", help="Train with this many processes on this machine (data-parallel over views, "
                                         "one torch thread each, through torch's elastic launcher): each step sees that many views, and the "
                                         "schedule is scaled so that the run sees as many images as one process (docs/guide.md)."),
