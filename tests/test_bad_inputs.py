@@ -410,7 +410,7 @@ OPTION_CASES = [
     ("eval", ["--background", "teal"], ["--background 'teal'", "white, black, gray"]),
     ("eval", ["--device", "tpu"], ["--device 'tpu'", "auto, cpu, cuda"]),
     ("eval", ["--device", "cuda"], ["--device cuda", "no CUDA GPU", "auto, cpu, cuda"]),
-    ("export", ["--format", "obj"], ["--format 'obj'", "ply, splat"]),
+    ("export", ["--format", "obj"], ["--format 'obj'", "ply, compressed-ply, spz, sog, splat"]),
     ("export", ["-o", "."], ["-o .", "is a directory", "scene.ply"]),
 ]
 

@@ -65,7 +65,7 @@ def test_export_splat(proj, tmp_path: Path) -> None:
 
 def test_export_errors(proj, tmp_path: Path) -> None:
     before = snapshot(proj.root)
-    assert_user_error(run_cli("export", proj.root, "--format", "obj"), "--format 'obj'", "ply, compressed-ply, spz, splat")
+    assert_user_error(run_cli("export", proj.root, "--format", "obj"), "--format 'obj'", "ply, compressed-ply, spz, sog, splat")
     assert_user_error(run_cli("export", tmp_path / "nope"), str(tmp_path / "nope"))
     (tmp_path / "plain").mkdir()
     assert_user_error(run_cli("export", tmp_path / "plain"), "not a splatcli project")
