@@ -15,7 +15,8 @@ holding a 16-byte header and then attribute arrays, each for every Gaussian in t
                v2: 3 x u8 of (x, y, z) * 127.5 + 127.5 with w >= 0
     SH         per Gaussian, per coefficient (degrees 1-3, 3DGS order), R, G, B:
                u8 round(c * 128 + 128), rounded to multiples of 2^(8 - bits)
-               (5 bits for degree 1, 4 above by default)
+               (SpzOptions: 6 bits for degree 1 and 5 above by default; the reference
+               encoder's 5 and 4 lose twice as much; any readers decode either)
 
 SPZ stores the right-up-back frame; splatcli's is OpenCV's right-down-front, so
 y and z change sign (positions, rotations and the SH bands they flip). Version 4
@@ -49,8 +50,11 @@ MAX_RATIO = 1100  # deflate expands at most ~1032x: a larger claimed payload is 
 
 @dataclass(frozen=True)
 class SpzOptions:
-    sh1_bits: int = 5  # bits per degree-1 SH coefficient (the reference's default)
-    sh_rest_bits: int = 4  # bits per degree-2 and -3 coefficient
+    # Bits per SH coefficient of degree 1, and of degrees 2-3. The reference encoder's 5 and 4
+    # cost 0.54 dB on the demo scene (12.4x smaller than .ply); 6 and 5 cost 0.23 dB (9.9x),
+    # 7 and 6 0.11 dB (8.0x), 8 and 8 0.01 dB (6.3x): docs/benchmarks.md, "formats".
+    sh1_bits: int = 6
+    sh_rest_bits: int = 5
     fractional_bits: int | None = None  # None: the most the scene's extent allows (at most 16; the reference uses 12)
 
 
