@@ -29,7 +29,7 @@ def export(
                                     help="SPZ: bits per SH coefficient of degree 1, and of degrees 2-3 (fewer: smaller, "
                                          "less view-dependent colour)."),
     sog_palette: Optional[int] = typer.Option(None, "--sog-palette", help="SOG: entries of the SH palette (k-means of the "
-                                              "Gaussians' SH; default a power of two near N/16, 256 to 2048; more: larger, "
+                                              "Gaussians' SH; default a power of two near N/16, 256 to 4096; more: larger, "
                                               "closer view-dependent colour)."),
     quiet: bool = QuietOpt,
     json_out: bool = JsonOpt,

@@ -6,7 +6,7 @@ reads, so `export` also converts between formats. Formats (io/formats.py):
 * `ply`: the original 3DGS layout, byte-compatible with its writer (io/ply.py);
   every 3DGS viewer and tool reads it. Lossless.
 * `spz`: Niantic's SPZ, about 10x smaller: positions in 24-bit fixed point,
-  colour, opacity and scale in 8 bits, rotations in 32, SH in 5/4 bits (io/spz.py).
+  colour, opacity and scale in 8 bits, rotations in 32, SH in 6/5 bits (io/spz.py).
 * `compressed-ply`: SuperSplat's chunked layout for the PlayCanvas viewers, about
   4x smaller (io/compressed_ply.py).
 * `sog`: PlayCanvas's SOG, 15-20x smaller: lossless WebP images of 8-16-bit values
