@@ -27,8 +27,8 @@ import time
 from pathlib import Path
 
 from _doc import write_section  # noqa: E402  (bench/ is on sys.path when run as a script)
-from train import SCENES, ensure_processed, read_log  # noqa: E402
-from versus import TOL_DB, seconds_to  # noqa: E402
+from train import SCENES, read_log  # noqa: E402
+from versus import TOL_DB, fresh_copy, seconds_to  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "bench" / "out" / "distributed"
@@ -36,12 +36,7 @@ FIGURES = REPO / "docs" / "figures"
 
 
 def train_k(scene: str, k: int, args: list[str]) -> dict:
-    proj = OUT / scene / f"k{k}"
-    subprocess.run(["rm", "-rf", str(proj)], check=True)
-    proj.parent.mkdir(parents=True, exist_ok=True)
-    subprocess.run(["cp", "-r", str(ensure_processed(scene)), str(proj)], check=True)
-    for sub in ("checkpoints", "reports", "renders", "exports"):
-        subprocess.run(["rm", "-rf", str(proj / sub)], check=True)
+    proj = fresh_copy(scene, OUT / scene / f"k{k}")
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     cmd = [sys.executable, "-m", "splatcli", "train", str(proj), "--device", "cpu", "--json", "-q", "--nproc", str(k),
            *args]

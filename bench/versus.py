@@ -42,14 +42,19 @@ def worktree(rev: str) -> Path:
     return path
 
 
-def train_once(scene: str, label: str, code: Path, args: list[str]) -> dict:
-    proj = OUT / scene / label.replace(" ", "_")
+def fresh_copy(scene: str, proj: Path) -> Path:
+    """`proj` = the scene's processed project (bench/train.py), with no training outputs."""
     proj.parent.mkdir(parents=True, exist_ok=True)
     base = ensure_processed(scene)
     subprocess.run(["rm", "-rf", str(proj)], check=True)
     subprocess.run(["cp", "-r", str(base), str(proj)], check=True)
     for sub in ("checkpoints", "reports", "renders", "exports"):
         subprocess.run(["rm", "-rf", str(proj / sub)], check=True)
+    return proj
+
+
+def train_once(scene: str, label: str, code: Path, args: list[str]) -> dict:
+    proj = fresh_copy(scene, OUT / scene / label.replace(" ", "_"))
     # Run from inside `code`: `python -m` puts the working directory first on sys.path,
     # ahead of the editable install of this checkout.
     env = {**os.environ, "PYTHONPATH": str(code), "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1")}

@@ -25,22 +25,32 @@ def doc_makefile() -> str:
     return blocks[0]
 
 
-@pytest.mark.skipif(shutil.which("make") is None, reason="needs GNU make")
-def test_pipeline_makefile_on_two_captures(tmp_path):
-    (tmp_path / "Makefile").write_text(doc_makefile())
+def _two_captures(tmp_path: Path) -> None:
+    """captures/alpha and captures/beta: 12 rendered views each, 160x120."""
     make_scene = load_make_scene()
     for i, name in enumerate(["alpha", "beta"]):
         make_scene.render_scene(tmp_path / "captures" / name, num_views=12, width=160, height=120, seed=i)
-    splatcli = Path(sys.executable).with_name("splatcli")
-    args = ["make", "-j2", f"SPLATCLI={splatcli}", "TRAIN_FLAGS=--preset demo --iterations 40 --eval-every 0"]
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    r = subprocess.run(args, cwd=tmp_path, capture_output=True, text=True, env=env, timeout=900)
-    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+
+
+def _check_built(tmp_path: Path) -> None:
+    """Both captures exported and evaluated after 40 training steps."""
     for name in ("alpha", "beta"):
         proj = tmp_path / "projects" / name
         assert (proj / "exports" / "scene.ply").stat().st_size > 1000
         report = json.loads((proj / "reports" / "eval.json").read_text())
         assert report["train_steps"] == 40 and report["psnr"] > 8
+
+
+@pytest.mark.skipif(shutil.which("make") is None, reason="needs GNU make")
+def test_pipeline_makefile_on_two_captures(tmp_path):
+    (tmp_path / "Makefile").write_text(doc_makefile())
+    _two_captures(tmp_path)
+    splatcli = Path(sys.executable).with_name("splatcli")
+    args = ["make", "-j2", f"SPLATCLI={splatcli}", "TRAIN_FLAGS=--preset demo --iterations 40 --eval-every 0"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    r = subprocess.run(args, cwd=tmp_path, capture_output=True, text=True, env=env, timeout=900)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    _check_built(tmp_path)
     # Every target is up to date now: a second make has nothing to do.
     q = subprocess.run(["make", "-q", f"SPLATCLI={splatcli}"], cwd=tmp_path, env=env)
     assert q.returncode == 0
@@ -97,9 +107,7 @@ SNAKEMAKE = shutil.which("snakemake") or (str(Path(sys.executable).with_name("sn
 
 @pytest.mark.skipif(SNAKEMAKE is None, reason="needs snakemake (pip install -e '.[dev]' installs it)")
 def test_snakefile_builds_two_captures_and_a_second_run_does_nothing(tmp_path):
-    make_scene = load_make_scene()
-    for i, name in enumerate(["alpha", "beta"]):
-        make_scene.render_scene(tmp_path / "captures" / name, num_views=12, width=160, height=120, seed=i)
+    _two_captures(tmp_path)
     splatcli = Path(sys.executable).with_name("splatcli")
     args = [SNAKEMAKE, "-s", str(REPO / "pipelines" / "Snakefile"), "--cores", "2", "--directory", str(tmp_path),
             "--config", f"splatcli={splatcli}", f"captures={tmp_path / 'captures'}", f"out={tmp_path / 'projects'}",
@@ -107,11 +115,7 @@ def test_snakefile_builds_two_captures_and_a_second_run_does_nothing(tmp_path):
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     r = subprocess.run(args, capture_output=True, text=True, env=env, timeout=900)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
-    for name in ("alpha", "beta"):
-        proj = tmp_path / "projects" / name
-        assert (proj / "exports" / "scene.ply").stat().st_size > 1000
-        report = json.loads((proj / "reports" / "eval.json").read_text())
-        assert report["train_steps"] == 40 and report["psnr"] > 8
+    _check_built(tmp_path)
     again = subprocess.run(args, capture_output=True, text=True, env=env, timeout=300)
     assert again.returncode == 0 and "Nothing to be done" in again.stdout + again.stderr, again.stderr[-2000:]
     assert "rule train" not in again.stdout + again.stderr

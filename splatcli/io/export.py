@@ -28,7 +28,7 @@ import torch
 from ..errors import SplatError
 from ..events import EventSink, Note, Stage, StageDone, emit
 from ..project import Project, is_project, writer_lock
-from .formats import FORMATS, LOSSLESS, check_format, default_name, write_format
+from .formats import FORMATS, LOSSLESS, SUFFIXES, check_format, default_name, write_format
 from .model import load_model
 from .sog import SogOptions
 from .spz import SpzOptions
@@ -89,7 +89,7 @@ def export_project(root: str | os.PathLike, config: ExportConfig, *, on_event: E
 
 def _stem(path: Path) -> str:
     name = path.name
-    for suffix in (".compressed.ply", ".ply", ".spz", ".sog", ".splat"):
+    for suffix in sorted(SUFFIXES.values(), key=len, reverse=True):  # ".compressed.ply" before ".ply"
         if name.lower().endswith(suffix):
             return name[: -len(suffix)]
     return path.stem

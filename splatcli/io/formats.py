@@ -17,14 +17,13 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from ..errors import SplatError
-from ..gaussians import SH_C0, Gaussians
+from ..gaussians import Gaussians
 from .compressed_ply import is_compressed_ply, read_compressed_ply, write_compressed_ply
 from .ply import read_ply, write_ply
-from .splat import read_splat, write_splat
+from .splat import read_splat, splat_gaussians, write_splat
 from .sog import SogOptions, read_sog, write_sog
 from .spz import SpzOptions, read_spz, write_spz
 
@@ -110,17 +109,3 @@ def read_format(path: str | os.PathLike, device: torch.device | str = "cpu", fmt
     if fmt == "splat":
         return ReadResult(splat_gaussians(read_splat(path), device), fmt, [])
     raise SplatError(f"{path}: not a splat file splatcli reads ({', '.join(SUFFIXES.values())})")
-
-
-def splat_gaussians(rows: np.ndarray, device: torch.device | str = "cpu") -> Gaussians:
-    """.splat rows (io/splat.SPLAT_DTYPE) back as Gaussians (SH degree 0)."""
-    scale = rows["scale"].astype(np.float64)
-    if not np.isfinite(rows["position"]).all() or not (np.isfinite(scale).all() and (scale > 0).all()):
-        raise SplatError("a .splat row holds a non-finite position or a scale that is not positive")
-    rgba = rows["rgba"].astype(np.float64) / 255.0
-    alpha = np.clip(rgba[:, 3], 0.5 / 255.0, 1 - 0.5 / 255.0)
-    q = (rows["rot"].astype(np.float64) - 128.0) / 128.0
-    q[np.linalg.norm(q, axis=1) == 0] = (1.0, 0.0, 0.0, 0.0)
-    t = lambda x: torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32)).to(device)  # noqa: E731
-    return Gaussians(t(rows["position"]), t(q), t(np.log(scale)), t(np.log(alpha) - np.log1p(-alpha)),
-                     t(((rgba[:, :3] - 0.5) / SH_C0)[:, None, :]))

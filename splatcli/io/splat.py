@@ -89,3 +89,17 @@ def read_splat(path: str | os.PathLike) -> np.ndarray:
     if size % SPLAT_ROW_BYTES:
         raise SplatError(f"{path}: {size} bytes is not a whole number of {SPLAT_ROW_BYTES}-byte splats")
     return np.fromfile(path, dtype=SPLAT_DTYPE)
+
+
+def splat_gaussians(rows: np.ndarray, device: torch.device | str = "cpu") -> Gaussians:
+    """.splat rows (io/splat.SPLAT_DTYPE) back as Gaussians (SH degree 0)."""
+    scale = rows["scale"].astype(np.float64)
+    if not np.isfinite(rows["position"]).all() or not (np.isfinite(scale).all() and (scale > 0).all()):
+        raise SplatError("a .splat row holds a non-finite position or a scale that is not positive")
+    rgba = rows["rgba"].astype(np.float64) / 255.0
+    alpha = np.clip(rgba[:, 3], 0.5 / 255.0, 1 - 0.5 / 255.0)
+    q = (rows["rot"].astype(np.float64) - 128.0) / 128.0
+    q[np.linalg.norm(q, axis=1) == 0] = (1.0, 0.0, 0.0, 0.0)
+    t = lambda x: torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32)).to(device)  # noqa: E731
+    return Gaussians(t(rows["position"]), t(q), t(np.log(scale)), t(np.log(alpha) - np.log1p(-alpha)),
+                     t(((rgba[:, :3] - 0.5) / SH_C0)[:, None, :]))

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from datetime import timedelta
 from typing import Iterable
 
@@ -41,7 +41,7 @@ class Comm:
     local_world: int = 1  # ranks on this machine (they share its memory)
     seconds: float = 0.0  # spent in collectives (communication, and waiting for slower ranks)
     calls: int = 0
-    checks: int = field(default=0)  # parameter agreement checks passed
+    checks: int = 0  # parameter agreement checks passed
 
     @property
     def main(self) -> bool:

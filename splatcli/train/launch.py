@@ -120,8 +120,12 @@ def _report(errors: Path, codes: dict[int, int], project_dir: Path,
     said = _read(errors)
     for rank, code in sorted(codes.items()):
         if rank not in said:
-            how = f"was killed by {signal.Signals(-code).name}" if code < 0 and -code in signal.Signals._value2member_map_ \
-                else f"exited with code {code}"
+            how = f"exited with code {code}"
+            if code < 0:
+                try:
+                    how = f"was killed by {signal.Signals(-code).name}"
+                except ValueError:
+                    how = f"was killed by signal {-code}"
             return RankDied(f"training rank {rank} {how}; the run was stopped; {_latest(project_dir)}",
                             hint=f"continue with `splatcli train {project_dir} --resume`")
     if any(e.exit_code == 130 for e in said.values()) or signalled is not None:
