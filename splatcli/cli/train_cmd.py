@@ -55,7 +55,7 @@ def train(
     overrides = {k: option(cfg, k) for k, v in given.items() if v is not None}
     Project.open(project).require_processed()  # input errors before the progress display starts
     if nproc is not None and not in_worker():
-        return launch(sys.argv[1:], nproc, port, project)  # K copies of this command; rank 0 reports
+        return launch(sys.argv[1:], nproc, port, project, dev)  # K copies of this command; rank 0 reports
     comm = join(dev)  # under torchrun: this process's rank (else a single process)
     ui = Ui(quiet=quiet or not comm.main, json_out=json_out and comm.main)
     with ui.progress() as sink:

@@ -20,6 +20,8 @@ import uuid
 from dataclasses import dataclass
 from pathlib import Path
 
+import torch
+
 from ..errors import Interrupted, SplatError
 
 # Where a worker of a launched run writes its one-line error instead of the console
@@ -46,7 +48,7 @@ def free_port(port: int) -> int:
         return int(s.getsockname()[1])
 
 
-def launch(argv: list[str], nproc: int, port: int, project_dir: Path) -> None:
+def launch(argv: list[str], nproc: int, port: int, project_dir: Path, device: torch.device) -> None:
     """Run `python -m splatcli <argv>` (a train command of `project_dir`) as `nproc`
     ranks; return when all succeed. A failure raises one exception with one line:
     Interrupted (exit 130), the workers' own SplatError (exit 2), or RankDied (exit 1)
@@ -57,6 +59,9 @@ def launch(argv: list[str], nproc: int, port: int, project_dir: Path) -> None:
 
     if nproc < 1:
         raise SplatError(f"--nproc {nproc}: must be at least 1")
+    if device.type == "cuda" and nproc > torch.cuda.device_count():
+        raise SplatError(f"--nproc {nproc} on {device}: each process needs its own GPU and this machine has "
+                         f"{torch.cuda.device_count()}", hint="add --device cpu, or lower --nproc")
     for name in list(logging.root.manager.loggerDict):  # their warnings and tables are not for users
         if name.startswith("torch.distributed"):
             logging.getLogger(name).setLevel(logging.CRITICAL)

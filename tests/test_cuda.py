@@ -1,0 +1,98 @@
+"""The CUDA path: the same rasterizer and the same commands on a GPU (skipped without one).
+
+CI has no GPU; these run where one is lent (docs/benchmarks.md, "CUDA")."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from splatcli import rasterize
+from splatcli.render.reference import rasterize_reference
+
+from scenes import test_scene as make_scene
+
+pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+CUDA = torch.device("cuda")
+DEV = "cuda"
+PARAMS = ["means", "quats", "log_scales", "opacity_logits", "sh", "viewmat", "K"]
+
+
+def _grads(fn, args, device, W, H, cot, antialiased=False):
+    xs = [a.to(device).detach().requires_grad_(True) for a in args]
+    o = fn(*xs, W, H, antialiased=antialiased)
+    v, va, vd = (c.to(device) for c in cot)
+    ((o.image * v).sum() + (o.alpha * va).sum() + (o.depth * vd).sum()).backward()
+    return o, [x.grad.cpu() for x in xs]
+
+
+@pytest.mark.parametrize("antialiased", [False, True])
+def test_cuda_float64_matches_reference_forward_and_backward(antialiased):
+    W, H = 45, 33
+    args = make_scene(500, W, H, sh_degree=3, seed=11)
+    g = torch.Generator().manual_seed(3)
+    cot = (torch.randn(H, W, 3, generator=g, dtype=torch.float64), torch.randn(H, W, generator=g, dtype=torch.float64),
+           torch.randn(H, W, generator=g, dtype=torch.float64))
+    o_gpu, g_gpu = _grads(rasterize, args, CUDA, W, H, cot, antialiased)
+    o_ref, g_ref = _grads(rasterize_reference, args, torch.device("cpu"), W, H, cot, antialiased)
+    assert o_gpu.image.device.type == "cuda"
+    torch.testing.assert_close(o_gpu.image.cpu(), o_ref.image, atol=1e-10, rtol=0)  # float64: rounding only
+    torch.testing.assert_close(o_gpu.depth.cpu(), o_ref.depth, atol=1e-9, rtol=0)  # depth is ~5x the colour scale
+    for name, a, b in zip(PARAMS, g_gpu, g_ref):
+        assert torch.isfinite(a).all(), name
+        # float64 both ways: only the order of summation differs (relative to the gradient's scale)
+        torch.testing.assert_close(a, b, atol=1e-9 * float(b.abs().max()), rtol=1e-7, msg=name)
+
+
+def test_cuda_float32_matches_cpu_float32():
+    W, H = 160, 120
+    args = [a.float() for a in make_scene(5000, W, H, sh_degree=2, seed=4)]
+    g = torch.Generator().manual_seed(5)
+    cot = tuple(c.float() for c in (torch.randn(H, W, 3, generator=g), torch.randn(H, W, generator=g),
+                                    torch.randn(H, W, generator=g)))
+    o_gpu, g_gpu = _grads(rasterize, args, CUDA, W, H, cot)
+    o_cpu, g_cpu = _grads(rasterize, args, torch.device("cpu"), W, H, cot)
+    torch.testing.assert_close(o_gpu.image.cpu(), o_cpu.image, atol=1e-4, rtol=0)  # issue 7's float32 bound
+    for name, a, b in zip(PARAMS, g_gpu, g_cpu):
+        # float32, different kernels and summation order: 1e-3 of the gradient's scale
+        torch.testing.assert_close(a, b, atol=1e-3 * float(b.abs().max()), rtol=1e-3, msg=name)
+
+
+def test_cuda_gradcheck_float64():
+    W, H = 12, 10
+    args = make_scene(4, W, H, sh_degree=1, seed=5)
+    args[2] = args[2] + 1.5  # a few px wide: every Gaussian touches several pixels
+    xs = [a.to(CUDA).requires_grad_(True) for a in args[:5]]
+    viewmat, K = args[5].to(CUDA), args[6].to(CUDA)
+
+    def f(means, quats, log_scales, logits, sh):
+        o = rasterize(means, quats, log_scales, logits, sh, viewmat, K, W, H)
+        return o.image, o.alpha, o.depth
+
+    # the CPU test's tolerances (tests/test_rasterize.py::test_gradcheck_float64), for the same reason
+    assert torch.autograd.gradcheck(f, xs, eps=1e-6, atol=1e-5, rtol=1e-4, fast_mode=True)
+
+
+def test_train_render_eval_on_cuda_and_the_checkpoint_loads_on_cpu(tmp_path):
+    """The commands end to end with --device cuda; the checkpoint is portable."""
+    from tiny_project import make_tiny_project
+    from typer.testing import CliRunner
+
+    from splatcli.cli.main import app
+    from splatcli.io.model import load_model
+
+    proj = make_tiny_project(tmp_path / "p", trained=False).root
+    run = CliRunner().invoke
+    r = run(app, ["train", str(proj), "--device", DEV, "--iterations", "60", "--eval-every", "30", "--json", "-q"])
+    assert r.exit_code == 0, r.output
+    s = json.loads(r.output.strip().splitlines()[-1])
+    assert s["steps"] == 60 and DEV in s["device"]
+    r = run(app, ["train", str(proj), "--device", "cpu", "--iterations", "80", "--resume", "--json", "-q"])
+    assert r.exit_code == 0, r.output  # a CUDA checkpoint resumes on the CPU
+    for cmd in (["render", str(proj), "--device", DEV], ["eval", str(proj), "--device", DEV, "--json"]):
+        r = run(app, cmd)
+        assert r.exit_code == 0, r.output
+    g = load_model(proj, torch.device("cpu")).gaussians
+    assert g.means.device.type == "cpu" and torch.isfinite(g.means).all()
