@@ -191,3 +191,18 @@ def test_ops_keep_every_strategy_row_in_step():
     assert state.count.shape == state.radii.shape == (3,)
     ops.append(splats, {k: torch.ones(2, *p.shape[1:]) for k, p in params.items()})
     assert torch.equal(state.grad2d, torch.tensor([0.0, 2.0, 4.0, 0.0, 0.0]))
+
+
+def test_generator_state_from_another_kind_of_device_reseeds_deterministically():
+    """A CUDA run resumed on the CPU: its 16-byte Philox state cannot drive a CPU
+    generator; the strategy's stream is seeded from it instead, the same way each time."""
+    s = DefaultStrategy(DefaultStrategyConfig(), 1.0)
+    cuda_like = torch.arange(16, dtype=torch.uint8)  # the size of a CUDA generator's state
+    draws = []
+    for _ in range(2):
+        st = s.initial_state(5, torch.device("cpu"))
+        st.load_state_dict({"generator": cuda_like})
+        draws.append(torch.rand(4, generator=st.generator))
+    assert torch.equal(draws[0], draws[1])
+    fresh = torch.rand(4, generator=s.initial_state(5, torch.device("cpu")).generator)
+    assert not torch.equal(draws[0], fresh)

@@ -13,6 +13,7 @@ and, once when a run resumes, `strategy.catch_up(splats, state, step)`.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 from dataclasses import dataclass, field
 from typing import Any, Callable, ClassVar
 
@@ -50,7 +51,7 @@ class RowState:
                 continue
             v = getattr(self, f.name)
             if isinstance(v, torch.Generator):
-                v.set_state(d[f.name])
+                _set_generator(v, d[f.name])
             elif isinstance(v, Tensor):
                 setattr(self, f.name, d[f.name].to(v.device))
             else:
@@ -151,3 +152,13 @@ class ModelStep(Strategy):
 
     def initial_state(self, n: int, device: torch.device, seed: int) -> RowState:
         return self.state_type()
+
+
+def _set_generator(gen: torch.Generator, state: Tensor) -> None:
+    """Restore `gen`, or, for a state written on another kind of device (a CUDA run
+    resumed on the CPU, or the reverse), seed it from that state: the same stream
+    cannot continue there, but the resumed run stays deterministic."""
+    if state.numel() == gen.get_state().numel():
+        gen.set_state(state)
+    else:
+        gen.manual_seed(int.from_bytes(hashlib.sha256(state.cpu().numpy().tobytes()).digest()[:8], "little") >> 1)
