@@ -389,7 +389,7 @@ OPTION_CASES = [
     ("train", ["--preset", "turbo"], ["--preset 'turbo'", "default"]),
     ("train", ["--device", "tpu"], ["--device 'tpu'", "auto, cpu, cuda"]),
     ("train", ["--device", "cuda"], ["--device cuda", "no CUDA GPU", "auto, cpu, cuda"]),
-    ("train", ["--iterations", "many"], ["'--iterations'", "valid integer"]),
+    ("train", ["--iterations", "many"], ["'--iterations'", "Invalid value"]),  # typer versions word the rest differently
     ("render", ["--width", "0"], ["--width 0", "between 1 and 16384"]),
     ("render", ["--height", "-4"], ["--height -4", "between 1 and 16384"]),
     ("render", ["--downscale", "0"], ["--downscale 0", "(0, 64]"]),

@@ -12,12 +12,15 @@ import numpy as np
 import plyfile
 import pytest
 
+from splatcli.device import resolve_device
 from splatcli.errors import SplatError
 from splatcli.io.ply import write_ply
 from splatcli.project import Project
 from splatcli.views.paths import generate_path
 from splatcli.views.sources import transforms_views
 from tiny_project import H, W, assert_user_error, make_tiny_project, ring_cameras, run_cli, snapshot, tiny_gaussians
+
+AUTO_DEVICE = resolve_device("auto").type  # "cpu", or "cuda" where a GPU is
 
 GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 
@@ -57,7 +60,7 @@ def test_split_outputs_and_video(proj: Project, tmp_path: Path) -> None:
     assert r.exit_code == 0, r.output
     s = json.loads(r.stdout)
     out = proj.render_dir("train")
-    assert Path(s["out_dir"]) == out and s["frames"] == 8 and s["fps"] > 0 and s["device"].startswith("cpu")
+    assert Path(s["out_dir"]) == out and s["frames"] == 8 and s["fps"] > 0 and s["device"].startswith(AUTO_DEVICE)
     names = sorted(p.name for p in out.glob("*.png"))
     assert names == sorted(n for n in proj.splits()["train"])  # named after the source images
     assert sorted(p.name for p in (out / "depth").glob("*.png")) == names
