@@ -46,7 +46,16 @@ class Note:
     level: str = "note"
 
 
-Event = Union[Stage, Progress, StageDone, Note]
+@dataclass(frozen=True)
+class Snapshot:
+    """The model as it is after step `step`, for live displays. `model()` returns a
+    copy on the CPU; call it during the event or not at all (training goes on after)."""
+
+    step: int
+    model: Callable[[], Any]
+
+
+Event = Union[Stage, Progress, StageDone, Note, Snapshot]
 EventSink = Callable[[Event], None]
 
 

@@ -128,13 +128,14 @@ def _root(
     """
 
 
-from . import eval_cmd, export_cmd, process_cmd, render_cmd, train_cmd  # noqa: E402
+from . import eval_cmd, export_cmd, process_cmd, render_cmd, train_cmd, view_cmd  # noqa: E402
 
 app.command("process")(process_cmd.process)
 app.command("train")(train_cmd.train)
 app.command("render")(render_cmd.render)
 app.command("export")(export_cmd.export)
 app.command("eval")(eval_cmd.evaluate)
+app.command("view")(view_cmd.view)
 
 
 def main() -> None:

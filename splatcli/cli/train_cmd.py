@@ -15,6 +15,7 @@ from ..train.launch import launch
 from ..train.loop import train as run_train
 from ..train.config import PRESETS, TrainConfig, make_config, option
 from .common import DebugOpt, DeviceOpt, JsonOpt, QuietOpt, SeedOpt, Ui
+from .view_cmd import live_viewer
 
 _D = TrainConfig()  # the defaults, written once in the config
 
@@ -38,6 +39,10 @@ def train(
                                         "one torch thread each, through torch's elastic launcher): each step sees that many views, and the "
                                         "schedule is scaled so that the run sees as many images as one process (docs/guide.md)."),
     port: int = typer.Option(0, "--port", help="With --nproc: the loopback port the processes meet on (default: a free one)."),
+    viewer: bool = typer.Option(False, "--viewer", help="Serve a live web viewer of the model while it trains (as `splatcli "
+                                "view`; refreshed every 2 s, with the step, loss and held-out PSNR)."),
+    viewer_host: str = typer.Option("127.0.0.1", "--viewer-host", help="With --viewer: the address to serve on."),
+    viewer_port: Optional[int] = typer.Option(None, "--viewer-port", help="With --viewer: the port (default 7007, or the next free one)."),
     device: str = DeviceOpt,
     seed: int = SeedOpt,
     quiet: bool = QuietOpt,
@@ -58,7 +63,7 @@ def train(
         return launch(sys.argv[1:], nproc, port, project, dev)  # K copies of this command; rank 0 reports
     comm = join(dev)  # under torchrun: this process's rank (else a single process)
     ui = Ui(quiet=quiet or not comm.main, json_out=json_out and comm.main)
-    with ui.progress() as sink:
+    with ui.progress() as sink, live_viewer(ui, project, viewer and comm.main, viewer_host, viewer_port, sink) as sink:
         s = run_train(project, cfg, dev, resume=resume, overrides=overrides, on_event=sink, comm=comm)
     comm.close()
     psnr = f", held-out PSNR {s.psnr:.2f} dB" if s.psnr is not None else ""

@@ -21,7 +21,7 @@ from torch import Tensor
 
 from ..errors import Interrupted, SplatError, TrainingDiverged
 from ..eval.metrics import psnr, ssim
-from ..events import EventSink, Note, Progress, Stage, StageDone, emit
+from ..events import EventSink, Note, Progress, Snapshot, Stage, StageDone, emit
 from ..io.checkpoint import load_checkpoint
 from ..project import Project, writer_lock
 from ..render import RenderOutput, rasterize
@@ -183,6 +183,8 @@ def _loop(project: Project, base: TrainConfig, cfg: TrainConfig, data: TrainData
             evaluated = _measure(cfg, data, state, step, total, comm, force=True)
         writer.line(step, state, evaluated, cfg.log_every, force=step == total)
         emit(on_event, Progress(STAGE, state.images, total * k, writer.info(state)))
+        if comm.main:
+            emit(on_event, Snapshot(state.images, state.gaussians))  # for live displays (train --viewer)
         if stopping or (k == 1 and stop.is_set()):
             _interrupt(project, base, state, comm)
         if step % cfg.checkpoint_every == 0 or step == total:
