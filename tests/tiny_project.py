@@ -36,13 +36,14 @@ def tiny_gaussians(n: int = 300, seed: int = 0, sh_degree: int = 1) -> Gaussians
                      opacity_logits=r(n) + 1.0, sh=sh)
 
 
-def ring_cameras(n: int = N_CAMS) -> list[Camera]:
-    K = np.array([[40.0, 0, W / 2], [0, 40.0, H / 2], [0, 0, 1]])
+def ring_cameras(n: int = N_CAMS, scale: int = 1) -> list[Camera]:
+    w, h = W * scale, H * scale
+    K = np.array([[40.0 * scale, 0, w / 2], [0, 40.0 * scale, h / 2], [0, 0, 1]])
     cams = []
     for i in range(n):
         a = 2 * math.pi * i / n
         eye = np.array([3.0 * math.cos(a), -0.8, 3.0 * math.sin(a)])
-        cams.append(Camera(name=f"img_{i:03d}.png", width=W, height=H, K=K,
+        cams.append(Camera(name=f"img_{i:03d}.png", width=w, height=h, K=K,
                            viewmat=look_at(eye, np.zeros(3), np.array([0.0, -1.0, 0.0]))))
     return cams
 
@@ -72,16 +73,17 @@ def render_gt(g: Gaussians, cam: Camera, bg: float = 0.0) -> np.ndarray:  # -> [
 
 
 def make_tiny_project(root: Path, *, trained: bool = True, background: float = 0.0, n: int = 300,
-                      photos: bool = True) -> Project:
-    """photos=False writes grey images instead of renders (faster; for error tests)."""
+                      photos: bool = True, scale: int = 1) -> Project:
+    """photos=False writes grey images instead of renders (faster; for error tests);
+    scale multiplies the cameras' size and focal length."""
     import cv2
 
     proj = Project.create(root, source={"kind": "test", "path": "tiny"})
-    cams = ring_cameras()
+    cams = ring_cameras(scale=scale)
     truth = tiny_gaussians(n, seed=0)
     proj.images_dir.mkdir(parents=True)
     for cam in cams:
-        img = render_gt(truth, cam, background)[..., ::-1] if photos else np.full((H, W, 3), 128, np.uint8)
+        img = render_gt(truth, cam, background)[..., ::-1] if photos else np.full((cam.height, cam.width, 3), 128, np.uint8)
         cv2.imwrite(str(proj.images_dir / cam.name), img)
     _write_colmap_text(proj.sparse_dir, cams)
     names = [c.name for c in cams]
