@@ -37,6 +37,7 @@ demo: setup
 	@echo ""
 	@echo "splat:  $(DEMO)/exports/scene.ply"
 	@echo "report: $(DEMO)/reports/eval.md ($(DEMO)/reports/eval.json)"
+	@echo "look:   $(BIN)/splatcli view $(DEMO)   (open the URL it prints; Ctrl-C stops it)"
 
 bench: setup
 	$(BIN)/python bench/rasterize.py

@@ -5,12 +5,10 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import signal
 import socket
 import subprocess
 import sys
-import time
 import urllib.error
 import urllib.request
 from pathlib import Path
@@ -25,6 +23,7 @@ from splatcli.io.ply import write_ply
 from splatcli.viewer import LiveSink, SceneStore, ViewerServer, open_scene
 from splatcli.viewer import server as server_mod
 
+from browser import browser_problem, psnr_u8, screenshot
 from tiny_project import assert_user_error, make_tiny_project, run_cli, snapshot, tiny_gaussians
 
 REPO = Path(__file__).resolve().parents[1]
@@ -201,64 +200,10 @@ def test_train_with_viewer(tmp_path):
     assert "live viewer at http://127.0.0.1:" in r.stderr
 
 
-# ---------------------------------------------------------------------------
-# a real browser: headless Chromium on SwiftShader, against `splatcli render`
-# ---------------------------------------------------------------------------
+# a real browser: headless Chromium on SwiftShader (tests/browser.py), against `splatcli render`
 
 
-def _browser() -> tuple[str, str] | str:
-    """(chromium, chromedriver), or why the browser test cannot run."""
-    import importlib.util
-
-    if importlib.util.find_spec("selenium") is None:
-        return "selenium is not installed (pip install -e '.[dev]')"
-    chrome = os.environ.get("CHROMIUM") or next(
-        (p for p in map(shutil.which, ("chromium", "chromium-browser", "google-chrome")) if p), None)
-    driver = os.environ.get("CHROMEDRIVER") or shutil.which("chromedriver")
-    if not chrome or not driver:
-        return "no Chromium and chromedriver (apt install chromium chromium-driver; .ci/run installs them)"
-    return chrome, driver
-
-
-def screenshot(url: str, width: int, height: int, settle_s: float = 1.5) -> tuple[np.ndarray, dict]:
-    """The page at `url` in a width x height viewport, once its first frame is drawn and the
-    renderer has had `settle_s` to sort: [H, W, 3] uint8 RGB, and the page's window.splatcli."""
-    from selenium import webdriver
-    from selenium.webdriver.chrome.service import Service
-
-    chrome, driver = _browser()
-    opts = webdriver.ChromeOptions()
-    opts.binary_location = chrome
-    for a in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--use-angle=swiftshader",
-              "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist", "--hide-scrollbars", "--mute-audio"):
-        opts.add_argument(a)
-    d = webdriver.Chrome(service=Service(driver), options=opts)
-    try:
-        d.execute_cdp_cmd("Emulation.setDeviceMetricsOverride",
-                          {"width": width, "height": height, "deviceScaleFactor": 1, "mobile": False})
-        d.get(url)
-        deadline = time.monotonic() + 60
-        st = None
-        while time.monotonic() < deadline:
-            st = d.execute_script("return window.splatcli || null")
-            if st and (st.get("ready") or st.get("error")):
-                break
-            time.sleep(0.1)
-        assert st and st.get("ready") and not st.get("error"), (st, d.get_log("browser")[-5:])
-        time.sleep(settle_s)
-        png = d.get_screenshot_as_png()
-    finally:
-        d.quit()
-    img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)[..., ::-1]
-    return img[:height, :width], st
-
-
-def psnr_u8(a: np.ndarray, b: np.ndarray) -> float:
-    mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)) / 255.0 ** 2
-    return 10 * np.log10(1.0 / max(mse, 1e-12))
-
-
-@pytest.mark.skipif(isinstance(_browser(), str), reason=str(_browser()))
+@pytest.mark.skipif(browser_problem() is not None, reason=str(browser_problem()))
 def test_browser_picture_matches_splatcli_render(proj, served, tmp_path):
     r = run_cli("render", proj.root, "--split", "test", "-o", tmp_path / "r")
     assert r.exit_code == 0, r.output

@@ -15,7 +15,13 @@ renderer.setPixelRatio(1); // one canvas pixel per image pixel, as `splatcli ren
 renderer.setSize(innerWidth, innerHeight);
 document.body.appendChild(renderer.domElement);
 const scene = new THREE.Scene();
-scene.add(new SparkRenderer({ renderer }));
+// Frames are drawn on demand (a camera move, a new scene, Spark's sort finishing), not
+// 60 times a second: an idle viewer costs no CPU, which matters beside `train --viewer`.
+let queued = false;
+function requestRender() {
+  if (!queued) { queued = true; requestAnimationFrame(drawFrame); }
+}
+scene.add(new SparkRenderer({ renderer, onDirty: requestRender }));
 const camera = new THREE.PerspectiveCamera(50, innerWidth / innerHeight, 0.01, 1e4);
 let controls = null;
 let state = null; // /api/scene
@@ -31,6 +37,7 @@ function makeControls(target) {
   if (controls) controls.dispose();
   controls = new OrbitControls(camera, renderer.domElement); // orbits about camera.up, read here
   controls.target.copy(target);
+  controls.addEventListener("change", requestRender);
   controls.addEventListener("start", () => { current = null; $("cams").value = ""; setProjection(); });
 }
 
@@ -38,7 +45,7 @@ function makeControls(target) {
 // centres at (u + 0.5, v + 0.5), the picture scaled to the canvas height and centred.
 function setProjection() {
   const W = innerWidth, H = innerHeight, n = camera.near, f = camera.far;
-  if (!current) { camera.aspect = W / H; camera.updateProjectionMatrix(); return; }
+  if (!current) { camera.aspect = W / H; camera.updateProjectionMatrix(); requestRender(); return; }
   const c = current, s = H / c.height;
   const fx = c.K[0] * s, fy = c.K[4] * s, cx = c.K[2] * s + (W - c.width * s) / 2, cy = c.K[5] * s;
   camera.fov = THREE.MathUtils.radToDeg(2 * Math.atan(H / (2 * fy)));
@@ -49,6 +56,7 @@ function setProjection() {
     0, 0, -(f + n) / (f - n), -2 * f * n / (f - n),
     0, 0, -1, 0);
   camera.projectionMatrixInverse.copy(camera.projectionMatrix).invert();
+  requestRender();
 }
 
 // A project camera: viewmat is world-to-camera in OpenCV axes (x right, y down, z forward);
@@ -122,6 +130,7 @@ async function loadSplats(version) {
   if (mesh) { scene.remove(mesh); mesh.dispose(); }
   mesh = m;
   mesh.visible = mode === "color";
+  requestRender();
 }
 
 function srgbToLinear(x) { return x <= 0.04045 ? x / 12.92 : Math.pow((x + 0.055) / 1.055, 2.4); }
@@ -149,6 +158,7 @@ async function setMode(m) {
   }
   if (points) points.visible = m === "points";
   if (mesh) mesh.visible = m === "color";
+  requestRender();
 }
 
 // The first frame with the scene in it: pixels in the middle of the canvas that differ from the background.
@@ -179,6 +189,17 @@ async function poll() {
   setTimeout(poll, 2000);
 }
 
+function drawFrame() {
+  queued = false;
+  renderer.render(scene, camera);
+  if (!window.splatcli.ready) {
+    if (mesh && sceneDrawn()) {
+      window.splatcli.firstFrameMs = performance.now();
+      window.splatcli.ready = true;
+    } else requestRender(); // until the scene first shows, every frame
+  }
+}
+
 async function main() {
   state = await (await fetch("/api/scene", { cache: "no-store" })).json();
   window.splatcli.version = state.version;
@@ -195,13 +216,6 @@ async function main() {
   $("reset").onclick = resetView;
   $("mode").onchange = (e) => setMode(e.target.value);
   addEventListener("resize", () => { renderer.setSize(innerWidth, innerHeight); setProjection(); });
-  renderer.setAnimationLoop(() => {
-    renderer.render(scene, camera);
-    if (!window.splatcli.ready && mesh && sceneDrawn()) {
-      window.splatcli.firstFrameMs = performance.now();
-      window.splatcli.ready = true;
-    }
-  });
   await loadSplats(state.version);
   setTimeout(poll, 2000);
 }
