@@ -87,12 +87,13 @@ def pictures(project: Path) -> list[dict]:
     with ViewerServer(store, "127.0.0.1", 0) as server:
         for i, c in enumerate(x for x in store.state()["cameras"] if x["split"] == "test"):
             ref = cv2.imread(str(rend / Path(c["name"]).with_suffix(".png").name))[..., ::-1]
-            with open_page(f"{server.url}?camera={c['name']}&hud=0", c["width"], c["height"]) as (d, st):
+            h, w = ref.shape[:2]  # render draws at the trained resolution; the page fits the camera to its height
+            with open_page(f"{server.url}?camera={c['name']}&hud=0", w, h) as (d, st):
                 time.sleep(1.5)
-                shot = capture(d, c["width"], c["height"])
-            rows.append({"camera": c["name"], "size": f"{c['width']}x{c['height']}", "psnr": round(psnr_u8(shot, ref), 2)})
+                shot = capture(d, w, h)
+            rows.append({"camera": c["name"], "size": f"{w}x{h}", "psnr": round(psnr_u8(shot, ref), 2)})
             if i == 0:  # README's screenshot: the same view, with the panel
-                W, H = max(960, c["width"]), max(600, c["height"])
+                W, H = 960, 640
                 with open_page(f"{server.url}?camera={c['name']}", W, H) as (d, st):
                     time.sleep(1.5)
                     FIGURE.parent.mkdir(parents=True, exist_ok=True)

@@ -31,8 +31,9 @@ REPO = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def proj(tmp_path_factory):
-    """The tiny project at 6x its size (288x240 cameras, 300 Gaussians, SH degree 1)."""
-    return make_tiny_project(tmp_path_factory.mktemp("view") / "p", scale=6)
+    """The tiny project at 6x its size (288x240 cameras, 300 Gaussians, SH degree 1), away
+    from the origin: the cameras look elsewhere (a viewer that looks at the origin fails)."""
+    return make_tiny_project(tmp_path_factory.mktemp("view") / "p", scale=6, center=(1.5, -0.5, 2.0))
 
 
 @pytest.fixture
@@ -180,6 +181,7 @@ def test_view_of_a_file_and_a_warning_for_other_hosts(proj, tmp_path):
     try:
         st = json.loads(_get(f"http://127.0.0.1:{s['url'].rsplit(':', 1)[1]}api/scene")[1])
         assert st["num_gaussians"] == 40 and st["cameras"] == [] and "center" in st and st["radius"] > 0
+        assert st["file_bytes"] == (tmp_path / "s.ply").stat().st_size
     finally:
         p.send_signal(signal.SIGINT)
         _, err = p.communicate(timeout=20)

@@ -36,15 +36,15 @@ def tiny_gaussians(n: int = 300, seed: int = 0, sh_degree: int = 1) -> Gaussians
                      opacity_logits=r(n) + 1.0, sh=sh)
 
 
-def ring_cameras(n: int = N_CAMS, scale: int = 1) -> list[Camera]:
+def ring_cameras(n: int = N_CAMS, scale: int = 1, center=(0.0, 0.0, 0.0)) -> list[Camera]:
     w, h = W * scale, H * scale
     K = np.array([[40.0 * scale, 0, w / 2], [0, 40.0 * scale, h / 2], [0, 0, 1]])
     cams = []
     for i in range(n):
         a = 2 * math.pi * i / n
-        eye = np.array([3.0 * math.cos(a), -0.8, 3.0 * math.sin(a)])
+        eye = np.array([3.0 * math.cos(a), -0.8, 3.0 * math.sin(a)]) + np.asarray(center)
         cams.append(Camera(name=f"img_{i:03d}.png", width=w, height=h, K=K,
-                           viewmat=look_at(eye, np.zeros(3), np.array([0.0, -1.0, 0.0]))))
+                           viewmat=look_at(eye, np.asarray(center, dtype=float), np.array([0.0, -1.0, 0.0]))))
     return cams
 
 
@@ -73,14 +73,16 @@ def render_gt(g: Gaussians, cam: Camera, bg: float = 0.0) -> np.ndarray:  # -> [
 
 
 def make_tiny_project(root: Path, *, trained: bool = True, background: float = 0.0, n: int = 300,
-                      photos: bool = True, scale: int = 1) -> Project:
+                      photos: bool = True, scale: int = 1, center=(0.0, 0.0, 0.0)) -> Project:
     """photos=False writes grey images instead of renders (faster; for error tests);
-    scale multiplies the cameras' size and focal length."""
+    scale multiplies the cameras' size and focal length; center moves the scene (the
+    cameras look at it)."""
     import cv2
 
     proj = Project.create(root, source={"kind": "test", "path": "tiny"})
-    cams = ring_cameras(scale=scale)
+    cams = ring_cameras(scale=scale, center=center)
     truth = tiny_gaussians(n, seed=0)
+    truth.means += torch.tensor(center, dtype=truth.means.dtype)
     proj.images_dir.mkdir(parents=True)
     for cam in cams:
         img = render_gt(truth, cam, background)[..., ::-1] if photos else np.full((cam.height, cam.width, 3), 128, np.uint8)
@@ -94,6 +96,7 @@ def make_tiny_project(root: Path, *, trained: bool = True, background: float = 0
     proj.record_step("process", config={}, summary={"num_images": len(cams)})
     if trained:
         model = tiny_gaussians(n, seed=0)
+        model.means += torch.tensor(center, dtype=model.means.dtype)
         gen = torch.Generator().manual_seed(1)
         model.means += torch.randn(model.means.shape, generator=gen) * 0.02
         model.sh[:, 0] += torch.randn(model.sh[:, 0].shape, generator=gen) * 0.1

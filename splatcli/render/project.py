@@ -35,6 +35,9 @@ MAX_VAR_PX2 = 1e16
 MAX_MEAN_PX = 1e12
 
 
+
+NEAR = 0.2  # Gaussians nearer the camera than this (world units, as 3DGS) are not drawn
+
 @dataclass
 class Projection:
     means2d: Tensor  # [N, 2] pixel coordinates of the projected means (0 where culled)
@@ -119,7 +122,7 @@ def project(
     width: int,
     height: int,
     sh_degree: int,
-    near: float = 0.2,
+    near: float = NEAR,
     antialiased: bool = False,
 ) -> Projection:
     with torch.no_grad():

@@ -40,7 +40,10 @@ def project_scene(project: Project, source: str) -> SceneStore:
 def open_scene(source: str | Path) -> SceneStore:
     """The store for `splatcli view SOURCE`: a project (latest checkpoint) or any splat file."""
     m = load_model(source, torch.device("cpu"))
-    store = project_scene(m.project, str(source)) if m.project is not None else SceneStore(source=str(source))
+    if m.project is not None:
+        store = project_scene(m.project, str(source))
+    else:
+        store = SceneStore(source=str(source), file_bytes=m.path.stat().st_size)
     store.publish(m.gaussians, {"step": m.step} if m.step is not None else {})
     return store
 

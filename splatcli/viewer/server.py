@@ -34,6 +34,7 @@ import torch
 from ..errors import SplatError
 from ..gaussians import SH_C0, Gaussians
 from ..io.ply import gaussians_to_rows, ply_bytes, ply_header
+from ..render.project import NEAR
 
 DEFAULT_PORT = 7007  # nerfstudio's viewer port: what users of the field try first
 PORT_TRIES = 50
@@ -84,6 +85,7 @@ class SceneStore:
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     cameras: list[CameraInfo] = field(default_factory=list)
     up: list[float] = field(default_factory=lambda: [0.0, -1.0, 0.0])  # OpenCV scenes: y points down
+    file_bytes: int | None = None  # the size of the file shown, when the source is a file
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
     _g: Gaussians | None = None
     _info: dict[str, Any] = field(default_factory=dict)
@@ -133,7 +135,7 @@ class SceneStore:
             n = 0 if g is None else len(g)
             d = 0 if g is None else g.sh_degree
             return {"source": self.source, "version": self.version, "num_gaussians": n, "sh_degree": d,
-                    "ply_bytes": ply_bytes(n, d), "background": list(self.background), "up": self.up,
+                    "ply_bytes": ply_bytes(n, d), "file_bytes": self.file_bytes, "near": NEAR, "background": list(self.background), "up": self.up,
                     "cameras": [c.__dict__ for c in self.cameras], "live": dict(self._info), **self._bounds}
 
 

@@ -37,6 +37,7 @@ function makeControls(target) {
   if (controls) controls.dispose();
   controls = new OrbitControls(camera, renderer.domElement); // orbits about camera.up, read here
   controls.target.copy(target);
+  controls.update(); // its constructor looked at the origin: look at the target again (on the view axis: no change)
   controls.addEventListener("change", requestRender);
   controls.addEventListener("start", () => { current = null; $("cams").value = ""; setProjection(); });
 }
@@ -111,10 +112,11 @@ function fillCameras() {
 }
 
 function showFacts() {
-  const mb = (state.ply_bytes / 1e6).toFixed(2);
+  const mb = state.file_bytes ? `${(state.file_bytes / 1e6).toFixed(2)} MB file (${(state.ply_bytes / 1e6).toFixed(2)} MB as .ply)`
+    : `${(state.ply_bytes / 1e6).toFixed(2)} MB as .ply`;
   $("source").textContent = state.source;
   $("facts").textContent = `${state.num_gaussians.toLocaleString()} Gaussians · SH degree ${state.sh_degree} · ` +
-    `${mb} MB as .ply · ${state.cameras.length} cameras`;
+    `${mb} · ${state.cameras.length} cameras`;
   const L = state.live || {};
   const parts = [];
   if (L.step !== undefined && L.step !== null) parts.push(`step ${L.step}`);
@@ -205,7 +207,7 @@ async function main() {
   window.splatcli.version = state.version;
   scene.background = new THREE.Color().setRGB(...state.background, THREE.SRGBColorSpace);
   const r = state.radius || 1;
-  camera.near = Math.max(0.01 * r, 1e-3);
+  camera.near = state.near; // splatcli render's near plane: the same Gaussians are drawn
   camera.far = 1000 * r;
   fillCameras();
   showFacts();
