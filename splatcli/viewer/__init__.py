@@ -45,6 +45,7 @@ def open_scene(source: str | Path) -> SceneStore:
     else:
         store = SceneStore(source=str(source), file_bytes=m.path.stat().st_size)
     store.publish(m.gaussians, {"step": m.step} if m.step is not None else {})
+    store.ply()  # built now, before the URL is shown, not when the page first asks
     return store
 
 

@@ -8,7 +8,8 @@ import { SparkRenderer, SplatMesh } from "@sparkjsdev/spark";
 const $ = (id) => document.getElementById(id);
 const params = new URLSearchParams(location.search);
 if (params.get("hud") === "0") $("hud").style.display = "none";
-window.splatcli = { ready: false, firstFrameMs: null, version: 0, error: null };
+// For tests and bench/viewer.py: whether the scene has been drawn, and when (ms since navigation start).
+window.splatcli = { ready: false, firstFrameMs: null, version: 0, error: null, marks: { script: performance.now() } };
 
 const renderer = new THREE.WebGLRenderer({ antialias: false, preserveDrawingBuffer: true });
 renderer.setPixelRatio(1); // one canvas pixel per image pixel, as `splatcli render` draws
@@ -17,8 +18,9 @@ document.body.appendChild(renderer.domElement);
 const scene = new THREE.Scene();
 // Frames are drawn on demand (a camera move, a new scene, Spark's sort finishing), not
 // 60 times a second: an idle viewer costs no CPU, which matters beside `train --viewer`.
-let queued = false;
+let queued = false, busyUntil = 0;
 function requestRender() {
+  busyUntil = performance.now() + 1500; // Spark sorts and uploads across frames: keep drawing a while
   if (!queued) { queued = true; requestAnimationFrame(drawFrame); }
 }
 scene.add(new SparkRenderer({ renderer, onDirty: requestRender }));
@@ -128,6 +130,7 @@ function showFacts() {
 async function loadSplats(version) {
   const m = new SplatMesh({ url: `/api/scene.ply?v=${version}`, fileName: "scene.ply" });
   await m.initialized;
+  window.splatcli.marks.splats = window.splatcli.marks.splats || performance.now();
   scene.add(m);
   if (mesh) { scene.remove(mesh); mesh.dispose(); }
   mesh = m;
@@ -179,7 +182,7 @@ function sceneDrawn() {
 async function poll() {
   try {
     const s = await (await fetch("/api/scene", { cache: "no-store" })).json();
-    if (s.version !== window.splatcli.version) {
+    if (s.version !== window.splatcli.version && s.num_gaussians > 0) {
       state.live = s.live; state.num_gaussians = s.num_gaussians; state.sh_degree = s.sh_degree;
       state.ply_bytes = s.ply_bytes;
       window.splatcli.version = s.version;
@@ -198,12 +201,14 @@ function drawFrame() {
     if (mesh && sceneDrawn()) {
       window.splatcli.firstFrameMs = performance.now();
       window.splatcli.ready = true;
-    } else requestRender(); // until the scene first shows, every frame
+    }
   }
+  if (!window.splatcli.ready || performance.now() < busyUntil) { queued = true; requestAnimationFrame(drawFrame); }
 }
 
 async function main() {
   state = await (await fetch("/api/scene", { cache: "no-store" })).json();
+  window.splatcli.marks.facts = performance.now();
   window.splatcli.version = state.version;
   scene.background = new THREE.Color().setRGB(...state.background, THREE.SRGBColorSpace);
   const r = state.radius || 1;
@@ -218,7 +223,7 @@ async function main() {
   $("reset").onclick = resetView;
   $("mode").onchange = (e) => setMode(e.target.value);
   addEventListener("resize", () => { renderer.setSize(innerWidth, innerHeight); setProjection(); });
-  await loadSplats(state.version);
+  if (state.num_gaussians > 0) await loadSplats(state.version); // else training has not stepped yet: poll
   setTimeout(poll, 2000);
 }
 
