@@ -207,9 +207,11 @@ def main() -> None:
         big = OUT / "fox-200k.ply"
         write_ply(big, resampled(load_model(MODELS / "fox", torch.device("cpu")).gaussians, 200_000))
         res["first_frame"] = [first_frame(big), first_frame(MODELS / "fox"), first_frame(REPO / args.project)]
+        res["first_frame_load"] = load()
         print(json.dumps(res["first_frame"], indent=1), flush=True)
     if "picture" not in skip:
-        res["pictures"] = pictures(REPO / args.project)
+        os.chdir(REPO)  # the page shows the project as the user names it
+        res["pictures"] = pictures(Path(args.project))
         print(json.dumps(res["pictures"], indent=1), flush=True)
     if "train" not in skip:
         res["train"] = []

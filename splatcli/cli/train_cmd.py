@@ -27,7 +27,10 @@ def train(
                                "at the cost of fine detail learnt later); demo = a few minutes (make demo)."),
     iterations: Optional[int] = typer.Option(None, "--iterations", "-n", help=f"Optimiser steps (default {_D.iterations}; the preset may change it)."),
     sh_degree: Optional[str] = typer.Option(None, "--sh-degree", help=f"0-3, or auto: the lowest degree within {_D.sh_auto.tol_db} dB of 3 on training views (default {_D.sh_degree})."),
-    max_gaussians: Optional[int] = typer.Option(None, "--max-gaussians", help="Hard budget; growth goes to the highest gradients first."),
+    max_gaussians: Optional[int] = typer.Option(None, "--max-gaussians", help="Hard budget; growth goes to the highest gradients first (with --strategy mcmc: the count it grows to)."),
+    strategy: Optional[str] = typer.Option(None, "--strategy", help=f"Density control: default = 3DGS's clone/split/prune; mcmc = a fixed budget "
+                                           f"(--max-gaussians), grown {_D.mcmc.growth:.0%} per refinement, dead Gaussians moved onto live ones, "
+                                           "noise on nearly transparent ones, opacity and scale penalties (Kheradmand et al. 2024)."),
     compact: bool = typer.Option(False, "--compact", help=f"After training, keep {_D.compact.keep:.0%} of the Gaussians, those with the most blending weight (cut in {_D.compact.rounds} rounds), while fine-tuning {_D.compact.finetune} more steps."),
     downscale: Optional[float] = typer.Option(None, "--downscale", help="Train at the image size divided by this."),
     max_size: Optional[int] = typer.Option(None, "--max-size", help=f"Cap the longest image side at this (pixels; default {_D.max_size})."),
@@ -54,6 +57,7 @@ def train(
     ui = Ui(quiet=quiet, json_out=json_out)
     dev = resolve_device(device)
     given = dict(iterations=iterations, sh_degree=sh_degree, max_gaussians=max_gaussians, compact=compact or None,
+                 density=strategy.strip().lower() if strategy else None,
                  downscale=downscale, max_size=max_size, eval_every=eval_every, time_budget=time_budget,
                  init_ply=str(init_ply) if init_ply else None)
     cfg = make_config(preset, seed=seed, device=str(dev), **given)

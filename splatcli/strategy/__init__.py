@@ -4,7 +4,8 @@ and the one set of ops that edits parameters, Adam moments and strategy state to
 from .base import Context, RefineStats, RowState, Splats, StepInfo, Strategy
 from .compact import CompactConfig, CompactReport, CompactStep, ShAutoConfig, ShAutoStep, sh_degree_of
 from .default import DefaultStrategy, DefaultStrategyConfig, DefaultStrategyState
+from .mcmc import MCMCStrategy, MCMCStrategyConfig, MCMCStrategyState
 
 __all__ = ["CompactConfig", "CompactReport", "CompactStep", "Context", "DefaultStrategy", "DefaultStrategyConfig",
-           "DefaultStrategyState", "RefineStats", "RowState", "ShAutoConfig", "ShAutoStep", "Splats", "StepInfo",
+           "DefaultStrategyState", "MCMCStrategy", "MCMCStrategyConfig", "MCMCStrategyState", "RefineStats", "RowState", "ShAutoConfig", "ShAutoStep", "Splats", "StepInfo",
            "Strategy", "sh_degree_of"]

@@ -3,8 +3,9 @@
 Growing, pruning or resetting rows must edit the Adam moments (`exp_avg`,
 `exp_avg_sq`) the same way, or the optimiser would apply stale momentum to the
 wrong Gaussian, and every strategy's per-Gaussian rows (`RowState.ROWS`) too.
-`_edit` is the one function that replaces parameters and moments; `keep` and
-`append` also edit the strategy rows; nothing else in splatcli touches any of them.
+`_edit` is the one function that replaces parameters and moments; `keep`, `append`
+and `replace_rows` also edit the strategy rows; `nudge` moves a parameter in place;
+nothing else in splatcli touches any of them.
 """
 
 from __future__ import annotations
@@ -114,6 +115,25 @@ def split(splats: Splats, sel: Tensor, generator: torch.Generator | None, sample
     rows = split_rows(splats.params, sel, generator, samples)
     keep(splats, ~sel)
     append(splats, rows)
+
+
+def replace_rows(splats: Splats, idx: Tensor, rows: dict[str, Tensor]) -> None:  # idx [M] long
+    """Overwrite the Gaussians at `idx` with `rows[name]` [M, ...] for every parameter, as
+    new Gaussians: their Adam moments and strategy rows are zeroed (MCMC relocation)."""
+
+    def put(x: Tensor, v: Tensor) -> Tensor:
+        x = x.clone()
+        x[idx] = v.to(x)
+        return x
+
+    _edit(splats, lambda n, p: put(p, rows[n]), lambda n, v: put(v, v.new_zeros((len(idx), *v.shape[1:]))),
+          lambda r: put(r, r.new_zeros((len(idx), *r.shape[1:]))))
+
+
+@torch.no_grad()
+def nudge(splats: Splats, name: str, delta: Tensor) -> None:
+    """Add `delta` to one parameter in place (moments kept: a small move, not a new Gaussian)."""
+    splats.params[name].add_(delta.to(splats.params[name]))
 
 
 def set_rows(splats: Splats, name: str, fn: Callable[[Tensor], Tensor]) -> None:

@@ -18,7 +18,7 @@ from typing import Any
 
 from ..errors import SplatError
 from ..gaussians import Histogram
-from ..strategy import CompactConfig, CompactReport, DefaultStrategyConfig, ShAutoConfig
+from ..strategy import CompactConfig, CompactReport, DefaultStrategyConfig, MCMCStrategyConfig, ShAutoConfig
 
 MAX_SH_DEGREE = 3
 
@@ -66,7 +66,9 @@ class TrainConfig:
     lambda_dssim: float = 0.2  # loss = (1 - l) L1 + l (1 - SSIM)
 
     # ---- strategies (strategy/) ----------------------------------------------
+    density: str = "default"  # --strategy: "default" (3DGS adaptive density control) or "mcmc" (a fixed budget)
     strategy: DefaultStrategyConfig = field(default_factory=DefaultStrategyConfig)  # adaptive density control
+    mcmc: MCMCStrategyConfig = field(default_factory=MCMCStrategyConfig)  # --strategy mcmc (its schedule and cap: strategy's)
     sh_auto: ShAutoConfig = field(default_factory=ShAutoConfig)  # used with sh_degree "auto"
     compact: CompactConfig = field(default_factory=CompactConfig)  # --compact
 
@@ -139,7 +141,7 @@ class TrainConfig:
         return cfg
 
 
-_NESTED = {"strategy": "", "sh_auto": "sh_auto_", "compact": "compact_"}  # nested config -> option prefix
+_NESTED = {"strategy": "", "sh_auto": "sh_auto_", "compact": "compact_", "mcmc": "mcmc_"}  # nested config -> option prefix
 
 
 def _option_paths() -> dict[str, tuple[str, ...]]:
@@ -253,6 +255,8 @@ def make_config(preset: str = "default", **options: Any) -> TrainConfig:
     return cfg
 
 
+DENSITY = ("default", "mcmc")  # --strategy
+
 # Options counted in optimiser steps (TrainConfig.for_world divides them by the ranks).
 _STEP_COUNTS = ("iterations", "sh_degree_interval", "eval_every", "log_every", "checkpoint_every", "refine_start",
                 "refine_every", "reset_every", "compact_finetune")
@@ -279,6 +283,10 @@ def _check(cfg: TrainConfig) -> None:
         raise SplatError(f"--sh-degree {cfg.sh_degree}: expected 0..{MAX_SH_DEGREE} or auto")
     if cfg.strategy.max_gaussians is not None and cfg.strategy.max_gaussians < 1:
         raise SplatError(f"--max-gaussians {cfg.strategy.max_gaussians}: must be at least 1")
+    if cfg.density not in DENSITY:
+        raise SplatError(f"--strategy {cfg.density!r} is not known; choose one of {', '.join(DENSITY)}")
+    if cfg.density == "mcmc" and cfg.strategy.max_gaussians is None:
+        raise SplatError("--strategy mcmc needs --max-gaussians N: the fixed number of Gaussians it grows to")
     if cfg.downscale <= 0 or cfg.downscale > 64:
         raise SplatError(f"--downscale {cfg.downscale}: must be in (0, 64]")
     if cfg.max_size < 16:

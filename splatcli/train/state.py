@@ -19,7 +19,7 @@ from torch import Tensor, nn
 
 from ..gaussians import Gaussians
 from ..io.checkpoint import Checkpoint, save_checkpoint
-from ..strategy import CompactStep, Context, DefaultStrategy, ShAutoStep, Splats, Strategy, sh_degree_of
+from ..strategy import CompactStep, Context, DefaultStrategy, MCMCStrategy, ShAutoStep, Splats, Strategy, sh_degree_of
 from .config import TrainConfig
 from .plan import TimePlan
 
@@ -85,9 +85,13 @@ def make_strategies(cfg: TrainConfig, extent: float, ctx: Context) -> list[Strat
     """The run's strategies, in the order the loop calls them. Density control never
     acts on the last step of the main schedule (a reset there would be the final
     model) nor during a compaction fine-tune."""
-    out: list[Strategy] = [
-        DefaultStrategy(replace(cfg.strategy, refine_stop=min(cfg.strategy.refine_stop, cfg.iterations)), extent)
-    ]
+    stop = min(cfg.strategy.refine_stop, cfg.iterations)
+    if cfg.density == "mcmc":
+        s = cfg.strategy
+        density: Strategy = MCMCStrategy(cfg.mcmc, s.max_gaussians, s.refine_start, stop, s.refine_every)
+    else:
+        density = DefaultStrategy(replace(cfg.strategy, refine_stop=stop), extent)
+    out: list[Strategy] = [density]
     if cfg.sh_degree == "auto":
         out.append(ShAutoStep(cfg.sh_auto, cfg.iterations, ctx))
     if cfg.compact.enabled:

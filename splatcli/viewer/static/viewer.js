@@ -18,9 +18,8 @@ document.body.appendChild(renderer.domElement);
 const scene = new THREE.Scene();
 // Frames are drawn on demand (a camera move, a new scene, Spark's sort finishing), not
 // 60 times a second: an idle viewer costs no CPU, which matters beside `train --viewer`.
-let queued = false, busyUntil = 0;
+let queued = false;
 function requestRender() {
-  busyUntil = performance.now() + 1500; // Spark sorts and uploads across frames: keep drawing a while
   if (!queued) { queued = true; requestAnimationFrame(drawFrame); }
 }
 scene.add(new SparkRenderer({ renderer, onDirty: requestRender }));
@@ -179,7 +178,10 @@ function sceneDrawn() {
   return false;
 }
 
+// While training runs, a new model every 2 s, or less often when loading and drawing one
+// takes long (WebGL on the CPU, beside the training): at most a fifth of the time goes to it.
 async function poll() {
+  let wait = 2000;
   try {
     const s = await (await fetch("/api/scene", { cache: "no-store" })).json();
     if (s.version !== window.splatcli.version && s.num_gaussians > 0) {
@@ -187,11 +189,16 @@ async function poll() {
       state.ply_bytes = s.ply_bytes;
       window.splatcli.version = s.version;
       showFacts();
+      const t0 = performance.now();
       await loadSplats(s.version);
       if (mode === "points") await setMode("points");
+      renderer.render(scene, camera); // timed to the end of drawing (readPixels waits for it)
+      const gl = renderer.getContext();
+      gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, probe.subarray(0, 4));
+      wait = Math.max(wait, 5 * (performance.now() - t0));
     }
   } catch (e) { /* the server stopped (training ended): keep the last picture */ }
-  setTimeout(poll, 2000);
+  setTimeout(poll, wait);
 }
 
 function drawFrame() {
@@ -203,7 +210,7 @@ function drawFrame() {
       window.splatcli.ready = true;
     }
   }
-  if (!window.splatcli.ready || performance.now() < busyUntil) { queued = true; requestAnimationFrame(drawFrame); }
+  if (!window.splatcli.ready) { queued = true; requestAnimationFrame(drawFrame); } // until the scene first shows
 }
 
 async function main() {

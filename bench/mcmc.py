@@ -1,0 +1,64 @@
+"""`--strategy mcmc` against the default strategy at the same `--max-gaussians`, one after the other.
+
+    .venv/bin/python bench/mcmc.py [--scenes lego,fox] [--iterations 3000] [--no-write]
+
+The budget is a third of the default run's final count in bench/out/train/results.json
+(bench/train.py's "budget" variant), as issue 15 sets it. Each scene trains the preset
+(`fast`) with `--max-gaussians B`, then with `--strategy mcmc --max-gaussians B`, and
+reports held-out PSNR/SSIM, training seconds and the final count. Results go to
+bench/out/train/mcmc.json and the "## MCMC at one budget" section of docs/benchmarks.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _doc import write_section  # noqa: E402
+from train import OUT, train_variant  # noqa: E402
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--scenes", default="lego,fox")
+    ap.add_argument("--iterations", type=int, default=None, help="default: the preset's")
+    ap.add_argument("--preset", default="fast")
+    ap.add_argument("--no-write", action="store_true")
+    args = ap.parse_args()
+    prev = json.loads((OUT / "results.json").read_text())["results"]
+    rows = []
+    for scene in [s for s in args.scenes.split(",") if s]:
+        full = [r for r in prev if r["scene"] == scene and r["variant"] == "default"][-1]
+        budget = max(1, full["num_gaussians"] // 3)
+        for variant, extra in (("budget", []), ("mcmc", ["--strategy", "mcmc"])):
+            load0 = os.getloadavg()[0]
+            r = train_variant(scene, variant, ["--max-gaussians", str(budget), *extra], args.preset, args.iterations, 1)
+            r.update(budget=budget, default_count=full["num_gaussians"], load=[round(load0, 2),
+                                                                              round(os.getloadavg()[0], 2)])
+            rows.append(r)
+    (OUT / "mcmc.json").write_text(json.dumps(rows, indent=1))
+    lines = ["## MCMC at one budget", "",
+             "Measured by `python bench/mcmc.py`: the `fast` preset"
+             + (f" cut to {args.iterations} steps" if args.iterations else "")
+             + " with `--max-gaussians` a third of the default run's final count, once with the default strategy "
+             "and once with `--strategy mcmc`, one after the other on this machine (one torch thread).", "",
+             "| scene | strategy | budget (default run's count) | steps | train s | held-out PSNR / SSIM | Gaussians | load |",
+             "| --- | --- | --- | ---: | ---: | --- | ---: | --- |"]
+    for r in rows:
+        lines.append(f"| {r['scene']} | {'mcmc' if r['variant'] == 'mcmc' else 'default'} | {r['budget']:,} "
+                     f"({r['default_count']:,}) | {r['steps']} | {r['train_seconds']:.0f} | "
+                     f"{r['final_psnr']:.2f} / {r['final_ssim']:.4f} | {r['num_gaussians']:,} | "
+                     f"{r['load'][0]} → {r['load'][1]} |")
+    text = "\n".join(lines) + "\n"
+    print(text)
+    if not args.no_write:
+        write_section("## MCMC at one budget", text)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,165 @@
+"""3D Gaussian Splatting as Markov Chain Monte Carlo (Kheradmand et al., NeurIPS 2024).
+
+A fixed budget instead of heuristics: the model grows by a fixed fraction every
+`refine_every` steps until it reaches `cap` Gaussians, and Gaussians that have died
+(opacity below `min_opacity`) are moved onto live ones, drawn in proportion to their
+opacity. A Gaussian drawn k times becomes k + 1 Gaussians whose opacity and scale are
+set so that their sum renders like the one did (the paper's relocation, eq. 9). After
+every optimiser step, positions get noise shaped by each Gaussian's own covariance and
+gated to the nearly transparent ones (so the sampler explores where the scene is
+empty). L1 penalties on opacity and scale are added to the gradients before the
+loss's backward (they accumulate into the same `.grad`), which keeps Gaussians small
+and lets the unneeded ones die and be reused. Every edit goes through `ops`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+import torch
+from torch import Tensor
+
+from ..render.project import quat_to_rotmat
+from . import ops
+from .base import RefineStats, RowState, Splats, StepInfo, Strategy
+
+
+@dataclass(frozen=True)
+class MCMCStrategyConfig:
+    min_opacity: float = 0.005  # below this a Gaussian is dead and relocated
+    growth: float = 0.05  # the count grows by at least this fraction per refinement, up to the cap ...
+    grow_until: float = 0.6  # ... and fast enough to reach it by this fraction of the refinement window
+    noise_lr: float = 5e5  # position noise = noise_lr x the means' learning rate x covariance x gate
+    noise_gate_k: float = 100.0  # gate = sigmoid(k (1 - opacity - (1 - min_opacity)))
+    opacity_reg: float = 0.01  # x mean opacity, added to the loss's gradient
+    scale_reg: float = 0.01  # x mean scale (world units)
+    max_ratio: int = 51  # a Gaussian is split into at most this many by one relocation
+
+
+@dataclass
+class MCMCStrategyState(RowState):
+    generator: torch.Generator  # relocation and noise sampling
+
+
+def relocation(opacity: Tensor, scales: Tensor, ratio: Tensor, max_ratio: int) -> tuple[Tensor, Tensor]:
+    """New opacity [M] and scales [M, 3] for Gaussians each replaced by `ratio` [M] copies,
+    so that the copies, drawn one over another, match the original at its centre
+    (Kheradmand et al. eq. 9): o' = 1 - (1 - o)^(1/n) and
+    s' = s * o / sum_{i=1..n} sum_{k=0..i-1} C(i-1, k) (-1)^k o'^(k+1) / sqrt(k+1)."""
+    n = ratio.clamp(1, max_ratio).to(opacity.dtype)
+    new_o = 1.0 - (1.0 - opacity).clamp_min(0.0) ** (1.0 / n)
+    denom = torch.zeros_like(opacity)
+    top = int(n.max()) if n.numel() else 1
+    for i in range(1, top + 1):
+        inner = torch.zeros_like(opacity)
+        for k in range(i):
+            inner = inner + math.comb(i - 1, k) * (-1) ** k * new_o ** (k + 1) / math.sqrt(k + 1)
+        denom = denom + torch.where(n >= i, inner, torch.zeros_like(inner))
+    coef = opacity / denom.clamp_min(1e-12)
+    return new_o, scales * coef[:, None]
+
+
+class MCMCStrategy(Strategy):
+    name = "mcmc"
+
+    def __init__(self, config: MCMCStrategyConfig, cap: int, refine_start: int, refine_stop: int,
+                 refine_every: int) -> None:
+        self.config = config
+        self.cap, self.refine_start, self.refine_stop, self.refine_every = cap, refine_start, refine_stop, refine_every
+
+    def initial_state(self, n: int, device: torch.device, seed: int = 0) -> MCMCStrategyState:
+        gen = torch.Generator(device=device)
+        gen.manual_seed(int(seed) + 0x3C3C)  # its own stream: never shifts view sampling
+        return MCMCStrategyState(gen)
+
+    def step_pre_backward(self, splats: Splats, state: MCMCStrategyState, step: int, info: StepInfo) -> None:
+        """The regularisers' gradients, accumulated before the photometric loss's."""
+        cfg = self.config
+        p = splats.params
+        reg = (cfg.opacity_reg * torch.sigmoid(p["opacity_logits"]).mean()
+               + cfg.scale_reg * p["log_scales"].exp().mean())
+        reg.backward()
+
+    def step_post_backward(self, splats: Splats, state: MCMCStrategyState, step: int, info: StepInfo) -> RefineStats:
+        n = len(splats)
+        stats = RefineStats(step=step, before=n, after=n)
+        if self.refine_start < step < self.refine_stop and step % self.refine_every == 0:
+            stats.pruned = self._relocate(splats, state)  # moved, not removed: logged as pruned-and-cloned
+            stats.cloned = self._grow(splats, state, step)
+            stats.cloned += stats.pruned
+        if info.finite:
+            self._noise(splats, state)
+        stats.after = len(splats)
+        return stats
+
+    @torch.no_grad()
+    def _relocate(self, splats: Splats, state: MCMCStrategyState) -> int:
+        opacity = torch.sigmoid(splats.params["opacity_logits"])
+        dead = opacity <= self.config.min_opacity
+        n_dead = int(dead.sum())
+        if n_dead == 0 or n_dead == len(opacity):
+            return 0
+        alive = (~dead).nonzero().squeeze(1)
+        src = alive[torch.multinomial(opacity[alive], n_dead, replacement=True, generator=state.generator)]
+        rows = self._split_into(splats, src)
+        dst = dead.nonzero().squeeze(1)
+        ops.replace_rows(splats, dst, {k: v[src] for k, v in rows.items()})
+        return n_dead
+
+    @torch.no_grad()
+    def _grow(self, splats: Splats, state: MCMCStrategyState, step: int) -> int:
+        n = len(splats)
+        add = min(self.cap, int(math.floor(n * (1.0 + self.growth_rate(n, step))))) - n
+        if add <= 0:
+            return 0
+        opacity = torch.sigmoid(splats.params["opacity_logits"])
+        src = torch.multinomial(opacity, add, replacement=True, generator=state.generator)
+        rows = self._split_into(splats, src)
+        ops.append(splats, {k: v[src] for k, v in rows.items()})
+        return add
+
+    def growth_rate(self, n: int, step: int) -> float:
+        """The fraction to grow by at refinement `step`: at least `growth`, and enough to
+        reach the cap by `grow_until` of the refinement window at a constant rate (the
+        paper's 5% per 100 steps fills 30k-step budgets; short CPU schedules need more)."""
+        target = self.refine_start + self.config.grow_until * (self.refine_stop - self.refine_start)
+        left = math.floor((target - step) / self.refine_every) + 1  # refinements until the target, this one included
+        if n <= 0 or n >= self.cap or left <= 0:
+            return self.config.growth
+        return max(self.config.growth, (self.cap / n) ** (1.0 / left) - 1.0)
+
+    def _split_into(self, splats: Splats, src: Tensor) -> dict[str, Tensor]:
+        """Each drawn Gaussian (index in `src`, repeats allowed) becomes its count + 1
+        copies: its own row is rewritten (moments zeroed) and the returned rows
+        (indexed like the parameters) are the copies' values."""
+        p = splats.params
+        n = len(splats)
+        count = torch.bincount(src, minlength=n)  # [N]
+        idx = count.nonzero().squeeze(1)
+        new_o, new_s = relocation(torch.sigmoid(p["opacity_logits"][idx]), p["log_scales"][idx].exp(),
+                                  count[idx] + 1, self.config.max_ratio)
+        eps = torch.finfo(new_o.dtype).eps
+        logits = torch.logit(new_o.clamp(eps, 1 - eps))
+        rows = {k: v.detach().clone() for k, v in p.items()}
+        rows["opacity_logits"][idx] = logits
+        rows["log_scales"][idx] = new_s.clamp_min(1e-12).log()
+        ops.replace_rows(splats, idx, {k: v[idx] for k, v in rows.items()})
+        return rows
+
+    @torch.no_grad()
+    def _noise(self, splats: Splats, state: MCMCStrategyState) -> None:
+        cfg = self.config
+        p = splats.params
+        lr = float(splats.optimizers["means"].param_groups[0]["lr"])
+        opacity = torch.sigmoid(p["opacity_logits"])
+        gate = torch.sigmoid(cfg.noise_gate_k * ((1.0 - opacity) - (1.0 - cfg.min_opacity)))  # [N]
+        z = torch.randn(p["means"].shape, generator=state.generator, device=p["means"].device,
+                        dtype=p["means"].dtype)  # drawn for every row: the stream does not depend on opacities
+        idx = (gate > 1e-6).nonzero().squeeze(1)  # the nearly transparent: elsewhere the noise is below 1e-6 of it
+        rot = quat_to_rotmat(p["quats"][idx])  # [M, 3, 3]
+        var = p["log_scales"][idx].exp() ** 2  # [M, 3]
+        # covariance x z = R diag(var) R^T z, without forming the covariance
+        w = torch.einsum("mji,mj->mi", rot, z[idx] * (gate[idx] * cfg.noise_lr * lr)[:, None])
+        delta = torch.zeros_like(p["means"])
+        delta[idx] = torch.einsum("mij,mj->mi", rot, var * w)
+        ops.nudge(splats, "means", delta)
