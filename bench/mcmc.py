@@ -2,8 +2,8 @@
 
     .venv/bin/python bench/mcmc.py [--scenes lego,fox] [--iterations 3000] [--no-write]
 
-The budget is a third of the default run's final count in bench/out/train/results.json
-(bench/train.py's "budget" variant), as issue 15 sets it. Each scene trains the preset
+The budget is a third of the default run's final count (bench/out/train/results.json, else
+--counts), as bench/train.py's "budget" variant and issue 15 set it. Each scene trains the preset
 (`fast`) with `--max-gaussians B`, then with `--strategy mcmc --max-gaussians B`, and
 reports held-out PSNR/SSIM, training seconds and the final count. Results go to
 bench/out/train/mcmc.json and the "## MCMC at one budget" section of docs/benchmarks.md.
@@ -28,12 +28,18 @@ def main() -> None:
     ap.add_argument("--scenes", default="lego,fox")
     ap.add_argument("--iterations", type=int, default=None, help="default: the preset's")
     ap.add_argument("--preset", default="fast")
+    ap.add_argument("--counts", default="lego=88657,fox=159631,sample=20000",
+                    help="the default run's final count per scene, where bench/out/train/results.json has none "
+                         "(these: docs/benchmarks.md, \"train\", fast preset; the demo preset's own budget)")
     ap.add_argument("--no-write", action="store_true")
     args = ap.parse_args()
-    prev = json.loads((OUT / "results.json").read_text())["results"]
+    path = OUT / "results.json"
+    prev = json.loads(path.read_text())["results"] if path.exists() else []
+    counts = {k: int(v) for k, v in (kv.split("=") for kv in args.counts.split(",") if kv)}
     rows = []
     for scene in [s for s in args.scenes.split(",") if s]:
-        full = [r for r in prev if r["scene"] == scene and r["variant"] == "default"][-1]
+        runs = [r for r in prev if r["scene"] == scene and r["variant"] == "default"]
+        full = {"num_gaussians": runs[-1]["num_gaussians"] if runs else counts[scene]}
         budget = max(1, full["num_gaussians"] // 3)
         for variant, extra in (("budget", []), ("mcmc", ["--strategy", "mcmc"])):
             load0 = os.getloadavg()[0]

@@ -9,6 +9,7 @@ import signal
 import socket
 import subprocess
 import sys
+import time
 import urllib.error
 import urllib.request
 from pathlib import Path
@@ -139,6 +140,7 @@ def test_live_sink_publishes_at_most_every_period_and_passes_events_on():
     store = SceneStore(source="live")
     seen = []
     sink = LiveSink(store, seen.append, every_s=3600)
+    store.asked = time.monotonic()  # a page is open
     g = tiny_gaussians(50)
     sink(Progress("train", 10, 100, {"loss": 0.5, "psnr": 20.1, "refined": {"x": 1}}))
     calls = []
@@ -150,6 +152,12 @@ def test_live_sink_publishes_at_most_every_period_and_passes_events_on():
     assert [type(e).__name__ for e in seen] == ["Progress"]  # snapshots are the viewer's alone
     g.means += 1  # the store keeps its own copy
     assert not torch.equal(store._g.means, g.means)
+    idle = SceneStore(source="idle")
+    LiveSink(idle, None, every_s=0)(Snapshot(1, lambda: g))
+    calls.clear()
+    idle.asked = -float("inf")
+    LiveSink(idle, None, every_s=0)(Snapshot(2, lambda: calls.append(1) or g))
+    assert idle.version == 1 and not calls  # no page looking: no copy after the first
 
 
 def _start_view(*args: str, env: dict | None = None) -> tuple[subprocess.Popen, dict]:

@@ -43,7 +43,7 @@ def train(
                                         "schedule is scaled so that the run sees as many images as one process (docs/guide.md)."),
     port: int = typer.Option(0, "--port", help="With --nproc: the loopback port the processes meet on (default: a free one)."),
     viewer: bool = typer.Option(False, "--viewer", help="Serve a live web viewer of the model while it trains (as `splatcli "
-                                "view`; refreshed every 2 s, with the step, loss and held-out PSNR)."),
+                                "view`; refreshed every 3 s while a page is open, with the step, loss and held-out PSNR)."),
     viewer_host: str = typer.Option("127.0.0.1", "--viewer-host", help="With --viewer: the address to serve on."),
     viewer_port: Optional[int] = typer.Option(None, "--viewer-port", help="With --viewer: the port (default 7007, or the next free one)."),
     device: str = DeviceOpt,

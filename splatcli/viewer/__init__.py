@@ -51,9 +51,10 @@ def open_scene(source: str | Path) -> SceneStore:
 
 class LiveSink:
     """An event sink for `train --viewer`: passes every event on to `inner` and, at most
-    every `every_s` seconds, copies the model of a Snapshot event into `store`."""
+    every `every_s` seconds and only while a page is looking, copies the model of a
+    Snapshot event into `store`."""
 
-    def __init__(self, store: SceneStore, inner: EventSink | None, every_s: float = 2.0) -> None:
+    def __init__(self, store: SceneStore, inner: EventSink | None, every_s: float = 3.0) -> None:
         self.store, self.inner, self.every_s = store, inner, every_s
         self._last = -float("inf")
         self._info: dict = {}
@@ -61,7 +62,7 @@ class LiveSink:
     def __call__(self, event: Event) -> None:
         if isinstance(event, Snapshot):
             now = time.monotonic()
-            if now - self._last >= self.every_s:
+            if now - self._last >= self.every_s and (self.store.wanted() or self.store.version == 0):
                 self._last = now
                 self.store.publish(event.model(), {"step": event.step, **self._info})
             return

@@ -23,6 +23,7 @@ import ipaddress
 import json
 import socket
 import threading
+import time
 from dataclasses import dataclass, field
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
@@ -93,6 +94,11 @@ class SceneStore:
     _points: bytes | None = None
     _bounds: dict[str, Any] = field(default_factory=dict)
     version: int = 0
+    asked: float = -float("inf")  # time.monotonic() of the page's last /api/scene request
+
+    def wanted(self, within_s: float = 10.0) -> bool:
+        """Whether a page has asked for the scene lately: live updates cost nothing without one."""
+        return time.monotonic() - self.asked < within_s
 
     def publish(self, g: Gaussians, info: dict[str, Any] | None = None) -> None:
         """Show `g` from now on (a copy on the CPU is kept; the caller may go on editing
@@ -179,6 +185,7 @@ def _handler(store: SceneStore, assets: dict[str, Asset], allowed_hosts: set[str
                     return self._send(200, gzip.decompress(a.body), a.content_type, False, head)
                 return self._send(200, a.body, a.content_type, a.gzipped, head)
             if path == "/api/scene":
+                store.asked = time.monotonic()
                 return self._send(200, json.dumps(store.state()).encode(), "application/json", head=head)
             if path == "/api/scene.ply":
                 return self._send(200, store.ply(), "application/octet-stream", head=head)
