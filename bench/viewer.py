@@ -164,7 +164,7 @@ def train_run(scene: str, label: str, iterations: int, client: str | None) -> di
 
 def markdown(res: dict) -> str:
     lines = ["## viewer", "",
-             "Measured by `python bench/viewer.py` on this machine (2 cores, no GPU): headless Chromium "
+             "Measured by `python bench/viewer.py` on this machine (2 cores, no GPU): headless "
              f"{res['chromium']} with WebGL on SwiftShader (the CPU), Spark 2.2.0. Load average (1 min) before → after.", "",
              "**First frame** (1280×720, navigation start to the first frame showing the scene; three page loads):", "",
              "| scene | Gaussians | SH | .ply MB | scene decoded s (median) | first frame s (min / median / max) | load |",
