@@ -49,7 +49,7 @@ def main() -> None:
             rows.append(r)
     (OUT / "mcmc.json").write_text(json.dumps(rows, indent=1))
     lines = ["## MCMC at one budget", "",
-             "Measured by `python bench/mcmc.py`: the `fast` preset"
+             "Measured by `python bench/mcmc.py`: each scene's preset (bench/train.py: `fast`, the sample scene `demo`)"
              + (f" cut to {args.iterations} steps" if args.iterations else "")
              + " with `--max-gaussians` a third of the default run's final count, once with the default strategy "
              "and once with `--strategy mcmc`, one after the other on this machine (one torch thread).", "",
