@@ -24,7 +24,7 @@ from splatcli.io.ply import write_ply
 from splatcli.viewer import LiveSink, SceneStore, ViewerServer, open_scene
 from splatcli.viewer import server as server_mod
 
-from browser import browser_problem, psnr_u8, screenshot
+from browser import browser_problem, capture, open_page, psnr_u8, screenshot
 from tiny_project import assert_user_error, make_tiny_project, run_cli, snapshot, tiny_gaussians
 
 REPO = Path(__file__).resolve().parents[1]
@@ -229,3 +229,23 @@ def test_browser_picture_matches_splatcli_render(proj, served, tmp_path):
         # wrong colours or a blank canvas fall far below 20 dB
         assert p >= 20.0, (c["name"], p)
         print(f"{c['name']}: {p:.2f} dB against splatcli render; first frame at {st['firstFrameMs']:.0f} ms")
+
+
+@pytest.mark.skipif(browser_problem() is not None, reason=str(browser_problem()))
+def test_browser_orbits_and_switches_to_points(proj, served):
+    from selenium.webdriver.common.action_chains import ActionChains
+
+    c = [c for c in json.loads(_get(served.url + "api/scene")[1])["cameras"]][3]
+    with open_page(f"{served.url}?camera={c['name']}&hud=0", c["width"], c["height"]) as (d, _):
+        time.sleep(1.0)
+        before = capture(d, c["width"], c["height"])
+        canvas = d.find_element("css selector", "canvas")
+        ActionChains(d).move_to_element(canvas).click_and_hold().move_by_offset(60, 0).release().perform()
+        time.sleep(1.5)
+        after = capture(d, c["width"], c["height"])
+        assert after.std() > 5 and psnr_u8(before, after) < 25  # the view moved, and still shows the scene
+        d.execute_script("const m = document.getElementById('mode'); m.value = 'points';"
+                         "m.dispatchEvent(new Event('change'));")
+        time.sleep(1.5)
+        pts = capture(d, c["width"], c["height"])
+        assert psnr_u8(pts, after) < 25 and pts.std() > 2  # centres as points: another picture
