@@ -178,7 +178,7 @@ function sceneDrawn() {
   return false;
 }
 
-// While training runs, a new model every 2 s, or less often when loading and drawing one
+// While training runs, the page asks every 2 s (the server has a new model every 3 s), or less often when loading and drawing one
 // takes long (WebGL on the CPU, beside the training): at most a fifth of the time goes to it.
 async function poll() {
   let wait = 2000;
