@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import signal
 import time
 import webbrowser
 from pathlib import Path
@@ -65,5 +66,5 @@ def view(
         try:
             while True:
                 time.sleep(0.5)
-        except KeyboardInterrupt:
-            pass  # Ctrl-C is how a viewer ends: exit 0
+        except KeyboardInterrupt:  # Ctrl-C is how a viewer ends: exit 0, also when pressed again while it closes
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
