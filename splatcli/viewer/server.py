@@ -27,6 +27,7 @@ import time
 from dataclasses import dataclass, field
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
+from pathlib import PurePosixPath
 from typing import Any
 
 import numpy as np
@@ -59,8 +60,7 @@ def _assets() -> dict[str, Asset]:
              "vendor/addons/controls/OrbitControls.js", "vendor/addons/postprocessing/Pass.js"]
     out = {}
     for name in names:
-        stem, dot, ext = name.rpartition(".")
-        ext = "." + ext if dot and "/" not in ext else ""
+        ext = PurePosixPath(name).suffix  # "" for LICENSES, VERSIONS
         gz = name.endswith(".js") and name.startswith("vendor/")
         body = (root / (name + ".gz" if gz else name)).read_bytes()
         out["/" if name == "index.html" else f"/static/{name}"] = Asset(body, _TYPES.get(ext, _TYPES[""]), gz)
@@ -145,7 +145,7 @@ class SceneStore:
                     "cameras": [c.__dict__ for c in self.cameras], "live": dict(self._info), **self._bounds}
 
 
-def _loopback(host: str) -> bool:
+def is_loopback(host: str) -> bool:
     if host == "localhost":
         return True
     try:
@@ -233,7 +233,7 @@ class ViewerServer:
     def __init__(self, store: SceneStore, host: str = "127.0.0.1", port: int | None = None) -> None:
         self.store = store
         self.host = host
-        allowed = {host.lower(), "localhost", "127.0.0.1", "::1"} if _loopback(host) else None
+        allowed = {host.lower(), "localhost", "127.0.0.1", "::1"} if is_loopback(host) else None
         handler = _handler(store, _assets(), allowed)
         self._httpd = _bind(host, port, handler)
         self.port = int(self._httpd.server_address[1])
@@ -277,7 +277,3 @@ def _bind(host: str, port: int, handler) -> _Server:
                          hint="choose another --port, or leave it out to use a free one") from None
     raise SplatError(f"no free port on {host} from {DEFAULT_PORT} to {DEFAULT_PORT + PORT_TRIES - 1}",
                      hint="pass --port") from None
-
-
-def is_loopback(host: str) -> bool:
-    return _loopback(host)
