@@ -55,6 +55,10 @@ def test_train_writes_checkpoint_log_report_and_summary(tmp_path):
     assert [r["step"] for r in log] == [10, 15, 20, 30]
     assert all({"step", "elapsed_s", "loss", "num_gaussians"} <= set(r) for r in log)
     assert [r["step"] for r in log if "psnr" in r] == [15, 30]
+    # training views are measured beside the held-out ones, at the same points (the gap is overfitting)
+    assert [r["step"] for r in log if "train_psnr" in r] == [15, 30]
+    assert all(math.isfinite(r["train_psnr"]) and 0 < r["train_ssim"] <= 1 for r in log if "train_psnr" in r)
+    assert log[-1]["train_psnr"] != log[-1]["psnr"]
     assert all(b["elapsed_s"] > a["elapsed_s"] for a, b in zip(log, log[1:]))
     # refinement is visible: each line's clone / split / prune counts explain the change in count
     # (a split replaces one Gaussian by two)

@@ -20,6 +20,8 @@ class TrainLogLine:
     num_gaussians: int
     psnr: float | None = None  # held-out, every --eval-every steps
     ssim: float | None = None
+    train_psnr: float | None = None  # the same, on as many evenly spaced training views (the gap is overfitting)
+    train_ssim: float | None = None
     bad_steps: int = 0  # non-finite steps skipped so far
     rss_mb: int | None = None  # the process's resident memory now (flat once densification stops)
     open_fds: int | None = None  # the process's open file descriptors now (flat: nothing leaks)

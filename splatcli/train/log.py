@@ -63,8 +63,10 @@ class LogWriter:
         s, n = self.state.loss_acc.tolist()
         return s / n if n else self.loss
 
-    def line(self, step: int, state: TrainState, evaluated: tuple[float, float] | None, log_every: int,
-             force: bool = False) -> None:
+    def line(self, step: int, state: TrainState, evaluated: tuple[float, float] | None,
+             fitted: tuple[float, float] | None, log_every: int, force: bool = False) -> None:
+        """`evaluated`: held-out (PSNR, SSIM) measured at this step, if any; `fitted`: the
+        same on training views."""
         if not (force or evaluated is not None or (log_every and step % log_every == 0)):
             return
         loss = self._mean_loss()
@@ -76,6 +78,8 @@ class LogWriter:
         if evaluated is not None:
             rec.psnr, rec.ssim = round(evaluated[0], 4), round(evaluated[1], 5)
             self.psnr = rec.psnr
+        if fitted is not None:
+            rec.train_psnr, rec.train_ssim = round(fitted[0], 4), round(fitted[1], 5)
         if self.enabled:
             append_line(self.path, json.dumps(rec.to_json()))
         self.loss = loss

@@ -181,7 +181,8 @@ def _loop(project: Project, base: TrainConfig, cfg: TrainConfig, data: TrainData
         evaluated = info.heldout
         if step == total:
             evaluated = _measure(cfg, data, state, step, total, comm, force=True)
-        writer.line(step, state, evaluated, cfg.log_every, force=step == total)
+        fitted = _measure_fit(cfg, data, state, step, comm) if evaluated is not None else None
+        writer.line(step, state, evaluated, fitted, cfg.log_every, force=step == total)
         emit(on_event, Progress(STAGE, state.images, total * k, writer.info(state)))
         if comm.main:
             emit(on_event, Snapshot(state.images, state.gaussians))  # for live displays (train --viewer)
@@ -284,6 +285,14 @@ def _measure(cfg: TrainConfig, data: TrainData, state: TrainState, step: int, to
         return None
     return evaluate_views(state, data.test, data.background, state.active_sh_degree(step, cfg.sh_degree_interval),
                           comm)
+
+
+def _measure_fit(cfg: TrainConfig, data: TrainData, state: TrainState, step: int,
+                 comm: Comm) -> tuple[float, float]:
+    """PSNR / SSIM on as many evenly spaced training views as there are held-out ones,
+    rendered as those are: logged beside the held-out figures, the gap shows overfitting."""
+    return evaluate_views(state, subset(data.train, len(data.test)), data.background,
+                          state.active_sh_degree(step, cfg.sh_degree_interval), comm)
 
 
 @torch.no_grad()
