@@ -13,7 +13,7 @@ Conventions (the project's): world is z-up; cameras are OpenCV/COLMAP (x
 right, y down, z forward); `viewmat` [4, 4] maps world to camera; pixel
 (u, v) is sampled at its centre (u + 0.5, v + 0.5) in the coordinates of K.
 
-    python sample_data/make_scene.py [--out sample_data/scene] [--views 28]
+    python sample_data/make_scene.py [--out sample_data/scene] [--views 28] [--kind object]
                                      [--width 320] [--height 240] [--seed 0]
 
 writes out/images/NNN.jpg and out/ground_truth.json (see README.md).
@@ -403,8 +403,16 @@ def material_ids(K: np.ndarray, viewmat: np.ndarray, width: int, height: int) ->
     return _cast(o, d)[1].reshape(height, width)
 
 
-def render_view(K: np.ndarray, viewmat: np.ndarray, width: int, height: int, seed: int = 0, supersample: int = 2) -> np.ndarray:
-    """RGB uint8 image [H, W, 3] seen by the camera K [3, 3], viewmat [4, 4]."""
+# The "object" variant: the same objects on a plain sheet of paper before a backdrop out of
+# focus, as in a hand-held object capture (SfM finds nothing on the sheet or the backdrop).
+PAPER = Material((0.80, 0.78, 0.72), (0.76, 0.74, 0.69), 0.8, "none", 1.0, 1.0, 0.0)
+BACKDROP_BLUR = 0.03  # Gaussian defocus of the wall and sky, sigma as a fraction of the image width
+
+
+def render_view(K: np.ndarray, viewmat: np.ndarray, width: int, height: int, seed: int = 0, supersample: int = 2,
+                kind: str = "still-life") -> np.ndarray:
+    """RGB uint8 image [H, W, 3] seen by the camera K [3, 3], viewmat [4, 4]. `kind`
+    "object": the ground is plain paper and the backdrop (wall, sky) is defocused."""
     ss = supersample
     o, d = pixel_rays(K, viewmat, width, height, ss)
     dist, mat = _cast(o, d)
@@ -420,6 +428,8 @@ def render_view(K: np.ndarray, viewmat: np.ndarray, width: int, height: int, see
         sel = mh == m
         n[sel] = _normal(p[sel], int(m))
         albedo[sel] = _albedo(p[sel], int(m), seed)
+        if kind == "object" and m == GROUND:
+            albedo[sel] = _plain(p[sel], seed)
     # Hard shadows cast by the objects (the ground and the wall only receive them).
     lambert = np.clip(n[:, 0] * LIGHT_DIR[0] + n[:, 1] * LIGHT_DIR[1] + n[:, 2] * LIGHT_DIR[2], 0.0, None)
     lit = np.flatnonzero(lambert > 0)
@@ -429,8 +439,40 @@ def render_view(K: np.ndarray, viewmat: np.ndarray, width: int, height: int, see
     rgb[hit] = albedo * shade[:, None] * 1.25  # exposure: lit faces near the white point without clipping much
 
     lin = rgb.reshape(height, ss, width, ss, 3).mean(axis=(1, 3))  # box filter in linear light
+    if kind == "object":
+        far = ((mat == WALL) | (mat == SKY)).reshape(height, ss, width, ss).mean(axis=(1, 3))
+        lin = _defocus(lin, far, BACKDROP_BLUR * width)
     srgb = np.where(lin <= 0.0031308, 12.92 * lin, 1.055 * np.power(np.clip(lin, 0.0031308, None), 1 / 2.4) - 0.055)
     return np.clip(np.round(srgb * 255.0), 0, 255).astype(np.uint8)
+
+
+def _plain(p: np.ndarray, seed: int) -> np.ndarray:
+    """Albedo [N, 3] of the paper sheet: one tone with a faint large-scale shading."""
+    m = PAPER
+    t = _fbm(p + 0.37, seed * 7919 + 31, 2, m.noise_freq)
+    return _mix(np.asarray(m.color_a)[None].repeat(len(p), 0), np.asarray(m.color_b)[None].repeat(len(p), 0), t)
+
+
+def _blur(img: np.ndarray, sigma: float) -> np.ndarray:
+    """Separable Gaussian blur of [H, W, C] (edges clamped)."""
+    r = max(int(3 * sigma), 1)
+    k = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma) ** 2)
+    k /= k.sum()
+    for axis in (0, 1):
+        pad = [(r, r) if a == axis else (0, 0) for a in range(img.ndim)]
+        padded = np.pad(img, pad, mode="edge")
+        n = img.shape[axis]
+        img = sum(w * np.take(padded, np.arange(i, i + n), axis=axis) for i, w in enumerate(k))
+    return img
+
+
+def _defocus(lin: np.ndarray, far: np.ndarray, sigma: float) -> np.ndarray:
+    """Blur the backdrop of lin [H, W, 3] (coverage far [H, W]) on its own, by normalised
+    convolution, and put it back behind the sharp foreground."""
+    num = _blur(lin * far[..., None], sigma)
+    den = _blur(far[..., None], sigma)
+    back = num / np.maximum(den, 1e-6)
+    return lin * (1.0 - far[..., None]) + back * far[..., None]
 
 
 # ---------------------------------------------------------------------------
@@ -459,13 +501,15 @@ def render_scene(
     seed: int = 0,
     arc_degrees: float | None = None,
     jpeg_quality: int = 92,
+    kind: str = "still-life",
 ) -> Path:
     """Render the scene into `out_dir`: images/NNN.jpg and ground_truth.json. Returns out_dir.
 
     Deterministic: the same arguments give the same bytes. `seed` changes the
     textures only; the geometry and the cameras depend on the sizes and views.
     `arc_degrees` None: 270 degrees, or 10 degrees per step when there are fewer
-    than 28 views (so that small test scenes still register in SfM).
+    than 28 views (so that small test scenes still register in SfM). `kind` "object":
+    the objects on plain paper before a defocused backdrop (render_view).
     """
     import cv2  # only to encode JPEGs
 
@@ -477,7 +521,7 @@ def render_scene(
     cams = []
     for i, (K, viewmat) in enumerate(orbit_cameras(num_views, width, height, arc_degrees)):
         name = f"{i:03d}.jpg"
-        img = render_view(K, viewmat, width, height, seed)
+        img = render_view(K, viewmat, width, height, seed, kind=kind)
         ok, buf = cv2.imencode(".jpg", img[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
         if not ok:
             raise RuntimeError(f"OpenCV could not encode {name}")
@@ -487,6 +531,7 @@ def render_scene(
         "frame": "opencv",
         "source": "splatcli sample_data/make_scene.py",
         "seed": seed,
+        **({"kind": kind} if kind != "still-life" else {}),
         "arc_degrees": arc_degrees,
         "world_up": [0.0, 0.0, 1.0],
         "look_at": LOOK_AT.tolist(),
@@ -503,8 +548,11 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--width", type=int, default=320)
     ap.add_argument("--height", type=int, default=240)
     ap.add_argument("--seed", type=int, default=0, help="texture seed")
+    ap.add_argument("--kind", choices=("still-life", "object"), default="still-life",
+                    help="object: the objects on plain paper before a backdrop out of focus (a hand-held object capture)")
     args = ap.parse_args(argv)
-    out = render_scene(args.out, num_views=args.views, width=args.width, height=args.height, seed=args.seed)
+    out = render_scene(args.out, num_views=args.views, width=args.width, height=args.height, seed=args.seed,
+                       kind=args.kind)
     print(f"wrote {args.views} views to {out}")
 
 
