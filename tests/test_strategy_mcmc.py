@@ -141,3 +141,23 @@ def test_mcmc_options_are_checked(tmp_path):
     proj = make_tiny_project(tmp_path / "p", trained=False, photos=False)
     assert_user_error(run_cli("train", proj.root, "--strategy", "mcmc"), "--max-gaussians")
     assert_user_error(run_cli("train", proj.root, "--strategy", "annealing"), "--strategy 'annealing'", "mcmc")
+
+
+def test_opacity_and_scale_reg_are_a_step_of_their_own_for_the_default_strategy():
+    """--opacity-reg / --scale-reg add the same penalties to a default-strategy run (a
+    RegularizeStep after density control), and none when they are 0 (the default)."""
+    from splatcli.strategy import Context, RegularizeStep
+    from splatcli.train.config import make_config
+    from splatcli.train.state import make_strategies
+
+    ctx = Context(score=lambda *a: None, weights=lambda: torch.zeros(0), note=lambda m: None)
+    assert not any(isinstance(s, RegularizeStep) for s in make_strategies(make_config("fast"), 1.0, ctx))
+    strategies = make_strategies(make_config("fast", opacity_reg=0.5, scale_reg=0.25), 1.0, ctx)
+    (step,) = [s for s in strategies if isinstance(s, RegularizeStep)]
+    sp = _splats(10)
+    step.step_pre_backward(sp, step.initial_state(10, torch.device("cpu"), 0), 1, _info(10))
+    o = torch.sigmoid(sp.params["opacity_logits"].detach())
+    torch.testing.assert_close(sp.params["opacity_logits"].grad, 0.5 * o * (1 - o) / 10)
+    torch.testing.assert_close(sp.params["log_scales"].grad, 0.25 * sp.params["log_scales"].detach().exp() / 30)
+    with pytest.raises(Exception, match="--opacity-reg -1"):
+        make_config("fast", opacity_reg=-1.0)

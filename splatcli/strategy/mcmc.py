@@ -22,6 +22,7 @@ from torch import Tensor
 from ..render.project import quat_to_rotmat
 from . import ops
 from .base import RefineStats, RowState, Splats, StepInfo, Strategy
+from .regularize import regularize
 
 
 @dataclass(frozen=True)
@@ -74,11 +75,7 @@ class MCMCStrategy(Strategy):
 
     def step_pre_backward(self, splats: Splats, state: MCMCStrategyState, step: int, info: StepInfo) -> None:
         """The regularisers' gradients, accumulated before the photometric loss's."""
-        cfg = self.config
-        p = splats.params
-        reg = (cfg.opacity_reg * torch.sigmoid(p["opacity_logits"]).mean()
-               + cfg.scale_reg * p["log_scales"].exp().mean())
-        reg.backward()
+        regularize(splats.params, self.config.opacity_reg, self.config.scale_reg)
 
     def step_post_backward(self, splats: Splats, state: MCMCStrategyState, step: int, info: StepInfo) -> RefineStats:
         n = len(splats)

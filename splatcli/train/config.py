@@ -18,7 +18,8 @@ from typing import Any
 
 from ..errors import SplatError
 from ..gaussians import Histogram
-from ..strategy import CompactConfig, CompactReport, DefaultStrategyConfig, MCMCStrategyConfig, ShAutoConfig
+from ..strategy import (CompactConfig, CompactReport, DefaultStrategyConfig, MCMCStrategyConfig, RegularizeConfig,
+                        ShAutoConfig)
 
 MAX_SH_DEGREE = 3
 
@@ -69,6 +70,7 @@ class TrainConfig:
     density: str = "default"  # --strategy: "default" (3DGS adaptive density control) or "mcmc" (a fixed budget)
     strategy: DefaultStrategyConfig = field(default_factory=DefaultStrategyConfig)  # adaptive density control
     mcmc: MCMCStrategyConfig = field(default_factory=MCMCStrategyConfig)  # --strategy mcmc (its schedule and cap: strategy's)
+    reg: RegularizeConfig = field(default_factory=RegularizeConfig)  # --opacity-reg, --scale-reg (mcmc has its own)
     sh_auto: ShAutoConfig = field(default_factory=ShAutoConfig)  # used with sh_degree "auto"
     compact: CompactConfig = field(default_factory=CompactConfig)  # --compact
 
@@ -141,7 +143,7 @@ class TrainConfig:
         return cfg
 
 
-_NESTED = {"strategy": "", "sh_auto": "sh_auto_", "compact": "compact_", "mcmc": "mcmc_"}  # nested config -> option prefix
+_NESTED = {"strategy": "", "reg": "", "sh_auto": "sh_auto_", "compact": "compact_", "mcmc": "mcmc_"}  # nested config -> option prefix
 
 
 def _option_paths() -> dict[str, tuple[str, ...]]:
@@ -287,6 +289,10 @@ def _check(cfg: TrainConfig) -> None:
         raise SplatError(f"--strategy {cfg.density!r} is not known; choose one of {', '.join(DENSITY)}")
     if cfg.density == "mcmc" and cfg.strategy.max_gaussians is None:
         raise SplatError("--strategy mcmc needs --max-gaussians N: the fixed number of Gaussians it grows to")
+    for name in ("opacity_reg", "scale_reg"):
+        v = option(cfg, name)
+        if not (math.isfinite(v) and v >= 0):
+            raise SplatError(f"--{name.replace('_', '-')} {v}: must be 0 or more")
     if cfg.downscale <= 0 or cfg.downscale > 64:
         raise SplatError(f"--downscale {cfg.downscale}: must be in (0, 64]")
     if cfg.max_size < 16:

@@ -19,7 +19,8 @@ from torch import Tensor, nn
 
 from ..gaussians import Gaussians
 from ..io.checkpoint import Checkpoint, save_checkpoint
-from ..strategy import CompactStep, Context, DefaultStrategy, MCMCStrategy, ShAutoStep, Splats, Strategy, sh_degree_of
+from ..strategy import (CompactStep, Context, DefaultStrategy, MCMCStrategy, RegularizeStep, ShAutoStep, Splats, Strategy,
+                        sh_degree_of)
 from .config import TrainConfig
 from .plan import TimePlan
 
@@ -92,6 +93,8 @@ def make_strategies(cfg: TrainConfig, extent: float, ctx: Context) -> list[Strat
     else:
         density = DefaultStrategy(replace(cfg.strategy, refine_stop=stop), extent)
     out: list[Strategy] = [density]
+    if cfg.reg.enabled:
+        out.append(RegularizeStep(cfg.reg))
     if cfg.sh_degree == "auto":
         out.append(ShAutoStep(cfg.sh_auto, cfg.iterations, ctx))
     if cfg.compact.enabled:

@@ -1,0 +1,174 @@
+"""Does held-out quality fall as training goes on?  Issue 15's overfitting study.
+
+    .venv/bin/python bench/overfit.py [--scenes object,fox-photos] [--variants base,...] [--no-write]
+
+Each scene trains `--preset fast` (fox from its photos at `--max-size 320`) once per variant, one
+after the other, with held-out and training-view PSNR every 500 steps (train_log.jsonl). Reported:
+the best held-out PSNR during the run, the final one and their difference (issue 15's target: the
+final is at least the best minus 0.2 dB), the training-view PSNR at the end (the gap), the count,
+training seconds and the load average.
+
+The `object` scene is sample_data/make_scene.py --kind object (the still life on plain paper
+before a defocused backdrop, as a hand-held object capture), rendered and processed into
+bench/out/overfit/. Its ground truth names what every pixel sees, so the held-out error is also
+split by region (objects, paper sheet, backdrop) at each kept checkpoint: where the loss of
+quality comes from. Results: bench/out/overfit/results.json and the "## overfitting" section of
+docs/benchmarks.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _doc import write_section  # noqa: E402
+from train import REPO, SPLATCLI, ensure_processed  # noqa: E402
+
+OUT = REPO / "bench" / "out" / "overfit"
+EVERY = 500
+# variant -> extra train options
+VARIANTS = {
+    "base": [],
+}
+SCENES = {"object": ["--keep-checkpoints", "20", "--checkpoint-every", str(EVERY)],
+          "fox-photos": ["--max-size", "320"]}
+
+
+def make_scene_module():
+    spec = importlib.util.spec_from_file_location("make_scene", REPO / "sample_data" / "make_scene.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def object_base() -> Path:
+    """The object capture, rendered and processed once."""
+    capture, base = OUT / "object" / "capture", OUT / "object" / "base"
+    if not (capture / "ground_truth.json").is_file():
+        make_scene_module().render_scene(capture, kind="object")
+    if not (base / "splatcli.json").is_file():
+        subprocess.run(SPLATCLI + ["process", str(capture), "-o", str(base), "--overwrite", "-q"], cwd=REPO, check=True)
+    return base
+
+
+def train(scene: str, variant: str, extra: list[str]) -> dict:
+    base = object_base() if scene == "object" else ensure_processed(scene)
+    proj = OUT / scene / variant
+    if proj.exists():
+        shutil.rmtree(proj)
+    shutil.copytree(base, proj, ignore=shutil.ignore_patterns("checkpoints", "reports", "renders", "exports"))
+    cmd = SPLATCLI + ["train", str(proj), "--preset", "fast", "--device", "cpu", "--eval-every", str(EVERY),
+                      "--json", "-q", *SCENES[scene], *extra]
+    print(f"[{scene}/{variant}] {' '.join(cmd[3:])}", flush=True)
+    load0, t0 = os.getloadavg()[0], time.monotonic()
+    out = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
+    if out.returncode != 0:
+        raise SystemExit(f"{scene}/{variant} failed: {out.stderr[-2000:]}")
+    s = json.loads(out.stdout)
+    log = [json.loads(x) for x in (proj / "reports" / "train_log.jsonl").read_text().splitlines()]
+    ev = [r for r in log if "psnr" in r]
+    best = max(ev, key=lambda r: r["psnr"])
+    row = {"scene": scene, "variant": variant, "options": " ".join(SCENES[scene] + extra),
+           "curve": [(r["step"], r["psnr"], r.get("train_psnr")) for r in ev],
+           "best_step": best["step"], "best": best["psnr"], "final": ev[-1]["psnr"],
+           "final_train": ev[-1].get("train_psnr"), "drop": round(ev[-1]["psnr"] - best["psnr"], 2),
+           "num_gaussians": s["num_gaussians"], "train_seconds": s["train_seconds"],
+           "wall_s": round(time.monotonic() - t0, 1), "load": [round(load0, 2), round(os.getloadavg()[0], 2)]}
+    if scene == "object":
+        row["regions"] = regions(proj)
+    print(f"[{scene}/{variant}] best {row['best']:.2f} @ {row['best_step']}, final {row['final']:.2f} "
+          f"({row['drop']:+.2f}), train {row['final_train']}", flush=True)
+    return row
+
+
+REGIONS = {"objects": lambda m: (m >= 2) & (m < 255), "paper": lambda m: m == 0, "backdrop": lambda m: (m == 1) | (m == 255)}
+
+
+def regions(proj: Path) -> list[dict]:
+    """Held-out PSNR per ground-truth region at every kept checkpoint."""
+    from splatcli.io.images import load_rgb
+    from splatcli.io.model import load_model
+    from splatcli.project import Project
+    from splatcli.render.rasterize import render_camera
+    from splatcli.sfm.colmap import read_project_scene
+
+    ms = make_scene_module()
+    gt = json.loads((OUT / "object" / "capture" / "ground_truth.json").read_text())
+    gt_cams = {c["name"]: c for c in gt["cameras"]}
+    project = Project.open(proj)
+    cams = {c.name: c for c in read_project_scene(project).cameras}
+    test = project.splits()["test"]
+    ids, targets = {}, {}
+    for name in test:
+        c = gt_cams[name]
+        ids[name] = ms.material_ids(np.asarray(c["K"]), np.asarray(c["viewmat"]), c["width"], c["height"])
+        targets[name] = torch.from_numpy(load_rgb(project.images_dir / name)).float() / 255
+    bg = torch.tensor(project.background() or (0.0, 0.0, 0.0), dtype=torch.float32)
+    rows = []
+    for step, path in project.checkpoints():
+        g = load_model(path, torch.device("cpu")).gaussians
+        sq = {k: [0.0, 0] for k in REGIONS}
+        for name in test:
+            img = render_camera(g, cams[name], bg).image.clamp(0, 1)
+            err = ((img - targets[name]) ** 2).mean(-1).numpy()
+            for k, sel in REGIONS.items():
+                m = sel(ids[name])
+                sq[k][0] += float(err[m].sum())
+                sq[k][1] += int(m.sum())
+        rows.append({"step": step, **{k: round(-10 * np.log10(s / max(n, 1)), 2) for k, (s, n) in sq.items()}})
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--scenes", default="object,fox-photos")
+    ap.add_argument("--variants", default=",".join(VARIANTS))
+    ap.add_argument("--no-write", action="store_true")
+    args = ap.parse_args()
+    OUT.mkdir(parents=True, exist_ok=True)
+    rows = [train(s, v, VARIANTS[v]) for s in args.scenes.split(",") if s for v in args.variants.split(",") if v]
+    (OUT / "results.json").write_text(json.dumps(rows, indent=1))
+    if not args.no_write:
+        write_section("## overfitting", doc_lines(rows))
+
+
+def doc_lines(rows: list[dict]) -> list[str]:
+    lines = ["## overfitting", "",
+             "Measured by `python bench/overfit.py`: `--preset fast` (7,000 steps), held-out and training-view PSNR "
+             f"every {EVERY} steps, the variants one after the other on this machine (one torch thread). Target "
+             "(issue 15): the final held-out PSNR at least the best during the run minus 0.2 dB.", "",
+             "| scene | variant | options | best held-out PSNR (step) | final | final − best | training views, final "
+             "| Gaussians | train s | load |",
+             "| --- | --- | --- | --- | ---: | ---: | ---: | ---: | ---: | --- |"]
+    for r in rows:
+        lines.append(f"| {r['scene']} | {r['variant']} | `{r['options']}` | {r['best']:.2f} ({r['best_step']}) | "
+                     f"{r['final']:.2f} | {r['drop']:+.2f} | {r['final_train']:.2f} | {r['num_gaussians']:,} | "
+                     f"{r['train_seconds']:.0f} | {r['load'][0]} → {r['load'][1]} |")
+    lines += ["", "Held-out PSNR by step (training views in brackets):", ""]
+    for r in rows:
+        curve = ", ".join(f"{s}: {p:.2f} ({t:.2f})" for s, p, t in r["curve"])
+        lines.append(f"- {r['scene']} / {r['variant']}: {curve}")
+    reg = [r for r in rows if r.get("regions")]
+    if reg:
+        lines += ["", "The object scene's held-out PSNR by ground-truth region at each checkpoint "
+                  "(objects / paper sheet / defocused backdrop):", ""]
+        for r in reg:
+            lines.append(f"- {r['variant']}: " + ", ".join(f"{x['step']}: {x['objects']:.2f} / {x['paper']:.2f} / "
+                                                          f"{x['backdrop']:.2f}" for x in r["regions"]))
+    return lines
+
+
+if __name__ == "__main__":
+    main()
