@@ -167,6 +167,7 @@ def _loop(project: Project, base: TrainConfig, cfg: TrainConfig, data: TrainData
         # main schedule is measured before a fine-tune starts, the final model after
         # its last refinement. Evaluation is not training time.
         info.heldout = _measure(cfg, data, state, step, total, comm, force=step == cfg.iterations < total)
+        fitted = _measure_fit(cfg, data, state, step, comm) if info.heldout is not None else None
         t1 = time.perf_counter()
         with _out_of_memory(project, base, state, step, save=False, comm=comm):  # may be half edited: keep the last checkpoint
             for strategy, st in zip(state.strategies, state.splats.states):
@@ -181,7 +182,7 @@ def _loop(project: Project, base: TrainConfig, cfg: TrainConfig, data: TrainData
         evaluated = info.heldout
         if step == total:
             evaluated = _measure(cfg, data, state, step, total, comm, force=True)
-        fitted = _measure_fit(cfg, data, state, step, comm) if evaluated is not None else None
+            fitted = _measure_fit(cfg, data, state, step, comm) if evaluated is not None else None
         writer.line(step, state, evaluated, fitted, cfg.log_every, force=step == total)
         emit(on_event, Progress(STAGE, state.images, total * k, writer.info(state)))
         if comm.main:
