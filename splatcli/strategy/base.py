@@ -114,6 +114,7 @@ class Context:
     score: Callable[[str, int], tuple[float, float] | None]
     weights: Callable[[], Tensor]  # -> [N] total blending weight of each Gaussian over the training views
     note: Callable[[str], None]  # a line for the user
+    center: Tensor | None = None  # [3] the training cameras' centre (far content is judged by distance from it)
 
 
 class Strategy:

@@ -52,9 +52,14 @@ class DefaultStrategyState(RowState):
 class DefaultStrategy(Strategy):
     name = "default"
 
-    def __init__(self, config: DefaultStrategyConfig, scene_extent: float) -> None:
+    def __init__(self, config: DefaultStrategyConfig, scene_extent: float,
+                 scene_center: Tensor | None = None) -> None:  # scene_center [3]
+        """`scene_center` given: a Gaussian farther than the extent from it may be as much
+        larger than `prune_scale3d` x extent as it is farther (an angular limit, for far
+        content such as --init-far's sphere); None: 3DGS's world-space limit."""
         self.config = config
         self.scene_extent = float(scene_extent)
+        self.scene_center = scene_center
 
     def initial_state(self, n: int, device: torch.device, seed: int = 0) -> DefaultStrategyState:
         gen = torch.Generator(device=device)
@@ -116,7 +121,11 @@ class DefaultStrategy(Strategy):
         max_scale = params["log_scales"].exp().amax(dim=-1)  # [N] world units
         prune = opacity < cfg.prune_opacity
         if step > cfg.reset_every:  # 3DGS checks size only once a reset has happened
-            prune |= max_scale > cfg.prune_scale3d * self.scene_extent
+            limit = torch.full_like(max_scale, cfg.prune_scale3d * self.scene_extent)
+            if self.scene_center is not None:
+                far = (params["means"].detach() - self.scene_center).norm(dim=-1) / self.scene_extent
+                limit = limit * far.clamp_min(1.0)
+            prune |= max_scale > limit
             prune |= state.radii > cfg.prune_scale2d
         avg = state.grad2d / state.count.clamp_min(1)  # [N]
         grow = (avg > cfg.grow_grad2d) & ~prune

@@ -50,6 +50,8 @@ class TrainConfig:
     init_random_points: int = 100_000  # Blender scenes with no SfM points: uniform in the bounds (3DGS)
     init_knn: int = 3  # log scale from the RMS distance to the 3 nearest neighbours
     init_ply: str | None = None  # start from a splat file instead
+    init_far: int = 0  # also points on a far sphere (this many over the whole sphere; those some training view sees are kept)
+    init_far_radius: float = 5.0  # ... of this radius x the cameras' extent, about their centre, coloured from the views
 
     # ---- optimiser (Adam, per attribute) -------------------------------------
     lr_means: float = 1.6e-4  # x scene extent, decays exponentially ...
@@ -266,7 +268,7 @@ _STEP_COUNTS = ("iterations", "sh_degree_interval", "eval_every", "log_every", "
 # Counts that must be at least 1 / at least 0 (flat option names).
 _AT_LEAST_1 = ("sh_degree_interval", "log_every", "checkpoint_every", "keep_checkpoints", "refine_every",
                "reset_every", "split_samples", "init_knn", "compact_rounds", "sh_auto_val_views")
-_AT_LEAST_0 = ("eval_max_views", "init_random_points", "refine_start", "refine_stop", "compact_finetune",
+_AT_LEAST_0 = ("eval_max_views", "init_random_points", "init_far", "refine_start", "refine_stop", "compact_finetune",
                "max_bad_steps")
 
 
@@ -289,6 +291,8 @@ def _check(cfg: TrainConfig) -> None:
         raise SplatError(f"--strategy {cfg.density!r} is not known; choose one of {', '.join(DENSITY)}")
     if cfg.density == "mcmc" and cfg.strategy.max_gaussians is None:
         raise SplatError("--strategy mcmc needs --max-gaussians N: the fixed number of Gaussians it grows to")
+    if not (math.isfinite(cfg.init_far_radius) and cfg.init_far_radius > 1):
+        raise SplatError(f"init_far_radius {cfg.init_far_radius}: must be more than 1 (the sphere lies outside the cameras)")
     for name in ("opacity_reg", "scale_reg"):
         v = option(cfg, name)
         if not (math.isfinite(v) and v >= 0):

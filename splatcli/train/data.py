@@ -68,6 +68,7 @@ class TrainData:
     test: list[TrainView]
     background: Tensor  # [3] float32 in [0, 1]
     extent: float  # 3DGS "cameras_extent": scales position lr and size thresholds
+    center: np.ndarray  # [3] the training cameras' centre (camera.scene_extent)
     points: np.ndarray  # [P, 3] float64 SfM points (may be empty)
     colors: np.ndarray  # [P, 3] uint8
     bounds_min: np.ndarray  # [3] scene box (random initialisation)
@@ -107,7 +108,7 @@ def load_train_data(
     with ThreadPoolExecutor(max_workers=2) as pool:  # cv2 decodes without the GIL
         train = list(pool.map(view, train_names))
         test = list(pool.map(view, test_names))
-    _, extent = scene_extent([v.camera for v in train])
+    center, extent = scene_extent([v.camera for v in train])
     lo = np.asarray(facts.get("bounds_min") or _camera_box(scene.cameras)[0], np.float64)
     hi = np.asarray(facts.get("bounds_max") or _camera_box(scene.cameras)[1], np.float64)
     return TrainData(
@@ -115,6 +116,7 @@ def load_train_data(
         test=test,
         background=torch.tensor([float(c) for c in bg], dtype=torch.float32, device=device),
         extent=extent,
+        center=center,
         points=scene.points,
         colors=scene.colors,
         bounds_min=lo,

@@ -17,7 +17,7 @@ from ..errors import SplatError
 from ..gaussians import SH_C0, Gaussians, num_sh_bases
 from ..io.model import load_model
 from .config import TrainConfig
-from .data import TrainData
+from .data import TrainData, TrainView
 
 KNN_BLOCK = 512  # query points per distance block (memory: BLOCK x candidates floats)
 CDIST_MODE = "donot_use_mm_for_euclid_dist"  # exact differences: the matmul form loses digits for flat, offset clouds
@@ -84,10 +84,52 @@ def initial_gaussians(cfg: TrainConfig, data: TrainData, device: torch.device) -
     else:
         n = cfg.init_random_points if budget is None else min(cfg.init_random_points, budget)
         pts, cols = random_points(n, data.bounds_min, data.bounds_max, cfg.seed, device)
+    far = None
+    if cfg.init_far:
+        far_pts, far_cols = far_points(cfg.init_far, data.train, data.center, cfg.init_far_radius * data.extent)
+        if len(far_pts):
+            far = gaussians_from_points(far_pts.to(device), far_cols.to(device), cfg.max_sh_degree, cfg.init_opacity,
+                                        cfg.init_knn)
+            if budget is not None:
+                far = subsample(far, budget // 2, cfg.seed)
+                budget -= len(far)
     if budget is not None and pts.shape[0] > budget:  # subset first: kNN scales then match the kept density
         idx = subsample_index(pts.shape[0], budget, cfg.seed).to(device)
         pts, cols = pts[idx], cols[idx]
-    return gaussians_from_points(pts, cols, cfg.max_sh_degree, cfg.init_opacity, cfg.init_knn)
+    g = gaussians_from_points(pts, cols, cfg.max_sh_degree, cfg.init_opacity, cfg.init_knn)
+    if far is None:
+        return g
+    return Gaussians(*(torch.cat([a, b]) for a, b in zip(g.as_dict().values(), far.as_dict().values())))
+
+
+@torch.no_grad()
+def far_points(n: int, views: list[TrainView], center: np.ndarray, radius: float) -> tuple[Tensor, Tensor]:
+    """Points on a sphere about `center` [3] (n spread evenly over it: a Fibonacci lattice),
+    kept where some view sees them, coloured by the mean of the pixels they fall on:
+    something at a far depth for the backdrop that structure from motion leaves empty, so
+    that densification need not fill it with floaters near the cameras (issue 15).
+    Returns points [M, 3] and colours [M, 3] in [0, 1] on the views' device."""
+    dev = views[0].image.device if views else torch.device("cpu")
+    i = torch.arange(n, dtype=torch.float64, device=dev) + 0.5
+    z = 1.0 - 2.0 * i / n
+    r = (1.0 - z * z).clamp_min(0.0).sqrt()
+    phi = i * math.pi * (3.0 - math.sqrt(5.0))
+    pts = torch.as_tensor(center, dtype=torch.float64, device=dev) + radius * torch.stack(
+        [r * torch.cos(phi), r * torch.sin(phi), z], dim=1)
+    total = torch.zeros(n, 3, dtype=torch.float64, device=dev)
+    seen = torch.zeros(n, dtype=torch.float64, device=dev)
+    for v in views:
+        cam = pts @ v.viewmat[:3, :3].double().T + v.viewmat[:3, 3].double()
+        uvw = cam @ v.K.double().T
+        front = cam[:, 2] > 0
+        u = torch.floor(uvw[:, 0] / uvw[:, 2].clamp_min(1e-12))
+        w = torch.floor(uvw[:, 1] / uvw[:, 2].clamp_min(1e-12))
+        inside = front & (u >= 0) & (u < v.camera.width) & (w >= 0) & (w < v.camera.height)
+        idx = inside.nonzero().squeeze(1)
+        total[idx] += v.image[w[idx].long(), u[idx].long()].double() / 255.0
+        seen[idx] += 1
+    keep = seen > 0
+    return pts[keep].float(), (total[keep] / seen[keep, None]).float()
 
 
 # ---- nearest neighbours -----------------------------------------------------------

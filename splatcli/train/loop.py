@@ -231,7 +231,8 @@ def _context(data: TrainData, box: list[TrainState], on_event: EventSink | None,
                                            ((v.viewmat, v.K, v.camera.width, v.camera.height)
                                             for v in comm.share(data.train))))
 
-    return Context(score=score, weights=weights, note=lambda m: emit(on_event, Note(m)))
+    center = torch.as_tensor(data.center, dtype=torch.float32, device=data.background.device)
+    return Context(score=score, weights=weights, note=lambda m: emit(on_event, Note(m)), center=center)
 
 
 def _interrupt(project: Project, cfg: TrainConfig, state: TrainState, comm: Comm) -> None:

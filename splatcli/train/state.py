@@ -91,7 +91,9 @@ def make_strategies(cfg: TrainConfig, extent: float, ctx: Context) -> list[Strat
         s = cfg.strategy
         density: Strategy = MCMCStrategy(cfg.mcmc, s.max_gaussians, s.refine_start, stop, s.refine_every)
     else:
-        density = DefaultStrategy(replace(cfg.strategy, refine_stop=stop), extent)
+        # With far points (--init-far) the size limit is an angle: far Gaussians may be large.
+        density = DefaultStrategy(replace(cfg.strategy, refine_stop=stop), extent,
+                                  ctx.center if cfg.init_far else None)
     out: list[Strategy] = [density]
     if cfg.reg.enabled:
         out.append(RegularizeStep(cfg.reg))
