@@ -93,7 +93,7 @@ def load_trunk(net: torch.nn.Module, path: Path) -> None:
     try:
         sd = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # pickle, zip and I/O errors alike: the file is not usable weights
-        raise SplatError(f"{path}: not a torch weights file ({type(e).__name__}: {e})") from None
+        raise SplatError(f"{path}: not a torch weights file (torch.load: {type(e).__name__})") from None
     if not isinstance(sd, dict):
         raise SplatError(f"{path}: holds a {type(sd).__name__}, not a state dict of torchvision's AlexNet")
     trunk = {}
