@@ -118,6 +118,9 @@ def test_a_bad_weights_file_is_one_line_naming_it(tmp_path: Path, no_hub: Path, 
 
 def test_without_the_package_lpips_is_skipped_with_a_hint(tmp_path: Path, no_hub: Path, monkeypatch) -> None:
     monkeypatch.setitem(sys.modules, "lpips", None)  # `import lpips` now raises ImportError
+    assert "no AlexNet weights" in lp.load_lpips(None, torch.device("cpu"))[1]
+    no_hub.mkdir(parents=True)
+    stand_in_weights(no_hub / lp.ALEXNET_FILE)
     scorer, why_not = lp.load_lpips(None, torch.device("cpu"))
     assert scorer is None and "not installed" in why_not and "splatcli[lpips]" in why_not
     assert "--lpips-weights" in why_not and str(no_hub) in why_not and "\n" not in why_not

@@ -47,10 +47,10 @@ def import_package() -> ModuleType | None:
     try:
         import lpips
         return lpips
-    except ImportError:
+    except (ImportError, OSError):
         return None
     except RuntimeError as e:
-        if "torchvision::nms" not in str(e):
+        if "torchvision::nms" not in str(e) or _torchvision_ops is not None:
             return None
     # torchvision (up to 0.29 at least) registers fake kernels for nms and qnms at import
     # without checking that its C++ library loaded, and so fails to import where it did
@@ -116,14 +116,14 @@ def load_lpips(weights: Path | None, device: torch.device) -> tuple[Lpips | None
     """
     if weights is not None and not Path(weights).is_file():
         raise SplatError(f"--lpips-weights {weights}: no such file")
+    path = Path(weights) if weights is not None else hub_weights_path()
+    if not path.is_file():  # looked for before importing torchvision (seconds)
+        return None, hint(f"no AlexNet weights at {path}")
     pkg = import_package()
     if pkg is None:
         if weights is not None:
             raise SplatError(f"--lpips-weights {weights}: the lpips package is not installed ({INSTALL})")
         return None, hint("the lpips package is not installed")
-    path = Path(weights) if weights is not None else hub_weights_path()
-    if not path.is_file():
-        return None, hint(f"no AlexNet weights at {path}")
     with warnings.catch_warnings():  # torchvision's deprecation of `pretrained=`, which lpips passes
         warnings.simplefilter("ignore")
         net = pkg.LPIPS(net="alex", version="0.1", pnet_rand=True, verbose=False)  # trunk without weights: no download
