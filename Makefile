@@ -1,6 +1,8 @@
-# splatcli developer entry points. Override the torch pin, e.g. `make setup TORCH=torch` on a CUDA box.
+# splatcli developer entry points. Override the torch pin, e.g. `make setup TORCH=torch TORCHVISION=torchvision`
+# on a CUDA box; torchvision (for the lpips extra) must be the release built for that torch.
 PYTHON ?= python3
 TORCH ?= torch==2.13.0
+TORCHVISION ?= torchvision==0.28.0
 VENV ?= .venv
 BIN := $(VENV)/bin
 DEMO ?= demo-project
@@ -17,9 +19,9 @@ export OMP_NUM_THREADS ?= 1
 $(BIN)/splatcli: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
-	# torch first, pinned, so that nothing else drags in the multi-GB CUDA wheels.
-	$(BIN)/pip install -q "$(TORCH)"
-	$(BIN)/pip install -q -e ".[dev,plots]"
+	# torch (and the torchvision built for it) first, pinned, so that nothing else drags in the multi-GB CUDA wheels.
+	$(BIN)/pip install -q "$(TORCH)" "$(TORCHVISION)"
+	$(BIN)/pip install -q -e ".[dev,plots,lpips]"
 	@touch $@
 
 setup: $(BIN)/splatcli

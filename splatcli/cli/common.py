@@ -15,6 +15,7 @@ from typing import Any, Iterator
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import (
     BarColumn,
     MofNCompleteColumn,
@@ -132,7 +133,7 @@ class Ui:
                     bars.update(tid, total=total, completed=total)
             elif isinstance(ev, Note):
                 self.err.print(
-                    ("[yellow]warning:[/yellow] " if ev.level == "warning" else "[dim]note:[/dim] ") + ev.message
+                    ("[yellow]warning:[/yellow] " if ev.level == "warning" else "[dim]note:[/dim] ") + escape(ev.message)
                 )
 
         erase = False

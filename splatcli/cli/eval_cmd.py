@@ -1,4 +1,4 @@
-"""`splatcli eval`: held-out PSNR/SSIM, render speed and speed-against-error curves."""
+"""`splatcli eval`: held-out PSNR/SSIM/LPIPS, render speed and speed-against-error curves."""
 
 from __future__ import annotations
 
@@ -22,6 +22,10 @@ def _budgets(text: str) -> tuple[float, ...]:
         raise SplatError(f"--budgets {text!r}: expected fractions in (0, 1] separated by commas, e.g. 1,0.5,0.25,0.1") from None
 
 
+def _lpips(v: float | None, sep: str = ", ") -> str:
+    return "" if v is None else f"{sep}LPIPS {v:.4f}"
+
+
 def evaluate(
     project: Optional[Path] = typer.Argument(None, help="The project directory (omit with --pred/--gt)."),
     split: str = typer.Option(_D.split, "--split", help="Views to score: test (held out), train or all."),
@@ -32,6 +36,9 @@ def evaluate(
     model: Optional[Path] = typer.Option(None, "--model", help="Score this splat file (.ply from any tool, .compressed.ply, .spz, .sog, .splat) instead of the latest checkpoint."),
     formats: str = typer.Option("", "--formats", help="Also write the model as each of these formats (ply, spz, sog, compressed-ply, splat), "
                                 "read it back and score it: size against error, in eval.md and eval.json."),
+    lpips_weights: Optional[Path] = typer.Option(None, "--lpips-weights", help="torchvision's AlexNet weights (alexnet-owt-7be5be79.pth) for LPIPS "
+                                                 "(default: the torch hub cache, $TORCH_HOME/hub/checkpoints; never downloaded). "
+                                                 "Without them, or without the lpips extra, LPIPS is left out."),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Folder for eval.json, eval.md and plots (default PROJECT/reports)."),
     pred: Optional[Path] = typer.Option(None, "--pred", help="Compare this folder of images ..."),
     gt: Optional[Path] = typer.Option(None, "--gt", help="... with this one, by file name (no project needed)."),
@@ -47,18 +54,20 @@ def evaluate(
         if pred is None or gt is None or project is not None:
             raise SplatError("--pred and --gt go together, without a project")
         with ui.progress() as sink:
-            f = compare_folders(pred, gt, background=bg or (0.0, 0.0, 0.0), on_event=sink)
+            f = compare_folders(pred, gt, background=bg or (0.0, 0.0, 0.0), lpips_weights=lpips_weights,
+                                device=resolve_device(device), on_event=sink)
         ui.summary(f.summary(), title=f"{len(f.per_image)} images compared",
-                   lines=[f"PSNR {f.psnr:.2f} dB   SSIM {f.ssim:.4f}"])
+                   lines=[f"PSNR {f.psnr:.2f} dB   SSIM {f.ssim:.4f}" + _lpips(f.lpips, "   ")])
         return
     if project is None:
         raise SplatError("give a PROJECT, or --pred DIR --gt DIR")
     cfg = EvalConfig(split=split, background=bg, downscale=downscale, budgets=_budgets(budgets), plots=plots,
-                     model=model, out=out, formats=tuple(f.strip().lower() for f in formats.split(",") if f.strip()))
+                     model=model, out=out, formats=tuple(f.strip().lower() for f in formats.split(",") if f.strip()),
+                     lpips_weights=lpips_weights)
     plan = plan_eval(project, cfg, resolve_device(device))  # input errors surface before any output
     with ui.progress() as sink:
         r = run_eval(plan, on_event=sink)
-    ui.summary(r.summary(), title=f"{r.split} split: PSNR {r.psnr:.2f} dB, SSIM {r.ssim:.4f} over {len(r.per_image)} views",
+    ui.summary(r.summary(), title=f"{r.split} split: PSNR {r.psnr:.2f} dB, SSIM {r.ssim:.4f}{_lpips(r.lpips)} over {len(r.per_image)} views",
                lines=[f"{r.num_gaussians:,} Gaussians (SH {r.sh_degree}, {r.ply_bytes / 1e6:.2f} MB): "
                       f"{r.render_fps:.2f} frames/s at {r.width}x{r.height} on {r.device}"]
                + [f"  {b.fraction:>4.0%}: {b.num_gaussians:>9,} Gaussians  {b.psnr:6.2f} dB  {b.ms_per_frame:8.1f} ms/frame"

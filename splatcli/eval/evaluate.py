@@ -1,8 +1,9 @@
 """`splatcli eval`: held-out error, render speed, and what a smaller model costs.
 
 For a project: render every view of the held-out split at the resolution
-training used, compare with the photographs (PSNR, SSIM per image and mean),
-time the rendering, and trace two speed-against-error curves:
+training used, compare with the photographs (PSNR, SSIM, and LPIPS where its
+weights are found: lpips.py; per image and mean), time the rendering, and trace
+two speed-against-error curves:
 
 * held-out PSNR against training seconds (from reports/train_log.jsonl);
 * render time against PSNR at several Gaussian budgets (100%, 50%, 25%, 10%),
@@ -46,6 +47,7 @@ from ..render import render_camera
 from ..views.sources import SPLITS, View, dataset_views
 from .budgets import contributions, prune_to
 from .curve import read_curve
+from .lpips import MIN_SIZE as LPIPS_MIN_SIZE, Lpips, load_lpips
 from .metrics import psnr, ssim
 from .report import (NO_PLOTS_HINT, BudgetPoint, EvalReport, FormatPoint, ImageScore, model_stats, write_plots,
                      write_report_md)
@@ -66,6 +68,7 @@ class EvalConfig:
     model: Path | None = None  # score this 3DGS .ply (any tool's) instead of the latest checkpoint
     out: Path | None = None  # folder for eval.json, eval.md, plots (default PROJECT/reports)
     formats: tuple[str, ...] = ()  # file formats to encode, decode and score (size against error)
+    lpips_weights: Path | None = None  # torchvision's AlexNet weights for LPIPS (None: the torch hub cache)
 
 
 @dataclass
@@ -74,14 +77,16 @@ class FolderReport:
 
     psnr: float
     ssim: float
+    lpips: float | None
     per_image: list[ImageScore]
     pred_dir: Path
     gt_dir: Path
     missing: list[str]  # predictions with no ground truth of the same name
 
     def summary(self) -> dict[str, Any]:
-        return {"psnr": self.psnr, "ssim": self.ssim, "num_images": len(self.per_image), "pred": self.pred_dir,
-                "gt": self.gt_dir, "missing": self.missing, "per_image": [asdict(s) for s in self.per_image]}
+        return {"psnr": self.psnr, "ssim": self.ssim, "lpips": self.lpips, "num_images": len(self.per_image),
+                "pred": self.pred_dir, "gt": self.gt_dir, "missing": self.missing,
+                "per_image": [asdict(s) for s in self.per_image]}
 
 
 def load_image(path: Path, background: Sequence[float] = (0.0, 0.0, 0.0),
@@ -94,11 +99,13 @@ def quantise(img: Tensor) -> Tensor:  # [H, W, 3] -> [H, W, 3] float64 in 1/255 
     return (img.detach().clamp(0, 1) * 255).round().to(torch.float64).cpu() / 255.0
 
 
-def score(pred: Tensor, gt: Tensor) -> tuple[float, float]:  # [H, W, 3] each
-    return float(psnr(pred, gt)), float(ssim(pred.to(torch.float64), gt.to(torch.float64)))
+def score(name: str, pred: Tensor, gt: Tensor, lp: Lpips | None = None) -> ImageScore:  # [H, W, 3] each
+    return ImageScore(name=name, psnr=float(psnr(pred, gt)),
+                      ssim=float(ssim(pred.to(torch.float64), gt.to(torch.float64))),
+                      lpips=lp(pred, gt) if lp is not None else None)
 
 
-def _score_views(g: Gaussians, views: Sequence[View], gts: Sequence[Tensor], bg: Tensor,
+def _score_views(g: Gaussians, views: Sequence[View], gts: Sequence[Tensor], bg: Tensor, lp: Lpips | None,
                  on_event: EventSink | None, stage: str) -> tuple[list[ImageScore], float]:
     """Render, quantise and score every view; returns scores and the median
     render seconds per frame (the median: other processes sharing the CPU make
@@ -114,15 +121,14 @@ def _score_views(g: Gaussians, views: Sequence[View], gts: Sequence[Tensor], bg:
         out = render_camera(g, v.camera, bg)
         synchronize(g.device)
         times.append(time.perf_counter() - t0)
-        p, s = score(quantise(out.image), gt)
-        scores.append(ImageScore(name=v.camera.name, psnr=p, ssim=s))
+        scores.append(score(v.camera.name, quantise(out.image), gt, lp))
         emit(on_event, Progress(stage, i + 1, len(views), {"psnr": float(np.mean([x.psnr for x in scores]))}))
     emit(on_event, StageDone(stage, time.perf_counter() - t_all))
     return scores, float(np.median(times))
 
 
 def _score_formats(g: Gaussians, formats: Sequence[str], views: Sequence[View], gts: Sequence[Tensor], bg: Tensor,
-                   full_psnr: float, on_event: EventSink | None) -> list[FormatPoint]:
+                   lp: Lpips | None, full_psnr: float, on_event: EventSink | None) -> list[FormatPoint]:
     """Each format: write the model, read it back through our reader, score the views."""
     out = []
     ply_size = ply_bytes(len(g), g.sh_degree)
@@ -134,11 +140,11 @@ def _score_formats(g: Gaussians, formats: Sequence[str], views: Sequence[View], 
             t1 = time.perf_counter()
             back = read_format(path, g.device, fmt).gaussians
             t2 = time.perf_counter()
-            sc, _ = _score_views(back, views, gts, bg, on_event, f"format {fmt}")
+            sc, _ = _score_views(back, views, gts, bg, lp, on_event, f"format {fmt}")
             p = _mean_psnr(sc)
             out.append(FormatPoint(format=fmt, bytes=w.bytes, bytes_per_gaussian=w.bytes / max(len(g), 1),
                                    ratio=ply_size / max(w.bytes, 1), psnr=p, ssim=float(np.mean([x.ssim for x in sc])),
-                                   db_lost=full_psnr - p, encode_s=t1 - t0, decode_s=t2 - t1))
+                                   db_lost=full_psnr - p, encode_s=t1 - t0, decode_s=t2 - t1, lpips=_mean_lpips(sc)))
             path.unlink(missing_ok=True)
     return out
 
@@ -146,6 +152,11 @@ def _score_formats(g: Gaussians, formats: Sequence[str], views: Sequence[View], 
 def _mean_psnr(scores: Sequence[ImageScore]) -> float:
     """Mean of per-image PSNR (the 3DGS convention), dB."""
     return float(np.mean([s.psnr for s in scores]))
+
+
+def _mean_lpips(scores: Sequence[ImageScore]) -> float | None:
+    """Mean LPIPS, or None when some image has none."""
+    return None if any(s.lpips is None for s in scores) else float(np.mean([s.lpips for s in scores]))
 
 
 
@@ -189,6 +200,7 @@ class EvalPlan:
     max_size: int | None
     train_summary: dict[str, Any]
     notes: list[str]
+    lpips: Lpips | None  # None: LPIPS unavailable (the reason is in notes)
 
 
 def plan_eval(root: str | Path, config: EvalConfig, device: torch.device) -> EvalPlan:
@@ -222,9 +234,14 @@ def plan_eval(root: str | Path, config: EvalConfig, device: torch.device) -> Eva
         raise SplatError(f"{small[0].name}: {small[0].width}x{small[0].height} at eval resolution is too small "
                          "for SSIM (at least 11x11 pixels); lower --downscale")
     bg_rgb = config.background if config.background is not None else (project.background() or (0.0, 0.0, 0.0))
+    lp, why_not = load_lpips(config.lpips_weights, device)
+    c = views[0].camera
+    if lp is not None and min(c.width, c.height) < LPIPS_MIN_SIZE:
+        lp, why_not = None, f"LPIPS skipped: {c.width}x{c.height} views are smaller than AlexNet's {LPIPS_MIN_SIZE} pixels"
+    notes += [why_not] if why_not else []
     return EvalPlan(project=project, config=config, gaussians=g, step=step, model_name=model_name, views=views,
                     background=tuple(bg_rgb), downscale=downscale,  # type: ignore[arg-type]
-                    max_size=max_size, train_summary=tsum, notes=notes)
+                    max_size=max_size, train_summary=tsum, notes=notes, lpips=lp)
 
 
 def run_eval(plan: EvalPlan, *, on_event: EventSink | None = None) -> EvalReport:
@@ -251,14 +268,16 @@ def _run_eval(plan: EvalPlan, on_event: EventSink | None) -> EvalReport:
         emit(on_event, Progress("load images", i + 1, len(views)))
     emit(on_event, StageDone("load images", 0.0))
 
-    per_image, secs = _score_views(g, views, gts, bg, on_event, "eval")
+    lp = plan.lpips
+    per_image, secs = _score_views(g, views, gts, bg, lp, on_event, "eval")
     fps = 1.0 / max(secs, 1e-9)
     mean_psnr = _mean_psnr(per_image)
     mean_ssim = float(np.mean([s.ssim for s in per_image]))
+    mean_lpips = _mean_lpips(per_image)
 
     # ---- speed against error at smaller budgets --------------------------------
     budgets = [BudgetPoint(fraction=1.0, num_gaussians=len(g), ply_bytes=ply_bytes(len(g), g.sh_degree),
-                           psnr=mean_psnr, ssim=mean_ssim, render_fps=fps, ms_per_frame=1000 * secs)]
+                           psnr=mean_psnr, ssim=mean_ssim, render_fps=fps, ms_per_frame=1000 * secs, lpips=mean_lpips)]
     fractions = sorted({float(b) for b in config.budgets if b < 1.0}, reverse=True)
     if fractions:
         rank_views = [v.camera for v in dataset_views(project, "train" if project.splits()["train"] else "all")]
@@ -270,18 +289,19 @@ def _run_eval(plan: EvalPlan, on_event: EventSink | None) -> EvalReport:
         emit(on_event, StageDone("rank Gaussians", time.perf_counter() - t0))
         for f in fractions:
             gp = prune_to(g, weight, f)
-            sc, s = _score_views(gp, views, gts, bg, on_event, f"budget {f:.0%}")
+            sc, s = _score_views(gp, views, gts, bg, lp, on_event, f"budget {f:.0%}")
             budgets.append(BudgetPoint(fraction=f, num_gaussians=len(gp), ply_bytes=ply_bytes(len(gp), gp.sh_degree),
                                        psnr=_mean_psnr(sc), ssim=float(np.mean([x.ssim for x in sc])),
-                                       render_fps=1.0 / max(s, 1e-9), ms_per_frame=1000 * s))
+                                       render_fps=1.0 / max(s, 1e-9), ms_per_frame=1000 * s, lpips=_mean_lpips(sc)))
     if 1.0 not in config.budgets:
         budgets = budgets[1:]
 
-    formats = _score_formats(g, config.formats, views, gts, bg, mean_psnr, on_event)
+    formats = _score_formats(g, config.formats, views, gts, bg, lp, mean_psnr, on_event)
     curve = read_curve(project.train_log_path) if config.model is None else []
     report = EvalReport(
         psnr=mean_psnr,
         ssim=mean_ssim,
+        lpips=mean_lpips,
         per_image=per_image,
         num_gaussians=len(g),
         sh_degree=g.sh_degree,
@@ -326,8 +346,9 @@ def _run_eval(plan: EvalPlan, on_event: EventSink | None) -> EvalReport:
 
 
 def compare_folders(pred_dir: str | Path, gt_dir: str | Path, *, background: Sequence[float] = (0.0, 0.0, 0.0),
+                    lpips_weights: Path | None = None, device: torch.device = torch.device("cpu"),
                     on_event: EventSink | None = None) -> FolderReport:
-    """PSNR/SSIM of every image in `pred_dir` against the image of the same name
+    """PSNR/SSIM/LPIPS of every image in `pred_dir` against the image of the same name
     (any extension) in `gt_dir`, as 3DGS's metrics.py does with renders/ and gt/."""
     pred_dir, gt_dir = Path(pred_dir), Path(gt_dir)
     for d, opt in ((pred_dir, "--pred"), (gt_dir, "--gt")):
@@ -341,6 +362,7 @@ def compare_folders(pred_dir: str | Path, gt_dir: str | Path, *, background: Seq
     missing = [p.name for p in preds if p.stem not in gts]
     if not pairs:
         raise SplatError(f"--gt {gt_dir}: no image has the name of one in {pred_dir}")
+    lp, why_not = load_lpips(lpips_weights, device)
     if missing:
         emit(on_event, Note(f"{len(missing)} predictions have no ground truth of the same name: {', '.join(missing[:5])}",
                             "warning"))
@@ -353,9 +375,12 @@ def compare_folders(pred_dir: str | Path, gt_dir: str | Path, *, background: Seq
             raise SplatError(f"{p}: size {a.shape[1]}x{a.shape[0]} differs from {q} ({b.shape[1]}x{b.shape[0]})")
         if min(a.shape[0], a.shape[1]) < 11:
             raise SplatError(f"{p}: {a.shape[1]}x{a.shape[0]} is too small for SSIM (at least 11x11)")
-        ps, ss = score(a, b)
-        scores.append(ImageScore(name=p.name, psnr=ps, ssim=ss))
+        scores.append(score(p.name, a, b, lp))
         emit(on_event, Progress("compare", i + 1, len(pairs)))
     emit(on_event, StageDone("compare", 0.0))
-    return FolderReport(psnr=_mean_psnr(scores), ssim=float(np.mean([s.ssim for s in scores])), per_image=scores,
-                        pred_dir=pred_dir, gt_dir=gt_dir, missing=missing)
+    if lp is not None and _mean_lpips(scores) is None:
+        why_not = f"LPIPS skipped: some images are smaller than AlexNet's {LPIPS_MIN_SIZE} pixels a side"
+    if why_not:
+        emit(on_event, Note(why_not))
+    return FolderReport(psnr=_mean_psnr(scores), ssim=float(np.mean([s.ssim for s in scores])),
+                        lpips=_mean_lpips(scores), per_image=scores, pred_dir=pred_dir, gt_dir=gt_dir, missing=missing)

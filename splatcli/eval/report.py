@@ -30,6 +30,7 @@ class ImageScore:
     name: str
     psnr: float  # dB
     ssim: float
+    lpips: float | None = None  # AlexNet LPIPS (eval/lpips.py); None when unavailable
 
 
 @dataclass
@@ -41,6 +42,7 @@ class BudgetPoint:
     ssim: float
     render_fps: float
     ms_per_frame: float
+    lpips: float | None = None
 
 
 @dataclass
@@ -56,6 +58,7 @@ class FormatPoint:
     db_lost: float  # full precision's PSNR minus this one
     encode_s: float
     decode_s: float
+    lpips: float | None = None
 
 
 @dataclass
@@ -84,6 +87,7 @@ class EvalReport:
     height: int
     step: int | None  # checkpoint step (None for a .ply)
     model: str = ""  # what was scored: "checkpoint step 7000" or the .ply path
+    lpips: float | None = None  # mean over the split; None when LPIPS is unavailable (a note says why)
     budgets: list[BudgetPoint] = field(default_factory=list)
     formats: list[FormatPoint] = field(default_factory=list)  # size against error, by file format
     training_curve: list[CurvePoint] = field(default_factory=list)
@@ -97,7 +101,7 @@ class EvalReport:
 
     def summary(self) -> dict[str, Any]:
         """The headline numbers (what `--json` prints)."""
-        return {k: getattr(self, k) for k in ("psnr", "ssim", "num_gaussians", "sh_degree", "ply_bytes",
+        return {k: getattr(self, k) for k in ("psnr", "ssim", "lpips", "num_gaussians", "sh_degree", "ply_bytes",
                                               "train_seconds", "train_steps", "render_fps", "device", "split",
                                               "width", "height", "step", "model")} | {"num_images": len(self.per_image)}
 
@@ -243,6 +247,10 @@ def _opt(v, fmt: str) -> str:
     return "n/a" if v is None else format(v, fmt)
 
 
+def _lp(v: float | None) -> str:
+    return "—" if v is None else f"{v:.4f}"
+
+
 def write_report_md(report: EvalReport, project: Project) -> str:
     """The Markdown report (returned; the caller writes it atomically)."""
     r = report
@@ -258,6 +266,7 @@ def write_report_md(report: EvalReport, project: Project) -> str:
         "| --- | --- |",
         f"| PSNR (mean over views) | {r.psnr:.2f} dB |",
         f"| SSIM | {r.ssim:.4f} |",
+        f"| LPIPS (AlexNet) | {_lp(r.lpips)} |",
         f"| Gaussians | {r.num_gaussians:,} |",
         f"| SH degree | {r.sh_degree} |",
         f"| .ply size | {_mb(r.ply_bytes)} |",
@@ -275,12 +284,12 @@ def write_report_md(report: EvalReport, project: Project) -> str:
             "What a smaller model costs: the least-contributing Gaussians (smallest total blending weight over "
             "the training views) are pruned, without fine-tuning, and the held-out views rendered again.",
             "",
-            "| budget | Gaussians | .ply size | PSNR (dB) | SSIM | ms/frame | frames/s |",
-            "| --- | --- | --- | --- | --- | --- | --- |",
+            "| budget | Gaussians | .ply size | PSNR (dB) | SSIM | LPIPS | ms/frame | frames/s |",
+            "| --- | --- | --- | --- | --- | --- | --- | --- |",
         ]
         for b in sorted(r.budgets, key=lambda p: -p.fraction):
             lines.append(f"| {b.fraction:.0%} | {b.num_gaussians:,} | {_mb(b.ply_bytes)} | {b.psnr:.2f} | "
-                         f"{b.ssim:.4f} | {b.ms_per_frame:.1f} | {b.render_fps:.2f} |")
+                         f"{b.ssim:.4f} | {_lp(b.lpips)} | {b.ms_per_frame:.1f} | {b.render_fps:.2f} |")
         lines.append("")
     if r.formats:
         lines += ["## Size against error, by file format", ""]
@@ -288,11 +297,12 @@ def write_report_md(report: EvalReport, project: Project) -> str:
             lines += ["![size against error](formats.png)", ""]
         lines += ["The model written in each format, read back by splatcli's reader and scored on the same views "
                   "(*lost*: dB below full precision).", "",
-                  "| format | size | bytes/Gaussian | smaller than .ply | PSNR (dB) | SSIM | lost (dB) | encode s | decode s |",
-                  "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+                  "| format | size | bytes/Gaussian | smaller than .ply | PSNR (dB) | SSIM | LPIPS | lost (dB) | encode s "
+                  "| decode s |",
+                  "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
         for p in r.formats:
             lines.append(f"| {p.format} | {_mb(p.bytes)} | {p.bytes_per_gaussian:.1f} | {p.ratio:.1f}x | {p.psnr:.2f} | "
-                         f"{p.ssim:.4f} | {p.db_lost:.2f} | {p.encode_s:.2f} | {p.decode_s:.2f} |")
+                         f"{p.ssim:.4f} | {_lp(p.lpips)} | {p.db_lost:.2f} | {p.encode_s:.2f} | {p.decode_s:.2f} |")
         lines.append("")
     if r.training_curve:
         lines += ["Held-out PSNR while training (reports/train_log.jsonl):", "",
@@ -304,9 +314,9 @@ def write_report_md(report: EvalReport, project: Project) -> str:
     else:
         lines += ["No held-out PSNR was logged during training (reports/train_log.jsonl).", ""]
 
-    lines += ["## Worst five views", "", "| view | PSNR (dB) | SSIM |", "| --- | --- | --- |"]
+    lines += ["## Worst five views", "", "| view | PSNR (dB) | SSIM | LPIPS |", "| --- | --- | --- | --- |"]
     for s in r.worst(5):
-        lines.append(f"| {s.name} | {s.psnr:.2f} | {s.ssim:.4f} |")
+        lines.append(f"| {s.name} | {s.psnr:.2f} | {s.ssim:.4f} | {_lp(s.lpips)} |")
     lines.append("")
 
     st = r.stats
@@ -322,7 +332,7 @@ def write_report_md(report: EvalReport, project: Project) -> str:
         lines.append("")
     for n in r.notes:
         lines += [f"Note: {n}", ""]
-    lines += ["## All views", "", "| view | PSNR (dB) | SSIM |", "| --- | --- | --- |"]
-    lines += [f"| {s.name} | {s.psnr:.2f} | {s.ssim:.4f} |" for s in r.per_image]
+    lines += ["## All views", "", "| view | PSNR (dB) | SSIM | LPIPS |", "| --- | --- | --- | --- |"]
+    lines += [f"| {s.name} | {s.psnr:.2f} | {s.ssim:.4f} | {_lp(s.lpips)} |" for s in r.per_image]
     lines.append("")
     return "\n".join(lines)
