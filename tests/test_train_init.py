@@ -160,3 +160,65 @@ def test_coarse_schedule_rises_to_full_resolution():
     assert all(s * 8 == int(s * 8) for s in scales)  # a few cached levels, not one per step
     assert make_config("default").train_scale(0) == 1.0  # the paper's schedule stays at full resolution
     assert make_config("fast").train_scale(0) == 0.25  # the CPU preset starts coarse
+
+
+def test_far_points_lie_on_the_sphere_where_views_see_them_coloured_by_the_pixels():
+    """--init-far: a camera at the origin looking along +z with a left-half red, right-half
+    blue image sees the points of the far sphere in its frustum only; each takes the colour
+    of the pixel it falls on."""
+    from splatcli.train.data import TrainView
+    from splatcli.train.init import far_points
+
+    cam = Camera("a", 64, 48, np.array([[40.0, 0, 32], [0, 40, 24], [0, 0, 1]]), np.eye(4))
+    img = torch.zeros(48, 64, 3, dtype=torch.uint8)
+    img[:, :32, 0] = 255
+    img[:, 32:, 2] = 255
+    vm, K = cam.torch(CPU)
+    pts, cols = far_points(4000, [TrainView(cam, img, vm, K)], np.zeros(3), 10.0)
+    assert 50 < len(pts) < 4000  # the frustum's share of the sphere
+    torch.testing.assert_close(pts.norm(dim=1), torch.full((len(pts),), 10.0))
+    assert bool((pts[:, 2] > 0).all())  # in front of the camera
+    u = pts[:, 0] / pts[:, 2] * 40.0 + 32.0
+    assert bool(((cols[:, 0] == 1) == (u < 32)).all()) and bool(((cols[:, 2] == 1) == (u >= 32)).all())
+
+
+def test_init_far_adds_the_sphere_to_the_sfm_points(tmp_path):
+    proj = make_tiny_project(tmp_path / "p", trained=False)
+    data = load_train_data(proj, 1.0, None, CPU)
+    plain = initial_gaussians(make_config("fast"), data, CPU)
+    g = initial_gaussians(make_config("fast", init_far=2000), data, CPU)
+    far = g.means[len(plain):].double()
+    assert len(g) > len(plain) and torch.equal(g.means[: len(plain)], plain.means)
+    r = (far - torch.as_tensor(data.center)).norm(dim=1)
+    torch.testing.assert_close(r, torch.full_like(r, 5.0 * data.extent), rtol=1e-5, atol=0)  # float32 points
+    with pytest.raises(SplatError, match="init_far_radius"):
+        make_config("fast", init_far=10, init_far_radius=0.5)
+
+
+def test_far_gaussians_are_size_pruned_by_angle_not_world_size():
+    """The default strategy's world-size prune (after the first reset) spares a large
+    Gaussian far from the cameras when given the scene centre, and prunes it without."""
+    from torch import nn
+
+    from splatcli.render.output import RenderOutput
+    from splatcli.strategy import DefaultStrategy, DefaultStrategyConfig, Splats, StepInfo
+
+    def run(center):
+        means = torch.tensor([[0.0, 0.0, 0.0], [50.0, 0.0, 0.0]])
+        p = {"means": means, "quats": torch.tensor([[1.0, 0, 0, 0]] * 2),
+             "log_scales": torch.full((2, 3), math.log(2.0)), "opacity_logits": torch.zeros(2),
+             "sh0": torch.zeros(2, 1, 3)}
+        params = {k: nn.Parameter(v) for k, v in p.items()}
+        sp = Splats(params, {k: torch.optim.Adam([v]) for k, v in params.items()}, [])
+        s = DefaultStrategy(DefaultStrategyConfig(refine_start=0, reset_every=10, refine_every=100), 10.0, center)
+        st = s.initial_state(2, CPU)
+        sp.states.append(st)
+        z = torch.zeros(2)
+        out = RenderOutput(image=torch.zeros(2, 2, 3), alpha=torch.zeros(2, 2), depth=torch.zeros(2, 2),
+                           means2d=torch.zeros(2, 2), radii=torch.zeros(2, dtype=torch.int32), visible=z.bool(),
+                           depths=z)
+        s.step_post_backward(sp, st, 100, StepInfo(out, 2, 2))
+        return sp.params["means"][:, 0].tolist()
+
+    assert run(None) == []  # 2 > 0.1 x 10: both pruned by world size
+    assert run(torch.zeros(3)) == [50.0]  # 50 away: its limit is 5 x 1.0 = 5 > 2
