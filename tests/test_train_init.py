@@ -222,3 +222,42 @@ def test_far_gaussians_are_size_pruned_by_angle_not_world_size():
 
     assert run(None) == []  # 2 > 0.1 x 10: both pruned by world size
     assert run(torch.zeros(3)) == [50.0]  # 50 away: its limit is 5 x 1.0 = 5 > 2
+
+
+def test_views_seeing_counts_frustums_and_prune_views_drops_the_rest(tmp_path):
+    """views_seeing: a point counts for a view when in front of its near plane and inside its
+    image; --prune-views then prunes while densifying, and the run still trains."""
+    import json
+
+    from splatcli.train.data import views_seeing
+    from tiny_project import run_cli
+
+    from splatcli.train.data import TrainView
+
+    cam = Camera("a", 64, 48, np.array([[40.0, 0, 32], [0, 40, 24], [0, 0, 1]]), np.eye(4))
+    vm, K = cam.torch(CPU)
+    v = TrainView(cam, torch.zeros(48, 64, 3, dtype=torch.uint8), vm, K)
+    pts = torch.tensor([[0.0, 0, 5], [0, 0, -5], [0, 0, 0.1], [100, 0, 5], [-3.9, -2.9, 5]])  # seen, behind, too near, outside, corner
+    assert views_seeing([v, v], pts).tolist() == [2, 0, 0, 0, 2]
+    proj = make_tiny_project(tmp_path / "p", trained=False)
+    r = run_cli("train", proj.root, "--preset", "demo", "--iterations", "400", "--prune-views", "3", "--eval-every", "0",
+                "--json", "-q")
+    assert r.exit_code == 0, r.output
+    assert json.loads(r.stdout.strip().splitlines()[-1])["num_gaussians"] > 0
+
+
+def test_support_prune_drops_what_few_views_see_on_the_refinement_schedule():
+    from torch import nn
+
+    from splatcli.strategy import Context, Splats, SupportConfig, SupportPrune
+
+    seen = torch.tensor([5, 1, 3, 0], dtype=torch.int32)
+    ctx = Context(score=lambda *a: None, weights=lambda: torch.zeros(0), note=lambda m: None,
+                  views_seeing=lambda means: seen[: len(means)])
+    params = {"means": nn.Parameter(torch.arange(4.0)[:, None].repeat(1, 3))}
+    sp = Splats(params, {"means": torch.optim.Adam([params["means"]])}, [])
+    s = SupportPrune(SupportConfig(prune_views=3), 100, 400, 100, ctx)
+    assert s.step_post_backward(sp, None, 150, None) is None and len(sp) == 4  # not a refinement step
+    stats = s.step_post_backward(sp, None, 200, None)
+    assert stats.pruned == 2 and sp.params["means"][:, 0].tolist() == [0.0, 2.0]
+    assert s.step_post_backward(sp, None, 500, None) is None  # after refine_stop

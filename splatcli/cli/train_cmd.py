@@ -32,6 +32,7 @@ def train(
                                            f"(--max-gaussians), grown {_D.mcmc.growth:.0%} per refinement, dead Gaussians moved onto live ones, "
                                            "noise on nearly transparent ones, opacity and scale penalties (Kheradmand et al. 2024)."),
     init_far: Optional[int] = typer.Option(None, "--init-far", help=f"Also start with Gaussians on a sphere {_D.init_far_radius:g}x the cameras' extent away, this many over the whole sphere (those a training view sees are kept, coloured from it): a backdrop that structure from motion left empty gets a far depth instead of floaters (default {_D.init_far}: off)."),
+    prune_views: Optional[int] = typer.Option(None, "--prune-views", help=f"While densifying, prune Gaussians that fewer than this many training views see (they can only explain those photos: floaters elsewhere; default {_D.support.prune_views}: off)."),
     opacity_reg: Optional[float] = typer.Option(None, "--opacity-reg", help=f"Add this x the mean opacity to the loss: unneeded Gaussians fade and are pruned (default {_D.reg.opacity_reg}: off; mcmc has its own {_D.mcmc.opacity_reg})."),
     scale_reg: Optional[float] = typer.Option(None, "--scale-reg", help=f"Add this x the mean scale (world units) to the loss: Gaussians stay small (default {_D.reg.scale_reg}: off; mcmc has its own {_D.mcmc.scale_reg})."),
     compact: bool = typer.Option(False, "--compact", help=f"After training, keep {_D.compact.keep:.0%} of the Gaussians, those with the most blending weight (cut in {_D.compact.rounds} rounds), while fine-tuning {_D.compact.finetune} more steps."),
@@ -61,7 +62,7 @@ def train(
     dev = resolve_device(device)
     given = dict(iterations=iterations, sh_degree=sh_degree, max_gaussians=max_gaussians, compact=compact or None,
                  density=strategy.strip().lower() if strategy else None, opacity_reg=opacity_reg, scale_reg=scale_reg,
-                 init_far=init_far,
+                 init_far=init_far, prune_views=prune_views,
                  downscale=downscale, max_size=max_size, eval_every=eval_every, time_budget=time_budget,
                  init_ply=str(init_ply) if init_ply else None)
     cfg = make_config(preset, seed=seed, device=str(dev), **given)

@@ -6,7 +6,8 @@ from .compact import CompactConfig, CompactReport, CompactStep, ShAutoConfig, Sh
 from .default import DefaultStrategy, DefaultStrategyConfig, DefaultStrategyState
 from .mcmc import MCMCStrategy, MCMCStrategyConfig, MCMCStrategyState
 from .regularize import RegularizeConfig, RegularizeStep
+from .support import SupportConfig, SupportPrune
 
 __all__ = ["CompactConfig", "CompactReport", "CompactStep", "Context", "DefaultStrategy", "DefaultStrategyConfig",
            "DefaultStrategyState", "MCMCStrategy", "MCMCStrategyConfig", "MCMCStrategyState", "RefineStats", "RegularizeConfig", "RegularizeStep", "RowState", "ShAutoConfig", "ShAutoStep", "Splats", "StepInfo",
-           "Strategy", "sh_degree_of"]
+           "Strategy", "SupportConfig", "SupportPrune", "sh_degree_of"]

@@ -115,6 +115,8 @@ class Context:
     weights: Callable[[], Tensor]  # -> [N] total blending weight of each Gaussian over the training views
     note: Callable[[str], None]  # a line for the user
     center: Tensor | None = None  # [3] the training cameras' centre (far content is judged by distance from it)
+    # means [N, 3] -> [N] how many training views hold each point in their frustum
+    views_seeing: Callable[[Tensor], Tensor] = lambda means: torch.zeros(len(means))
 
 
 class Strategy:

@@ -19,7 +19,7 @@ from typing import Any
 from ..errors import SplatError
 from ..gaussians import Histogram
 from ..strategy import (CompactConfig, CompactReport, DefaultStrategyConfig, MCMCStrategyConfig, RegularizeConfig,
-                        ShAutoConfig)
+                        ShAutoConfig, SupportConfig)
 
 MAX_SH_DEGREE = 3
 
@@ -73,6 +73,7 @@ class TrainConfig:
     strategy: DefaultStrategyConfig = field(default_factory=DefaultStrategyConfig)  # adaptive density control
     mcmc: MCMCStrategyConfig = field(default_factory=MCMCStrategyConfig)  # --strategy mcmc (its schedule and cap: strategy's)
     reg: RegularizeConfig = field(default_factory=RegularizeConfig)  # --opacity-reg, --scale-reg (mcmc has its own)
+    support: SupportConfig = field(default_factory=SupportConfig)  # --prune-views
     sh_auto: ShAutoConfig = field(default_factory=ShAutoConfig)  # used with sh_degree "auto"
     compact: CompactConfig = field(default_factory=CompactConfig)  # --compact
 
@@ -145,7 +146,7 @@ class TrainConfig:
         return cfg
 
 
-_NESTED = {"strategy": "", "reg": "", "sh_auto": "sh_auto_", "compact": "compact_", "mcmc": "mcmc_"}  # nested config -> option prefix
+_NESTED = {"strategy": "", "reg": "", "support": "", "sh_auto": "sh_auto_", "compact": "compact_", "mcmc": "mcmc_"}  # nested config -> option prefix
 
 
 def _option_paths() -> dict[str, tuple[str, ...]]:
@@ -268,7 +269,7 @@ _STEP_COUNTS = ("iterations", "sh_degree_interval", "eval_every", "log_every", "
 # Counts that must be at least 1 / at least 0 (flat option names).
 _AT_LEAST_1 = ("sh_degree_interval", "log_every", "checkpoint_every", "keep_checkpoints", "refine_every",
                "reset_every", "split_samples", "init_knn", "compact_rounds", "sh_auto_val_views")
-_AT_LEAST_0 = ("eval_max_views", "init_random_points", "init_far", "refine_start", "refine_stop", "compact_finetune",
+_AT_LEAST_0 = ("eval_max_views", "init_random_points", "init_far", "prune_views", "refine_start", "refine_stop", "compact_finetune",
                "max_bad_steps")
 
 

@@ -22,6 +22,7 @@ from ..camera import Camera, scene_extent
 from ..errors import SplatError
 from ..project import Project
 from ..io.images import load_rgb
+from ..render.project import NEAR
 from ..sfm.colmap import read_project_scene
 
 
@@ -53,6 +54,19 @@ class TrainView:
             vm, K = cam.torch(self.image.device)
             self._scaled[scale] = TrainView(cam, img, vm, K)
         return self._scaled[scale]
+
+
+@torch.no_grad()
+def views_seeing(views: list[TrainView], means: Tensor) -> Tensor:  # means [N, 3] -> [N] int
+    """How many of `views` hold each point in their frustum (in front of the rasterizer's
+    near plane, inside the image)."""
+    count = torch.zeros(means.shape[0], dtype=torch.int32, device=means.device)
+    for v in views:
+        cam = means @ v.viewmat[:3, :3].T + v.viewmat[:3, 3]
+        uv = (cam @ v.K.T)[:, :2] / cam[:, 2:3].clamp_min(1e-12)
+        count += ((cam[:, 2] > NEAR) & (uv[:, 0] >= 0) & (uv[:, 0] < v.camera.width) & (uv[:, 1] >= 0)
+                  & (uv[:, 1] < v.camera.height)).to(torch.int32)
+    return count
 
 
 def subset(items: list, k: int) -> list:

@@ -30,7 +30,7 @@ from ..sfm.colmap import read_project_scene
 from ..strategy import Context, StepInfo
 from . import log
 from .config import TrainConfig, TrainSummary, with_options
-from .data import TrainData, TrainView, load_train_data, subset
+from .data import TrainData, TrainView, load_train_data, subset, views_seeing
 from .distributed import Comm
 from .init import initial_gaussians
 from .loss import photometric_loss
@@ -232,7 +232,8 @@ def _context(data: TrainData, box: list[TrainState], on_event: EventSink | None,
                                             for v in comm.share(data.train))))
 
     center = torch.as_tensor(data.center, dtype=torch.float32, device=data.background.device)
-    return Context(score=score, weights=weights, note=lambda m: emit(on_event, Note(m)), center=center)
+    return Context(score=score, weights=weights, note=lambda m: emit(on_event, Note(m)), center=center,
+                   views_seeing=lambda means: views_seeing(data.train, means))
 
 
 def _interrupt(project: Project, cfg: TrainConfig, state: TrainState, comm: Comm) -> None:

@@ -20,6 +20,7 @@ from torch import Tensor, nn
 from ..gaussians import Gaussians
 from ..io.checkpoint import Checkpoint, save_checkpoint
 from ..strategy import (CompactStep, Context, DefaultStrategy, MCMCStrategy, RegularizeStep, ShAutoStep, Splats, Strategy,
+                        SupportPrune,
                         sh_degree_of)
 from .config import TrainConfig
 from .plan import TimePlan
@@ -97,6 +98,9 @@ def make_strategies(cfg: TrainConfig, extent: float, ctx: Context) -> list[Strat
     out: list[Strategy] = [density]
     if cfg.reg.enabled:
         out.append(RegularizeStep(cfg.reg))
+    if cfg.support.prune_views:
+        s = cfg.strategy
+        out.append(SupportPrune(cfg.support, s.refine_start, stop, s.refine_every, ctx))
     if cfg.sh_degree == "auto":
         out.append(ShAutoStep(cfg.sh_auto, cfg.iterations, ctx))
     if cfg.compact.enabled:
