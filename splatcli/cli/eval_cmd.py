@@ -32,6 +32,8 @@ def evaluate(
     model: Optional[Path] = typer.Option(None, "--model", help="Score this splat file (.ply from any tool, .compressed.ply, .spz, .sog, .splat) instead of the latest checkpoint."),
     formats: str = typer.Option("", "--formats", help="Also write the model as each of these formats (ply, spz, sog, compressed-ply, splat), "
                                 "read it back and score it: size against error, in eval.md and eval.json."),
+    antialias: str = typer.Option(_D.antialias, "--antialias", help="auto | on | off: draw with the 2D antialiasing filter. "
+                                  "auto: on for a model trained with --mip-filter or at a size other than the one trained."),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Folder for eval.json, eval.md and plots (default PROJECT/reports)."),
     pred: Optional[Path] = typer.Option(None, "--pred", help="Compare this folder of images ..."),
     gt: Optional[Path] = typer.Option(None, "--gt", help="... with this one, by file name (no project needed)."),
@@ -54,7 +56,7 @@ def evaluate(
     if project is None:
         raise SplatError("give a PROJECT, or --pred DIR --gt DIR")
     cfg = EvalConfig(split=split, background=bg, downscale=downscale, budgets=_budgets(budgets), plots=plots,
-                     model=model, out=out, formats=tuple(f.strip().lower() for f in formats.split(",") if f.strip()))
+                     model=model, out=out, antialias=antialias.strip().lower(), formats=tuple(f.strip().lower() for f in formats.split(",") if f.strip()))
     plan = plan_eval(project, cfg, resolve_device(device))  # input errors surface before any output
     with ui.progress() as sink:
         r = run_eval(plan, on_event=sink)

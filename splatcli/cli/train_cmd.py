@@ -32,6 +32,9 @@ def train(
                                            f"(--max-gaussians), grown {_D.mcmc.growth:.0%} per refinement, dead Gaussians moved onto live ones, "
                                            "noise on nearly transparent ones, opacity and scale penalties (Kheradmand et al. 2024)."),
     compact: bool = typer.Option(False, "--compact", help=f"After training, keep {_D.compact.keep:.0%} of the Gaussians, those with the most blending weight (cut in {_D.compact.rounds} rounds), while fine-tuning {_D.compact.finetune} more steps."),
+    mip_filter: bool = typer.Option(_D.mip_filter, "--mip-filter", help="Mip-Splatting's filters (Yu et al. 2024): no Gaussian "
+                                    "finer than the training views sample it (a 3D filter, folded into the exported scales and "
+                                    "opacities), drawn with the 2D antialiasing filter: renders at other resolutions keep their look."),
     downscale: Optional[float] = typer.Option(None, "--downscale", help="Train at the image size divided by this."),
     max_size: Optional[int] = typer.Option(None, "--max-size", help=f"Cap the longest image side at this (pixels; default {_D.max_size})."),
     eval_every: Optional[int] = typer.Option(None, "--eval-every", help="Held-out PSNR/SSIM every this many steps (0: at the end)."),
@@ -57,6 +60,7 @@ def train(
     ui = Ui(quiet=quiet, json_out=json_out)
     dev = resolve_device(device)
     given = dict(iterations=iterations, sh_degree=sh_degree, max_gaussians=max_gaussians, compact=compact or None,
+                 mip_filter=mip_filter or None,
                  density=strategy.strip().lower() if strategy else None,
                  downscale=downscale, max_size=max_size, eval_every=eval_every, time_budget=time_budget,
                  init_ply=str(init_ply) if init_ply else None)

@@ -5,7 +5,8 @@ from .base import Context, RefineStats, RowState, Splats, StepInfo, Strategy
 from .compact import CompactConfig, CompactReport, CompactStep, ShAutoConfig, ShAutoStep, sh_degree_of
 from .default import DefaultStrategy, DefaultStrategyConfig, DefaultStrategyState
 from .mcmc import MCMCStrategy, MCMCStrategyConfig, MCMCStrategyState
+from .mip import MipFilter, MipFilterState
 
 __all__ = ["CompactConfig", "CompactReport", "CompactStep", "Context", "DefaultStrategy", "DefaultStrategyConfig",
-           "DefaultStrategyState", "MCMCStrategy", "MCMCStrategyConfig", "MCMCStrategyState", "RefineStats", "RowState", "ShAutoConfig", "ShAutoStep", "Splats", "StepInfo",
+           "DefaultStrategyState", "MCMCStrategy", "MCMCStrategyConfig", "MCMCStrategyState", "MipFilter", "MipFilterState", "RefineStats", "RowState", "ShAutoConfig", "ShAutoStep", "Splats", "StepInfo",
            "Strategy", "sh_degree_of"]

@@ -114,12 +114,15 @@ class Context:
     score: Callable[[str, int], tuple[float, float] | None]
     weights: Callable[[], Tensor]  # -> [N] total blending weight of each Gaussian over the training views
     note: Callable[[str], None]  # a line for the user
+    # -> (viewmat [4, 4], K [3, 3], width, height) of every training view at the training resolution
+    cameras: Callable[[], list[tuple[Tensor, Tensor, int, int]]] = lambda: []
 
 
 class Strategy:
     """A step of density or model control. Defaults do nothing."""
 
     name: ClassVar[str] = "strategy"
+    antialiased: ClassVar[bool] = False  # the model must be drawn with the 2D filter (rasterize(antialiased=True))
 
     def initial_state(self, n: int, device: torch.device, seed: int) -> RowState:
         return RowState()
@@ -130,6 +133,12 @@ class Strategy:
     def step_post_backward(self, splats: Splats, state: Any, step: int, info: StepInfo) -> RefineStats | None:
         """After the optimiser step of `step`."""
         return None
+
+    def shade(self, splats: Splats, state: Any, log_scales: Tensor,  # [N, 3]
+              opacity_logits: Tensor) -> tuple[Tensor, Tensor]:  # [N] -> ([N, 3], [N])
+        """The scales and opacities the model is drawn with (differentiably): the
+        parameters, unless the strategy filters the model (--mip-filter)."""
+        return log_scales, opacity_logits
 
     def catch_up(self, splats: Splats, state: Any, step: int) -> RefineStats | None:
         """On resume at `step`: do what an uninterrupted run would already have done

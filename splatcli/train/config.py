@@ -71,6 +71,7 @@ class TrainConfig:
     mcmc: MCMCStrategyConfig = field(default_factory=MCMCStrategyConfig)  # --strategy mcmc (its schedule and cap: strategy's)
     sh_auto: ShAutoConfig = field(default_factory=ShAutoConfig)  # used with sh_degree "auto"
     compact: CompactConfig = field(default_factory=CompactConfig)  # --compact
+    mip_filter: bool = False  # Mip-Splatting's 3D smoothing filter and 2D filter (strategy/mip.py)
 
     # ---- reliability ---------------------------------------------------------
     max_bad_steps: int = 20  # consecutive non-finite steps before TrainingDiverged
