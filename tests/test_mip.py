@@ -217,3 +217,23 @@ def test_train_with_mip_filter_stores_the_filter_and_draws_with_it(tmp_path):
     assert proj.step("train")["config"]["mip_filter"] is True and ck.antialiased
     folded = ck.model()
     assert (folded.log_scales > ck.gaussians.log_scales).all()
+
+
+def test_interrupted_mip_run_resumes_bitwise(tmp_path, monkeypatch):
+    import splatcli.strategy.mip as mip_mod
+    from splatcli.errors import Interrupted
+    from splatcli.train.config import make_config
+    from splatcli.train.loop import train
+    from test_train import SMALL, _interrupt_at, tiny
+
+    monkeypatch.setattr(mip_mod, "EVERY", 4)  # full recomputations inside the run, one of them after the resume
+    cfg = make_config(**{**SMALL, "iterations": 10, "mip_filter": True})
+    a, b = tiny(tmp_path, "a"), tiny(tmp_path, "b")
+    train(a.root, cfg, CPU)
+    with pytest.raises(Interrupted):
+        train(b.root, cfg, CPU, on_event=_interrupt_at(5))
+    train(b.root, cfg, CPU, resume=True)
+    ka, kb = load_checkpoint(a.latest_checkpoint()), load_checkpoint(b.latest_checkpoint())
+    for k, v in ka.gaussians.as_dict().items():
+        assert torch.equal(v, kb.gaussians.as_dict()[k]), k
+    assert torch.equal(ka.strategy["mip"]["filter3d"], kb.strategy["mip"]["filter3d"])

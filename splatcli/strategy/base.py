@@ -7,7 +7,9 @@ a `RowState`. The loop calls every strategy of the run at the same fixed points:
     strategy.step_pre_backward(splats, state, step, info)
     stats = strategy.step_post_backward(splats, state, step, info)
 
-and, once when a run resumes, `strategy.catch_up(splats, state, step)`.
+and, once when a run resumes, `strategy.catch_up(splats, state, step)`. Whenever the
+model is drawn, `strategy.shade(splats, state, log_scales, opacity_logits)` gives the
+scales and opacities it is drawn with (TrainState.drawn).
 """
 
 from __future__ import annotations
