@@ -32,7 +32,6 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..camera import Camera
 from ..device import describe_device, synchronize
 from ..errors import SplatError
 from ..events import EventSink, Note, Progress, Stage, StageDone, emit
@@ -219,9 +218,7 @@ def plan_eval(root: str | Path, config: EvalConfig, device: torch.device) -> Eva
         downscale, max_size = config.downscale, None
     else:  # the resolution trained, also for a .ply scored against this project
         downscale, max_size = project.trained_resolution()
-    same = config.downscale is None or all(_size(v.camera.at_resolution(downscale, max_size))
-                                           == _size(v.camera.at_resolution(*project.trained_resolution()))
-                                           for v in views)
+    same = config.downscale is None or _same_size(project, views, downscale)
     antialiased, why = choose_antialias(config.antialias, m.antialiased, same)
     notes += [why] if why else []
     views = [View(camera=v.camera.at_resolution(downscale, max_size),
@@ -236,8 +233,15 @@ def plan_eval(root: str | Path, config: EvalConfig, device: torch.device) -> Eva
                     max_size=max_size, train_summary=tsum, notes=notes, antialiased=antialiased)
 
 
-def _size(c: Camera) -> tuple[int, int]:
-    return c.width, c.height
+def _same_size(project: Project, views: Sequence[View], downscale: float) -> bool:
+    """Whether `--downscale` gives every view the size it was trained at (False when the
+    manifest does not say)."""
+    try:
+        trained = project.trained_resolution()
+    except SplatError:
+        return False
+    size = lambda c: (c.width, c.height)  # noqa: E731
+    return all(size(v.camera.at_resolution(downscale)) == size(v.camera.at_resolution(*trained)) for v in views)
 
 
 def run_eval(plan: EvalPlan, *, on_event: EventSink | None = None) -> EvalReport:
