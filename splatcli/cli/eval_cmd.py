@@ -56,7 +56,8 @@ def evaluate(
     if project is None:
         raise SplatError("give a PROJECT, or --pred DIR --gt DIR")
     cfg = EvalConfig(split=split, background=bg, downscale=downscale, budgets=_budgets(budgets), plots=plots,
-                     model=model, out=out, antialias=antialias.strip().lower(), formats=tuple(f.strip().lower() for f in formats.split(",") if f.strip()))
+                     model=model, out=out, antialias=antialias.strip().lower(),
+                     formats=tuple(f.strip().lower() for f in formats.split(",") if f.strip()))
     plan = plan_eval(project, cfg, resolve_device(device))  # input errors surface before any output
     with ui.progress() as sink:
         r = run_eval(plan, on_event=sink)
