@@ -10,6 +10,7 @@ import math
 from dataclasses import dataclass, fields
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 SH_C0 = 0.28209479177387814  # Y_0^0; colour = SH_C0 * dc + 0.5
@@ -70,6 +71,11 @@ class Gaussians:
             sh = torch.cat([sh, pad], dim=1)
         return Gaussians(self.means, self.quats, self.log_scales, self.opacity_logits, sh.contiguous())
 
+    def smoothed(self, filter3d: Tensor) -> "Gaussians":  # filter3d [N] world units
+        """The model with a 3D smoothing filter folded in (`smooth_3d`): what it renders as."""
+        ls, op = smooth_3d(self.log_scales, self.opacity_logits, filter3d)
+        return Gaussians(self.means, self.quats, ls, op, self.sh)
+
     def finite_mask(self) -> Tensor:  # [N] bool
         ok = torch.ones(len(self), dtype=torch.bool, device=self.device)
         for v in self.as_dict().values():
@@ -80,6 +86,33 @@ class Gaussians:
     def empty(sh_degree: int = 0, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32) -> "Gaussians":
         z = lambda *s: torch.zeros(*s, device=device, dtype=dtype)  # noqa: E731
         return Gaussians(z(0, 3), z(0, 4), z(0, 3), z(0), z(0, num_sh_bases(sh_degree), 3))
+
+
+def smooth_3d(
+    log_scales: Tensor,  # [N, 3]
+    opacity_logits: Tensor,  # [N]
+    filter3d: Tensor,  # [N] world units, >= 0 (0: no filter)
+) -> tuple[Tensor, Tensor]:  # ([N, 3], [N])
+    """Mip-Splatting's 3D smoothing filter (Yu et al. 2024, eq. 9) folded into the raw
+    parameters: the covariance convolved with an isotropic Gaussian of standard deviation
+    `filter3d` (per axis s'^2 = s^2 + f^2) and the opacity scaled by
+    sqrt(det Sigma / det Sigma') = prod s / s' in (0, 1], so the integrated mass is kept.
+
+    In log space throughout: with d = 2 (log f - log s), log s' = log s + softplus(d) / 2
+    and the log ratio L = -sum softplus(d) / 2 <= 0; the new logit is
+    logit(sigmoid(o) e^L) = o + L - softplus(o + log(1 - e^L)). f = 0 gives back exactly
+    the input, with finite gradients (the log(1 - e^L) branch is masked before its log).
+    Differentiable in log_scales and opacity_logits; the filter is a constant."""
+    f = filter3d.detach().to(log_scales.dtype)
+    log_f = torch.where(f > 0, torch.log(f.clamp_min(torch.finfo(f.dtype).tiny)), float("-inf"))
+    sp = F.softplus(2.0 * (log_f[:, None] - log_scales))  # [N, 3]; 0 where f = 0
+    ls = log_scales + 0.5 * sp
+    L = -0.5 * sp.sum(-1)  # [N] log ratio of determinants' square roots
+    some = L < 0
+    safe = torch.where(some, L, torch.full_like(L, -1.0))  # no log(0) and no 1/0 in its gradient
+    log_gap = torch.where(some, torch.log(-torch.expm1(safe)), float("-inf"))  # log(1 - e^L)
+    op = opacity_logits + L - F.softplus(opacity_logits + log_gap)
+    return ls, op
 
 
 @dataclass

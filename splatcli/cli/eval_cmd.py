@@ -39,6 +39,8 @@ def evaluate(
     lpips_weights: Optional[Path] = typer.Option(None, "--lpips-weights", help="torchvision's AlexNet weights (alexnet-owt-7be5be79.pth) for LPIPS "
                                                  "(default: the torch hub cache, $TORCH_HOME/hub/checkpoints; never downloaded). "
                                                  "Without them, or without the lpips extra, LPIPS is left out."),
+    antialias: str = typer.Option(_D.antialias, "--antialias", help="auto | on | off: draw with the 2D antialiasing filter. "
+                                  "auto: on for a model trained with --mip-filter or at a size other than the one trained."),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Folder for eval.json, eval.md and plots (default PROJECT/reports)."),
     pred: Optional[Path] = typer.Option(None, "--pred", help="Compare this folder of images ..."),
     gt: Optional[Path] = typer.Option(None, "--gt", help="... with this one, by file name (no project needed)."),
@@ -63,7 +65,7 @@ def evaluate(
         raise SplatError("give a PROJECT, or --pred DIR --gt DIR")
     cfg = EvalConfig(split=split, background=bg, downscale=downscale, budgets=_budgets(budgets), plots=plots,
                      model=model, out=out, formats=tuple(f.strip().lower() for f in formats.split(",") if f.strip()),
-                     lpips_weights=lpips_weights)
+                     lpips_weights=lpips_weights, antialias=antialias.strip().lower())
     plan = plan_eval(project, cfg, resolve_device(device))  # input errors surface before any output
     with ui.progress() as sink:
         r = run_eval(plan, on_event=sink)

@@ -26,6 +26,9 @@ def render(
     height: Optional[int] = typer.Option(None, "--height", help="Image height in pixels (alone: keeps the aspect)."),
     downscale: Optional[float] = typer.Option(None, "--downscale", help="Divide the cameras' stored resolution by this (default: a project's cameras at the resolution trained)."),
     background: Optional[str] = typer.Option(None, "--background", help="white, black, gray or R,G,B in [0, 1] (default: the scene's)."),
+    antialias: str = typer.Option(_D.antialias, "--antialias", help="auto | on | off: draw with the 2D antialiasing filter "
+                                  "(keeps a model's look at other resolutions). auto: on for a model trained with --mip-filter "
+                                  "or at a size other than the one trained."),
     depth: bool = typer.Option(False, "--depth", help="Also write depth/<name>.png (colour-mapped)."),
     alpha: bool = typer.Option(False, "--alpha", help="Also write alpha/<name>.png."),
     video: Optional[Path] = typer.Option(None, "--video", help="Also encode the frames into this video (.mp4, .avi)."),
@@ -47,7 +50,7 @@ def render(
     cfg = RenderConfig(
         split=split, cameras=cameras, path=path, frames=frames, project=project, width=width, height=height,
         downscale=downscale, out=out, background=parse_background(background),
-        depth=depth, alpha=alpha, video=video, video_fps=fps,
+        depth=depth, alpha=alpha, video=video, video_fps=fps, antialias=antialias.strip().lower(),
     )
     plan = plan_render(source, cfg, resolve_device(device))  # input errors surface before any output
     with ui.progress() as sink:
@@ -55,7 +58,7 @@ def render(
     ui.summary(
         {"out_dir": r.out_dir, "frames": r.num_frames, "width": r.width, "height": r.height, "fps": r.fps,
          "render_seconds": r.render_seconds, "num_gaussians": r.num_gaussians, "device": r.device_name,
-         "video": r.video, "source": r.source, "cameras": r.cameras},
+         "video": r.video, "source": r.source, "cameras": r.cameras, "antialiased": r.antialiased},
         title=f"rendered {r.num_frames} frames ({r.cameras}) of {r.source}",
         lines=[f"{r.width}x{r.height}, {r.num_gaussians} Gaussians: {r.fps:.2f} frames/s on {r.device_name}",
                f"images: {r.out_dir}/"] + ([f"video: {r.video}"] if r.video else []),

@@ -36,6 +36,9 @@ def train(
     opacity_reg: Optional[float] = typer.Option(None, "--opacity-reg", help=f"Add this x the mean opacity to the loss: unneeded Gaussians fade and are pruned (default {_D.reg.opacity_reg}: off; mcmc has its own {_D.mcmc.opacity_reg})."),
     scale_reg: Optional[float] = typer.Option(None, "--scale-reg", help=f"Add this x the mean scale (world units) to the loss: Gaussians stay small (default {_D.reg.scale_reg}: off; mcmc has its own {_D.mcmc.scale_reg})."),
     compact: bool = typer.Option(False, "--compact", help=f"After training, keep {_D.compact.keep:.0%} of the Gaussians, those with the most blending weight (cut in {_D.compact.rounds} rounds), while fine-tuning {_D.compact.finetune} more steps."),
+    mip_filter: bool = typer.Option(_D.mip_filter, "--mip-filter", help="Mip-Splatting's filters (Yu et al. 2024): no Gaussian "
+                                    "finer than the training views sample it (a 3D filter, folded into the exported scales and "
+                                    "opacities), drawn with the 2D antialiasing filter: renders at other resolutions keep their look."),
     downscale: Optional[float] = typer.Option(None, "--downscale", help="Train at the image size divided by this."),
     max_size: Optional[int] = typer.Option(None, "--max-size", help=f"Cap the longest image side at this (pixels; default {_D.max_size})."),
     eval_every: Optional[int] = typer.Option(None, "--eval-every", help="Held-out PSNR/SSIM every this many steps (0: at the end)."),
@@ -63,6 +66,7 @@ def train(
     given = dict(iterations=iterations, sh_degree=sh_degree, max_gaussians=max_gaussians, compact=compact or None,
                  density=strategy.strip().lower() if strategy else None, opacity_reg=opacity_reg, scale_reg=scale_reg,
                  init_far=init_far, prune_views=prune_views,
+                 mip_filter=mip_filter or None,
                  downscale=downscale, max_size=max_size, eval_every=eval_every, time_budget=time_budget,
                  init_ply=str(init_ply) if init_ply else None)
     cfg = make_config(preset, seed=seed, device=str(dev), **given)

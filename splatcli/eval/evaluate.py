@@ -44,7 +44,7 @@ from ..io.model import load_model
 from ..io.ply import ply_bytes
 from ..project import Project, writer_lock
 from ..render import render_camera
-from ..views.sources import SPLITS, View, dataset_views
+from ..views.sources import SPLITS, View, choose_antialias, dataset_views
 from .budgets import contributions, prune_to
 from .curve import read_curve
 from .lpips import MIN_SIZE as LPIPS_MIN_SIZE, Lpips, load_lpips
@@ -69,6 +69,7 @@ class EvalConfig:
     out: Path | None = None  # folder for eval.json, eval.md, plots (default PROJECT/reports)
     formats: tuple[str, ...] = ()  # file formats to encode, decode and score (size against error)
     lpips_weights: Path | None = None  # torchvision's AlexNet weights for LPIPS (None: the torch hub cache)
+    antialias: str = "auto"  # auto | on | off: the 2D filter (views/sources.choose_antialias)
 
 
 @dataclass
@@ -106,7 +107,7 @@ def score(name: str, pred: Tensor, gt: Tensor, lp: Lpips | None = None) -> Image
 
 
 def _score_views(g: Gaussians, views: Sequence[View], gts: Sequence[Tensor], bg: Tensor, lp: Lpips | None,
-                 on_event: EventSink | None, stage: str) -> tuple[list[ImageScore], float]:
+                 on_event: EventSink | None, stage: str, antialiased: bool) -> tuple[list[ImageScore], float]:
     """Render, quantise and score every view; returns scores and the median
     render seconds per frame (the median: other processes sharing the CPU make
     single frames slow, and the first call of a process pays one-off set-up, so
@@ -114,11 +115,11 @@ def _score_views(g: Gaussians, views: Sequence[View], gts: Sequence[Tensor], bg:
     scores, times = [], []
     emit(on_event, Stage(stage, total=len(views)))
     t_all = time.perf_counter()
-    render_camera(g, views[0].camera, bg)  # warm-up, untimed
+    render_camera(g, views[0].camera, bg, antialiased=antialiased)  # warm-up, untimed
     for i, (v, gt) in enumerate(zip(views, gts)):
         synchronize(g.device)
         t0 = time.perf_counter()
-        out = render_camera(g, v.camera, bg)
+        out = render_camera(g, v.camera, bg, antialiased=antialiased)
         synchronize(g.device)
         times.append(time.perf_counter() - t0)
         scores.append(score(v.camera.name, quantise(out.image), gt, lp))
@@ -128,7 +129,7 @@ def _score_views(g: Gaussians, views: Sequence[View], gts: Sequence[Tensor], bg:
 
 
 def _score_formats(g: Gaussians, formats: Sequence[str], views: Sequence[View], gts: Sequence[Tensor], bg: Tensor,
-                   lp: Lpips | None, full_psnr: float, on_event: EventSink | None) -> list[FormatPoint]:
+                   lp: Lpips | None, full_psnr: float, on_event: EventSink | None, antialiased: bool) -> list[FormatPoint]:
     """Each format: write the model, read it back through our reader, score the views."""
     out = []
     ply_size = ply_bytes(len(g), g.sh_degree)
@@ -140,7 +141,7 @@ def _score_formats(g: Gaussians, formats: Sequence[str], views: Sequence[View], 
             t1 = time.perf_counter()
             back = read_format(path, g.device, fmt).gaussians
             t2 = time.perf_counter()
-            sc, _ = _score_views(back, views, gts, bg, lp, on_event, f"format {fmt}")
+            sc, _ = _score_views(back, views, gts, bg, lp, on_event, f"format {fmt}", antialiased)
             p = _mean_psnr(sc)
             out.append(FormatPoint(format=fmt, bytes=w.bytes, bytes_per_gaussian=w.bytes / max(len(g), 1),
                                    ratio=ply_size / max(w.bytes, 1), psnr=p, ssim=float(np.mean([x.ssim for x in sc])),
@@ -182,6 +183,7 @@ def check_eval_config(config: EvalConfig) -> None:
         check_format(f, "--formats")
     if config.contribution_views < 1:
         raise SplatError(f"contribution_views {config.contribution_views}: must be at least 1")
+    choose_antialias(config.antialias, None, True)  # refuses an unknown mode
 
 
 @dataclass
@@ -201,6 +203,7 @@ class EvalPlan:
     train_summary: dict[str, Any]
     notes: list[str]
     lpips: Lpips | None  # None: LPIPS unavailable (the reason is in notes)
+    antialiased: bool = False  # draw with the 2D filter
 
 
 def plan_eval(root: str | Path, config: EvalConfig, device: torch.device) -> EvalPlan:
@@ -227,6 +230,9 @@ def plan_eval(root: str | Path, config: EvalConfig, device: torch.device) -> Eva
         downscale, max_size = config.downscale, None
     else:  # the resolution trained, also for a .ply scored against this project
         downscale, max_size = project.trained_resolution()
+    same = config.downscale is None or _same_size(project, views, downscale)
+    antialiased, why = choose_antialias(config.antialias, m.antialiased, same)
+    notes += [why] if why else []
     views = [View(camera=v.camera.at_resolution(downscale, max_size),
                   out_name=v.out_name, image=v.image) for v in views]
     small = [v.camera for v in views if min(v.camera.width, v.camera.height) < 11]
@@ -241,7 +247,19 @@ def plan_eval(root: str | Path, config: EvalConfig, device: torch.device) -> Eva
     notes += [why_not] if why_not else []
     return EvalPlan(project=project, config=config, gaussians=g, step=step, model_name=model_name, views=views,
                     background=tuple(bg_rgb), downscale=downscale,  # type: ignore[arg-type]
-                    max_size=max_size, train_summary=tsum, notes=notes, lpips=lp)
+                    max_size=max_size, train_summary=tsum, notes=notes, lpips=lp, antialiased=antialiased)
+
+
+
+def _same_size(project: Project, views: Sequence[View], downscale: float) -> bool:
+    """Whether `--downscale` gives every view the size it was trained at (False when the
+    manifest does not say)."""
+    try:
+        trained = project.trained_resolution()
+    except SplatError:
+        return False
+    size = lambda c: (c.width, c.height)  # noqa: E731
+    return all(size(v.camera.at_resolution(downscale)) == size(v.camera.at_resolution(*trained)) for v in views)
 
 
 def run_eval(plan: EvalPlan, *, on_event: EventSink | None = None) -> EvalReport:
@@ -268,8 +286,8 @@ def _run_eval(plan: EvalPlan, on_event: EventSink | None) -> EvalReport:
         emit(on_event, Progress("load images", i + 1, len(views)))
     emit(on_event, StageDone("load images", 0.0))
 
-    lp = plan.lpips
-    per_image, secs = _score_views(g, views, gts, bg, lp, on_event, "eval")
+    lp, aa = plan.lpips, plan.antialiased
+    per_image, secs = _score_views(g, views, gts, bg, lp, on_event, "eval", aa)
     fps = 1.0 / max(secs, 1e-9)
     mean_psnr = _mean_psnr(per_image)
     mean_ssim = float(np.mean([s.ssim for s in per_image]))
@@ -289,14 +307,14 @@ def _run_eval(plan: EvalPlan, on_event: EventSink | None) -> EvalReport:
         emit(on_event, StageDone("rank Gaussians", time.perf_counter() - t0))
         for f in fractions:
             gp = prune_to(g, weight, f)
-            sc, s = _score_views(gp, views, gts, bg, lp, on_event, f"budget {f:.0%}")
+            sc, s = _score_views(gp, views, gts, bg, lp, on_event, f"budget {f:.0%}", aa)
             budgets.append(BudgetPoint(fraction=f, num_gaussians=len(gp), ply_bytes=ply_bytes(len(gp), gp.sh_degree),
                                        psnr=_mean_psnr(sc), ssim=float(np.mean([x.ssim for x in sc])),
                                        render_fps=1.0 / max(s, 1e-9), ms_per_frame=1000 * s, lpips=_mean_lpips(sc)))
     if 1.0 not in config.budgets:
         budgets = budgets[1:]
 
-    formats = _score_formats(g, config.formats, views, gts, bg, lp, mean_psnr, on_event)
+    formats = _score_formats(g, config.formats, views, gts, bg, lp, mean_psnr, on_event, aa)
     curve = read_curve(project.train_log_path) if config.model is None else []
     report = EvalReport(
         psnr=mean_psnr,
@@ -338,7 +356,8 @@ def _run_eval(plan: EvalPlan, on_event: EventSink | None) -> EvalReport:
         if config.model is None and config.out is None:  # the project's own model, in its own reports
             project.record_step("eval", config={"split": config.split, "background": list(bg_rgb),
                                                 "downscale": downscale, "max_size": max_size,
-                                                "budgets": list(config.budgets), "formats": list(config.formats)},
+                                                "budgets": list(config.budgets), "formats": list(config.formats),
+                                                "antialiased": aa},
                                 summary=report.summary())
     return report
 

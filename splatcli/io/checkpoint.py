@@ -12,7 +12,8 @@ Layout (schema 1):
      "sh_degree": int,                    # the active SH degree at `step`
      "gaussians": {means, quats, log_scales, opacity_logits, sh},   # raw, see gaussians.py
      "optimizer": {...},                  # per-parameter Adam state_dicts (train.py)
-     "strategy": {...},                   # densification state (strategy/)
+     "strategy": {...},                   # densification state (strategy/); a state's
+                                          # "filter3d" rows [N] are folded by model()
      "rng": {"torch": ByteTensor, "cuda": [ByteTensor] | None},
      "config": {...},                     # the resolved TrainConfig as plain data
      "extra": {...}}                      # loop counters: elapsed seconds, bad steps, ...
@@ -40,6 +41,7 @@ from .atomic import atomic_path
 
 CHECKPOINT_SCHEMA = 1
 CHECKPOINT_FORMAT = "splatcli-checkpoint"
+FILTER_ROWS = "filter3d"  # a strategy state's 3D smoothing filter, world units (strategy/mip.py)
 _REQUIRED = ("format", "schema", "step", "sh_degree", "gaussians", "optimizer", "strategy", "rng", "config")
 
 
@@ -60,8 +62,22 @@ class Checkpoint:
     extra: dict[str, Any] = field(default_factory=dict)
 
     def model(self) -> Gaussians:
-        """The Gaussians truncated to the active SH degree."""
-        return self.gaussians.with_sh_degree(self.sh_degree)
+        """The Gaussians as drawn: truncated to the active SH degree, with the 3D
+        smoothing filter of `train --mip-filter` folded into the scales and opacities
+        (gaussians.smooth_3d), so every reader and exported file sees the same model."""
+        g = self.gaussians.with_sh_degree(self.sh_degree)
+        for state in self.strategy.values():
+            f = state.get(FILTER_ROWS) if isinstance(state, dict) else None
+            if isinstance(f, Tensor):
+                if tuple(f.shape) != (len(g),) or not bool(torch.isfinite(f).all()) or bool((f < 0).any()):
+                    raise SplatError(f"{self.path}: checkpoint's {FILTER_ROWS} is not [{len(g)}] finite values >= 0")
+                g = g.smoothed(f.to(g.device))
+        return g
+
+    @property
+    def antialiased(self) -> bool:
+        """Trained with the 2D filter (`train --mip-filter`): draw it with it too."""
+        return bool(self.config.get("mip_filter"))
 
 
 def save_checkpoint(

@@ -28,6 +28,7 @@ class LoadedModel:
     project: Project | None  # the project, when the source is one
     step: int | None = None  # training step of the checkpoint
     notes: list[str] = field(default_factory=list)  # what the reader had to do (dropped rows, ...)
+    antialiased: bool | None = None  # trained with the 2D filter (checkpoint of train --mip-filter); None: unknown
 
     @property
     def name(self) -> str:
@@ -46,7 +47,8 @@ def load_model(source: str | os.PathLike, device: torch.device) -> LoadedModel:
         project = Project.open(source)
         ck_path = project.require_trained()
         ck = load_checkpoint(ck_path, device)
-        return LoadedModel(gaussians=ck.model(), kind="checkpoint", path=ck_path, project=project, step=ck.step)
+        return LoadedModel(gaussians=ck.model(), kind="checkpoint", path=ck_path, project=project, step=ck.step,
+                           antialiased=ck.antialiased)
     if not source.exists():
         if fmt is not None:
             raise SplatError(f"{source}: no such {SUFFIXES[fmt]} file")

@@ -138,10 +138,11 @@ def _banded(pr, rect, visible, width, height, block, background, nbands):
     return tuple(torch.cat([o[i] for o in outs], 0) for i in range(3))
 
 
-def render_camera(g: Gaussians, camera: Camera, background: Tensor, *, sh_degree: int | None = None) -> RenderOutput:
+def render_camera(g: Gaussians, camera: Camera, background: Tensor, *, sh_degree: int | None = None,
+                  antialiased: bool = False) -> RenderOutput:
     """A model seen from a camera, without gradients (render, eval). background: [3]
     on the model's device."""
     vm, K = camera.torch(g.device, g.means.dtype)
     with torch.no_grad():
         return rasterize(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh, vm, K,
-                         camera.width, camera.height, background, sh_degree=sh_degree)
+                         camera.width, camera.height, background, sh_degree=sh_degree, antialiased=antialiased)

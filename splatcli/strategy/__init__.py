@@ -5,9 +5,11 @@ from .base import Context, RefineStats, RowState, Splats, StepInfo, Strategy
 from .compact import CompactConfig, CompactReport, CompactStep, ShAutoConfig, ShAutoStep, sh_degree_of
 from .default import DefaultStrategy, DefaultStrategyConfig, DefaultStrategyState
 from .mcmc import MCMCStrategy, MCMCStrategyConfig, MCMCStrategyState
+from .mip import MipFilter, MipFilterState
 from .regularize import RegularizeConfig, RegularizeStep
 from .support import SupportConfig, SupportPrune
 
 __all__ = ["CompactConfig", "CompactReport", "CompactStep", "Context", "DefaultStrategy", "DefaultStrategyConfig",
-           "DefaultStrategyState", "MCMCStrategy", "MCMCStrategyConfig", "MCMCStrategyState", "RefineStats", "RegularizeConfig", "RegularizeStep", "RowState", "ShAutoConfig", "ShAutoStep", "Splats", "StepInfo",
-           "Strategy", "SupportConfig", "SupportPrune", "sh_degree_of"]
+           "DefaultStrategyState", "MCMCStrategy", "MCMCStrategyConfig", "MCMCStrategyState", "MipFilter",
+           "MipFilterState", "RefineStats", "RegularizeConfig", "RegularizeStep", "RowState", "ShAutoConfig",
+           "ShAutoStep", "Splats", "StepInfo", "Strategy", "SupportConfig", "SupportPrune", "sh_degree_of"]

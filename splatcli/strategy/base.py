@@ -7,7 +7,9 @@ a `RowState`. The loop calls every strategy of the run at the same fixed points:
     strategy.step_pre_backward(splats, state, step, info)
     stats = strategy.step_post_backward(splats, state, step, info)
 
-and, once when a run resumes, `strategy.catch_up(splats, state, step)`.
+and, once when a run resumes, `strategy.catch_up(splats, state, step)`. Whenever the
+model is drawn, `strategy.shade(splats, state, log_scales, opacity_logits)` gives the
+scales and opacities it is drawn with (TrainState.drawn).
 """
 
 from __future__ import annotations
@@ -117,12 +119,15 @@ class Context:
     center: Tensor | None = None  # [3] the training cameras' centre (far content is judged by distance from it)
     # means [N, 3] -> [N] how many training views hold each point in their frustum
     views_seeing: Callable[[Tensor], Tensor] = lambda means: torch.zeros(len(means))
+    # -> (viewmat [4, 4], K [3, 3], width, height) of every training view at the training resolution
+    cameras: Callable[[], list[tuple[Tensor, Tensor, int, int]]] = lambda: []
 
 
 class Strategy:
     """A step of density or model control. Defaults do nothing."""
 
     name: ClassVar[str] = "strategy"
+    antialiased: ClassVar[bool] = False  # the model must be drawn with the 2D filter (rasterize(antialiased=True))
 
     def initial_state(self, n: int, device: torch.device, seed: int) -> RowState:
         return RowState()
@@ -133,6 +138,12 @@ class Strategy:
     def step_post_backward(self, splats: Splats, state: Any, step: int, info: StepInfo) -> RefineStats | None:
         """After the optimiser step of `step`."""
         return None
+
+    def shade(self, splats: Splats, state: Any, log_scales: Tensor,  # [N, 3]
+              opacity_logits: Tensor) -> tuple[Tensor, Tensor]:  # [N] -> ([N, 3], [N])
+        """The scales and opacities the model is drawn with (differentiably): the
+        parameters, unless the strategy filters the model (--mip-filter)."""
+        return log_scales, opacity_logits
 
     def catch_up(self, splats: Splats, state: Any, step: int) -> RefineStats | None:
         """On resume at `step`: do what an uninterrupted run would already have done

@@ -7,8 +7,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import torch
-
 from . import ops
 from .base import Context, RefineStats, Splats, StepInfo, Strategy
 

@@ -76,6 +76,7 @@ class TrainConfig:
     support: SupportConfig = field(default_factory=SupportConfig)  # --prune-views
     sh_auto: ShAutoConfig = field(default_factory=ShAutoConfig)  # used with sh_degree "auto"
     compact: CompactConfig = field(default_factory=CompactConfig)  # --compact
+    mip_filter: bool = False  # Mip-Splatting's 3D smoothing filter and 2D filter (strategy/mip.py)
 
     # ---- reliability ---------------------------------------------------------
     max_bad_steps: int = 20  # consecutive non-finite steps before TrainingDiverged

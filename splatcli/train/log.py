@@ -155,7 +155,7 @@ def finish(project: Project, cfg: TrainConfig, state: TrainState, resumed_from: 
     """Write reports/train.json and the manifest's train summary (rank 0 of a
     data-parallel run; the others only return it). Steps count views seen."""
     comm = comm or Comm()
-    g = state.gaussians()
+    g = state.model()  # as drawn and exported (--mip-filter folded in)
     deg = state.active_sh_degree(state.images, cfg.sh_degree_interval)
     log = read_log(project.train_log_path)
     last_eval = next((r for r in reversed(log) if "psnr" in r), None)

@@ -112,9 +112,9 @@ def _train(project: Project, cfg: TrainConfig, device: torch.device, resume: boo
 
 def render_view(state: TrainState, view: TrainView, bg: Tensor, sh_degree: int) -> RenderOutput:  # bg [3]
     """The current Gaussians seen from `view` at the training resolution."""
-    p = state.params
-    return rasterize(p["means"], p["quats"], p["log_scales"], p["opacity_logits"], state.sh(), view.viewmat,
-                     view.K, view.camera.width, view.camera.height, bg, sh_degree=sh_degree)
+    g = state.drawn()
+    return rasterize(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh, view.viewmat, view.K,
+                     view.camera.width, view.camera.height, bg, sh_degree=sh_degree, antialiased=state.antialiased)
 
 
 def _loop(project: Project, base: TrainConfig, cfg: TrainConfig, data: TrainData, state: TrainState, ctx: Context,
@@ -186,7 +186,7 @@ def _loop(project: Project, base: TrainConfig, cfg: TrainConfig, data: TrainData
         writer.line(step, state, evaluated, fitted, cfg.log_every, force=step == total)
         emit(on_event, Progress(STAGE, state.images, total * k, writer.info(state)))
         if comm.main:
-            emit(on_event, Snapshot(state.images, state.gaussians))  # for live displays (train --viewer)
+            emit(on_event, Snapshot(state.images, state.model))  # for live displays (train --viewer)
         if stopping or (k == 1 and stop.is_set()):
             _interrupt(project, base, state, comm)
         if step % cfg.checkpoint_every == 0 or step == total:
@@ -233,7 +233,8 @@ def _context(data: TrainData, box: list[TrainState], on_event: EventSink | None,
 
     center = torch.as_tensor(data.center, dtype=torch.float32, device=data.background.device)
     return Context(score=score, weights=weights, note=lambda m: emit(on_event, Note(m)), center=center,
-                   views_seeing=lambda means: views_seeing(data.train, means))
+                   views_seeing=lambda means: views_seeing(data.train, means),
+                   cameras=lambda: [(v.viewmat, v.K, v.camera.width, v.camera.height) for v in data.train])
 
 
 def _interrupt(project: Project, cfg: TrainConfig, state: TrainState, comm: Comm) -> None:

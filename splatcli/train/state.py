@@ -19,8 +19,8 @@ from torch import Tensor, nn
 
 from ..gaussians import Gaussians
 from ..io.checkpoint import Checkpoint, save_checkpoint
-from ..strategy import (CompactStep, Context, DefaultStrategy, MCMCStrategy, RegularizeStep, ShAutoStep, Splats, Strategy,
-                        SupportPrune,
+from ..strategy import (CompactStep, Context, DefaultStrategy, MCMCStrategy, MipFilter, RegularizeStep, ShAutoStep, Splats,
+                        Strategy, SupportPrune,
                         sh_degree_of)
 from .config import TrainConfig
 from .plan import TimePlan
@@ -73,6 +73,25 @@ class TrainState:
         p = self.params
         return Gaussians(p["means"], p["quats"], p["log_scales"], p["opacity_logits"], self.sh()).detach()
 
+    def drawn(self) -> Gaussians:
+        """The model as it is drawn, differentiable in the parameters: the scales and
+        opacities through every strategy's `shade` (--mip-filter's 3D filter)."""
+        p = self.params
+        ls, op = p["log_scales"], p["opacity_logits"]
+        for s, st in zip(self.strategies, self.splats.states):
+            ls, op = s.shade(self.splats, st, ls, op)
+        return Gaussians(p["means"], p["quats"], ls, op, self.sh())
+
+    def model(self) -> Gaussians:
+        """The model as drawn, without gradients (what a checkpoint's `model()` gives back)."""
+        with torch.no_grad():
+            return self.drawn().detach()
+
+    @property
+    def antialiased(self) -> bool:
+        """Whether the model is drawn with the 2D filter (rasterize(antialiased=True))."""
+        return any(s.antialiased for s in self.strategies)
+
     def next_view(self, n: int) -> int:
         """Views in shuffled epochs, like 3DGS's refilled camera stack."""
         if self.pos >= self.perm.numel():
@@ -105,6 +124,8 @@ def make_strategies(cfg: TrainConfig, extent: float, ctx: Context) -> list[Strat
         out.append(ShAutoStep(cfg.sh_auto, cfg.iterations, ctx))
     if cfg.compact.enabled:
         out.append(CompactStep(cfg.compact, cfg.iterations, ctx))
+    if cfg.mip_filter:  # last: it filters the Gaussians the others left
+        out.append(MipFilter(ctx.cameras))
     return out
 
 

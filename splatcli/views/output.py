@@ -29,7 +29,7 @@ from ..io.model import LoadedModel, load_model
 from ..project import Project
 from ..render import render_camera
 from .paths import PATHS, cameras_around_points, generate_path
-from .sources import SPLITS, View, dataset_views, resize_views, transforms_views
+from .sources import SPLITS, View, choose_antialias, dataset_views, resize_views, transforms_views
 
 VIDEO_CODECS = {".mp4": "mp4v", ".avi": "MJPG", ".mov": "mp4v", ".mkv": "mp4v"}
 
@@ -55,6 +55,7 @@ class RenderConfig:
     video_fps: float = 30.0
     write_images: bool = True  # False: only time the rendering (and the video)
     sh_degree: int | None = None  # None: every band the model holds
+    antialias: str = "auto"  # auto | on | off: the 2D filter (views/sources.choose_antialias)
 
 
 @dataclass
@@ -74,6 +75,7 @@ class RenderResult:
     device_name: str = ""  # e.g. "cpu (2 threads)", "cuda:0 (NVIDIA H200)"
     source: str = ""  # what was rendered: "checkpoint step 7000", "scene.ply"
     cameras: str = ""  # where the views came from: "test split", "orbit path", ...
+    antialiased: bool = False  # drawn with the 2D filter
 
 
 def to_uint8(img: Tensor) -> np.ndarray:  # [H, W, C] in [0, 1] -> [H, W, C] uint8
@@ -152,10 +154,11 @@ def render_views(
     out_dir: Path | None,
     *,
     on_event: EventSink | None = None,
+    antialiased: bool = False,
 ) -> RenderResult:
     """Render `views` into `out_dir` (PNG per view; depth/ and alpha/ sub-folders
-    when asked) and optionally a video. Nothing is written when `out_dir` is None
-    and no video is asked for."""
+    when asked) and optionally a video, with the 2D filter when `antialiased`.
+    Nothing is written when `out_dir` is None and no video is asked for."""
     if not views:
         raise SplatError("no views to render")
     device = gaussians.device
@@ -175,13 +178,13 @@ def render_views(
     near_far: tuple[float, float] | None = None
     t_wall = time.perf_counter()
     emit(on_event, Stage("render", total=len(views)))
-    render_camera(gaussians, views[0].camera, bg, sh_degree=config.sh_degree)  # warm-up: first calls pay one-off set-up
+    render_camera(gaussians, views[0].camera, bg, sh_degree=config.sh_degree, antialiased=antialiased)  # warm-up: first calls pay one-off set-up
     ok = False
     try:
         for i, view in enumerate(views):
             synchronize(device)
             t0 = time.perf_counter()
-            out = render_camera(gaussians, view.camera, bg, sh_degree=config.sh_degree)
+            out = render_camera(gaussians, view.camera, bg, sh_degree=config.sh_degree, antialiased=antialiased)
             synchronize(device)
             render_s += time.perf_counter() - t0
             rgb = to_uint8(out.image)
@@ -220,6 +223,7 @@ def render_views(
         background=tuple(bg_rgb),  # type: ignore[arg-type]
         images=images,
         video=Path(config.video) if config.video is not None else None,
+        antialiased=antialiased,
     )
 
 
@@ -249,6 +253,7 @@ def check_config(config: RenderConfig) -> None:
         raise SplatError("--cameras and --split both choose the cameras; give one")
     if config.sh_degree is not None and not 0 <= config.sh_degree <= 3:
         raise SplatError(f"--sh-degree {config.sh_degree}: must be 0..3")
+    choose_antialias(config.antialias, None, True)  # refuses an unknown mode
 
 
 def select_views(model: LoadedModel, config: RenderConfig, notes: list[str]) -> tuple[list[View], str, Project | None]:
@@ -298,6 +303,7 @@ class RenderPlan:
     config: RenderConfig  # with the background resolved
     cameras: str  # where the views came from, in words
     notes: list[str] = field(default_factory=list)
+    antialiased: bool = False  # draw with the 2D filter
 
 
 def plan_render(source: str | os.PathLike, config: RenderConfig, device: torch.device) -> RenderPlan:
@@ -321,15 +327,21 @@ def plan_render(source: str | os.PathLike, config: RenderConfig, device: torch.d
         what = Path(config.cameras).name
     else:
         what = f"{name} split"
+    # The resolution trained: a project's cameras with no size option (select_views).
+    same = (project is not None and config.cameras is None
+            and config.downscale is None and config.width is None and config.height is None)
+    antialiased, why = choose_antialias(config.antialias, model.antialiased, same)
+    notes += [why] if why else []
     return RenderPlan(model=model, views=views, out_dir=out_dir, config=replace(config, background=background),
-                      cameras=what, notes=notes)
+                      cameras=what, notes=notes, antialiased=antialiased)
 
 
 def run_render(plan: RenderPlan, *, on_event: EventSink | None = None) -> RenderResult:
     """Render a plan into its folder (and video)."""
     for n in plan.notes:
         emit(on_event, Note(n))
-    result = render_views(plan.model.gaussians, plan.views, plan.config, plan.out_dir, on_event=on_event)
+    result = render_views(plan.model.gaussians, plan.views, plan.config, plan.out_dir, on_event=on_event,
+                          antialiased=plan.antialiased)
     m = plan.model
     result.source = m.name
     result.cameras = plan.cameras

@@ -129,3 +129,23 @@ def resize_views(views: list[View], *, width: int | None = None, height: int | N
             c = c.resized(int(w), int(h))
         out.append(replace(v, camera=c))
     return out
+
+
+ANTIALIAS = ("auto", "on", "off")  # render / eval --antialias
+
+
+def choose_antialias(mode: str, trained_with: bool | None, same_resolution: bool) -> tuple[bool, str | None]:
+    """Whether to draw with the 2D filter (rasterize(antialiased=True)), and a line
+    saying why when it is on. auto: on for a model trained with it (`train
+    --mip-filter`), or when drawing at another resolution than the one trained, where
+    the 0.3-pixel dilation alone would thicken (zoomed out) or erode (zoomed in) it."""
+    if mode not in ANTIALIAS:
+        raise SplatError(f"--antialias {mode!r} is not known; allowed values: {', '.join(ANTIALIAS)}")
+    if mode != "auto":
+        return mode == "on", "drawn with the 2D antialiasing filter (--antialias on)" if mode == "on" else None
+    if trained_with:
+        return True, "drawn with the 2D antialiasing filter, as the model was trained (--mip-filter)"
+    if not same_resolution:
+        return True, ("drawn with the 2D antialiasing filter: not at the resolution trained "
+                      "(--antialias off draws without it)")
+    return False, None
