@@ -1,6 +1,7 @@
 """Does held-out quality fall as training goes on?  Issue 15's overfitting study.
 
-    .venv/bin/python bench/overfit.py [--scenes object,fox-photos] [--variants base,...] [--no-write]
+    .venv/bin/python bench/overfit.py [--scenes object,fox-photos] [--variants base,reg,far,views,all]
+                                      [--no-write] [--doc-only]
 
 Each scene trains `--preset fast` (fox from its photos at `--max-size 320`) once per variant, one
 after the other, with held-out and training-view PSNR every 500 steps (train_log.jsonl). Reported:
@@ -41,6 +42,10 @@ EVERY = 500
 # variant -> extra train options
 VARIANTS = {
     "base": [],
+    "reg": ["--opacity-reg", "0.01", "--scale-reg", "0.01"],
+    "far": ["--init-far", "20000"],
+    "views": ["--prune-views", "3"],
+    "all": ["--opacity-reg", "0.01", "--scale-reg", "0.01", "--init-far", "20000", "--prune-views", "3"],
 }
 SCENES = {"object": ["--keep-checkpoints", "20", "--checkpoint-every", str(EVERY)],
           "fox-photos": ["--max-size", "320"]}
@@ -136,12 +141,23 @@ def main() -> None:
     ap.add_argument("--scenes", default="object,fox-photos")
     ap.add_argument("--variants", default=",".join(VARIANTS))
     ap.add_argument("--no-write", action="store_true")
+    ap.add_argument("--doc-only", action="store_true", help="rewrite the doc section from the stored results")
     args = ap.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)
-    rows = [train(s, v, VARIANTS[v]) for s in args.scenes.split(",") if s for v in args.variants.split(",") if v]
-    (OUT / "results.json").write_text(json.dumps(rows, indent=1))
-    if not args.no_write:
-        write_section("## overfitting", doc_lines(rows))
+    path = OUT / "results.json"
+    if args.doc_only:
+        write_section("## overfitting", doc_lines(json.loads(path.read_text())))
+        return  # runs accumulate by (scene, variant): variants may run in separate invocations
+    for s in [s for s in args.scenes.split(",") if s]:
+        for v in [v for v in args.variants.split(",") if v]:
+            row = train(s, v, VARIANTS[v])
+            rows = [r for r in (json.loads(path.read_text()) if path.exists() else [])
+                    if (r["scene"], r["variant"]) != (s, v)] + [row]
+            order = {k: i for i, k in enumerate(VARIANTS)}
+            rows.sort(key=lambda r: (r["scene"], order.get(r["variant"], 99)))
+            path.write_text(json.dumps(rows, indent=1))
+            if not args.no_write:
+                write_section("## overfitting", doc_lines(rows))
 
 
 def doc_lines(rows: list[dict]) -> list[str]:

@@ -41,6 +41,8 @@ def train(
                                     "opacities), drawn with the 2D antialiasing filter: renders at other resolutions keep their look."),
     downscale: Optional[float] = typer.Option(None, "--downscale", help="Train at the image size divided by this."),
     max_size: Optional[int] = typer.Option(None, "--max-size", help=f"Cap the longest image side at this (pixels; default {_D.max_size})."),
+    checkpoint_every: Optional[int] = typer.Option(None, "--checkpoint-every", help=f"Write a checkpoint every this many steps (default {_D.checkpoint_every}; also at the end and on Ctrl-C)."),
+    keep_checkpoints: Optional[int] = typer.Option(None, "--keep-checkpoints", help=f"Keep the newest this many checkpoints (default {_D.keep_checkpoints})."),
     eval_every: Optional[int] = typer.Option(None, "--eval-every", help="Held-out PSNR/SSIM every this many steps (0: at the end)."),
     time_budget: Optional[float] = typer.Option(None, "--time-budget", help="Training seconds to fit in: the run measures its speed and plans the preset's schedule, compressed, to end within them (evaluation not counted)."),
     resume: bool = typer.Option(False, "--resume", help="Continue from the latest checkpoint (its settings; options given here override)."),
@@ -65,7 +67,8 @@ def train(
     dev = resolve_device(device)
     given = dict(iterations=iterations, sh_degree=sh_degree, max_gaussians=max_gaussians, compact=compact or None,
                  density=strategy.strip().lower() if strategy else None, opacity_reg=opacity_reg, scale_reg=scale_reg,
-                 init_far=init_far, prune_views=prune_views,
+                 init_far=init_far, prune_views=prune_views, checkpoint_every=checkpoint_every,
+                 keep_checkpoints=keep_checkpoints,
                  mip_filter=mip_filter or None,
                  downscale=downscale, max_size=max_size, eval_every=eval_every, time_budget=time_budget,
                  init_ply=str(init_ply) if init_ply else None)
