@@ -14,9 +14,11 @@ right, y down, z forward); `viewmat` [4, 4] maps world to camera; pixel
 (u, v) is sampled at its centre (u + 0.5, v + 0.5) in the coordinates of K.
 
     python sample_data/make_scene.py [--out sample_data/scene] [--views 28]
-                                     [--width 320] [--height 240] [--seed 0]
+                                     [--width 320] [--height 240] [--seed 0] [--distractor]
 
-writes out/images/NNN.jpg and out/ground_truth.json (see README.md).
+writes out/images/NNN.jpg and out/ground_truth.json (see README.md). --distractor
+adds a moving object to the odd-numbered views (never to the held-out views,
+every 8th from 000) and writes its masks as out/masks/NNN.jpg.png (0 where it is).
 """
 
 # No `from __future__ import annotations`: tests load this file by path, without a
@@ -433,6 +435,37 @@ def render_view(K: np.ndarray, viewmat: np.ndarray, width: int, height: int, see
     return np.clip(np.round(srgb * 255.0), 0, 255).astype(np.uint8)
 
 
+def distractor_sphere(i: int, K: np.ndarray, viewmat: np.ndarray) -> Sphere:
+    """View i's distractor: a sphere floating between the camera and the still life,
+    somewhere else in every view (so no 3D point explains it), hue by view."""
+    R, t = viewmat[:3, :3], viewmat[:3, 3]
+    rng = np.random.default_rng(1000 + i)
+    x, y = rng.uniform(-0.35, 0.35), rng.uniform(-0.25, 0.2)  # normalised image offsets from the centre
+    depth = rng.uniform(1.4, 2.2)
+    center = R.T @ (np.array([x * depth, y * depth, depth]) - t)  # camera point to world
+    return Sphere(tuple(float(c) for c in center), float(rng.uniform(0.22, 0.32)), i)
+
+
+def add_distractor(img: np.ndarray, K: np.ndarray, viewmat: np.ndarray, sp: Sphere, supersample: int = 2
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """img [H, W, 3] uint8 with the brightly coloured sphere `sp` drawn where it is in
+    front of the scene (flat hue, Lambert shading, no shadow), and its mask [H, W]
+    uint8: 0 on every pixel it touches, 255 elsewhere."""
+    h, w = img.shape[:2]
+    ss = supersample
+    o, d = pixel_rays(K, viewmat, w, h, ss)
+    scene_t, _ = _cast(o, d)
+    t = _t_sphere(o, d, sp)
+    cover = t < scene_t
+    n = (o + d * np.where(cover, t, 0.0)[:, None] - np.asarray(sp.center)) / sp.radius
+    shade = AMBIENT + (1.0 - AMBIENT) * np.clip(n @ LIGHT_DIR, 0.0, None)
+    colour = _hsv(np.full(len(d), (sp.material * 0.37) % 1.0), np.full(len(d), 0.9), np.ones(len(d)))
+    rgb = (colour * (shade * cover)[:, None] * 255.0).reshape(h, ss, w, ss, 3).mean(axis=(1, 3))  # covered samples
+    frac = cover.reshape(h, ss, w, ss).mean(axis=(1, 3))
+    out = np.clip(np.round(img * (1.0 - frac[..., None]) + rgb), 0, 255)  # the scene's samples replaced where covered
+    return out.astype(np.uint8), np.where(frac > 0, 0, 255).astype(np.uint8)
+
+
 # ---------------------------------------------------------------------------
 # Output
 # ---------------------------------------------------------------------------
@@ -459,6 +492,7 @@ def render_scene(
     seed: int = 0,
     arc_degrees: float | None = None,
     jpeg_quality: int = 92,
+    distractor: bool = False,
 ) -> Path:
     """Render the scene into `out_dir`: images/NNN.jpg and ground_truth.json. Returns out_dir.
 
@@ -466,6 +500,7 @@ def render_scene(
     textures only; the geometry and the cameras depend on the sizes and views.
     `arc_degrees` None: 270 degrees, or 10 degrees per step when there are fewer
     than 28 views (so that small test scenes still register in SfM).
+    `distractor`: odd views get a moving object (add_distractor), masks go to masks/.
     """
     import cv2  # only to encode JPEGs
 
@@ -475,9 +510,18 @@ def render_scene(
     if arc_degrees is None:
         arc_degrees = arc_for_views(num_views)
     cams = []
+    moved: list[str] = []
     for i, (K, viewmat) in enumerate(orbit_cameras(num_views, width, height, arc_degrees)):
         name = f"{i:03d}.jpg"
         img = render_view(K, viewmat, width, height, seed)
+        if distractor:
+            mask = np.full((height, width), 255, np.uint8)
+            if i % 2 == 1:
+                img, mask = add_distractor(img, K, viewmat, distractor_sphere(i, K, viewmat))
+                moved.append(name)
+            (out / "masks").mkdir(exist_ok=True)
+            ok, mbuf = cv2.imencode(".png", mask)
+            _atomic_write(out / "masks" / f"{name}.png", mbuf.tobytes())
         ok, buf = cv2.imencode(".jpg", img[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
         if not ok:
             raise RuntimeError(f"OpenCV could not encode {name}")
@@ -492,6 +536,8 @@ def render_scene(
         "look_at": LOOK_AT.tolist(),
         "cameras": cams,
     }
+    if distractor:
+        gt["distractor_views"] = moved
     _atomic_write(out / "ground_truth.json", (json.dumps(gt, indent=1) + "\n").encode())
     return out
 
@@ -503,8 +549,11 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--width", type=int, default=320)
     ap.add_argument("--height", type=int, default=240)
     ap.add_argument("--seed", type=int, default=0, help="texture seed")
+    ap.add_argument("--distractor", action="store_true",
+                    help="a moving object in the odd views, with masks in out/masks/NNN.jpg.png")
     args = ap.parse_args(argv)
-    out = render_scene(args.out, num_views=args.views, width=args.width, height=args.height, seed=args.seed)
+    out = render_scene(args.out, num_views=args.views, width=args.width, height=args.height, seed=args.seed,
+                       distractor=args.distractor)
     print(f"wrote {args.views} views to {out}")
 
 
