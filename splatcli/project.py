@@ -207,6 +207,18 @@ class Project:
             return None
         return "files" if facts.get("mask_source") == "files" else "alpha"  # older projects: alpha only
 
+    def mask_mode(self, requested: str = "auto") -> str:
+        """What a --mask-mode means for this project: "ignore" (masked pixels take no part
+        in the loss or the scores), "background" (they are fitted to the background
+        colour) or "off". auto: background for alpha masks (the images are already
+        composited over it), ignore for mask files; always off without masks."""
+        source = self.mask_source()
+        if source is None or requested == "off":
+            return "off"
+        if requested == "auto":
+            return "background" if source == "alpha" else "ignore"
+        return requested
+
     def trained_resolution(self) -> tuple[float, int | None]:
         """(downscale, max_size) that `train` recorded: eval and render use the
         resolution the model was trained at (Camera.at_resolution). A hand-edited

@@ -31,6 +31,9 @@ def train(
     strategy: Optional[str] = typer.Option(None, "--strategy", help=f"Density control: default = 3DGS's clone/split/prune; mcmc = a fixed budget "
                                            f"(--max-gaussians), grown {_D.mcmc.growth:.0%} per refinement, dead Gaussians moved onto live ones, "
                                            "noise on nearly transparent ones, opacity and scale penalties (Kheradmand et al. 2024)."),
+    mask_mode: Optional[str] = typer.Option(None, "--mask-mode", help=f"What the project's masks do (default {_D.mask_mode}): ignore = masked pixels take no part in the "
+                                            "loss (people, moving objects); background = they are trained to the background colour (object captures); "
+                                            "off = masks unused; auto = background for masks from an alpha channel, ignore for mask files."),
     compact: bool = typer.Option(False, "--compact", help=f"After training, keep {_D.compact.keep:.0%} of the Gaussians, those with the most blending weight (cut in {_D.compact.rounds} rounds), while fine-tuning {_D.compact.finetune} more steps."),
     downscale: Optional[float] = typer.Option(None, "--downscale", help="Train at the image size divided by this."),
     max_size: Optional[int] = typer.Option(None, "--max-size", help=f"Cap the longest image side at this (pixels; default {_D.max_size})."),
@@ -58,6 +61,7 @@ def train(
     dev = resolve_device(device)
     given = dict(iterations=iterations, sh_degree=sh_degree, max_gaussians=max_gaussians, compact=compact or None,
                  density=strategy.strip().lower() if strategy else None,
+                 mask_mode=mask_mode.strip().lower() if mask_mode else None,
                  downscale=downscale, max_size=max_size, eval_every=eval_every, time_budget=time_budget,
                  init_ply=str(init_ply) if init_ply else None)
     cfg = make_config(preset, seed=seed, device=str(dev), **given)
