@@ -92,7 +92,7 @@ def load_train_data(
     max_size: int | None,
     device: torch.device,
     eval_max_views: int = 0,
-    mask_mode: str = "off",
+    mask_mode: str = "auto",
 ) -> TrainData:
     """Cameras of the project's splits at the training resolution, images (and masks,
     per `mask_mode`: module docstring) cached."""
