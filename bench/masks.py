@@ -4,8 +4,8 @@
                                     [--iterations N] [--threads 1] [--no-write]
 
 Renders the sample scene with `make_scene.py --distractor` (a brightly coloured sphere
-somewhere else in each odd-numbered view, masks in masks/NNN.jpg.png; the held-out
-views, every 8th, never contain it), processes it once (the masks keep SIFT off the
+somewhere else among the objects in three views of four, masks in masks/NNN.jpg.png;
+the held-out views, every 8th, never contain it), processes it once (the masks keep SIFT off the
 sphere, so both runs share the same poses and points), then trains two copies with the
 same schedule, one after the other in this run: `--mask-mode ignore` and `--mask-mode
 off`. Reports held-out PSNR/SSIM of both and the gain into bench/out/masks/results.json
@@ -94,8 +94,8 @@ def main() -> None:
 
     lines = [HEADING, "",
              f"Measured by `python bench/masks.py`: the sample scene rendered by `make_scene.py --distractor` "
-             f"({args.views} views at {args.width}x{args.height}; a brightly coloured sphere floats somewhere else in "
-             f"each of the {len(moved)} odd-numbered views, with its masks; the {p['test']} held-out views never "
+             f"({args.views} views at {args.width}x{args.height}; a brightly coloured sphere floats somewhere else "
+             f"among the objects in {len(moved)} views, with its masks; the {p['test']} held-out views never "
              f"show it), processed once (the masks keep SIFT off the sphere), then trained with `--preset "
              f"{args.preset}`" + (f" cut to {args.iterations} steps" if args.iterations else "")
              + f" twice, one after the other in one run ({args.threads} torch thread): masked pixels ignored, "

@@ -17,8 +17,8 @@ right, y down, z forward); `viewmat` [4, 4] maps world to camera; pixel
                                      [--width 320] [--height 240] [--seed 0] [--distractor]
 
 writes out/images/NNN.jpg and out/ground_truth.json (see README.md). --distractor
-adds a moving object to the odd-numbered views (never to the held-out views,
-every 8th from 000) and writes its masks as out/masks/NNN.jpg.png (0 where it is).
+adds a moving object to three views in four (never to a multiple of 4, so never
+to the held-out views, every 8th from 000) and writes its masks as out/masks/NNN.jpg.png (0 where it is).
 """
 
 # No `from __future__ import annotations`: tests load this file by path, without a
@@ -436,14 +436,14 @@ def render_view(K: np.ndarray, viewmat: np.ndarray, width: int, height: int, see
 
 
 def distractor_sphere(i: int, K: np.ndarray, viewmat: np.ndarray) -> Sphere:
-    """View i's distractor: a sphere floating between the camera and the still life,
-    somewhere else in every view (so no 3D point explains it), hue by view."""
+    """View i's distractor: a sphere floating among the still life's objects, somewhere
+    else in every view (so no 3D point explains it), hue by view."""
     R, t = viewmat[:3, :3], viewmat[:3, 3]
     rng = np.random.default_rng(1000 + i)
     x, y = rng.uniform(-0.35, 0.35), rng.uniform(-0.25, 0.2)  # normalised image offsets from the centre
-    depth = rng.uniform(1.4, 2.2)
+    depth = rng.uniform(2.2, 3.2)  # the objects are 3-4.5 units from the cameras
     center = R.T @ (np.array([x * depth, y * depth, depth]) - t)  # camera point to world
-    return Sphere(tuple(float(c) for c in center), float(rng.uniform(0.22, 0.32)), i)
+    return Sphere(tuple(float(c) for c in center), float(rng.uniform(0.3, 0.42)), i)
 
 
 def add_distractor(img: np.ndarray, K: np.ndarray, viewmat: np.ndarray, sp: Sphere, supersample: int = 2
@@ -500,7 +500,8 @@ def render_scene(
     textures only; the geometry and the cameras depend on the sizes and views.
     `arc_degrees` None: 270 degrees, or 10 degrees per step when there are fewer
     than 28 views (so that small test scenes still register in SfM).
-    `distractor`: odd views get a moving object (add_distractor), masks go to masks/.
+    `distractor`: views whose number is not a multiple of 4 get a moving object
+    (add_distractor), and every view a mask in masks/.
     """
     import cv2  # only to encode JPEGs
 
@@ -516,7 +517,7 @@ def render_scene(
         img = render_view(K, viewmat, width, height, seed)
         if distractor:
             mask = np.full((height, width), 255, np.uint8)
-            if i % 2 == 1:
+            if i % 4 != 0:
                 img, mask = add_distractor(img, K, viewmat, distractor_sphere(i, K, viewmat))
                 moved.append(name)
             (out / "masks").mkdir(exist_ok=True)
@@ -550,7 +551,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--height", type=int, default=240)
     ap.add_argument("--seed", type=int, default=0, help="texture seed")
     ap.add_argument("--distractor", action="store_true",
-                    help="a moving object in the odd views, with masks in out/masks/NNN.jpg.png")
+                    help="a moving object in three views of four, with masks in out/masks/NNN.jpg.png")
     args = ap.parse_args(argv)
     out = render_scene(args.out, num_views=args.views, width=args.width, height=args.height, seed=args.seed,
                        distractor=args.distractor)
