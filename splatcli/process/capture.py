@@ -119,4 +119,3 @@ def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
                     mean_track_length=model.mean_track_length(), skipped=skipped, matcher=res.matcher,
                     pairs=res.num_pairs, keypoints_median=res.keypoints_median, model_sizes=res.model_sizes,
                     unregistered=res.unregistered, dropped_blurry=dropped)
-
