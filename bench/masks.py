@@ -3,10 +3,10 @@
     .venv/bin/python bench/masks.py [--views 28] [--width 320] [--height 240] [--preset demo]
                                     [--iterations N] [--threads 1] [--no-write]
 
-Renders the sample scene with `make_scene.py --distractor` (a brightly coloured sphere
-somewhere else among the objects in three views of four, masks in masks/NNN.jpg.png;
-the held-out views, every 8th, never contain it), processes it once (the masks keep SIFT off the
-sphere, so both runs share the same poses and points), then trains two copies with the
+Renders the sample scene with `make_scene.py --distractor` (a ball rolling across the
+floor while the photographs are taken, so each view sees it somewhere else; masks in
+masks/NNN.jpg.png; the held-out views, every 8th, never show it), processes it once (the
+masks keep SIFT off the ball, so both runs share the same poses and points), then trains two copies with the
 same schedule, one after the other in this run: `--mask-mode ignore` and `--mask-mode
 off`. Reports held-out PSNR/SSIM of both and the gain into bench/out/masks/results.json
 and the "## masks" section of docs/benchmarks.md (issue 15's target: at least 2 dB).
@@ -94,9 +94,10 @@ def main() -> None:
 
     lines = [HEADING, "",
              f"Measured by `python bench/masks.py`: the sample scene rendered by `make_scene.py --distractor` "
-             f"({args.views} views at {args.width}x{args.height}; a brightly coloured sphere floats somewhere else "
-             f"among the objects in {len(moved)} views, with its masks; the {p['test']} held-out views never "
-             f"show it), processed once (the masks keep SIFT off the sphere), then trained with `--preset "
+             f"({args.views} views at {args.width}x{args.height}; a violet ball rolls across the floor in front of the "
+             f"objects while the photographs are taken and shows in {len(moved)} of them, with its masks; the "
+             f"{p['test']} held-out views never show it), processed once (the masks keep SIFT off the ball), then "
+             f"trained with `--preset "
              f"{args.preset}`" + (f" cut to {args.iterations} steps" if args.iterations else "")
              + f" twice, one after the other in one run ({args.threads} torch thread): masked pixels ignored, "
              "and masks off (the distractor fitted like the scene).", "",

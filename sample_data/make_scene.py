@@ -17,8 +17,9 @@ right, y down, z forward); `viewmat` [4, 4] maps world to camera; pixel
                                      [--width 320] [--height 240] [--seed 0] [--distractor]
 
 writes out/images/NNN.jpg and out/ground_truth.json (see README.md). --distractor
-adds a moving object to three views in four (never to a multiple of 4, so never
-to the held-out views, every 8th from 000) and writes its masks as out/masks/NNN.jpg.png (0 where it is).
+adds a ball rolling through the scene, seen in three views of four at most (never
+in a view numbered a multiple of 4, so never in the held-out views, every 8th from
+000), and writes masks as out/masks/NNN.jpg.png (0 where the ball is).
 """
 
 # No `from __future__ import annotations`: tests load this file by path, without a
@@ -435,21 +436,19 @@ def render_view(K: np.ndarray, viewmat: np.ndarray, width: int, height: int, see
     return np.clip(np.round(srgb * 255.0), 0, 255).astype(np.uint8)
 
 
-def distractor_sphere(i: int, K: np.ndarray, viewmat: np.ndarray) -> Sphere:
-    """View i's distractor: a sphere floating among the still life's objects, somewhere
-    else in every view (so no 3D point explains it), hue by view."""
-    R, t = viewmat[:3, :3], viewmat[:3, 3]
-    rng = np.random.default_rng(1000 + i)
-    x, y = rng.uniform(-0.35, 0.35), rng.uniform(-0.25, 0.2)  # normalised image offsets from the centre
-    depth = rng.uniform(2.2, 3.2)  # the objects are 3-4.5 units from the cameras
-    center = R.T @ (np.array([x * depth, y * depth, depth]) - t)  # camera point to world
-    return Sphere(tuple(float(c) for c in center), float(rng.uniform(0.3, 0.42)), i)
+def distractor_sphere(i: int, num_views: int) -> Sphere:
+    """View i's distractor: a ball rolling across the floor in front of the still life
+    while the photographs are taken (like someone walking through a capture): one
+    straight path over the orbit, so each view sees it somewhere else. One colour."""
+    t = i / max(num_views - 1, 1)
+    r = 0.38
+    return Sphere((-2.0 + 4.0 * t, -1.55 + 0.5 * math.sin(math.pi * t), r), r, 2)  # material 2: hue 0.74 (violet)
 
 
 def add_distractor(img: np.ndarray, K: np.ndarray, viewmat: np.ndarray, sp: Sphere, supersample: int = 2
                    ) -> tuple[np.ndarray, np.ndarray]:
     """img [H, W, 3] uint8 with the brightly coloured sphere `sp` drawn where it is in
-    front of the scene (flat hue, Lambert shading, no shadow), and its mask [H, W]
+    front of the scene (hue from its material number, Lambert shading, no shadow), and its mask [H, W]
     uint8: 0 on every pixel it touches, 255 elsewhere."""
     h, w = img.shape[:2]
     ss = supersample
@@ -500,8 +499,8 @@ def render_scene(
     textures only; the geometry and the cameras depend on the sizes and views.
     `arc_degrees` None: 270 degrees, or 10 degrees per step when there are fewer
     than 28 views (so that small test scenes still register in SfM).
-    `distractor`: views whose number is not a multiple of 4 get a moving object
-    (add_distractor), and every view a mask in masks/.
+    `distractor`: views whose number is not a multiple of 4 show a rolling ball
+    (distractor_sphere, add_distractor), and every view gets a mask in masks/.
     """
     import cv2  # only to encode JPEGs
 
@@ -518,8 +517,9 @@ def render_scene(
         if distractor:
             mask = np.full((height, width), 255, np.uint8)
             if i % 4 != 0:
-                img, mask = add_distractor(img, K, viewmat, distractor_sphere(i, K, viewmat))
-                moved.append(name)
+                img, mask = add_distractor(img, K, viewmat, distractor_sphere(i, num_views))
+                if (mask == 0).any():
+                    moved.append(name)
             (out / "masks").mkdir(exist_ok=True)
             ok, mbuf = cv2.imencode(".png", mask)
             _atomic_write(out / "masks" / f"{name}.png", mbuf.tobytes())
@@ -551,7 +551,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--height", type=int, default=240)
     ap.add_argument("--seed", type=int, default=0, help="texture seed")
     ap.add_argument("--distractor", action="store_true",
-                    help="a moving object in three views of four, with masks in out/masks/NNN.jpg.png")
+                    help="a ball rolling through the scene in views not numbered a multiple of 4, "
+                         "with masks in out/masks/NNN.jpg.png")
     args = ap.parse_args(argv)
     out = render_scene(args.out, num_views=args.views, width=args.width, height=args.height, seed=args.seed,
                        distractor=args.distractor)
