@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from splatcli.eval.metrics import psnr, ssim
-from splatcli.io.images import load_mask, load_rgb
+from splatcli.io.images import load_mask
 from splatcli.process.run import ProcessConfig, process
 from splatcli.project import Project
 from splatcli.train.data import load_train_data

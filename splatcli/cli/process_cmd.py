@@ -43,4 +43,7 @@ def process(
     lines = [f"{r.train} train / {r.test} test images, {r.points} points"
              + (f", reprojection error {r.mean_reprojection_error:.2f} px" if r.mean_reprojection_error else ""),
              "stages: " + ", ".join(f"{k} {v:.1f}s" for k, v in r.seconds.items())]
+    if r.mask_source:
+        src = "the images' alpha channel" if r.mask_source == "alpha" else "mask files"
+        lines.append(f"masks: from {src}, in {r.project / 'masks'}")
     ui.summary(r.summary(), title=f"{r.input_kind}: {r.registered}/{r.total} images posed -> {r.project}", lines=lines)
