@@ -14,9 +14,12 @@ right, y down, z forward); `viewmat` [4, 4] maps world to camera; pixel
 (u, v) is sampled at its centre (u + 0.5, v + 0.5) in the coordinates of K.
 
     python sample_data/make_scene.py [--out sample_data/scene] [--views 28] [--kind object]
-                                     [--width 320] [--height 240] [--seed 0]
+                                     [--width 320] [--height 240] [--seed 0] [--distractor]
 
-writes out/images/NNN.jpg and out/ground_truth.json (see README.md).
+writes out/images/NNN.jpg and out/ground_truth.json (see README.md). --distractor
+adds a ball rolling through the scene, seen in three views of four at most (never
+in a view numbered a multiple of 4, so never in the held-out views, every 8th from
+000), and writes masks as out/masks/NNN.jpg.png (0 where the ball is).
 """
 
 # No `from __future__ import annotations`: tests load this file by path, without a
@@ -475,6 +478,35 @@ def _defocus(lin: np.ndarray, far: np.ndarray, sigma: float) -> np.ndarray:
     return lin * (1.0 - far[..., None]) + back * far[..., None]
 
 
+def distractor_sphere(i: int, num_views: int) -> Sphere:
+    """View i's distractor: a ball rolling across the floor in front of the still life
+    while the photographs are taken (like someone walking through a capture): one
+    straight path over the orbit, so each view sees it somewhere else. One colour."""
+    t = i / max(num_views - 1, 1)
+    r = 0.38
+    return Sphere((-2.0 + 4.0 * t, -1.55 + 0.5 * math.sin(math.pi * t), r), r, 2)  # material 2: hue 0.74 (violet)
+
+
+def add_distractor(img: np.ndarray, K: np.ndarray, viewmat: np.ndarray, sp: Sphere, supersample: int = 2
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """img [H, W, 3] uint8 with the brightly coloured sphere `sp` drawn where it is in
+    front of the scene (hue from its material number, Lambert shading, no shadow), and its mask [H, W]
+    uint8: 0 on every pixel it touches, 255 elsewhere."""
+    h, w = img.shape[:2]
+    ss = supersample
+    o, d = pixel_rays(K, viewmat, w, h, ss)
+    scene_t, _ = _cast(o, d)
+    t = _t_sphere(o, d, sp)
+    cover = t < scene_t
+    n = (o + d * np.where(cover, t, 0.0)[:, None] - np.asarray(sp.center)) / sp.radius
+    shade = AMBIENT + (1.0 - AMBIENT) * np.clip(n @ LIGHT_DIR, 0.0, None)
+    colour = _hsv(np.full(len(d), (sp.material * 0.37) % 1.0), np.full(len(d), 0.9), np.ones(len(d)))
+    rgb = (colour * (shade * cover)[:, None] * 255.0).reshape(h, ss, w, ss, 3).mean(axis=(1, 3))  # covered samples
+    frac = cover.reshape(h, ss, w, ss).mean(axis=(1, 3))
+    out = np.clip(np.round(img * (1.0 - frac[..., None]) + rgb), 0, 255)  # the scene's samples replaced where covered
+    return out.astype(np.uint8), np.where(frac > 0, 0, 255).astype(np.uint8)
+
+
 # ---------------------------------------------------------------------------
 # Output
 # ---------------------------------------------------------------------------
@@ -502,6 +534,7 @@ def render_scene(
     arc_degrees: float | None = None,
     jpeg_quality: int = 92,
     kind: str = "still-life",
+    distractor: bool = False,
 ) -> Path:
     """Render the scene into `out_dir`: images/NNN.jpg and ground_truth.json. Returns out_dir.
 
@@ -510,6 +543,8 @@ def render_scene(
     `arc_degrees` None: 270 degrees, or 10 degrees per step when there are fewer
     than 28 views (so that small test scenes still register in SfM). `kind` "object":
     the objects on plain paper before a defocused backdrop (render_view).
+    `distractor`: views whose number is not a multiple of 4 show a rolling ball
+    (distractor_sphere, add_distractor), and every view gets a mask in masks/.
     """
     import cv2  # only to encode JPEGs
 
@@ -519,9 +554,19 @@ def render_scene(
     if arc_degrees is None:
         arc_degrees = arc_for_views(num_views)
     cams = []
+    moved: list[str] = []
     for i, (K, viewmat) in enumerate(orbit_cameras(num_views, width, height, arc_degrees)):
         name = f"{i:03d}.jpg"
         img = render_view(K, viewmat, width, height, seed, kind=kind)
+        if distractor:
+            mask = np.full((height, width), 255, np.uint8)
+            if i % 4 != 0:
+                img, mask = add_distractor(img, K, viewmat, distractor_sphere(i, num_views))
+                if (mask == 0).any():
+                    moved.append(name)
+            (out / "masks").mkdir(exist_ok=True)
+            ok, mbuf = cv2.imencode(".png", mask)
+            _atomic_write(out / "masks" / f"{name}.png", mbuf.tobytes())
         ok, buf = cv2.imencode(".jpg", img[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
         if not ok:
             raise RuntimeError(f"OpenCV could not encode {name}")
@@ -537,6 +582,8 @@ def render_scene(
         "look_at": LOOK_AT.tolist(),
         "cameras": cams,
     }
+    if distractor:
+        gt["distractor_views"] = moved
     _atomic_write(out / "ground_truth.json", (json.dumps(gt, indent=1) + "\n").encode())
     return out
 
@@ -550,9 +597,12 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--seed", type=int, default=0, help="texture seed")
     ap.add_argument("--kind", choices=("still-life", "object"), default="still-life",
                     help="object: the objects on plain paper before a backdrop out of focus (a hand-held object capture)")
+    ap.add_argument("--distractor", action="store_true",
+                    help="a ball rolling through the scene in views not numbered a multiple of 4, "
+                         "with masks in out/masks/NNN.jpg.png")
     args = ap.parse_args(argv)
     out = render_scene(args.out, num_views=args.views, width=args.width, height=args.height, seed=args.seed,
-                       kind=args.kind)
+                       kind=args.kind, distractor=args.distractor)
     print(f"wrote {args.views} views to {out}")
 
 

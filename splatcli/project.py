@@ -4,7 +4,7 @@
       splatcli.json    manifest: schema version, source, frame, splits, scene facts,
                        and each command's resolved config and summary
       images/          the images training uses (undistorted, RGB)
-      masks/           alpha masks, when the input had them (RGBA captures)
+      masks/           <image name>.png, 255 = keep, when the input had masks (alpha or files)
       sfm/             database.db, sparse/0 (PINHOLE COLMAP model of images/),
                        distorted/ (the raw model, when undistortion happened)
       checkpoints/     step-000007000.pt ...
@@ -79,7 +79,7 @@ class Project:
     lock_path = _at(LOCK_NAME)
 
     def mask_path(self, image_name: str) -> Path:
-        """The alpha mask of images/<image_name>: masks/<image_name>.png."""
+        """The mask of images/<image_name>: masks/<image_name>.png (COLMAP's naming)."""
         return self.masks_dir / f"{image_name}.png"
 
     def plot_path(self, name: str) -> Path:
@@ -198,6 +198,26 @@ class Project:
         """The scene's background (white for Blender scenes) recorded by `process`."""
         bg = (self.manifest().get("scene") or {}).get("background")
         return tuple(float(v) for v in bg) if bg is not None else None  # type: ignore[return-value]
+
+    def mask_source(self) -> str | None:
+        """Where the masks in masks/ came from: "alpha" (images already composited over
+        the background), "files" (a masks folder or mask_path), or None (no masks)."""
+        facts = self.manifest().get("scene") or {}
+        if not facts.get("masks") or not self.masks_dir.is_dir():
+            return None
+        return "files" if facts.get("mask_source") == "files" else "alpha"  # older projects: alpha only
+
+    def mask_mode(self, requested: str = "auto") -> str:
+        """What a --mask-mode means for this project: "ignore" (masked pixels take no part
+        in the loss or the scores), "background" (they are fitted to the background
+        colour) or "off". auto: background for alpha masks (the images are already
+        composited over it), ignore for mask files; always off without masks."""
+        source = self.mask_source()
+        if source is None or requested == "off":
+            return "off"
+        if requested == "auto":
+            return "background" if source == "alpha" else "ignore"
+        return requested
 
     def trained_resolution(self) -> tuple[float, int | None]:
         """(downscale, max_size) that `train` recorded: eval and render use the

@@ -72,6 +72,7 @@ def evaluate(
     ui.summary(r.summary(), title=f"{r.split} split: PSNR {r.psnr:.2f} dB, SSIM {r.ssim:.4f}{_lpips(r.lpips)} over {len(r.per_image)} views",
                lines=[f"{r.num_gaussians:,} Gaussians (SH {r.sh_degree}, {r.ply_bytes / 1e6:.2f} MB): "
                       f"{r.render_fps:.2f} frames/s at {r.width}x{r.height} on {r.device}"]
+               + ([f"masks: scored on {r.masks}"] if r.masks else [])
                + [f"  {b.fraction:>4.0%}: {b.num_gaussians:>9,} Gaussians  {b.psnr:6.2f} dB  {b.ms_per_frame:8.1f} ms/frame"
                   for b in r.budgets]
                + [f"  {f.format:>14}: {f.bytes / 1e6:8.2f} MB ({f.ratio:4.1f}x smaller than .ply)  {f.psnr:6.2f} dB "

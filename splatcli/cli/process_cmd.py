@@ -25,6 +25,8 @@ def process(
     background: str = typer.Option("auto", "--background", help="auto (white for RGBA inputs, else black), white, black, gray or R,G,B in [0, 1]."),
     overwrite: bool = typer.Option(_D.overwrite, "--overwrite", help="Replace an existing project (or use a non-empty folder)."),
     strict: bool = typer.Option(_D.strict, "--strict", help="Fail on an unreadable, truncated or empty image or video frame (default: skip it with a warning; the manifest lists it)."),
+    invert_masks: bool = typer.Option(_D.invert_masks, "--invert-masks", help="The mask files (masks/ beside the images, or transforms.json's mask_path) are white where masked out; "
+                                      "flip them (the default reads black = masked out, white = keep, as COLMAP and nerfstudio do)."),
     seed: int = SeedOpt,
     quiet: bool = QuietOpt,
     json_out: bool = JsonOpt,
@@ -35,10 +37,13 @@ def process(
     colmap.set_verbose(debug)
     cfg = ProcessConfig(input_type=input_type, max_size=max_size, matcher=matcher, fps=fps, num_frames=num_frames,
                         background=parse_background(background, auto=True), overwrite=overwrite, seed=seed,
-                        strict=strict)
+                        strict=strict, invert_masks=invert_masks)
     with ui.progress() as sink:
         r = run_process(input, output, cfg, on_event=sink)
     lines = [f"{r.train} train / {r.test} test images, {r.points} points"
              + (f", reprojection error {r.mean_reprojection_error:.2f} px" if r.mean_reprojection_error else ""),
              "stages: " + ", ".join(f"{k} {v:.1f}s" for k, v in r.seconds.items())]
+    if r.mask_source:
+        src = "the images' alpha channel" if r.mask_source == "alpha" else "mask files"
+        lines.append(f"masks: from {src}, in {r.project / 'masks'}")
     ui.summary(r.summary(), title=f"{r.input_kind}: {r.registered}/{r.total} images posed -> {r.project}", lines=lines)

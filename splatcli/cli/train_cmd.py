@@ -35,6 +35,9 @@ def train(
     prune_views: Optional[int] = typer.Option(None, "--prune-views", help=f"While densifying, prune Gaussians that fewer than this many training views see (they can only explain those photos: floaters elsewhere; default {_D.support.prune_views}: off)."),
     opacity_reg: Optional[float] = typer.Option(None, "--opacity-reg", help=f"Add this x the mean opacity to the loss: unneeded Gaussians fade and are pruned (default {_D.reg.opacity_reg}: off; mcmc has its own {_D.mcmc.opacity_reg})."),
     scale_reg: Optional[float] = typer.Option(None, "--scale-reg", help=f"Add this x the mean scale (world units) to the loss: Gaussians stay small (default {_D.reg.scale_reg}: off; mcmc has its own {_D.mcmc.scale_reg})."),
+    mask_mode: Optional[str] = typer.Option(None, "--mask-mode", help=f"What the project's masks do (default {_D.mask_mode}): ignore = masked pixels take no part in the "
+                                            "loss (people, moving objects); background = they are trained to the background colour (object captures); "
+                                            "off = masks unused; auto = background for masks from an alpha channel, ignore for mask files."),
     compact: bool = typer.Option(False, "--compact", help=f"After training, keep {_D.compact.keep:.0%} of the Gaussians, those with the most blending weight (cut in {_D.compact.rounds} rounds), while fine-tuning {_D.compact.finetune} more steps."),
     mip_filter: bool = typer.Option(_D.mip_filter, "--mip-filter", help="Mip-Splatting's filters (Yu et al. 2024): no Gaussian "
                                     "finer than the training views sample it (a 3D filter, folded into the exported scales and "
@@ -70,6 +73,7 @@ def train(
                  init_far=init_far, prune_views=prune_views, checkpoint_every=checkpoint_every,
                  keep_checkpoints=keep_checkpoints,
                  mip_filter=mip_filter or None,
+                 mask_mode=mask_mode.strip().lower() if mask_mode else None,
                  downscale=downscale, max_size=max_size, eval_every=eval_every, time_budget=time_budget,
                  init_ply=str(init_ply) if init_ply else None)
     cfg = make_config(preset, seed=seed, device=str(dev), **given)

@@ -16,6 +16,12 @@ two speed-against-error curves:
 Rendered images are quantised to 8 bits before scoring, as the PNGs a user
 sees (and the original 3DGS metrics script) are.
 
+Masks are scored as training used them (`mask_mode` in the train summary;
+Project.mask_mode("auto") for a model from elsewhere): "ignore" scores the
+unmasked pixels only; "background" scores whole images, with mask files' masked
+pixels painted in the background colour (alpha masks: the composited image, the
+Blender benchmark's convention). The report says which (`masks`).
+
 `compare_folders` scores two folders of images matched by name.
 """
 
@@ -38,7 +44,7 @@ from ..errors import SplatError
 from ..events import EventSink, Note, Progress, Stage, StageDone, emit
 from ..gaussians import Gaussians
 from ..io.atomic import atomic_write_json, atomic_write_text
-from ..io.images import load_rgb
+from ..io.images import load_mask, load_rgb
 from ..io.formats import check_format, default_name, read_format, write_format
 from ..io.model import load_model
 from ..io.ply import ply_bytes
@@ -100,14 +106,52 @@ def quantise(img: Tensor) -> Tensor:  # [H, W, 3] -> [H, W, 3] float64 in 1/255 
     return (img.detach().clamp(0, 1) * 255).round().to(torch.float64).cpu() / 255.0
 
 
-def score(name: str, pred: Tensor, gt: Tensor, lp: Lpips | None = None) -> ImageScore:  # [H, W, 3] each
-    return ImageScore(name=name, psnr=float(psnr(pred, gt)),
-                      ssim=float(ssim(pred.to(torch.float64), gt.to(torch.float64))),
-                      lpips=lp(pred, gt) if lp is not None else None)
+def score(name: str, pred: Tensor, gt: Tensor, lp: Lpips | None = None,
+          keep: Tensor | None = None) -> ImageScore:  # [H, W, 3] each, keep [H, W]
+    """PSNR, SSIM (and LPIPS) of one view; with `keep`, over the kept pixels only (LPIPS
+    sees the photograph's own pixels where masked, so they add nothing)."""
+    if keep is not None and lp is not None:
+        lp_pred = torch.where(keep[..., None], pred, gt.to(pred.dtype))
+    else:
+        lp_pred = pred
+    return ImageScore(name=name, psnr=float(psnr(pred, gt, keep)),
+                      ssim=float(ssim(pred.to(torch.float64), gt.to(torch.float64), keep)),
+                      lpips=lp(lp_pred, gt) if lp is not None else None)
 
 
-def _score_views(g: Gaussians, views: Sequence[View], gts: Sequence[Tensor], bg: Tensor, lp: Lpips | None,
-                 on_event: EventSink | None, stage: str, antialiased: bool) -> tuple[list[ImageScore], float]:
+MASKED_SCORING = {  # eval's `masks` line, by the mode training used
+    "ignore": "unmasked pixels only (trained with --mask-mode ignore)",
+    "background": "whole images, masked pixels against the background colour (--mask-mode background)",
+}
+
+
+def _ground_truth(project: Project, views: Sequence[View], bg_rgb: tuple[float, float, float], mode: str,
+                  on_event: EventSink | None) -> tuple[list[Tensor], list[Tensor | None]]:
+    """Each view's photograph ([H, W, 3] float64) and, in "ignore" mode, its kept pixels
+    ([H, W] bool); "background" with mask files paints the masked pixels in `bg_rgb`."""
+    files = project.mask_source() == "files"
+    gts, keeps = [], []
+    emit(on_event, Stage("load images", total=len(views)))
+    for i, v in enumerate(views):
+        assert v.image is not None
+        size = (v.camera.width, v.camera.height)
+        gt = load_image(v.image, bg_rgb, size)
+        keep = None
+        if mode == "ignore" or (mode == "background" and files):
+            keep = torch.from_numpy(load_mask(project.mask_path(v.camera.name), size))
+        if mode == "background" and keep is not None:
+            gt = torch.where(keep[..., None], gt, torch.tensor(bg_rgb, dtype=gt.dtype))
+            keep = None
+        gts.append(gt)
+        keeps.append(keep)
+        emit(on_event, Progress("load images", i + 1, len(views)))
+    emit(on_event, StageDone("load images", 0.0))
+    return gts, keeps
+
+
+def _score_views(g: Gaussians, views: Sequence[View], gts: Sequence[Tensor], keeps: Sequence[Tensor | None],
+                 bg: Tensor, lp: Lpips | None, on_event: EventSink | None, stage: str,
+                 antialiased: bool) -> tuple[list[ImageScore], float]:
     """Render, quantise and score every view; returns scores and the median
     render seconds per frame (the median: other processes sharing the CPU make
     single frames slow, and the first call of a process pays one-off set-up, so
@@ -116,20 +160,21 @@ def _score_views(g: Gaussians, views: Sequence[View], gts: Sequence[Tensor], bg:
     emit(on_event, Stage(stage, total=len(views)))
     t_all = time.perf_counter()
     render_camera(g, views[0].camera, bg, antialiased=antialiased)  # warm-up, untimed
-    for i, (v, gt) in enumerate(zip(views, gts)):
+    for i, (v, gt, keep) in enumerate(zip(views, gts, keeps)):
         synchronize(g.device)
         t0 = time.perf_counter()
         out = render_camera(g, v.camera, bg, antialiased=antialiased)
         synchronize(g.device)
         times.append(time.perf_counter() - t0)
-        scores.append(score(v.camera.name, quantise(out.image), gt, lp))
+        scores.append(score(v.camera.name, quantise(out.image), gt, lp, keep))
         emit(on_event, Progress(stage, i + 1, len(views), {"psnr": float(np.mean([x.psnr for x in scores]))}))
     emit(on_event, StageDone(stage, time.perf_counter() - t_all))
     return scores, float(np.median(times))
 
 
-def _score_formats(g: Gaussians, formats: Sequence[str], views: Sequence[View], gts: Sequence[Tensor], bg: Tensor,
-                   lp: Lpips | None, full_psnr: float, on_event: EventSink | None, antialiased: bool) -> list[FormatPoint]:
+def _score_formats(g: Gaussians, formats: Sequence[str], views: Sequence[View], gts: Sequence[Tensor],
+                   keeps: Sequence[Tensor | None], bg: Tensor, lp: Lpips | None, full_psnr: float,
+                   on_event: EventSink | None, antialiased: bool) -> list[FormatPoint]:
     """Each format: write the model, read it back through our reader, score the views."""
     out = []
     ply_size = ply_bytes(len(g), g.sh_degree)
@@ -141,7 +186,7 @@ def _score_formats(g: Gaussians, formats: Sequence[str], views: Sequence[View], 
             t1 = time.perf_counter()
             back = read_format(path, g.device, fmt).gaussians
             t2 = time.perf_counter()
-            sc, _ = _score_views(back, views, gts, bg, lp, on_event, f"format {fmt}", antialiased)
+            sc, _ = _score_views(back, views, gts, keeps, bg, lp, on_event, f"format {fmt}", antialiased)
             p = _mean_psnr(sc)
             out.append(FormatPoint(format=fmt, bytes=w.bytes, bytes_per_gaussian=w.bytes / max(len(g), 1),
                                    ratio=ply_size / max(w.bytes, 1), psnr=p, ssim=float(np.mean([x.ssim for x in sc])),
@@ -278,16 +323,16 @@ def _run_eval(plan: EvalPlan, on_event: EventSink | None) -> EvalReport:
     bg = torch.tensor(bg_rgb, dtype=g.means.dtype, device=g.device)
     device = g.device
 
-    emit(on_event, Stage("load images", total=len(views)))
-    gts = []
-    for i, v in enumerate(views):
-        assert v.image is not None
-        gts.append(load_image(v.image, bg_rgb, (v.camera.width, v.camera.height)))
-        emit(on_event, Progress("load images", i + 1, len(views)))
-    emit(on_event, StageDone("load images", 0.0))
+    mode = tsum.get("mask_mode") if tsum.get("mask_mode") in ("ignore", "background", "off") else None
+    mode = project.mask_mode(mode or "auto")
+    gts, keeps = _ground_truth(project, views, bg_rgb, mode, on_event)
+    masks = None
+    if mode != "off":
+        masks = MASKED_SCORING[mode] if project.mask_source() == "files" or mode == "ignore" else \
+            "whole images, composited over the background (the masks are the images' alpha)"
 
     lp, aa = plan.lpips, plan.antialiased
-    per_image, secs = _score_views(g, views, gts, bg, lp, on_event, "eval", aa)
+    per_image, secs = _score_views(g, views, gts, keeps, bg, lp, on_event, "eval", aa)
     fps = 1.0 / max(secs, 1e-9)
     mean_psnr = _mean_psnr(per_image)
     mean_ssim = float(np.mean([s.ssim for s in per_image]))
@@ -307,14 +352,14 @@ def _run_eval(plan: EvalPlan, on_event: EventSink | None) -> EvalReport:
         emit(on_event, StageDone("rank Gaussians", time.perf_counter() - t0))
         for f in fractions:
             gp = prune_to(g, weight, f)
-            sc, s = _score_views(gp, views, gts, bg, lp, on_event, f"budget {f:.0%}", aa)
+            sc, s = _score_views(gp, views, gts, keeps, bg, lp, on_event, f"budget {f:.0%}", aa)
             budgets.append(BudgetPoint(fraction=f, num_gaussians=len(gp), ply_bytes=ply_bytes(len(gp), gp.sh_degree),
                                        psnr=_mean_psnr(sc), ssim=float(np.mean([x.ssim for x in sc])),
                                        render_fps=1.0 / max(s, 1e-9), ms_per_frame=1000 * s, lpips=_mean_lpips(sc)))
     if 1.0 not in config.budgets:
         budgets = budgets[1:]
 
-    formats = _score_formats(g, config.formats, views, gts, bg, lp, mean_psnr, on_event, aa)
+    formats = _score_formats(g, config.formats, views, gts, keeps, bg, lp, mean_psnr, on_event, aa)
     curve = read_curve(project.train_log_path) if config.model is None else []
     report = EvalReport(
         psnr=mean_psnr,
@@ -336,6 +381,7 @@ def _run_eval(plan: EvalPlan, on_event: EventSink | None) -> EvalReport:
         budgets=budgets,
         formats=formats,
         training_curve=curve,
+        masks=masks,
         stats=model_stats(g),
         notes=notes,
     )

@@ -7,6 +7,11 @@ over channels and over the "valid" region (the border of 5 pixels that a
 full-size filter would pad is excluded), which is exactly what
 `skimage.metrics.structural_similarity(gaussian_weights=True, sigma=1.5,
 use_sample_covariance=False, data_range=1.0, channel_axis=-1)` computes.
+
+With a mask `keep` ([H, W] bool, False = masked out) both scores ignore the masked
+pixels entirely: PSNR is over the kept pixels; SSIM sets the masked pixels of both
+images to 0 and averages the map over the windows centred on kept pixels, so
+neither score, nor its gradient, depends on a masked pixel's value.
 """
 
 from __future__ import annotations
@@ -23,9 +28,13 @@ _C1 = (0.01 * 1.0) ** 2
 _C2 = (0.03 * 1.0) ** 2
 
 
-def psnr(pred: Tensor, gt: Tensor) -> Tensor:  # [..., H, W, C] each -> scalar dB
-    """10 log10(1 / MSE) for images in [0, 1]."""
-    mse = torch.mean((pred.to(torch.float64) - gt.to(torch.float64)) ** 2)
+def psnr(pred: Tensor, gt: Tensor, keep: Tensor | None = None) -> Tensor:  # [..., H, W, C] each, keep [H, W] -> dB
+    """10 log10(1 / MSE) for images in [0, 1] (MSE over the kept pixels when `keep` is given)."""
+    err = (pred.to(torch.float64) - gt.to(torch.float64)) ** 2
+    if keep is None:
+        mse = torch.mean(err)
+    else:
+        mse = (err * keep[..., None]).sum() / (keep.sum() * err.shape[-1]).clamp_min(1)
     return 10.0 * torch.log10(1.0 / mse.clamp_min(1e-20))
 
 
@@ -63,9 +72,15 @@ def ssim_map(pred: Tensor, gt: Tensor) -> Tensor:
     return num / den
 
 
-def ssim(pred: Tensor, gt: Tensor) -> Tensor:  # [H, W, C] each -> scalar
-    """Mean SSIM over the valid region and the channels."""
-    return ssim_map(pred, gt).mean()
+def ssim(pred: Tensor, gt: Tensor, keep: Tensor | None = None) -> Tensor:  # [H, W, C] each, keep [H, W] -> scalar
+    """Mean SSIM over the valid region and the channels (and the kept pixels: module docstring)."""
+    if keep is None:
+        return ssim_map(pred, gt).mean()
+    k = keep[..., None].to(pred.dtype)
+    m = ssim_map(pred * k, gt.to(pred.dtype) * k)  # [C, H-10, W-10]
+    r = SSIM_WINDOW // 2
+    w = keep[r:-r, r:-r].to(m.dtype)  # the windows' centres
+    return (m * w).sum() / (w.sum() * m.shape[0]).clamp_min(1)
 
 
 def psnr_from_mse(mse: float) -> float:

@@ -88,6 +88,7 @@ class EvalReport:
     step: int | None  # checkpoint step (None for a .ply)
     model: str = ""  # what was scored: "checkpoint step 7000" or the .ply path
     lpips: float | None = None  # mean over the split; None when LPIPS is unavailable (a note says why)
+    masks: str | None = None  # how the project's masks entered the scores (None: no masks)
     budgets: list[BudgetPoint] = field(default_factory=list)
     formats: list[FormatPoint] = field(default_factory=list)  # size against error, by file format
     training_curve: list[CurvePoint] = field(default_factory=list)
@@ -103,7 +104,7 @@ class EvalReport:
         """The headline numbers (what `--json` prints)."""
         return {k: getattr(self, k) for k in ("psnr", "ssim", "lpips", "num_gaussians", "sh_degree", "ply_bytes",
                                               "train_seconds", "train_steps", "render_fps", "device", "split",
-                                              "width", "height", "step", "model")} | {"num_images": len(self.per_image)}
+                                              "width", "height", "step", "model", "masks")} | {"num_images": len(self.per_image)}
 
     def to_json(self) -> dict[str, Any]:
         d = asdict(self)
@@ -260,6 +261,7 @@ def write_report_md(report: EvalReport, project: Project) -> str:
         f"Model: {r.model}. {r.split[0].upper() + r.split[1:]} split ({len(r.per_image)} views at {r.width}x{r.height}), "
         f"rendered on {r.device}.",
         "",
+        *([f"Masks: scored on {r.masks}.", ""] if r.masks else []),
         "## Summary",
         "",
         "| metric | value |",

@@ -232,6 +232,29 @@ def load_rgb(path: Path, size: tuple[int, int] | None = None,
     return np.ascontiguousarray(img[..., ::-1])
 
 
+MASK_KEEP = 128  # a mask pixel at or above this keeps its image pixel; below, it is masked out
+
+
+def read_mask(path: Path) -> np.ndarray:  # -> [H, W] uint8
+    """A mask file as grey uint8 (colour masks are converted to grey; an alpha channel
+    is ignored), not oriented: masks are drawn on the pixels as stored. Raises ImageError."""
+    img, _, _ = read_image(Path(path), orient=False)
+    return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+
+
+def load_mask(path: Path, size: tuple[int, int] | None = None) -> np.ndarray:  # -> [H, W] bool
+    """A project mask (PROJECT/masks, 255 = keep) resized like `load_rgb` resizes its
+    image (area filter), then kept where >= MASK_KEEP. Unreadable files are a SplatError."""
+    try:
+        m = read_mask(Path(path))
+    except ImageError as exc:
+        raise SplatError(f"{path}: {exc}") from None
+    if size is not None and (m.shape[1], m.shape[0]) != tuple(size):
+        shrink = size[0] < m.shape[1]
+        m = cv2.resize(m, tuple(size), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
+    return m >= MASK_KEEP
+
+
 def stage_image(src: Path, name: str, dst: Path, mask_dst: Path, *, max_size: int | None,
                 background: tuple[float, float, float], orient: bool,
                 expect_size: tuple[int, int] | None = None) -> StagedImage:

@@ -100,6 +100,7 @@ class Frame:
     viewmat: np.ndarray  # [4, 4] float64 world-to-camera, OpenCV axes
     intrinsics: Intrinsics
     file_path: str = ""  # as written in the file
+    mask: Path | None = None  # nerfstudio's per-frame mask_path, resolved (process only)
 
 
 @dataclass
@@ -181,7 +182,7 @@ def read_transforms(path: Path, *, images: bool = True) -> TransformsScene:
     if test_set and len(sources) == 1:
         has_test = True
 
-    parsed: list[tuple[Path, str, np.ndarray, Intrinsics, str]] = []
+    parsed: list[tuple[Path, str, np.ndarray, Intrinsics, str, Path | None]] = []
     missing: list[str] = []
     seen: set[Path] = set()
     duplicates = 0
@@ -202,15 +203,16 @@ def read_transforms(path: Path, *, images: bool = True) -> TransformsScene:
         viewmat = _viewmat(fr.get("transform_matrix"), where)
         intr = _intrinsics(fr, data, where)
         if not images:
-            parsed.append((image, split, viewmat, intr, fp))
+            parsed.append((image, split, viewmat, intr, fp, None))
             continue
+        mask = _mask(root, fr.get("mask_path"), src, where, fp)
         if test_set is not None and len(sources) == 1:
             rel = os.path.normpath(os.path.relpath(image, root))
             split = "test" if rel in test_set or os.path.normpath(fp) in test_set else "train"
-        parsed.append((image, split, viewmat, intr, fp))
+        parsed.append((image, split, viewmat, intr, fp, mask))
     if not images:
         frames = [Frame(source=img, name=fp, split=split, viewmat=vm, intrinsics=intr, file_path=fp)
-                  for img, split, vm, intr, fp in parsed]
+                  for img, split, vm, intr, fp, _ in parsed]
         return TransformsScene(frames=frames, files=[path], missing=[], has_test_split=False, ply_path=None,
                                notes=notes)
     if duplicates:
@@ -221,8 +223,8 @@ def read_transforms(path: Path, *, images: bool = True) -> TransformsScene:
         )
     names = _unique_names([p[0] for p in parsed], root)
     frames = [
-        Frame(source=img, name=name, split=split, viewmat=vm, intrinsics=intr, file_path=fp)
-        for (img, split, vm, intr, fp), name in zip(parsed, names)
+        Frame(source=img, name=name, split=split, viewmat=vm, intrinsics=intr, file_path=fp, mask=mask)
+        for (img, split, vm, intr, fp, mask), name in zip(parsed, names)
     ]
     frames.sort(key=lambda f: f.name)
     if has_test and not any(f.split == "test" for f in frames):
@@ -236,6 +238,18 @@ def read_transforms(path: Path, *, images: bool = True) -> TransformsScene:
         ply_path=ply_path,
         notes=notes,
     )
+
+
+def _mask(root: Path, mask_path: Any, src: Path, where: str, image: str) -> Path | None:
+    """A frame's `mask_path` (nerfstudio), which must name an existing file."""
+    if mask_path is None:
+        return None
+    if not isinstance(mask_path, str) or not mask_path.strip():
+        raise SplatError(f"{where}: mask_path must be a file name")
+    p = safe_join(root, mask_path, src, "mask_path")
+    if not p.is_file():
+        raise SplatError(f"{p}: no such file (the mask_path of {image} in {src.name})")
+    return p
 
 
 def _resolve_image(root: Path, file_path: str, src: Path, where: str) -> Path | None:

@@ -12,6 +12,7 @@ from ..project import Project
 from ..sfm.reconstruct import SfmOptions, run_sfm
 from .config import MIN_IMAGES, ProcessConfig
 from .dataset import Dataset, finish_model, refuse_if_strict, stage_images
+from .masks import MASKS_DIR, find_masks_dir, mask_file, stage_all
 from .detect import InputSpec
 from .video import extract_frames
 
@@ -39,6 +40,7 @@ def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
     work = stage / "work"
     st = Project(stage)
     skipped: list[str] = []
+    pairs: list[tuple[Path, str]] = []  # (photo, its name in the project)
     dropped = 0
     if spec.kind == "video":
         with run.stage("video frames", None) as s:
@@ -63,8 +65,8 @@ def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
         files, others = list_folder(spec.images_dir)
         if not files:
             raise SplatError(f"{spec.images_dir}: no images found (looked for {', '.join(IMAGE_EXTS)})")
-        staged, bad = stage_images(list(zip(files, safe_names([p.name for p in files]))), work, run,
-                                    background=background, orient=True)
+        pairs = list(zip(files, safe_names([p.name for p in files])))
+        staged, bad = stage_images(pairs, work, run, background=background, orient=True)
         refuse_if_strict(spec.images_dir, bad, cfg.strict)
         skipped = bad
         if len(staged) < MIN_IMAGES:  # before the notes: a failed run says one line
@@ -78,6 +80,9 @@ def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
             run.note(f"skipped {len(others)} file(s) that are not images: {shown}")
         for b in bad:
             run.note(f"skipped {b}", "warning")
+    mdir = find_masks_dir(spec.images_dir) if spec.images_dir is not None else None
+    found = {name: mask_file(mdir, src.name) for src, name in pairs} if mdir is not None else {}
+    mask_source = stage_all(found, staged, work, run, invert=cfg.invert_masks, where=mdir)
     names = [s.name for s in staged]
     sizes = {(s.width, s.height) for s in staged}
     if len(sizes) > 1:
@@ -89,7 +94,8 @@ def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
     )
     sift_side = min(min(fit_size(w, h, cfg.max_size)) for w, h in sizes)  # smallest side SIFT will see
     res = run_sfm(work / "input", names, work, sfm_opts, single_camera=len(sizes) == 1, min_side=sift_side,
-                  where=spec.images_dir or spec.path, on_event=run.sink)
+                  where=spec.images_dir or spec.path, on_event=run.sink,
+                  mask_dir=work / MASKS_DIR if mask_source else None)
     for k, v in res.seconds.items():
         run.seconds[k] = run.seconds.get(k, 0.0) + v
     model = res.model
@@ -104,9 +110,11 @@ def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
                  "little or be too blurry", "warning")
     st.sfm_dir.mkdir(parents=True, exist_ok=True)
     os.replace(work / "database.db", st.database_path)
-    has_masks = any(s.has_alpha for s in staged if s.name in set(model.registered_names()))
-    undistorted = finish_model(model, st, work, cfg, run, masks=has_masks)
-    return Dataset(registered=model.num_registered, total=len(names), undistorted=undistorted, masks=has_masks,
+    if mask_source == "alpha" and not any(s.has_alpha for s in staged if s.name in set(model.registered_names())):
+        mask_source = None
+    undistorted = finish_model(model, st, work, cfg, run, masks=mask_source)
+    return Dataset(registered=model.num_registered, total=len(names), undistorted=undistorted,
+                    masks=mask_source is not None, mask_source=mask_source,
                     background=background, mean_reprojection_error=model.mean_reprojection_error(),
                     mean_track_length=model.mean_track_length(), skipped=skipped, matcher=res.matcher,
                     pairs=res.num_pairs, keypoints_median=res.keypoints_median, model_sizes=res.model_sizes,

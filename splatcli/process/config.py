@@ -29,6 +29,7 @@ class ProcessConfig:
     blur_ratio: float = 0.6  # video: drop frames less sharp than this x their neighbours' median
     num_threads: int = -1  # -1: all cores
     strict: bool = False  # an unreadable image or video frame is an error instead of a skipped input
+    invert_masks: bool = False  # mask files given with white = masked out (flipped to the project's 255 = keep)
 
 
 @dataclass
@@ -47,6 +48,7 @@ class ProcessResult:
     init: str  # "sfm" (from points) or "random"
     undistorted: bool
     masks: bool
+    mask_source: str | None = None  # "alpha" or "files"; None without masks
     matcher: str | None = None  # the image pairs matched (SfM only)
     pairs: int = 0
     keypoints_median: float | None = None  # SIFT features per image (SfM only)

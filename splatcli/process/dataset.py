@@ -11,11 +11,12 @@ import numpy as np
 
 from ..errors import SplatError
 from ..events import Stages
-from ..io.images import ImageError, StagedImage, stage_image, write_image
+from ..io.images import MASK_KEEP, ImageError, StagedImage, read_mask, stage_image, write_image
 from ..project import Project
 from ..sfm import colmap
 from ..sfm.colmap import Model
 from .config import ProcessConfig
+from .masks import MASKS_DIR, fill_masks, staged_mask
 
 
 @dataclass
@@ -26,6 +27,7 @@ class Dataset:
     total: int
     undistorted: bool
     masks: bool
+    mask_source: str | None = None  # "alpha" or "files" (masks/ folder, transforms mask_path); None: no masks
     test: list[str] | None = None  # the input's own held-out images
     background: tuple[float, float, float] | None = None  # None: decided from alpha
     mean_reprojection_error: float | None = None  # pixels, of the model's points (None without points)
@@ -50,7 +52,7 @@ def refuse_if_strict(where: Path | str, skipped: list[str], strict: bool) -> Non
 def stage_images(files: list[tuple[Path, str]], work: Path, run: Stages, *,
                   background: tuple[float, float, float] | None, orient: bool,
                   expect: dict[str, tuple[int, int]] | None = None) -> tuple[list[StagedImage], list[str]]:
-    """Stage (source, name) pairs into work/input, masks into work/masks.
+    """Stage (source, name) pairs into work/input, alpha masks into work/masks (masks.staged_mask).
 
     Unusable images are skipped and returned as "name: reason". RGBA images are
     composited over `background` (white when None)."""
@@ -61,7 +63,7 @@ def stage_images(files: list[tuple[Path, str]], work: Path, run: Stages, *,
         for i, (src, name) in enumerate(files):
             try:
                 out.append(stage_image(
-                    src, name, work / "input" / name, work / "masks" / name,
+                    src, name, work / "input" / name, staged_mask(work, name),
                     max_size=None,  # the dataset keeps full resolution; train caps what it loads
                     background=bg, orient=orient, expect_size=(expect or {}).get(name),
                 ))
@@ -71,21 +73,21 @@ def stage_images(files: list[tuple[Path, str]], work: Path, run: Stages, *,
     return out, bad
 
 
-def finish_model(model: Model, st: Project, work: Path, cfg: ProcessConfig, run: Stages, *, masks: bool) -> bool:
-    """Write images/, masks/ and sfm/sparse/0 (PINHOLE) into the stage folder.
+def finish_model(model: Model, st: Project, work: Path, cfg: ProcessConfig, run: Stages, *,
+                 masks: str | None) -> bool:
+    """Write images/, masks/ and sfm/sparse/0 (PINHOLE) into the stage folder; `masks`
+    is the mask source (file masks stay 0 or 255 through undistortion).
     Returns whether undistortion happened."""
     names = model.registered_names()
-    if masks:  # some images had alpha: give the others an opaque mask, so every image has one
-        for name, (w, h) in model.camera_sizes().items():
-            if not (work / "masks" / name).exists():
-                write_image(work / "masks" / name, np.full((h, w), 255, np.uint8))
+    if masks:  # some images have a mask: give the others an opaque one, so every image has one
+        fill_masks(work, model.camera_sizes())
     if model.is_pinhole():
         model.to_pinhole()
         with run.stage("copy images", len(names)) as s:
             for i, name in enumerate(names):
                 _move(work / "input" / name, st.images_dir / name)
-                if masks and (work / "masks" / name).exists():
-                    _move(work / "masks" / name, st.mask_path(name))
+                if masks:
+                    _move(staged_mask(work, name), st.mask_path(name))
                 s.progress(i + 1)
         model.write(st.sparse_dir)
         return False
@@ -95,12 +97,14 @@ def finish_model(model: Model, st: Project, work: Path, cfg: ProcessConfig, run:
         st.sparse_dir.parent.mkdir(parents=True, exist_ok=True)
         os.replace(out, st.sparse_dir)
         os.replace(work / "undistorted" / "images", st.images_dir)
-        if masks and (work / "masks").is_dir():
-            mdir = colmap.undistort_masks(model, work / "masks", work / "undistorted_masks",
-                                          num_threads=cfg.num_threads)
+        if masks:
+            by_name = work / f"{MASKS_DIR}_by_name"  # undistortion reads each mask under its image's name
+            for name in names:
+                _move(staged_mask(work, name), by_name / name)  # PNG inside whatever the name says
+            mdir = colmap.undistort_masks(model, by_name, work / "undistorted_masks", num_threads=cfg.num_threads)
             for name in names:
                 if (mdir / name).exists():
-                    _convert_mask(mdir / name, st.mask_path(name))
+                    _convert_mask(mdir / name, st.mask_path(name), binary=masks == "files")
         s.progress(len(names))
     return True
 
@@ -110,9 +114,7 @@ def _move(src: Path, dst: Path) -> None:
     os.replace(src, dst)
 
 
-def _convert_mask(src: Path, dst: Path) -> None:
-    import cv2
-
-    m = cv2.imread(str(src), cv2.IMREAD_GRAYSCALE)
-    if m is not None:
-        write_image(dst, m)
+def _convert_mask(src: Path, dst: Path, *, binary: bool) -> None:
+    """An undistorted mask as PNG (`binary`: interpolated edges cut back to 0 or 255)."""
+    m = read_mask(src)
+    write_image(dst, np.where(m >= MASK_KEEP, 255, 0).astype(np.uint8) if binary else m)

@@ -56,10 +56,11 @@ def publish(root: Path, stage: Path, spec: InputSpec, cfg: ProcessConfig, ds: Da
     missing_files = [n for n in names if not (st.images_dir / n).is_file()]
     if missing_files:  # our own bug if it happens; never publish an inconsistent project
         raise RuntimeError(f"staged model lists images that were not written: {missing_files[:3]}")
-    background = ds.background if ds.background is not None else ((1.0, 1.0, 1.0) if ds.masks else (0.0, 0.0, 0.0))
+    background = ds.background if ds.background is not None else ((1.0, 1.0, 1.0) if ds.mask_source == "alpha" else (0.0, 0.0, 0.0))
     splits = split_names(names, ds.test)
     facts = scene_facts(scene.cameras, scene.points, background)
     facts["masks"] = ds.masks
+    facts["mask_source"] = ds.mask_source
     facts["model_sha256"] = model_digest(st.sparse_dir)  # later reads of this model skip the file walk
     if facts["init"] == "random":
         run.note("no sparse points: training will initialise Gaussians randomly inside the camera frustums")
@@ -92,6 +93,7 @@ def publish(root: Path, stage: Path, spec: InputSpec, cfg: ProcessConfig, ds: Da
         init=facts["init"],
         undistorted=ds.undistorted,
         masks=ds.masks,
+        mask_source=ds.mask_source,
         matcher=ds.matcher,
         pairs=ds.pairs,
         keypoints_median=ds.keypoints_median,

@@ -5,7 +5,7 @@ from motion with pycolmap), a COLMAP workspace or a transforms.json (imported
 as they are). Every path ends the same way:
 
     PROJECT/images/<name>           RGB images, exactly those of the model
-    PROJECT/masks/<name>.png        alpha, when the input had one
+    PROJECT/masks/<name>.png        masks (255 = keep): the input's alpha or its mask files (masks.py)
     PROJECT/sfm/sparse/0            PINHOLE COLMAP model of images/
     PROJECT/sfm/distorted           the raw model, when undistortion happened
     PROJECT/sfm/database.db         the SfM database (SfM inputs only)

@@ -15,6 +15,7 @@ from ..sfm import colmap
 from ..sfm.colmap import CameraSpec
 from .config import ProcessConfig
 from .dataset import Dataset, finish_model, refuse_if_strict, stage_images
+from .masks import stage_all
 from .detect import InputSpec
 
 
@@ -47,15 +48,17 @@ def from_transforms(spec: InputSpec, stage: Path, cfg: ProcessConfig,
     if scene.ply_path is not None:
         points, colors = _read_ply_points(scene.ply_path, run)
     model = colmap.build_model(specs, points, colors)
-    has_masks = any(s.has_alpha for s in staged)
-    undistorted = finish_model(model, st, work, cfg, run, masks=has_masks)
+    found = {f.name: f.mask for f in scene.frames if f.mask is not None}
+    mask_source = stage_all(found, staged, work, run, invert=cfg.invert_masks, where=None)
+    has_masks = mask_source is not None
+    undistorted = finish_model(model, st, work, cfg, run, masks=mask_source)
     kept = {s.name for s in staged}
     test = sorted(f.name for f in scene.frames if f.split == "test" and f.name in kept) if scene.has_test_split else None
     bg = background
-    if bg is None and has_masks:
+    if bg is None and mask_source == "alpha":
         bg = (1.0, 1.0, 1.0)
     return Dataset(registered=len(staged), total=len(scene.frames) + len(scene.missing), undistorted=undistorted,
-                    masks=has_masks, test=test or None, background=bg, skipped=bad, missing=len(scene.missing))
+                    masks=has_masks, mask_source=mask_source, test=test or None, background=bg, skipped=bad, missing=len(scene.missing))
 
 
 def _read_ply_points(path: Path, run: Stages) -> tuple[np.ndarray | None, np.ndarray | None]:

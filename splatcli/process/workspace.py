@@ -12,6 +12,7 @@ from ..sfm import colmap
 from ..sfm.colmap_files import check_image_name, check_model
 from .config import ProcessConfig
 from .dataset import Dataset, finish_model, refuse_if_strict, stage_images
+from .masks import find_masks_dir, mask_file, stage_all
 from .detect import InputSpec
 
 
@@ -52,10 +53,13 @@ def from_colmap(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: tu
         run.note(f"skipped {b}", "warning")
     keep = [s.name for s in staged]
     model.keep_images(keep)
-    has_masks = any(s.has_alpha for s in staged)
-    undistorted = finish_model(model, st, work, cfg, run, masks=has_masks)
+    mdir = find_masks_dir(spec.images_dir)
+    found = {n: mask_file(mdir, n) for n in keep} if mdir is not None else {}
+    mask_source = stage_all(found, staged, work, run, invert=cfg.invert_masks, where=mdir)
+    undistorted = finish_model(model, st, work, cfg, run, masks=mask_source)
     has_points = model.num_points > 0
-    return Dataset(registered=len(keep), total=len(names), undistorted=undistorted, masks=has_masks,
+    return Dataset(registered=len(keep), total=len(names), undistorted=undistorted,
+                    masks=mask_source is not None, mask_source=mask_source,
                     background=background, skipped=bad, missing=len(missing),
                     mean_reprojection_error=model.mean_reprojection_error() if has_points else None,
                     mean_track_length=model.mean_track_length() if has_points else None)

@@ -126,9 +126,13 @@ class SiftOptions:
 
 
 def extract_features(db: Path, image_dir: Path, names: list[str], opts: SiftOptions, *,
-                     single_camera: bool) -> None:
-    """SIFT for `names` (already in the database); call in chunks for progress."""
+                     single_camera: bool, mask_dir: Path | None = None) -> None:
+    """SIFT for `names` (already in the database); call in chunks for progress.
+    `mask_dir`: COLMAP's mask folder, `<name>.png` per image; none are kept where it is 0."""
     pycolmap = _pc()
+    ro = pycolmap.ImageReaderOptions()
+    if mask_dir is not None:
+        ro.mask_path = str(mask_dir)
     eo = pycolmap.FeatureExtractionOptions()
     eo.num_threads = opts.num_threads
     eo.max_image_size = opts.max_image_size
@@ -138,7 +142,7 @@ def extract_features(db: Path, image_dir: Path, names: list[str], opts: SiftOpti
     mode = pycolmap.CameraMode.SINGLE if single_camera else pycolmap.CameraMode.PER_IMAGE
     run_cancellable(
         pycolmap.extract_features, str(db), str(image_dir), image_names=list(names), camera_mode=mode,
-        extraction_options=eo, device=pycolmap.Device.cpu,
+        reader_options=ro, extraction_options=eo, device=pycolmap.Device.cpu,
     )
 
 

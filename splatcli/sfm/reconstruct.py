@@ -103,10 +103,11 @@ def _choose_matcher(opts: SfmOptions, names: list[str]) -> str:
 
 def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions, *,
             single_camera: bool, min_side: int, where: Path,
-            on_event: EventSink | None = None) -> SfmResult:
+            on_event: EventSink | None = None, mask_dir: Path | None = None) -> SfmResult:
     """Extract, match and map `names` (files in `image_dir`).
 
-    `min_side` is the smallest image side SIFT sees (chooses the octave); `where`
+    `min_side` is the smallest image side SIFT sees (chooses the octave); `mask_dir`
+    holds a mask for every image, `<name>.png` (0: no features there); `where`
     names the input in error messages. Raises SplatError (with the likely
     cause) when no model comes out."""
     clock = Stages(on_event)
@@ -123,7 +124,8 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
     with clock.stage("extract features", len(names)) as st:
         colmap.create_database(db, image_dir, names, single_camera=single_camera)
         for i in range(0, len(names), opts.chunk):
-            colmap.extract_features(db, image_dir, names[i : i + opts.chunk], sift, single_camera=single_camera)
+            colmap.extract_features(db, image_dir, names[i : i + opts.chunk], sift, single_camera=single_camera,
+                                    mask_dir=mask_dir)
             st.progress(min(i + opts.chunk, len(names)))
     stats = colmap.database_stats(db)
     kp_median = statistics.median(stats.keypoints.values()) if stats.keypoints else 0

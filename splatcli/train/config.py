@@ -67,6 +67,7 @@ class TrainConfig:
 
     # ---- loss ----------------------------------------------------------------
     lambda_dssim: float = 0.2  # loss = (1 - l) L1 + l (1 - SSIM)
+    mask_mode: str = "auto"  # the project's masks: auto | ignore | background | off (Project.mask_mode)
 
     # ---- strategies (strategy/) ----------------------------------------------
     density: str = "default"  # --strategy: "default" (3DGS adaptive density control) or "mcmc" (a fixed budget)
@@ -262,6 +263,7 @@ def make_config(preset: str = "default", **options: Any) -> TrainConfig:
 
 
 DENSITY = ("default", "mcmc")  # --strategy
+MASK_MODES = ("auto", "ignore", "background", "off")  # --mask-mode (Project.mask_mode resolves them)
 
 # Options counted in optimiser steps (TrainConfig.for_world divides them by the ranks).
 _STEP_COUNTS = ("iterations", "sh_degree_interval", "eval_every", "log_every", "checkpoint_every", "refine_start",
@@ -289,6 +291,8 @@ def _check(cfg: TrainConfig) -> None:
         raise SplatError(f"--sh-degree {cfg.sh_degree}: expected 0..{MAX_SH_DEGREE} or auto")
     if cfg.strategy.max_gaussians is not None and cfg.strategy.max_gaussians < 1:
         raise SplatError(f"--max-gaussians {cfg.strategy.max_gaussians}: must be at least 1")
+    if cfg.mask_mode not in MASK_MODES:
+        raise SplatError(f"--mask-mode {cfg.mask_mode!r} is not known; choose one of {', '.join(MASK_MODES)}")
     if cfg.density not in DENSITY:
         raise SplatError(f"--strategy {cfg.density!r} is not known; choose one of {', '.join(DENSITY)}")
     if cfg.density == "mcmc" and cfg.strategy.max_gaussians is None:
@@ -339,6 +343,7 @@ class TrainSummary:
     nproc: int = 1  # data-parallel training processes (steps count views seen, whatever this is)
     comm_seconds: float | None = None  # time rank 0 spent in collectives (exchanging and waiting)
     rank_checks: int | None = None  # checkpoints at which every rank's parameters equalled rank 0's
+    mask_mode: str = "off"  # what was done with the masks (Project.mask_mode); eval scores the same way
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)

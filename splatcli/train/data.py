@@ -5,6 +5,12 @@ as uint8 tensors on the training device, [H, W, 3]; a step converts one to float
 (cheaper than keeping float copies of a large capture). Images in the project are
 already composited over the scene background by `process`.
 
+Masks (--mask-mode, Project.mask_mode): "ignore" keeps each view's mask
+beside its image ([H, W] bool, resized like the image, then cut at half);
+"background" with mask files paints the masked pixels in the background colour
+once, at load (with alpha masks the images already are); "off" loads none, and
+a view without a mask costs nothing more.
+
 Only the training split is ever fitted; the test split is measured.
 """
 
@@ -21,7 +27,7 @@ from torch import Tensor
 from ..camera import Camera, scene_extent
 from ..errors import SplatError
 from ..project import Project
-from ..io.images import load_rgb
+from ..io.images import load_mask, load_rgb
 from ..render.project import NEAR
 from ..sfm.colmap import read_project_scene
 
@@ -32,6 +38,7 @@ class TrainView:
     image: Tensor  # [H, W, 3] uint8 on the training device
     viewmat: Tensor  # [4, 4] float32
     K: Tensor  # [3, 3] float32
+    keep: Tensor | None = None  # [H, W] bool: pixels the loss and the scores see (--mask-mode ignore); None: all
 
     _scaled: dict[float, "TrainView"] = field(default_factory=dict, repr=False, compare=False)
 
@@ -52,7 +59,11 @@ class TrainView:
             img = F.interpolate(self.image.permute(2, 0, 1)[None].to(torch.float32), size=(cam.height, cam.width),
                                 mode="area")[0].permute(1, 2, 0).round().clamp(0, 255).to(torch.uint8).contiguous()
             vm, K = cam.torch(self.image.device)
-            self._scaled[scale] = TrainView(cam, img, vm, K)
+            keep = None
+            if self.keep is not None:  # the same area filter, cut at half
+                keep = F.interpolate(self.keep[None, None].to(torch.float32), size=(cam.height, cam.width),
+                                     mode="area")[0, 0] >= 0.5
+            self._scaled[scale] = TrainView(cam, img, vm, K, keep)
         return self._scaled[scale]
 
 
@@ -87,6 +98,7 @@ class TrainData:
     colors: np.ndarray  # [P, 3] uint8
     bounds_min: np.ndarray  # [3] scene box (random initialisation)
     bounds_max: np.ndarray  # [3]
+    mask_mode: str = "off"  # resolved: ignore | background | off
 
 
 def load_train_data(
@@ -95,8 +107,10 @@ def load_train_data(
     max_size: int | None,
     device: torch.device,
     eval_max_views: int = 0,
+    mask_mode: str = "auto",
 ) -> TrainData:
-    """Cameras of the project's splits at the training resolution, images cached."""
+    """Cameras of the project's splits at the training resolution, images (and masks,
+    per `mask_mode`: module docstring) cached."""
     scene = read_project_scene(project)
     facts = project.manifest().get("scene") or {}
     bg = project.background() or (0.0, 0.0, 0.0)
@@ -111,13 +125,21 @@ def load_train_data(
     if not train_names:
         raise SplatError(f"{project.manifest_path}: the train split names no registered image")
     test_names = subset(test_names, eval_max_views)
+    source = project.mask_source()
+    mode = project.mask_mode(mask_mode)
+    with_masks = mode == "ignore" or (mode == "background" and source == "files")
 
     def view(name: str) -> TrainView:
         cam = by_name[name].at_resolution(downscale, max_size)
         path = project.images_dir / name
-        img = torch.from_numpy(load_rgb(path, (cam.width, cam.height), bg)).to(device)
+        rgb = load_rgb(path, (cam.width, cam.height), bg)
+        keep = load_mask(project.mask_path(name), (cam.width, cam.height)) if with_masks else None
+        if mode == "background" and keep is not None:
+            rgb = np.where(keep[..., None], rgb, np.round(np.asarray(bg) * 255).astype(np.uint8))
+            keep = None
+        img = torch.from_numpy(np.ascontiguousarray(rgb)).to(device)
         vm, K = cam.torch(device)
-        return TrainView(cam, img, vm, K)
+        return TrainView(cam, img, vm, K, torch.from_numpy(keep).to(device) if keep is not None else None)
 
     with ThreadPoolExecutor(max_workers=2) as pool:  # cv2 decodes without the GIL
         train = list(pool.map(view, train_names))
@@ -135,6 +157,7 @@ def load_train_data(
         colors=scene.colors,
         bounds_min=lo,
         bounds_max=hi,
+        mask_mode=mode,
     )
 
 

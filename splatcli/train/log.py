@@ -180,6 +180,7 @@ def finish(project: Project, cfg: TrainConfig, state: TrainState, resumed_from: 
         nproc=comm.world,
         comm_seconds=round(comm.seconds, 3) if comm.world > 1 else None,
         rank_checks=comm.checks if comm.world > 1 else None,
+        mask_mode=project.mask_mode(cfg.mask_mode),
         **owned,
     )
     if not comm.main:

@@ -91,7 +91,10 @@ def _train(project: Project, cfg: TrainConfig, device: torch.device, resume: boo
         facts = project.manifest().get("scene") or {}
         init = len(ck.gaussians) if ck is not None else int(facts.get("num_points") or cfg.init_random_points)
         check_memory(plan_memory(cams, init, cfg.strategy.max_gaussians, copies=comm.local_world), cfg.max_size)
-    data = load_train_data(project, cfg.downscale, cfg.max_size, device, cfg.eval_max_views)
+    data = load_train_data(project, cfg.downscale, cfg.max_size, device, cfg.eval_max_views, cfg.mask_mode)
+    if cfg.mask_mode in ("ignore", "background") and data.mask_mode == "off":
+        emit(on_event, Note(f"--mask-mode {cfg.mask_mode}: the project has no masks; training on whole images",
+                            "warning"))
     box: list[TrainState] = []
     ctx = _context(data, box, on_event, comm)
     with _stop_on_signal() as stop:  # from here on a signal means: checkpoint, exit 130
@@ -140,7 +143,7 @@ def _loop(project: Project, base: TrainConfig, cfg: TrainConfig, data: TrainData
             info = StepInfo(out, view.camera.width, view.camera.height, combine=comm.combine_rows)
             for strategy, st in zip(state.strategies, state.splats.states):
                 strategy.step_pre_backward(state.splats, st, step, info)
-            loss = photometric_loss(out.image, view.target(), cfg.lambda_dssim)
+            loss = photometric_loss(out.image, view.target(), cfg.lambda_dssim, view.keep)
             loss.backward()
         loss, stopping = comm.reduce_step(state.params, loss, stop.is_set())
         info.finite = _all_finite(loss, state)
@@ -304,15 +307,15 @@ def evaluate_views(
     state: TrainState, views: list[TrainView], bg: Tensor, sh_degree: int,  # bg [3] in [0, 1]
     comm: Comm | None = None,
 ) -> tuple[float, float]:
-    """Mean PSNR (dB) and SSIM over `views`, images clamped to [0, 1] as saved (each
-    rank of a data-parallel run renders its share)."""
+    """Mean PSNR (dB) and SSIM over `views`, images clamped to [0, 1] as saved, over the
+    kept pixels of views with a mask (each rank of a data-parallel run renders its share)."""
     comm = comm or Comm()
     ps, ss = [], []
     for v in comm.share(views):
         img = render_view(state, v, bg, sh_degree).image.clamp(0, 1)
         t = v.target()
-        ps.append(float(psnr(img, t)))
-        ss.append(float(ssim(img, t)))
+        ps.append(float(psnr(img, t, v.keep)))
+        ss.append(float(ssim(img, t, v.keep)))
     p, s = comm.mean(torch.tensor([sum(ps), sum(ss), float(len(ps))], dtype=torch.float64)).tolist()
     return p, s
 
