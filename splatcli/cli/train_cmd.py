@@ -31,6 +31,10 @@ def train(
     strategy: Optional[str] = typer.Option(None, "--strategy", help=f"Density control: default = 3DGS's clone/split/prune; mcmc = a fixed budget "
                                            f"(--max-gaussians), grown {_D.mcmc.growth:.0%} per refinement, dead Gaussians moved onto live ones, "
                                            "noise on nearly transparent ones, opacity and scale penalties (Kheradmand et al. 2024)."),
+    appearance: Optional[str] = typer.Option(None, "--appearance", help=f"none | exposure: exposure learns one colour transform "
+                                             "(a 3x3 matrix and an offset) per training photo, pulled towards the identity, for captures whose "
+                                             "exposure or white balance varies; held-out views, eval and exported files use the scene alone "
+                                             f"(default {_D.appearance})."),
     compact: bool = typer.Option(False, "--compact", help=f"After training, keep {_D.compact.keep:.0%} of the Gaussians, those with the most blending weight (cut in {_D.compact.rounds} rounds), while fine-tuning {_D.compact.finetune} more steps."),
     downscale: Optional[float] = typer.Option(None, "--downscale", help="Train at the image size divided by this."),
     max_size: Optional[int] = typer.Option(None, "--max-size", help=f"Cap the longest image side at this (pixels; default {_D.max_size})."),
@@ -58,6 +62,7 @@ def train(
     dev = resolve_device(device)
     given = dict(iterations=iterations, sh_degree=sh_degree, max_gaussians=max_gaussians, compact=compact or None,
                  density=strategy.strip().lower() if strategy else None,
+                 appearance=appearance.strip().lower() if appearance else None,
                  downscale=downscale, max_size=max_size, eval_every=eval_every, time_budget=time_budget,
                  init_ply=str(init_ply) if init_ply else None)
     cfg = make_config(preset, seed=seed, device=str(dev), **given)

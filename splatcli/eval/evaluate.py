@@ -46,7 +46,7 @@ from ..render import render_camera
 from ..views.sources import SPLITS, View, dataset_views
 from .budgets import contributions, prune_to
 from .curve import read_curve
-from .metrics import psnr, ssim
+from .metrics import psnr, psnr_color_fit, ssim
 from .report import (NO_PLOTS_HINT, BudgetPoint, EvalReport, FormatPoint, ImageScore, model_stats, write_plots,
                      write_report_md)
 
@@ -114,8 +114,9 @@ def _score_views(g: Gaussians, views: Sequence[View], gts: Sequence[Tensor], bg:
         out = render_camera(g, v.camera, bg)
         synchronize(g.device)
         times.append(time.perf_counter() - t0)
-        p, s = score(quantise(out.image), gt)
-        scores.append(ImageScore(name=v.camera.name, psnr=p, ssim=s))
+        img = quantise(out.image)
+        p, s = score(img, gt)
+        scores.append(ImageScore(name=v.camera.name, psnr=p, ssim=s, psnr_color_fit=psnr_color_fit(img, gt)))
         emit(on_event, Progress(stage, i + 1, len(views), {"psnr": float(np.mean([x.psnr for x in scores]))}))
     emit(on_event, StageDone(stage, time.perf_counter() - t_all))
     return scores, float(np.median(times))
@@ -295,6 +296,7 @@ def _run_eval(plan: EvalPlan, on_event: EventSink | None) -> EvalReport:
         height=views[0].camera.height,
         step=step,
         model=model_name,
+        psnr_color_fit=float(np.mean([s.psnr_color_fit for s in per_image])),
         budgets=budgets,
         formats=formats,
         training_curve=curve,

@@ -30,6 +30,7 @@ class ImageScore:
     name: str
     psnr: float  # dB
     ssim: float
+    psnr_color_fit: float | None = None  # dB after the view's least-squares colour fit (metrics.color_fit)
 
 
 @dataclass
@@ -84,6 +85,7 @@ class EvalReport:
     height: int
     step: int | None  # checkpoint step (None for a .ply)
     model: str = ""  # what was scored: "checkpoint step 7000" or the .ply path
+    psnr_color_fit: float | None = None  # mean over views of the PSNR after each view's colour fit (metrics.color_fit)
     budgets: list[BudgetPoint] = field(default_factory=list)
     formats: list[FormatPoint] = field(default_factory=list)  # size against error, by file format
     training_curve: list[CurvePoint] = field(default_factory=list)
@@ -99,7 +101,7 @@ class EvalReport:
         """The headline numbers (what `--json` prints)."""
         return {k: getattr(self, k) for k in ("psnr", "ssim", "num_gaussians", "sh_degree", "ply_bytes",
                                               "train_seconds", "train_steps", "render_fps", "device", "split",
-                                              "width", "height", "step", "model")} | {"num_images": len(self.per_image)}
+                                              "width", "height", "step", "model", "psnr_color_fit")} | {"num_images": len(self.per_image)}
 
     def to_json(self) -> dict[str, Any]:
         d = asdict(self)
@@ -258,6 +260,8 @@ def write_report_md(report: EvalReport, project: Project) -> str:
         "| --- | --- |",
         f"| PSNR (mean over views) | {r.psnr:.2f} dB |",
         f"| SSIM | {r.ssim:.4f} |",
+        *([f"| PSNR after a per-view colour fit (exposure and white balance removed) | {r.psnr_color_fit:.2f} dB |"]
+          if r.psnr_color_fit is not None else []),
         f"| Gaussians | {r.num_gaussians:,} |",
         f"| SH degree | {r.sh_degree} |",
         f"| .ply size | {_mb(r.ply_bytes)} |",
@@ -322,7 +326,7 @@ def write_report_md(report: EvalReport, project: Project) -> str:
         lines.append("")
     for n in r.notes:
         lines += [f"Note: {n}", ""]
-    lines += ["## All views", "", "| view | PSNR (dB) | SSIM |", "| --- | --- | --- |"]
-    lines += [f"| {s.name} | {s.psnr:.2f} | {s.ssim:.4f} |" for s in r.per_image]
+    lines += ["## All views", "", "| view | PSNR (dB) | SSIM | PSNR after colour fit (dB) |", "| --- | --- | --- | --- |"]
+    lines += [f"| {s.name} | {s.psnr:.2f} | {s.ssim:.4f} | {_opt(s.psnr_color_fit, '.2f')} |" for s in r.per_image]
     lines.append("")
     return "\n".join(lines)

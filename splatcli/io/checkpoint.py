@@ -15,6 +15,7 @@ Layout (schema 1):
      "strategy": {...},                   # densification state (strategy/)
      "rng": {"torch": ByteTensor, "cuda": [ByteTensor] | None},
      "config": {...},                     # the resolved TrainConfig as plain data
+     "appearance": {...} | None,          # optional: train --appearance's per-image transforms and Adam
      "extra": {...}}                      # loop counters: elapsed seconds, bad steps, ...
 
 `sh` is stored at the degree training allocated; `load_gaussians` truncates it
@@ -58,6 +59,7 @@ class Checkpoint:
     rng: dict[str, Any]
     config: dict[str, Any]
     extra: dict[str, Any] = field(default_factory=dict)
+    appearance: dict[str, Any] = field(default_factory=dict)  # train --appearance (empty without); never exported
 
     def model(self) -> Gaussians:
         """The Gaussians truncated to the active SH degree."""
@@ -75,6 +77,7 @@ def save_checkpoint(
     rng: dict[str, Any] | None = None,
     config: dict[str, Any] | None = None,
     extra: dict[str, Any] | None = None,
+    appearance: dict[str, Any] | None = None,
 ) -> Path:
     """Write a checkpoint atomically (temp file, fsync, rename): a crash mid-write
     leaves the previous file, never a partial one. Tensors are detached and moved
@@ -94,6 +97,8 @@ def save_checkpoint(
         "config": dict(config or {}),
         "extra": _to_cpu(extra or {}),
     }
+    if appearance:
+        payload["appearance"] = _to_cpu(appearance)
     with atomic_path(path) as tmp:
         torch.save(payload, tmp)
     return path
@@ -141,6 +146,7 @@ def load_checkpoint(path: str | Path, device: torch.device | str = "cpu") -> Che
         rng=raw["rng"],
         config=raw["config"],
         extra=raw.get("extra") or {},
+        appearance=raw["appearance"] if isinstance(raw.get("appearance"), dict) else {},
     )
 
 
