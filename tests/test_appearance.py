@@ -191,14 +191,17 @@ def test_bad_appearance_is_a_one_line_error(tmp_path):
     assert r.exit_code == 2 and "--appearance" in r.stderr and len(r.stderr.strip().splitlines()) == 1
 
 
+@pytest.mark.slow
 def test_two_ranks_keep_equal_transforms(tmp_path):
     """Through the real launcher: at each checkpoint every rank's parameters, transforms
     included (TrainState.trainable), equal rank 0's bitwise (rank_checks counts them)."""
     proj = _tiny(tmp_path, gains=GAINS)
+    start = tmp_path / "start.ply"  # 300 Gaussians: seconds, where the preset's 20k random ones take longer
+    write_ply(start, tiny_gaussians(300, seed=5))
     repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     r = subprocess.run([sys.executable, "-m", "splatcli", "train", str(proj.root), "--preset", "demo",
                         "--max-gaussians", "600", "--eval-every", "0", "--device", "cpu", "--iterations", "80",
-                        "--appearance", "exposure", "--nproc", "2", "--json"],
+                        "--init-ply", str(start), "--appearance", "exposure", "--nproc", "2", "--json"],
                        cwd=repo, capture_output=True, text=True, timeout=300, env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert r.returncode == 0, r.stderr
     s = json.loads(r.stdout.strip().splitlines()[-1])
