@@ -5,12 +5,19 @@ all with one set of Gaussians, training bends the geometry and the view-dependen
 colour to explain the differences. Here each training image i gets a transform
 [A_i | b_i] (A_i [3, 3], b_i [3]) that the rendered image passes through before the
 loss: `image @ A_i^T + b_i`, as the exposure option of the original 3DGS code does.
-The transforms start at [I | 0], learn with their own Adam (learning rate decaying
-exponentially, 3DGS's 0.01 -> 0.001), and each step adds
-`reg * mean((T_i - [I | 0])^2)` for the view seen: the scene's colour and the
-transforms' common part are otherwise interchangeable, and the pull keeps the scene
-at the images' typical exposure (3DGS has no such term; held-out views, rendered
-with the identity, need it).
+The transforms start at [I | 0] and learn with their own Adam (learning rate decaying
+exponentially, 3DGS's 0.01 -> 0.001). Two things keep them honest, neither of which
+3DGS has:
+
+* after every step they are moved together so that their mean is [I | 0] again. The
+  scene's colours and the transforms' common part are interchangeable (a brighter
+  scene seen through darker transforms renders the same training images), so without
+  this the scene drifts away from the photos' average exposure, which is what a
+  held-out view, rendered with the identity, needs (early in training the transforms
+  learn faster than the Gaussians' colours and take up any common error);
+* each step adds `reg * mean((T_i - [I | 0])^2)` for the view seen: a pull towards the
+  identity, so a transform explains a photo's colour shift, not its view-dependent
+  content.
 
 The transforms are not Gaussians: they live beside the parameters in TrainState
 (never in `Splats.params`, whose tensors strategy/ops.py edits row by row), in the
@@ -51,7 +58,7 @@ class Appearance:
                  betas: tuple[float, float]) -> None:
         self.cfg = cfg
         self.transforms = nn.Parameter(identity(n, device))  # [n, 3, 4]
-        self.optimizer = torch.optim.Adam([self.transforms], lr=cfg.lr, eps=eps, betas=betas, fused=True)
+        self.optimizer = _CentredAdam([self.transforms], lr=cfg.lr, eps=eps, betas=betas, fused=True)
 
     def apply(self, image: Tensor, i: int) -> Tensor:  # image [H, W, 3] -> [H, W, 3]
         """Training image `i`'s colour transform applied to a render of its view."""
@@ -84,3 +91,15 @@ class Appearance:
             self.transforms.copy_(t)
         if isinstance(d.get("optimizer"), dict):
             self.optimizer.load_state_dict(d["optimizer"])
+
+
+class _CentredAdam(torch.optim.Adam):
+    """Adam, then every transform moved by one common amount so that their mean is [I | 0]."""
+
+    @torch.no_grad()
+    def step(self, closure: Any = None) -> Any:
+        loss = super().step(closure)
+        for group in self.param_groups:
+            for t in group["params"]:  # [n, 3, 4]
+                t -= t.mean(0) - torch.eye(3, 4, dtype=t.dtype, device=t.device)
+        return loss
