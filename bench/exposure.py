@@ -14,7 +14,9 @@ Each scene then trains twice from copies of that one project, one after the othe
 bench/train.py's schedule for it (sample: --preset demo; lego, fox: --preset fast and
 their --max-size), without and with --appearance exposure, and `splatcli eval` scores
 both: held-out PSNR as rendered, and after the per-view colour fit. For a gained scene
-it also reports how well the learnt transforms' mean diagonal follows the true gains.
+it also reports how well the learnt transforms' gains on grey (the mean row sum of each
+3x3 matrix: a gain can sit on the off-diagonal too, since colour channels correlate) follow
+the true gains.
 Results go to bench/out/exposure/results.json and the "## exposure" section of
 docs/benchmarks.md.
 """
@@ -96,13 +98,13 @@ def train_and_eval(scene: str, src: Path, appearance: str, iterations: int | Non
 
 
 def learnt_gains(project: Path) -> list[float]:
-    """Each training photo's learnt transform, as its mean diagonal (the gain it models)."""
+    """Each training photo's learnt transform as a gain: its mean row sum (what it does to grey)."""
     sys.path.insert(0, str(REPO))
     from splatcli.io.checkpoint import load_checkpoint
     from splatcli.project import Project
 
     t = load_checkpoint(Project.open(project).latest_checkpoint()).appearance["transforms"]
-    return t[:, :, :3].diagonal(dim1=1, dim2=2).mean(1).tolist()
+    return t[:, :, :3].sum(2).mean(1).tolist()
 
 
 def main() -> None:
@@ -142,7 +144,8 @@ def main() -> None:
              + (f" cut to {args.iterations} steps" if args.iterations else "")
              + ", without and with `--appearance exposure`; held-out PSNR from `splatcli eval`, as rendered (the "
              "identity transform) and after each view's least-squares colour fit. *Learnt gains*: the correlation of "
-             "each training photo's true gain with its transform's mean diagonal, and their mean absolute difference.",
+             "each training photo's true gain with its transform's gain on grey (the mean row sum of its matrix), and "
+             "their mean absolute difference.",
              "", "| scene | photos | --appearance | steps | train s | held-out PSNR / SSIM | after colour fit | "
              "gain (dB) | learnt gains | load |",
              "| --- | --- | --- | ---: | ---: | --- | ---: | ---: | --- | --- |"]
