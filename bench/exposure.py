@@ -17,8 +17,9 @@ both: held-out PSNR as rendered, and after the per-view colour fit. For a gained
 it also reports how well the learnt transforms' gains on grey (the mean row sum of each
 3x3 matrix: a gain can sit on the off-diagonal too, since colour channels correlate) follow
 the true gains.
-Results go to bench/out/exposure/results.json and the "## exposure" section of
-docs/benchmarks.md.
+Results are merged into bench/out/exposure/results.json (each scene's last run; so
+`--scenes sample` and `--scenes lego,fox --iterations 2000` may run apart) and all of
+them written to the "## exposure" section of docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -120,32 +121,38 @@ def main() -> None:
     args = ap.parse_args()
     os.environ["OMP_NUM_THREADS"] = args.threads
     gained = {s for s in args.gained.split(",") if s}
-    rows, gains = [], {}
+    rows = []
     for scene in [s for s in args.scenes.split(",") if s]:
         src = OUT / scene / "photos"
-        gains[scene] = gained_copy(scene, src, args.spread, args.per_channel, args.seed, scene in gained)
+        gains = gained_copy(scene, src, args.spread, args.per_channel, args.seed, scene in gained)
+        photos = (f"gains in [{1 - args.spread:.2f}, {1 + args.spread:.2f}], "
+                  f"{'per channel' if args.per_channel else 'per photo'}, seed {args.seed}") if gains else "as taken"
         pair = [train_and_eval(scene, src, a, args.iterations) for a in ("none", "exposure")]
-        if gains[scene]:
-            true = np.array([np.mean(g) for g in gains[scene].values()])
+        for r in pair:
+            r.update(photos=photos, gains=gains)
+        if gains:
+            true = np.array([np.mean(g) for g in gains.values()])
             learnt = np.array(learnt_gains(Path(pair[1]["project"])))
             pair[1]["gain_corr"] = float(np.corrcoef(true, learnt)[0, 1])
             pair[1]["gain_mae"] = float(np.abs(true - learnt).mean())
         rows += pair
+    # Runs of other scenes stay (the sample scene and the real ones can be measured apart).
     OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "results.json").write_text(json.dumps({"rows": rows, "gains": gains, "args": vars(args)}, indent=1))
+    path = OUT / "results.json"
+    done = {r["scene"] for r in rows}
+    old = [r for r in (json.loads(path.read_text()).get("rows", []) if path.exists() else []) if r["scene"] not in done]
+    rows = old + rows
+    path.write_text(json.dumps({"rows": rows}, indent=1))
 
-    what = "one per colour channel" if args.per_channel else "one per photo"
     lines = ["## exposure", "",
-             f"Measured by `python bench/exposure.py{' ' + ' '.join(sys.argv[1:]) if sys.argv[1:] else ''}`: "
-             f"on {', '.join(sorted(gained)) or 'no scene'} every training photo multiplied by a seeded gain uniform in "
-             f"[{1 - args.spread:.2f}, {1 + args.spread:.2f}] ({what}, seed {args.seed}), held-out photos untouched; "
-             "the other scenes as they are. Each scene trained twice from one copy of its project, one after the "
-             "other on this machine (one torch thread), on bench/train.py's schedule"
-             + (f" cut to {args.iterations} steps" if args.iterations else "")
-             + ", without and with `--appearance exposure`; held-out PSNR from `splatcli eval`, as rendered (the "
-             "identity transform) and after each view's least-squares colour fit. *Learnt gains*: the correlation of "
-             "each training photo's true gain with its transform's gain on grey (the mean row sum of its matrix), and "
-             "their mean absolute difference.",
+             "Measured by `python bench/exposure.py` (bench/out/exposure/results.json keeps each scene's last run): on "
+             "a gained scene every training photo is multiplied by a seeded random gain (clipped to 0..255), held-out "
+             "photos untouched; the other scenes are as taken. Each scene trained twice from one copy of its project, "
+             "one after the other on this machine (one torch thread), on bench/train.py's schedule (sample: demo; "
+             "lego, fox: fast) or the steps shown, without and with `--appearance exposure`; held-out PSNR from "
+             "`splatcli eval`, as rendered (the identity transform) and after each view's least-squares colour fit. "
+             "*Learnt gains*: the correlation of each training photo's true gain with its transform's gain on grey "
+             "(the mean row sum of its matrix), and their mean absolute difference.",
              "", "| scene | photos | --appearance | steps | train s | held-out PSNR / SSIM | after colour fit | "
              "gain (dB) | learnt gains | load |",
              "| --- | --- | --- | ---: | ---: | --- | ---: | ---: | --- | --- |"]
@@ -153,9 +160,9 @@ def main() -> None:
         base = next(x for x in rows if x["scene"] == r["scene"] and x["appearance"] == "none")
         d = f"{r['psnr'] - base['psnr']:+.2f}" if r["appearance"] == "exposure" else "–"
         fit = f"r = {r['gain_corr']:.3f}, {r['gain_mae']:.3f}" if "gain_corr" in r else "–"
-        lines.append(f"| {r['scene']} | {'gained' if gains[r['scene']] else 'as taken'} | {r['appearance']} | "
-                     f"{r['steps']} | {r['train_seconds']:.0f} | {r['psnr']:.2f} / {r['ssim']:.4f} | "
-                     f"{r['psnr_color_fit']:.2f} | {d} | {fit} | {r['load'][0]} → {r['load'][1]} |")
+        lines.append(f"| {r['scene']} | {r['photos']} | {r['appearance']} | {r['steps']} | {r['train_seconds']:.0f} | "
+                     f"{r['psnr']:.2f} / {r['ssim']:.4f} | {r['psnr_color_fit']:.2f} | {d} | {fit} | "
+                     f"{r['load'][0]} → {r['load'][1]} |")
     text = "\n".join(lines) + "\n"
     print(text)
     if not args.no_write:
