@@ -70,7 +70,8 @@ def evaluate(
     with ui.progress() as sink:
         r = run_eval(plan, on_event=sink)
     ui.summary(r.summary(), title=f"{r.split} split: PSNR {r.psnr:.2f} dB, SSIM {r.ssim:.4f}{_lpips(r.lpips)} over {len(r.per_image)} views",
-               lines=[f"{r.num_gaussians:,} Gaussians (SH {r.sh_degree}, {r.ply_bytes / 1e6:.2f} MB): "
+               lines=[f"PSNR after a per-view colour fit (exposure and white balance removed): {r.psnr_color_fit:.2f} dB",
+                      f"{r.num_gaussians:,} Gaussians (SH {r.sh_degree}, {r.ply_bytes / 1e6:.2f} MB): "
                       f"{r.render_fps:.2f} frames/s at {r.width}x{r.height} on {r.device}"]
                + ([f"masks: scored on {r.masks}"] if r.masks else [])
                + [f"  {b.fraction:>4.0%}: {b.num_gaussians:>9,} Gaussians  {b.psnr:6.2f} dB  {b.ms_per_frame:8.1f} ms/frame"

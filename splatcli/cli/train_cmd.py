@@ -38,6 +38,10 @@ def train(
     mask_mode: Optional[str] = typer.Option(None, "--mask-mode", help=f"What the project's masks do (default {_D.mask_mode}): ignore = masked pixels take no part in the "
                                             "loss (people, moving objects); background = they are trained to the background colour (object captures); "
                                             "off = masks unused; auto = background for masks from an alpha channel, ignore for mask files."),
+    appearance: Optional[str] = typer.Option(None, "--appearance", help=f"none | exposure: exposure learns one colour transform "
+                                             "(a 3x3 matrix and an offset) per training photo, pulled towards the identity, for captures whose "
+                                             "exposure or white balance varies; held-out views, eval and exported files use the scene alone "
+                                             f"(default {_D.appearance})."),
     compact: bool = typer.Option(False, "--compact", help=f"After training, keep {_D.compact.keep:.0%} of the Gaussians, those with the most blending weight (cut in {_D.compact.rounds} rounds), while fine-tuning {_D.compact.finetune} more steps."),
     mip_filter: bool = typer.Option(_D.mip_filter, "--mip-filter", help="Mip-Splatting's filters (Yu et al. 2024): no Gaussian "
                                     "finer than the training views sample it (a 3D filter, folded into the exported scales and "
@@ -74,6 +78,7 @@ def train(
                  keep_checkpoints=keep_checkpoints,
                  mip_filter=mip_filter or None,
                  mask_mode=mask_mode.strip().lower() if mask_mode else None,
+                 appearance=appearance.strip().lower() if appearance else None,
                  downscale=downscale, max_size=max_size, eval_every=eval_every, time_budget=time_budget,
                  init_ply=str(init_ply) if init_ply else None)
     cfg = make_config(preset, seed=seed, device=str(dev), **given)

@@ -54,7 +54,7 @@ from ..views.sources import SPLITS, View, choose_antialias, dataset_views
 from .budgets import contributions, prune_to
 from .curve import read_curve
 from .lpips import MIN_SIZE as LPIPS_MIN_SIZE, Lpips, load_lpips
-from .metrics import psnr, ssim
+from .metrics import psnr, psnr_color_fit, ssim
 from .report import (NO_PLOTS_HINT, BudgetPoint, EvalReport, FormatPoint, ImageScore, model_stats, write_plots,
                      write_report_md)
 
@@ -116,7 +116,8 @@ def score(name: str, pred: Tensor, gt: Tensor, lp: Lpips | None = None,
         lp_pred = pred
     return ImageScore(name=name, psnr=float(psnr(pred, gt, keep)),
                       ssim=float(ssim(pred.to(torch.float64), gt.to(torch.float64), keep)),
-                      lpips=lp(lp_pred, gt) if lp is not None else None)
+                      lpips=lp(lp_pred, gt) if lp is not None else None,
+                      psnr_color_fit=psnr_color_fit(pred, gt, keep))
 
 
 MASKED_SCORING = {  # eval's `masks` line, by the mode training used
@@ -378,6 +379,7 @@ def _run_eval(plan: EvalPlan, on_event: EventSink | None) -> EvalReport:
         height=views[0].camera.height,
         step=step,
         model=model_name,
+        psnr_color_fit=float(np.mean([s.psnr_color_fit for s in per_image])),
         budgets=budgets,
         formats=formats,
         training_curve=curve,

@@ -85,3 +85,23 @@ def ssim(pred: Tensor, gt: Tensor, keep: Tensor | None = None) -> Tensor:  # [H,
 
 def psnr_from_mse(mse: float) -> float:
     return 10.0 * math.log10(1.0 / max(mse, 1e-20))
+
+
+def color_fit(pred: Tensor, gt: Tensor, keep: Tensor | None = None) -> Tensor:  # [H, W, 3] each, keep [H, W]
+    """`pred` through the affine colour transform (3x3 matrix and offset) that brings it
+    closest to `gt` in least squares over the image's (kept) pixels (solved in float64),
+    clamped to [0, 1]. It removes what train --appearance exposure models (exposure,
+    white balance), so what error is left comes from the geometry and the colours."""
+    x = pred.detach().to(torch.float64).reshape(-1, 3)
+    y = gt.detach().to(torch.float64).reshape(-1, 3)
+    a = torch.cat([x, torch.ones_like(x[:, :1])], dim=1)  # [P, 4]
+    # gelsd: the minimum-norm solution, also for a flat render (a rank-deficient system)
+    rows = slice(None) if keep is None else keep.reshape(-1).to(a.device)
+    w = torch.linalg.lstsq(a[rows].cpu(), y[rows].cpu(), driver="gelsd").solution.to(a.device)  # [4, 3]
+    return (a @ w).clamp(0, 1).reshape(pred.shape)
+
+
+def psnr_color_fit(pred: Tensor, gt: Tensor, keep: Tensor | None = None) -> float:  # [H, W, 3] each -> dB
+    """PSNR after the per-view least-squares colour fit (`color_fit`), over the kept pixels
+    when `keep` [H, W] is given: never below `psnr`."""
+    return float(psnr(color_fit(pred, gt, keep), gt, keep))

@@ -31,6 +31,7 @@ class ImageScore:
     psnr: float  # dB
     ssim: float
     lpips: float | None = None  # AlexNet LPIPS (eval/lpips.py); None when unavailable
+    psnr_color_fit: float | None = None  # dB after the view's least-squares colour fit (metrics.color_fit)
 
 
 @dataclass
@@ -89,6 +90,7 @@ class EvalReport:
     model: str = ""  # what was scored: "checkpoint step 7000" or the .ply path
     lpips: float | None = None  # mean over the split; None when LPIPS is unavailable (a note says why)
     masks: str | None = None  # how the project's masks entered the scores (None: no masks)
+    psnr_color_fit: float | None = None  # mean over views of the PSNR after each view's colour fit (metrics.color_fit)
     budgets: list[BudgetPoint] = field(default_factory=list)
     formats: list[FormatPoint] = field(default_factory=list)  # size against error, by file format
     training_curve: list[CurvePoint] = field(default_factory=list)
@@ -104,7 +106,7 @@ class EvalReport:
         """The headline numbers (what `--json` prints)."""
         return {k: getattr(self, k) for k in ("psnr", "ssim", "lpips", "num_gaussians", "sh_degree", "ply_bytes",
                                               "train_seconds", "train_steps", "render_fps", "device", "split",
-                                              "width", "height", "step", "model", "masks")} | {"num_images": len(self.per_image)}
+                                              "width", "height", "step", "model", "masks", "psnr_color_fit")} | {"num_images": len(self.per_image)}
 
     def to_json(self) -> dict[str, Any]:
         d = asdict(self)
@@ -269,6 +271,8 @@ def write_report_md(report: EvalReport, project: Project) -> str:
         f"| PSNR (mean over views) | {r.psnr:.2f} dB |",
         f"| SSIM | {r.ssim:.4f} |",
         f"| LPIPS (AlexNet) | {_lp(r.lpips)} |",
+        *([f"| PSNR after a per-view colour fit (exposure and white balance removed) | {r.psnr_color_fit:.2f} dB |"]
+          if r.psnr_color_fit is not None else []),
         f"| Gaussians | {r.num_gaussians:,} |",
         f"| SH degree | {r.sh_degree} |",
         f"| .ply size | {_mb(r.ply_bytes)} |",
@@ -334,7 +338,9 @@ def write_report_md(report: EvalReport, project: Project) -> str:
         lines.append("")
     for n in r.notes:
         lines += [f"Note: {n}", ""]
-    lines += ["## All views", "", "| view | PSNR (dB) | SSIM | LPIPS |", "| --- | --- | --- | --- |"]
-    lines += [f"| {s.name} | {s.psnr:.2f} | {s.ssim:.4f} | {_lp(s.lpips)} |" for s in r.per_image]
+    lines += ["## All views", "", "| view | PSNR (dB) | SSIM | LPIPS | PSNR after colour fit (dB) |",
+              "| --- | --- | --- | --- | --- |"]
+    lines += [f"| {s.name} | {s.psnr:.2f} | {s.ssim:.4f} | {_lp(s.lpips)} | {_opt(s.psnr_color_fit, '.2f')} |"
+              for s in r.per_image]
     lines.append("")
     return "\n".join(lines)

@@ -16,6 +16,7 @@ Layout (schema 1):
                                           # "filter3d" rows [N] are folded by model()
      "rng": {"torch": ByteTensor, "cuda": [ByteTensor] | None},
      "config": {...},                     # the resolved TrainConfig as plain data
+     "appearance": {...} | None,          # optional: train --appearance's per-image transforms and Adam
      "extra": {...}}                      # loop counters: elapsed seconds, bad steps, ...
 
 `sh` is stored at the degree training allocated; `load_gaussians` truncates it
@@ -60,6 +61,7 @@ class Checkpoint:
     rng: dict[str, Any]
     config: dict[str, Any]
     extra: dict[str, Any] = field(default_factory=dict)
+    appearance: dict[str, Any] = field(default_factory=dict)  # train --appearance (empty without); never exported
 
     def model(self) -> Gaussians:
         """The Gaussians as drawn: truncated to the active SH degree, with the 3D
@@ -91,6 +93,7 @@ def save_checkpoint(
     rng: dict[str, Any] | None = None,
     config: dict[str, Any] | None = None,
     extra: dict[str, Any] | None = None,
+    appearance: dict[str, Any] | None = None,
 ) -> Path:
     """Write a checkpoint atomically (temp file, fsync, rename): a crash mid-write
     leaves the previous file, never a partial one. Tensors are detached and moved
@@ -110,6 +113,8 @@ def save_checkpoint(
         "config": dict(config or {}),
         "extra": _to_cpu(extra or {}),
     }
+    if appearance:
+        payload["appearance"] = _to_cpu(appearance)
     with atomic_path(path) as tmp:
         torch.save(payload, tmp)
     return path
@@ -157,6 +162,7 @@ def load_checkpoint(path: str | Path, device: torch.device | str = "cpu") -> Che
         rng=raw["rng"],
         config=raw["config"],
         extra=raw.get("extra") or {},
+        appearance=raw["appearance"] if isinstance(raw.get("appearance"), dict) else {},
     )
 
 

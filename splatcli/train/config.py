@@ -20,6 +20,7 @@ from ..errors import SplatError
 from ..gaussians import Histogram
 from ..strategy import (CompactConfig, CompactReport, DefaultStrategyConfig, MCMCStrategyConfig, RegularizeConfig,
                         ShAutoConfig, SupportConfig)
+from .appearance import APPEARANCE, ExposureConfig
 
 MAX_SH_DEGREE = 3
 
@@ -68,6 +69,8 @@ class TrainConfig:
     # ---- loss ----------------------------------------------------------------
     lambda_dssim: float = 0.2  # loss = (1 - l) L1 + l (1 - SSIM)
     mask_mode: str = "auto"  # the project's masks: auto | ignore | background | off (Project.mask_mode)
+    appearance: str = "none"  # --appearance: "none" or "exposure" (a colour transform per training image, appearance.py)
+    exposure: ExposureConfig = field(default_factory=ExposureConfig)  # its learning rate and pull towards identity
 
     # ---- strategies (strategy/) ----------------------------------------------
     density: str = "default"  # --strategy: "default" (3DGS adaptive density control) or "mcmc" (a fixed budget)
@@ -117,7 +120,8 @@ class TrainConfig:
         steps["refine_stop"] = round(self.strategy.refine_stop / k)
         r = math.sqrt(k)
         lrs = {name: option(self, name) * r for name in ("lr_means", "lr_means_final", "lr_sh0", "lr_opacity",
-                                                           "lr_scales", "lr_quats")}
+                                                           "lr_scales", "lr_quats", "exposure_lr",
+                                                           "exposure_lr_final")}
         return with_options(self, {**steps, **lrs, "adam_eps": self.adam_eps / r,
                                    "adam_beta1": self.adam_beta1 ** k, "adam_beta2": self.adam_beta2 ** k})
 
@@ -148,7 +152,8 @@ class TrainConfig:
         return cfg
 
 
-_NESTED = {"strategy": "", "reg": "", "support": "", "sh_auto": "sh_auto_", "compact": "compact_", "mcmc": "mcmc_"}  # nested config -> option prefix
+_NESTED = {"strategy": "", "reg": "", "support": "", "sh_auto": "sh_auto_", "compact": "compact_", "mcmc": "mcmc_",
+           "exposure": "exposure_"}  # nested config -> option prefix
 
 
 def _option_paths() -> dict[str, tuple[str, ...]]:
@@ -315,6 +320,12 @@ def _check(cfg: TrainConfig) -> None:
         raise SplatError(f"adam_beta1 {cfg.adam_beta1} / adam_beta2 {cfg.adam_beta2}: must be in [0, 1)")
     if not 0 < cfg.compact.keep <= 1:
         raise SplatError(f"compact_keep {cfg.compact.keep}: must be in (0, 1]")
+    if cfg.appearance not in APPEARANCE:
+        raise SplatError(f"--appearance {cfg.appearance!r} is not known; choose one of {', '.join(APPEARANCE)}")
+    e = cfg.exposure
+    if not (e.lr > 0 and e.lr_final > 0 and e.reg >= 0):
+        raise SplatError(f"exposure_lr {e.lr} / exposure_lr_final {e.lr_final} / exposure_reg {e.reg}: "
+                         "the learning rates must be positive, the weight 0 or more")
 
 
 # ---- the contract other commands read -------------------------------------------

@@ -99,7 +99,7 @@ def _train(project: Project, cfg: TrainConfig, device: torch.device, resume: boo
     ctx = _context(data, box, on_event, comm)
     with _stop_on_signal() as stop:  # from here on a signal means: checkpoint, exit 130
         if ck is not None:
-            state = state_from_checkpoint(ck, run, data.extent, device, ctx, comm.world)
+            state = state_from_checkpoint(ck, run, data.extent, device, len(data.train), ctx, comm.world)
             if comm.main:
                 log.trim_log(project.train_log_path, ck.step)
         else:
@@ -107,7 +107,7 @@ def _train(project: Project, cfg: TrainConfig, device: torch.device, resume: boo
                               comm.world)
             if comm.main:
                 log.start_fresh(project, on_event)
-        comm.broadcast_params(state.params)  # identical from the first step, whatever each rank computed
+        comm.broadcast_params(state.trainable())  # identical from the first step, whatever each rank computed
         box.append(state)
         cfg = _loop(project, cfg, run, data, state, ctx, stop, on_event, comm)
     return log.finish(project, cfg, state, resumed_from, comm)
@@ -136,6 +136,8 @@ def _loop(project: Project, base: TrainConfig, cfg: TrainConfig, data: TrainData
         step = state.step + 1
         t0 = time.perf_counter()
         state.optimizers["means"].param_groups[0]["lr"] = means_lr(cfg, step, data.extent)
+        if state.appearance is not None:
+            state.appearance.schedule(step, cfg.iterations)
         views = [state.next_view(len(data.train)) for _ in range(k)]  # the one-process stream, dealt out
         view = data.train[views[comm.rank]].at_scale(cfg.train_scale(step))
         with _out_of_memory(project, base, state, step, save=True, comm=comm):  # nothing is updated yet: save this state
@@ -143,18 +145,22 @@ def _loop(project: Project, base: TrainConfig, cfg: TrainConfig, data: TrainData
             info = StepInfo(out, view.camera.width, view.camera.height, combine=comm.combine_rows)
             for strategy, st in zip(state.strategies, state.splats.states):
                 strategy.step_pre_backward(state.splats, st, step, info)
-            loss = photometric_loss(out.image, view.target(), cfg.lambda_dssim, view.keep)
+            image, penalty = out.image, 0.0
+            if state.appearance is not None:  # the training image's own colour transform (appearance.py)
+                i = views[comm.rank]
+                image, penalty = state.appearance.apply(image, i), state.appearance.penalty(i)
+            loss = photometric_loss(image, view.target(), cfg.lambda_dssim, view.keep) + penalty
             loss.backward()
-        loss, stopping = comm.reduce_step(state.params, loss, stop.is_set())
+        loss, stopping = comm.reduce_step(state.trainable(), loss, stop.is_set())
         info.finite = _all_finite(loss, state)
         if info.finite:
-            for opt in state.optimizers.values():
+            for opt in state.all_optimizers():
                 opt.step()
             state.bad_run = 0
         else:  # skip: never let NaN/Inf reach the parameters or the Adam moments
             state.bad_steps += 1
             state.bad_run += 1
-        for opt in state.optimizers.values():
+        for opt in state.all_optimizers():
             opt.zero_grad(set_to_none=True)
         state.step = step
         state.elapsed_s += time.perf_counter() - t0
@@ -202,7 +208,7 @@ def _save(project: Project, cfg: TrainConfig, state: TrainState, comm: Comm) -> 
     """A checkpoint of the run as one process would have written it: every rank folds its
     accumulators into rank 0's and confirms its parameters equal rank 0's; rank 0 writes."""
     comm.fold_rows(state.splats.states)
-    comm.check_agree(state.params)
+    comm.check_agree(state.trainable())
     path = project.checkpoint_path(state.images)
     if comm.main:
         save_state(path, state, cfg)
@@ -281,7 +287,7 @@ def _out_of_memory_error(project: Project, cfg: TrainConfig, state: TrainState, 
 def _all_finite(loss: Tensor, state: TrainState) -> bool:  # loss: [] scalar
     """One reduction over the loss and every gradient (a single host sync)."""
     checks = [torch.isfinite(loss).reshape(1)]
-    checks += [torch.isfinite(p.grad).all().reshape(1) for p in state.params.values() if p.grad is not None]
+    checks += [torch.isfinite(p.grad).all().reshape(1) for p in state.trainable().values() if p.grad is not None]
     return bool(torch.cat(checks).all())
 
 

@@ -22,6 +22,7 @@ from ..io.checkpoint import Checkpoint, save_checkpoint
 from ..strategy import (CompactStep, Context, DefaultStrategy, MCMCStrategy, MipFilter, RegularizeStep, ShAutoStep, Splats,
                         Strategy, SupportPrune,
                         sh_degree_of)
+from .appearance import Appearance
 from .config import TrainConfig
 from .plan import TimePlan
 
@@ -41,6 +42,7 @@ class TrainState:
     loss_acc: Tensor = field(default_factory=lambda: torch.zeros(2, dtype=torch.float64))  # [sum, count] since the last log line
     refine_acc: dict[str, int] = field(default_factory=dict)  # cloned / split / pruned since the last log line
     plan: TimePlan | None = None  # --time-budget
+    appearance: Appearance | None = None  # --appearance exposure: per-training-image colour transforms
 
     @property
     def params(self) -> dict[str, nn.Parameter]:
@@ -49,6 +51,16 @@ class TrainState:
     @property
     def optimizers(self) -> dict[str, torch.optim.Optimizer]:
         return self.splats.optimizers
+
+    def trainable(self) -> dict[str, nn.Parameter]:
+        """Every tensor a step's backward reaches: the Gaussians' parameters, and the
+        per-image colour transforms with --appearance (what the ranks all-reduce)."""
+        if self.appearance is None:
+            return self.params
+        return {**self.params, "appearance": self.appearance.transforms}
+
+    def all_optimizers(self) -> list[torch.optim.Optimizer]:
+        return list(self.optimizers.values()) + ([self.appearance.optimizer] if self.appearance is not None else [])
 
     @property
     def images(self) -> int:
@@ -150,6 +162,12 @@ def _make_optimizers(params: dict[str, nn.Parameter], cfg: TrainConfig, extent: 
                                 betas=(cfg.adam_beta1, cfg.adam_beta2), fused=True) for k, p in params.items()}
 
 
+def _appearance(cfg: TrainConfig, n_train: int, device: torch.device) -> Appearance | None:
+    if cfg.appearance == "none":
+        return None
+    return Appearance(n_train, cfg.exposure, device, eps=cfg.adam_eps, betas=(cfg.adam_beta1, cfg.adam_beta2))
+
+
 def _params(g: Gaussians, names: list[str]) -> dict[str, nn.Parameter]:
     raw = {"means": g.means, "quats": g.quats, "log_scales": g.log_scales, "opacity_logits": g.opacity_logits,
            "sh0": g.sh[:, :1], "shN": g.sh[:, 1:]}
@@ -169,7 +187,8 @@ def new_state(g: Gaussians, cfg: TrainConfig, extent: float, device: torch.devic
     return TrainState(splats=splats, strategies=strategies, view_gen=view_gen,
                       perm=torch.randperm(n_train, generator=view_gen), pos=0, world=world,
                       loss_acc=torch.zeros(2, dtype=torch.float64, device=device),
-                      plan=TimePlan.start(cfg) if cfg.time_budget is not None else None)
+                      plan=TimePlan.start(cfg) if cfg.time_budget is not None else None,
+                      appearance=_appearance(cfg, n_train, device))
 
 
 def save_state(path: Path, state: TrainState, cfg: TrainConfig) -> Path:
@@ -188,6 +207,7 @@ def save_state(path: Path, state: TrainState, cfg: TrainConfig) -> Path:
         strategy={s.name: st.state_dict() for s, st in zip(state.strategies, state.splats.states)},
         rng=rng,
         config=cfg.to_dict(),
+        appearance=state.appearance.state_dict() if state.appearance is not None else None,
         extra={
             "perm": state.perm, "pos": state.pos, "elapsed_s": state.elapsed_s, "bad_steps": state.bad_steps,
             "bad_run": state.bad_run, "param_names": list(state.params), "loss_acc": state.loss_acc,
@@ -197,10 +217,11 @@ def save_state(path: Path, state: TrainState, cfg: TrainConfig) -> Path:
     )
 
 
-def state_from_checkpoint(ck: Checkpoint, cfg: TrainConfig, extent: float, device: torch.device,
+def state_from_checkpoint(ck: Checkpoint, cfg: TrainConfig, extent: float, device: torch.device, n_train: int,
                           ctx: Context, world: int = 1) -> TrainState:
     """Rebuild the exact state a checkpoint was written from (strategies the
-    checkpoint has no state for, such as --compact added on resume, start fresh),
+    checkpoint has no state for, such as --compact or --appearance added on resume,
+    start fresh; `n_train` training views),
     for `world` ranks running `cfg` (already scaled for them): the step resumes at the
     views seen divided by the ranks, whatever the number of ranks that wrote it."""
     ex = ck.extra
@@ -224,6 +245,9 @@ def state_from_checkpoint(ck: Checkpoint, cfg: TrainConfig, extent: float, devic
         torch.set_rng_state(ck.rng["torch"])
     if "cuda" in ck.rng and torch.cuda.is_available() and device.type == "cuda":
         torch.cuda.set_rng_state_all(ck.rng["cuda"])
+    appearance = _appearance(cfg, n_train, device)
+    if appearance is not None and ck.appearance:
+        appearance.load_state_dict(ck.appearance, str(ck.path))
     return TrainState(
         splats=Splats(params, optimizers, states),
         strategies=strategies,
@@ -238,6 +262,7 @@ def state_from_checkpoint(ck: Checkpoint, cfg: TrainConfig, extent: float, devic
         loss_acc=ex.get("loss_acc", torch.zeros(2, dtype=torch.float64)).to(device),
         refine_acc={k: int(v) for k, v in (ex.get("refine_acc") or {}).items()},
         plan=_resumed_plan(cfg, ex.get("plan")),
+        appearance=appearance,
     )
 
 

@@ -1,0 +1,105 @@
+"""`train --appearance exposure`: one learned affine colour transform per training image.
+
+Photographs of one scene often differ in exposure and white balance. Fitting them
+all with one set of Gaussians, training bends the geometry and the view-dependent
+colour to explain the differences. Here each training image i gets a transform
+[A_i | b_i] (A_i [3, 3], b_i [3]) that the rendered image passes through before the
+loss: `image @ A_i^T + b_i`, as the exposure option of the original 3DGS code does.
+The transforms start at [I | 0] and learn with their own Adam (learning rate decaying
+exponentially, 3DGS's 0.01 -> 0.001). Two things keep them honest, neither of which
+3DGS has:
+
+* after every step they are moved together so that their mean is [I | 0] again. The
+  scene's colours and the transforms' common part are interchangeable (a brighter
+  scene seen through darker transforms renders the same training images), so without
+  this the scene drifts away from the photos' average exposure, which is what a
+  held-out view, rendered with the identity, needs (early in training the transforms
+  learn faster than the Gaussians' colours and take up any common error);
+* each step adds `reg * mean((T_i - [I | 0])^2)` for the view seen: a pull towards the
+  identity, so a transform explains a photo's colour shift, not its view-dependent
+  content.
+
+The transforms are not Gaussians: they live beside the parameters in TrainState
+(never in `Splats.params`, whose tensors strategy/ops.py edits row by row), in the
+checkpoint, and nowhere else: held-out measurement, render, eval and every exported
+file see the scene alone.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from ..errors import SplatError
+
+APPEARANCE = ("none", "exposure")  # --appearance
+
+
+@dataclass(frozen=True)
+class ExposureConfig:
+    lr: float = 0.01  # Adam learning rate of the transforms at step 0 (3DGS's exposure_lr_init) ...
+    lr_final: float = 0.001  # ... decaying exponentially to this over `iterations` (exposure_lr_final)
+    reg: float = 0.01  # weight of the mean squared distance of the view's [A | b] from [I | 0]
+
+
+def identity(n: int, device: torch.device) -> Tensor:  # -> [n, 3, 4]
+    """n transforms [I | 0]."""
+    return torch.eye(3, 4, device=device).expand(n, 3, 4).contiguous()
+
+
+class Appearance:
+    """The per-training-image transforms [n_train, 3, 4] and their optimiser."""
+
+    def __init__(self, n: int, cfg: ExposureConfig, device: torch.device, *, eps: float,
+                 betas: tuple[float, float]) -> None:
+        self.cfg = cfg
+        self.transforms = nn.Parameter(identity(n, device))  # [n, 3, 4]
+        self.optimizer = _CentredAdam([self.transforms], lr=cfg.lr, eps=eps, betas=betas, fused=True)
+
+    def apply(self, image: Tensor, i: int) -> Tensor:  # image [H, W, 3] -> [H, W, 3]
+        """Training image `i`'s colour transform applied to a render of its view."""
+        t = self.transforms[i]
+        return image @ t[:, :3].T + t[:, 3]
+
+    def penalty(self, i: int) -> Tensor:  # -> [] scalar
+        """The pull of view `i`'s transform towards [I | 0]."""
+        t = self.transforms[i]
+        return self.cfg.reg * (t - torch.eye(3, 4, dtype=t.dtype, device=t.device)).square().mean()
+
+    def schedule(self, step: int, iterations: int) -> None:
+        """Set the learning rate of step `step`: log-linear from lr to lr_final over
+        `iterations`, held at lr_final after (a compaction fine-tune)."""
+        t = min(max(step / max(iterations, 1), 0.0), 1.0)
+        lr = math.exp(math.log(self.cfg.lr) * (1 - t) + math.log(self.cfg.lr_final) * t)
+        self.optimizer.param_groups[0]["lr"] = lr
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"kind": "exposure", "transforms": self.transforms.detach(), "optimizer": self.optimizer.state_dict()}
+
+    def load_state_dict(self, d: dict[str, Any], where: str) -> None:
+        """Restore a checkpoint's transforms (`where` names the file in errors)."""
+        t = d.get("transforms")
+        if not isinstance(t, Tensor) or tuple(t.shape) != tuple(self.transforms.shape):
+            shown = tuple(t.shape) if isinstance(t, Tensor) else type(t).__name__
+            raise SplatError(f"{where}: the per-image colour transforms have shape {shown}, expected "
+                             f"{tuple(self.transforms.shape)} (one per training image)")
+        with torch.no_grad():
+            self.transforms.copy_(t)
+        if isinstance(d.get("optimizer"), dict):
+            self.optimizer.load_state_dict(d["optimizer"])
+
+
+class _CentredAdam(torch.optim.Adam):
+    """Adam, then every transform moved by one common amount so that their mean is [I | 0]."""
+
+    @torch.no_grad()
+    def step(self, closure: Any = None) -> Any:
+        loss = super().step(closure)
+        for group in self.param_groups:
+            for t in group["params"]:  # [n, 3, 4]
+                t -= t.mean(0) - torch.eye(3, 4, dtype=t.dtype, device=t.device)
+        return loss

@@ -1,0 +1,245 @@
+"""`train --appearance exposure` (train/appearance.py) and eval's colour-fit PSNR.
+
+The transforms: identity changes nothing, gradients reach only the view seen, a known
+gain is learnt back, checkpoints carry them (resume is bitwise), exported files never
+do, and two ranks keep them equal. The colour fit: an affinely recoloured render is
+scored as perfect, and the fitted PSNR is never below the raw one.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from splatcli.errors import Interrupted
+from splatcli.eval.metrics import color_fit, psnr, psnr_color_fit
+from splatcli.events import Progress
+from splatcli.io.checkpoint import load_checkpoint, save_checkpoint
+from splatcli.io.formats import write_format
+from splatcli.io.ply import write_ply
+from splatcli.train.appearance import Appearance, ExposureConfig, identity
+from splatcli.train.config import make_config
+from splatcli.train.loop import train
+from splatcli.train.loss import photometric_loss
+from tiny_project import make_tiny_project, run_cli, tiny_gaussians
+
+CPU = torch.device("cpu")
+SMALL = dict(iterations=20, init_random_points=300, max_gaussians=600, eval_every=10, log_every=5, refine_start=4,
+             refine_every=4, reset_every=100, sh_degree_interval=8, checkpoint_every=10, appearance="exposure")
+
+
+def _appearance(n: int = 4) -> Appearance:
+    return Appearance(n, ExposureConfig(), CPU, eps=1e-15, betas=(0.9, 0.999))
+
+
+def _tiny(tmp_path, name="p", gains=None):
+    """The tiny project (8 training views, 2 held out); `gains` multiplies each training photo."""
+    proj = make_tiny_project(tmp_path / name, trained=False)
+    proj.update_manifest(scene={**proj.manifest()["scene"], "bounds_min": [-1.0] * 3, "bounds_max": [1.0] * 3})
+    if gains is not None:
+        for name_, g in zip(proj.splits()["train"], gains):
+            path = proj.images_dir / name_
+            img = cv2.imread(str(path)).astype(np.float64) * g
+            cv2.imwrite(str(path), np.clip(np.round(img), 0, 255).astype(np.uint8))
+    return proj
+
+
+# ---- the transform ------------------------------------------------------------------
+
+
+def test_identity_leaves_the_image_and_the_loss_unchanged():
+    gen = torch.Generator().manual_seed(0)
+    img, target = torch.rand(24, 20, 3, generator=gen), torch.rand(24, 20, 3, generator=gen)
+    app = _appearance()
+    assert torch.equal(app.apply(img, 2), img)  # x * 1 + y * 0 + z * 0 + 0 is exact
+    assert float(app.penalty(2).detach()) == 0.0
+    loss = photometric_loss(app.apply(img, 2), target) + app.penalty(2)
+    assert torch.equal(loss, photometric_loss(img, target))
+
+
+def test_apply_is_image_times_a_transposed_plus_b_and_gradients_reach_only_that_view():
+    gen = torch.Generator().manual_seed(1)
+    app = _appearance(5)
+    with torch.no_grad():
+        app.transforms += 0.1 * torch.randn(app.transforms.shape, generator=gen)
+    img = torch.rand(16, 12, 3, generator=gen)
+    t = app.transforms[3].detach()
+    torch.testing.assert_close(app.apply(img, 3), img @ t[:, :3].T + t[:, 3])
+    (photometric_loss(app.apply(img, 3), torch.rand(16, 12, 3, generator=gen)) + app.penalty(3)).backward()
+    g = app.transforms.grad
+    assert g[3].abs().sum() > 0
+    assert torch.count_nonzero(torch.cat([g[:3], g[4:]])) == 0
+
+
+def test_gradcheck_of_the_transform_and_its_penalty():
+    gen = torch.Generator().manual_seed(2)
+    img = torch.rand(4, 3, 3, dtype=torch.float64, generator=gen, requires_grad=True)
+    t = (identity(2, CPU).double() + 0.1 * torch.randn(2, 3, 4, dtype=torch.float64, generator=gen)).requires_grad_()
+
+    def f(img, t):
+        app = _appearance(2)
+        app.transforms = t  # the maths of apply/penalty, on float64 leaves
+        return app.apply(img, 1), app.penalty(1)
+
+    assert torch.autograd.gradcheck(f, (img, t))
+
+
+def test_learning_rate_decays_from_lr_to_lr_final():
+    app = _appearance()
+    app.schedule(0, 100)
+    assert app.optimizer.param_groups[0]["lr"] == pytest.approx(0.01)
+    app.schedule(50, 100)
+    assert app.optimizer.param_groups[0]["lr"] == pytest.approx(math.sqrt(0.01 * 0.001))
+    app.schedule(150, 100)  # a fine-tune after the schedule holds the final rate
+    assert app.optimizer.param_groups[0]["lr"] == pytest.approx(0.001)
+
+
+# ---- training ------------------------------------------------------------------------
+
+
+GAINS = [0.7, 1.25, 0.8, 1.2, 0.75, 1.3, 0.85, 1.15]  # the 8 training photos
+
+
+def test_training_learns_each_photos_gain_back(tmp_path):
+    """Start from the true Gaussians (--init-ply) so the transforms have the gains to learn;
+    each training photo's mean diagonal moves from 1 towards its gain."""
+    proj = _tiny(tmp_path, gains=GAINS)
+    truth = tmp_path / "truth.ply"
+    write_ply(truth, tiny_gaussians(300, seed=0))
+    train(proj.root, make_config(**{**SMALL, "iterations": 80, "refine_start": 1000, "exposure_lr": 0.03,
+                                    "exposure_lr_final": 0.01, "init_ply": str(truth)}), CPU)
+    t = load_checkpoint(proj.latest_checkpoint()).appearance["transforms"]
+    diag = t[:, :, :3].diagonal(dim1=1, dim2=2).mean(1)
+    gains = torch.tensor(GAINS)
+    # every photo's transform moved the right way, and a good part of the way (80 steps:
+    # about ten updates per photo at these rates)
+    assert torch.all(torch.sign(diag - 1) == torch.sign(gains - 1)), diag
+    assert float((diag - gains).abs().mean()) < 0.6 * float((gains - 1).abs().mean()), diag
+
+
+def test_checkpoint_round_trip_and_resume_is_bitwise(tmp_path):
+    cfg = make_config(**SMALL)
+    a = _tiny(tmp_path, "a", GAINS)
+    train(a.root, cfg, CPU)
+    b = _tiny(tmp_path, "b", GAINS)
+
+    def stop_at_7(ev):
+        if isinstance(ev, Progress) and ev.done == 7:
+            os.kill(os.getpid(), signal.SIGINT)  # a real signal through the real handler
+
+    with pytest.raises(Interrupted):
+        train(b.root, cfg, CPU, on_event=stop_at_7)
+    mid = load_checkpoint(b.latest_checkpoint())
+    assert mid.step == 7 and mid.appearance["transforms"].shape == (8, 3, 4)
+    assert not torch.equal(mid.appearance["transforms"], identity(8, CPU))
+    # moved together after every step so that their mean stays the identity (the
+    # scene keeps the photos' average exposure); float32 rounding of 8 rows
+    torch.testing.assert_close(mid.appearance["transforms"].mean(0), torch.eye(3, 4), atol=1e-6, rtol=0)
+    s = train(b.root, cfg, CPU, resume=True)
+    assert s.resumed_from == 7
+    ka, kb = load_checkpoint(a.latest_checkpoint()), load_checkpoint(b.latest_checkpoint())
+    assert torch.equal(ka.appearance["transforms"], kb.appearance["transforms"])
+    for k in ("exp_avg", "exp_avg_sq"):
+        assert torch.equal(ka.appearance["optimizer"]["state"][0][k], kb.appearance["optimizer"]["state"][0][k])
+    assert torch.equal(ka.gaussians.means, kb.gaussians.means)
+
+
+def test_a_checkpoint_without_transforms_resumes_with_them_from_the_identity(tmp_path):
+    proj = _tiny(tmp_path)
+    train(proj.root, make_config(**{**SMALL, "appearance": "none", "iterations": 6}), CPU)
+    assert load_checkpoint(proj.latest_checkpoint()).appearance == {}
+    s = train(proj.root, make_config(**SMALL), CPU, resume=True,
+              overrides={"appearance": "exposure", "iterations": 10})
+    assert s.resumed_from == 6 and s.steps == 10
+    t = load_checkpoint(proj.latest_checkpoint()).appearance["transforms"]
+    assert t.shape == (8, 3, 4) and not torch.equal(t, identity(8, CPU))
+
+
+def test_transforms_for_another_number_of_photos_are_one_line(tmp_path):
+    proj = _tiny(tmp_path)
+    train(proj.root, make_config(**{**SMALL, "iterations": 4}), CPU)
+    ck = load_checkpoint(proj.latest_checkpoint())
+    save_checkpoint(ck.path, step=ck.step, gaussians=ck.gaussians, sh_degree=ck.sh_degree, optimizer=ck.optimizer,
+                    strategy=ck.strategy, rng=ck.rng, config=ck.config, extra=ck.extra,
+                    appearance={**ck.appearance, "transforms": identity(5, CPU)})
+    r = run_cli("train", proj.root, "--resume", "--iterations", "8", "--device", "cpu")
+    assert r.exit_code == 2 and str(ck.path) in r.stderr and "(5, 3, 4)" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+
+
+def test_exported_files_never_hold_the_transforms(tmp_path):
+    proj = _tiny(tmp_path, gains=GAINS)
+    train(proj.root, make_config(**{**SMALL, "iterations": 6}), CPU)
+    ck = load_checkpoint(proj.latest_checkpoint())
+    assert ck.appearance["transforms"].shape == (8, 3, 4)
+    r = run_cli("export", proj.root, "-o", tmp_path / "scene.ply")
+    assert r.exit_code == 0, r.output
+    plain = tmp_path / "plain.ply"
+    write_format("ply", plain, ck.model())  # the Gaussians alone
+    assert (tmp_path / "scene.ply").read_bytes() == plain.read_bytes()
+
+
+def test_bad_appearance_is_a_one_line_error(tmp_path):
+    proj = _tiny(tmp_path)
+    r = run_cli("train", proj.root, "--appearance", "vignette")
+    assert r.exit_code == 2 and "--appearance" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.slow
+def test_two_ranks_keep_equal_transforms(tmp_path):
+    """Through the real launcher: at each checkpoint every rank's parameters, transforms
+    included (TrainState.trainable), equal rank 0's bitwise (rank_checks counts them)."""
+    proj = _tiny(tmp_path, gains=GAINS)
+    start = tmp_path / "start.ply"  # 300 Gaussians: seconds, where the preset's 20k random ones take longer
+    write_ply(start, tiny_gaussians(300, seed=5))
+    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    r = subprocess.run([sys.executable, "-m", "splatcli", "train", str(proj.root), "--preset", "demo",
+                        "--max-gaussians", "600", "--eval-every", "0", "--device", "cpu", "--iterations", "80",
+                        "--init-ply", str(start), "--appearance", "exposure", "--nproc", "2", "--json"],
+                       cwd=repo, capture_output=True, text=True, timeout=300, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert r.returncode == 0, r.stderr
+    s = json.loads(r.stdout.strip().splitlines()[-1])
+    assert s["nproc"] == 2 and s["rank_checks"] >= 1
+    t = load_checkpoint(proj.latest_checkpoint()).appearance["transforms"]
+    assert not torch.equal(t, identity(8, CPU))  # both ranks' views moved them
+
+
+# ---- eval's colour fit -----------------------------------------------------------------
+
+
+def test_colour_fit_undoes_an_affine_recolouring():
+    gen = torch.Generator().manual_seed(3)
+    target = torch.rand(30, 40, 3, dtype=torch.float64, generator=gen) * 0.6 + 0.2
+    a = torch.tensor([[0.8, 0.05, 0.0], [0.0, 1.1, 0.05], [0.02, 0.0, 0.9]], dtype=torch.float64)
+    render = (target - 0.03) @ a.T  # stays inside [0, 1]: the fit is exact
+    assert float(psnr(render, target)) < 25
+    assert psnr_color_fit(render, target) > 100
+    torch.testing.assert_close(color_fit(render, target), target)
+
+
+def test_fitted_psnr_is_never_below_the_raw_psnr():
+    gen = torch.Generator().manual_seed(4)
+    for _ in range(5):
+        render, target = torch.rand(12, 14, 3, generator=gen), torch.rand(12, 14, 3, generator=gen)
+        assert psnr_color_fit(render, target) >= float(psnr(render, target)) - 1e-9
+    flat = torch.full((12, 14, 3), 0.5)  # a rank-deficient fit: the mean colour
+    assert psnr_color_fit(flat, target) >= float(psnr(flat, target)) - 1e-9
+
+
+def test_eval_reports_the_colour_fit_psnr(tmp_path):
+    proj = make_tiny_project(tmp_path / "p")
+    r = run_cli("eval", proj.root, "--budgets", "1", "--no-plots", "--json", "--device", "cpu")
+    assert r.exit_code == 0, r.output
+    report = json.loads((proj.reports_dir / "eval.json").read_text())
+    assert report["psnr_color_fit"] >= report["psnr"]
+    assert all(s["psnr_color_fit"] >= s["psnr"] - 1e-9 for s in report["per_image"])
+    assert "PSNR after a per-view colour fit" in (proj.reports_dir / "eval.md").read_text()
