@@ -11,9 +11,7 @@ training seconds and the load average.
 
 The `object` scene is sample_data/make_scene.py --kind object (the still life on plain paper
 before a defocused backdrop, as a hand-held object capture), rendered and processed into
-bench/out/overfit/. Its ground truth names what every pixel sees, so the held-out error is also
-split by region (objects, paper sheet, backdrop) at each kept checkpoint: where the loss of
-quality comes from. Results: bench/out/overfit/results.json and the "## overfitting" section of
+bench/out/overfit/. Results: bench/out/overfit/results.json and the "## overfitting" section of
 docs/benchmarks.md.
 """
 
@@ -29,13 +27,13 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _doc import write_section  # noqa: E402
 from train import REPO, SPLATCLI, ensure_processed  # noqa: E402
+
+from splatcli.project import Project  # noqa: E402
 
 OUT = REPO / "bench" / "out" / "overfit"
 EVERY = 500
@@ -47,7 +45,7 @@ VARIANTS = {
     "views": ["--prune-views", "3"],
     "all": ["--opacity-reg", "0.01", "--scale-reg", "0.01", "--init-far", "20000", "--prune-views", "3"],
 }
-SCENES = {"object": ["--keep-checkpoints", "20", "--checkpoint-every", str(EVERY)],
+SCENES = {"object": [],
           "fox-photos": ["--max-size", "320"]}
 
 
@@ -81,7 +79,11 @@ def train(scene: str, variant: str, extra: list[str]) -> dict:
     out = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
     if out.returncode != 0:
         raise SystemExit(f"{scene}/{variant} failed: {out.stderr[-2000:]}")
-    s = json.loads(out.stdout)
+    return result(scene, variant, extra, proj, json.loads(out.stdout), load0, t0)
+
+
+def result(scene: str, variant: str, extra: list[str], proj: Path, s: dict, load0: float, t0: float) -> dict:
+    """The row of a finished run of `proj` (its train summary `s`)."""
     log = [json.loads(x) for x in (proj / "reports" / "train_log.jsonl").read_text().splitlines()]
     ev = [r for r in log if "psnr" in r]
     best = max(ev, key=lambda r: r["psnr"])
@@ -91,49 +93,9 @@ def train(scene: str, variant: str, extra: list[str]) -> dict:
            "final_train": ev[-1].get("train_psnr"), "drop": round(ev[-1]["psnr"] - best["psnr"], 2),
            "num_gaussians": s["num_gaussians"], "train_seconds": s["train_seconds"],
            "wall_s": round(time.monotonic() - t0, 1), "load": [round(load0, 2), round(os.getloadavg()[0], 2)]}
-    if scene == "object":
-        row["regions"] = regions(proj)
     print(f"[{scene}/{variant}] best {row['best']:.2f} @ {row['best_step']}, final {row['final']:.2f} "
           f"({row['drop']:+.2f}), train {row['final_train']}", flush=True)
     return row
-
-
-REGIONS = {"objects": lambda m: (m >= 2) & (m < 255), "paper": lambda m: m == 0, "backdrop": lambda m: (m == 1) | (m == 255)}
-
-
-def regions(proj: Path) -> list[dict]:
-    """Held-out PSNR per ground-truth region at every kept checkpoint."""
-    from splatcli.io.images import load_rgb
-    from splatcli.io.model import load_model
-    from splatcli.project import Project
-    from splatcli.render.rasterize import render_camera
-    from splatcli.sfm.colmap import read_project_scene
-
-    ms = make_scene_module()
-    gt = json.loads((OUT / "object" / "capture" / "ground_truth.json").read_text())
-    gt_cams = {c["name"]: c for c in gt["cameras"]}
-    project = Project.open(proj)
-    cams = {c.name: c for c in read_project_scene(project).cameras}
-    test = project.splits()["test"]
-    ids, targets = {}, {}
-    for name in test:
-        c = gt_cams[name]
-        ids[name] = ms.material_ids(np.asarray(c["K"]), np.asarray(c["viewmat"]), c["width"], c["height"])
-        targets[name] = torch.from_numpy(load_rgb(project.images_dir / name)).float() / 255
-    bg = torch.tensor(project.background() or (0.0, 0.0, 0.0), dtype=torch.float32)
-    rows = []
-    for step, path in project.checkpoints():
-        g = load_model(path, torch.device("cpu")).gaussians
-        sq = {k: [0.0, 0] for k in REGIONS}
-        for name in test:
-            img = render_camera(g, cams[name], bg).image.clamp(0, 1)
-            err = ((img - targets[name]) ** 2).mean(-1).numpy()
-            for k, sel in REGIONS.items():
-                m = sel(ids[name])
-                sq[k][0] += float(err[m].sum())
-                sq[k][1] += int(m.sum())
-        rows.append({"step": step, **{k: round(-10 * np.log10(s / max(n, 1)), 2) for k, (s, n) in sq.items()}})
-    return rows
 
 
 def main() -> None:
@@ -142,6 +104,8 @@ def main() -> None:
     ap.add_argument("--variants", default=",".join(VARIANTS))
     ap.add_argument("--no-write", action="store_true")
     ap.add_argument("--doc-only", action="store_true", help="rewrite the doc section from the stored results")
+    ap.add_argument("--adopt", type=Path, default=None,
+                    help="record the finished run in this project (trained by the command above) as --variants' one")
     args = ap.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)
     path = OUT / "results.json"
@@ -150,7 +114,12 @@ def main() -> None:
         return  # runs accumulate by (scene, variant): variants may run in separate invocations
     for s in [s for s in args.scenes.split(",") if s]:
         for v in [v for v in args.variants.split(",") if v]:
-            row = train(s, v, VARIANTS[v])
+            if args.adopt:
+                summary = Project.open(args.adopt).step("train")["summary"]
+                row = result(s, v, VARIANTS[v], args.adopt, summary, float("nan"), time.monotonic())
+                row["load"] = ["–", "–"]
+            else:
+                row = train(s, v, VARIANTS[v])
             rows = [r for r in (json.loads(path.read_text()) if path.exists() else [])
                     if (r["scene"], r["variant"]) != (s, v)] + [row]
             order = {k: i for i, k in enumerate(VARIANTS)}
@@ -164,7 +133,9 @@ def doc_lines(rows: list[dict]) -> list[str]:
     lines = ["## overfitting", "",
              "Measured by `python bench/overfit.py`: `--preset fast` (7,000 steps), held-out and training-view PSNR "
              f"every {EVERY} steps, the variants one after the other on this machine (one torch thread). Target "
-             "(issue 15): the final held-out PSNR at least the best during the run minus 0.2 dB.", "",
+             "(issue 15): the final held-out PSNR at least the best during the run minus 0.2 dB. Rows with no load "
+             "were recorded from a finished run of the same command (`--adopt`); the runs shared the machine with "
+             "others, so their training seconds are not comparable with each other.", "",
              "| scene | variant | options | best held-out PSNR (step) | final | final − best | training views, final "
              "| Gaussians | train s | load |",
              "| --- | --- | --- | --- | ---: | ---: | ---: | ---: | ---: | --- |"]
@@ -176,13 +147,6 @@ def doc_lines(rows: list[dict]) -> list[str]:
     for r in rows:
         curve = ", ".join(f"{s}: {p:.2f} ({t:.2f})" for s, p, t in r["curve"])
         lines.append(f"- {r['scene']} / {r['variant']}: {curve}")
-    reg = [r for r in rows if r.get("regions")]
-    if reg:
-        lines += ["", "The object scene's held-out PSNR by ground-truth region at each checkpoint "
-                  "(objects / paper sheet / defocused backdrop):", ""]
-        for r in reg:
-            lines.append(f"- {r['variant']}: " + ", ".join(f"{x['step']}: {x['objects']:.2f} / {x['paper']:.2f} / "
-                                                          f"{x['backdrop']:.2f}" for x in r["regions"]))
     return lines
 
 
