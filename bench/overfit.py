@@ -110,7 +110,7 @@ def main() -> None:
     OUT.mkdir(parents=True, exist_ok=True)
     path = OUT / "results.json"
     if args.doc_only:
-        write_section("## overfitting", doc_lines(json.loads(path.read_text())))
+        write_section("## overfitting", "\n".join(doc_lines(json.loads(path.read_text()))) + "\n")
         return  # runs accumulate by (scene, variant): variants may run in separate invocations
     for s in [s for s in args.scenes.split(",") if s]:
         for v in [v for v in args.variants.split(",") if v]:
@@ -126,7 +126,7 @@ def main() -> None:
             rows.sort(key=lambda r: (r["scene"], order.get(r["variant"], 99)))
             path.write_text(json.dumps(rows, indent=1))
             if not args.no_write:
-                write_section("## overfitting", doc_lines(rows))
+                write_section("## overfitting", "\n".join(doc_lines(rows)) + "\n")
 
 
 def doc_lines(rows: list[dict]) -> list[str]:
