@@ -58,7 +58,7 @@ def make_scene_module():
 
 def object_base() -> Path:
     """The object capture, rendered and processed once."""
-    capture, base = OUT / "object" / "capture", OUT / "object" / "base"
+    capture, base = OUT / "object" / "capture", OUT / "object" / "processed"  # not a variant's name
     if not (capture / "ground_truth.json").is_file():
         make_scene_module().render_scene(capture, kind="object")
     if not (base / "splatcli.json").is_file():

@@ -194,46 +194,18 @@ def test_render_and_eval_say_when_they_antialias(tmp_path):
 
 
 def test_choose_antialias():
-    assert choose_antialias("auto", None, True) == (False, None)
-    assert choose_antialias("auto", False, False)[0] is True  # another resolution
-    assert choose_antialias("auto", True, True)[0] is True  # trained with it
-    assert choose_antialias("off", True, False) == (False, None)
-    assert choose_antialias("on", None, True)[0] is True
+    assert choose_antialias("auto", None, 1.0) == (False, None)
+    assert choose_antialias("auto", False, 0.5)[0] is True  # drawn smaller than trained: aliasing
+    assert choose_antialias("auto", False, 2.0) == (False, None)  # drawn larger: the filter only blurs
+    assert choose_antialias("auto", False, None) == (False, None)  # unknown: as trained
+    assert choose_antialias("auto", True, 1.0)[0] is True  # trained with it
+    assert choose_antialias("off", True, 0.5) == (False, None)
+    assert choose_antialias("on", None, 2.0)[0] is True
 
 
-def test_train_with_mip_filter_stores_the_filter_and_draws_with_it(tmp_path):
-    from splatcli.train.config import make_config
-    from splatcli.train.loop import train
-
-    proj = make_tiny_project(tmp_path / "t", trained=False)
-    proj.update_manifest(scene={**proj.manifest()["scene"], "bounds_min": [-1.0] * 3, "bounds_max": [1.0] * 3})
-    cfg = make_config(iterations=12, init_random_points=300, eval_every=0, refine_start=2, refine_every=4,
-                      grow_grad2d=2e-5, checkpoint_every=100, mip_filter=True)
-    s = train(proj.root, cfg, CPU)
-    ck = load_checkpoint(proj.latest_checkpoint())
-    f = ck.strategy["mip"]["filter3d"]
-    assert f.shape == (len(ck.gaussians),) and (f > 0).all() and bool(ck.strategy["mip"]["known"].all())
-    assert s.num_gaussians == len(ck.gaussians)
-    assert proj.step("train")["config"]["mip_filter"] is True and ck.antialiased
-    folded = ck.model()
-    assert (folded.log_scales > ck.gaussians.log_scales).all()
-
-
-def test_interrupted_mip_run_resumes_bitwise(tmp_path, monkeypatch):
-    import splatcli.strategy.mip as mip_mod
-    from splatcli.errors import Interrupted
-    from splatcli.train.config import make_config
-    from splatcli.train.loop import train
-    from test_train import SMALL, _interrupt_at, tiny
-
-    monkeypatch.setattr(mip_mod, "EVERY", 4)  # full recomputations inside the run, one of them after the resume
-    cfg = make_config(**{**SMALL, "iterations": 10, "mip_filter": True})
-    a, b = tiny(tmp_path, "a"), tiny(tmp_path, "b")
-    train(a.root, cfg, CPU)
-    with pytest.raises(Interrupted):
-        train(b.root, cfg, CPU, on_event=_interrupt_at(5))
-    train(b.root, cfg, CPU, resume=True)
-    ka, kb = load_checkpoint(a.latest_checkpoint()), load_checkpoint(b.latest_checkpoint())
-    for k, v in ka.gaussians.as_dict().items():
-        assert torch.equal(v, kb.gaussians.as_dict()[k]), k
-    assert torch.equal(ka.strategy["mip"]["filter3d"], kb.strategy["mip"]["filter3d"])
+def test_auto_antialias_follows_the_zoom_of_a_plain_model(tmp_path):
+    proj = make_tiny_project(tmp_path / "p")
+    for downscale, on in (("2", True), ("0.5", False), ("1", False)):
+        r = run_cli("render", proj.root, "--json", "-o", tmp_path / downscale, "--downscale", downscale)
+        assert r.exit_code == 0, r.output
+        assert json.loads(r.stdout)["antialiased"] is on, downscale

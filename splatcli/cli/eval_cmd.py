@@ -40,7 +40,7 @@ def evaluate(
                                                  "(default: the torch hub cache, $TORCH_HOME/hub/checkpoints; never downloaded). "
                                                  "Without them, or without the lpips extra, LPIPS is left out."),
     antialias: str = typer.Option(_D.antialias, "--antialias", help="auto | on | off: draw with the 2D antialiasing filter. "
-                                  "auto: on for a model trained with --mip-filter or at a size other than the one trained."),
+                                  "auto: on for a model trained with --mip-filter or drawn smaller than trained (zoomed in it only blurs)."),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Folder for eval.json, eval.md and plots (default PROJECT/reports)."),
     pred: Optional[Path] = typer.Option(None, "--pred", help="Compare this folder of images ..."),
     gt: Optional[Path] = typer.Option(None, "--gt", help="... with this one, by file name (no project needed)."),

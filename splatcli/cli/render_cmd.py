@@ -27,8 +27,8 @@ def render(
     downscale: Optional[float] = typer.Option(None, "--downscale", help="Divide the cameras' stored resolution by this (default: a project's cameras at the resolution trained)."),
     background: Optional[str] = typer.Option(None, "--background", help="white, black, gray or R,G,B in [0, 1] (default: the scene's)."),
     antialias: str = typer.Option(_D.antialias, "--antialias", help="auto | on | off: draw with the 2D antialiasing filter "
-                                  "(keeps a model's look at other resolutions). auto: on for a model trained with --mip-filter "
-                                  "or at a size other than the one trained."),
+                                  "against aliasing). auto: on for a model trained with --mip-filter "
+                                  "or drawn smaller than trained (zoomed in it only blurs)."),
     depth: bool = typer.Option(False, "--depth", help="Also write depth/<name>.png (colour-mapped)."),
     alpha: bool = typer.Option(False, "--alpha", help="Also write alpha/<name>.png."),
     video: Optional[Path] = typer.Option(None, "--video", help="Also encode the frames into this video (.mp4, .avi)."),

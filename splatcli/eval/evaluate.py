@@ -31,7 +31,7 @@ import contextlib
 import math
 import tempfile
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -50,7 +50,7 @@ from ..io.model import load_model
 from ..io.ply import ply_bytes
 from ..project import Project, writer_lock
 from ..render import render_camera
-from ..views.sources import SPLITS, View, choose_antialias, dataset_views
+from ..views.sources import SPLITS, View, choose_antialias, dataset_views, zoom_factor
 from .budgets import contributions, prune_to
 from .curve import read_curve
 from .lpips import MIN_SIZE as LPIPS_MIN_SIZE, Lpips, load_lpips
@@ -229,7 +229,7 @@ def check_eval_config(config: EvalConfig) -> None:
         check_format(f, "--formats")
     if config.contribution_views < 1:
         raise SplatError(f"contribution_views {config.contribution_views}: must be at least 1")
-    choose_antialias(config.antialias, None, True)  # refuses an unknown mode
+    choose_antialias(config.antialias, None, None)  # refuses an unknown mode
 
 
 @dataclass
@@ -276,11 +276,10 @@ def plan_eval(root: str | Path, config: EvalConfig, device: torch.device) -> Eva
         downscale, max_size = config.downscale, None
     else:  # the resolution trained, also for a .ply scored against this project
         downscale, max_size = project.trained_resolution()
-    same = config.downscale is None or _same_size(project, views, downscale)
-    antialiased, why = choose_antialias(config.antialias, m.antialiased, same)
+    drawn = [replace(v, camera=v.camera.at_resolution(downscale, max_size)) for v in views]
+    antialiased, why = choose_antialias(config.antialias, m.antialiased, _zoom(project, views, drawn))
     notes += [why] if why else []
-    views = [View(camera=v.camera.at_resolution(downscale, max_size),
-                  out_name=v.out_name, image=v.image) for v in views]
+    views = drawn
     small = [v.camera for v in views if min(v.camera.width, v.camera.height) < 11]
     if small:
         raise SplatError(f"{small[0].name}: {small[0].width}x{small[0].height} at eval resolution is too small "
@@ -297,15 +296,13 @@ def plan_eval(root: str | Path, config: EvalConfig, device: torch.device) -> Eva
 
 
 
-def _same_size(project: Project, views: Sequence[View], downscale: float) -> bool:
-    """Whether `--downscale` gives every view the size it was trained at (False when the
-    manifest does not say)."""
+def _zoom(project: Project, views: Sequence[View], drawn: Sequence[View]) -> float | None:
+    """Drawn over trained resolution (None when the manifest does not say)."""
     try:
         trained = project.trained_resolution()
     except SplatError:
-        return False
-    size = lambda c: (c.width, c.height)  # noqa: E731
-    return all(size(v.camera.at_resolution(downscale)) == size(v.camera.at_resolution(*trained)) for v in views)
+        return None
+    return zoom_factor(drawn, [replace(v, camera=v.camera.at_resolution(*trained)) for v in views])
 
 
 def run_eval(plan: EvalPlan, *, on_event: EventSink | None = None) -> EvalReport:

@@ -29,7 +29,7 @@ from ..io.model import LoadedModel, load_model
 from ..project import Project
 from ..render import render_camera
 from .paths import PATHS, cameras_around_points, generate_path
-from .sources import SPLITS, View, choose_antialias, dataset_views, resize_views, transforms_views
+from .sources import SPLITS, View, choose_antialias, dataset_views, resize_views, transforms_views, zoom_factor
 
 VIDEO_CODECS = {".mp4": "mp4v", ".avi": "MJPG", ".mov": "mp4v", ".mkv": "mp4v"}
 
@@ -253,7 +253,7 @@ def check_config(config: RenderConfig) -> None:
         raise SplatError("--cameras and --split both choose the cameras; give one")
     if config.sh_degree is not None and not 0 <= config.sh_degree <= 3:
         raise SplatError(f"--sh-degree {config.sh_degree}: must be 0..3")
-    choose_antialias(config.antialias, None, True)  # refuses an unknown mode
+    choose_antialias(config.antialias, None, None)  # refuses an unknown mode
 
 
 def select_views(model: LoadedModel, config: RenderConfig, notes: list[str]) -> tuple[list[View], str, Project | None]:
@@ -292,6 +292,18 @@ def select_views(model: LoadedModel, config: RenderConfig, notes: list[str]) -> 
     return views, name, project
 
 
+def _zoom(project: Project | None, config: RenderConfig, views: Sequence[View]) -> float | None:
+    """Drawn over trained resolution, for a project's cameras (None otherwise: unknown)."""
+    if project is None or config.cameras is not None:
+        return None
+    try:
+        res = project.trained_resolution()
+    except SplatError:
+        return None
+    trained = [replace(v, camera=v.camera.at_resolution(*res)) for v in dataset_views(project, "all")]
+    return zoom_factor(views, trained)
+
+
 @dataclass
 class RenderPlan:
     """Everything checked and loaded, nothing rendered yet (so that input errors
@@ -327,10 +339,7 @@ def plan_render(source: str | os.PathLike, config: RenderConfig, device: torch.d
         what = Path(config.cameras).name
     else:
         what = f"{name} split"
-    # The resolution trained: a project's cameras with no size option (select_views).
-    same = (project is not None and config.cameras is None
-            and config.downscale is None and config.width is None and config.height is None)
-    antialiased, why = choose_antialias(config.antialias, model.antialiased, same)
+    antialiased, why = choose_antialias(config.antialias, model.antialiased, _zoom(project, config, views))
     notes += [why] if why else []
     return RenderPlan(model=model, views=views, out_dir=out_dir, config=replace(config, background=background),
                       cameras=what, notes=notes, antialiased=antialiased)

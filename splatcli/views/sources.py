@@ -9,6 +9,7 @@ y down, z forward), `viewmat` world-to-camera, pixel centres at +0.5.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -134,18 +135,28 @@ def resize_views(views: list[View], *, width: int | None = None, height: int | N
 ANTIALIAS = ("auto", "on", "off")  # render / eval --antialias
 
 
-def choose_antialias(mode: str, trained_with: bool | None, same_resolution: bool) -> tuple[bool, str | None]:
+def zoom_factor(drawn: Sequence[View], trained: Sequence[View]) -> float:
+    """How much larger the drawn views sample the scene than the trained ones: the
+    ratio of their median focal lengths in pixels (1 at the trained resolution)."""
+    fx = lambda vs: float(np.median([v.camera.K[0, 0] for v in vs]))  # noqa: E731
+    return fx(drawn) / fx(trained)
+
+
+def choose_antialias(mode: str, trained_with: bool | None, zoom: float | None) -> tuple[bool, str | None]:
     """Whether to draw with the 2D filter (rasterize(antialiased=True)), and a line
-    saying why when it is on. auto: on for a model trained with it (`train
-    --mip-filter`), or when drawing at another resolution than the one trained, where
-    the 0.3-pixel dilation alone would thicken (zoomed out) or erode (zoomed in) it."""
+    saying why when it is on. `zoom`: drawn over trained resolution (zoom_factor),
+    None when unknown. auto: on for a model trained with it (`train --mip-filter`),
+    or when drawing smaller than trained, where the 0.3-pixel dilation alone would
+    thicken fine detail into aliasing. Drawn larger it stays off: the filter is a
+    box filter for one screen pixel, and a plain model loses 0.72 dB with it at 4x
+    (docs/benchmarks.md, "zoom"); what zooming in needs is the 3D filter."""
     if mode not in ANTIALIAS:
         raise SplatError(f"--antialias {mode!r} is not known; allowed values: {', '.join(ANTIALIAS)}")
     if mode != "auto":
         return mode == "on", "drawn with the 2D antialiasing filter (--antialias on)" if mode == "on" else None
     if trained_with:
         return True, "drawn with the 2D antialiasing filter, as the model was trained (--mip-filter)"
-    if not same_resolution:
-        return True, ("drawn with the 2D antialiasing filter: not at the resolution trained "
+    if zoom is not None and zoom < 0.99:
+        return True, (f"drawn with the 2D antialiasing filter: at {zoom:.2f}x the resolution trained "
                       "(--antialias off draws without it)")
     return False, None
