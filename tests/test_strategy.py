@@ -158,6 +158,20 @@ def test_opacity_reset_clamps_and_zeroes_moments():
     assert _moment(optims, params, "opacity_logits").abs().sum() == 0
 
 
+def test_opacity_reset_zero_never_resets_nor_prunes_by_size():
+    params, optims = _params(n=4)
+    with torch.no_grad():
+        params["opacity_logits"].copy_(torch.tensor([0.0, 1.0, 3.0, 2.0]))
+        params["log_scales"][0] = 5.0  # far larger than prune_scale3d x extent
+    before = params["opacity_logits"].detach().clone()
+    s = DefaultStrategy(DefaultStrategyConfig(reset_every=0, refine_start=0, refine_every=100), scene_extent=1.0)
+    state = s.initial_state(4, torch.device("cpu"))
+    for step in (100, 3000, 6000):
+        stats = s.step_post_backward(Splats(params, optims, [state]), state, step, _info(4, torch.zeros(4, 2)))
+        assert not stats.reset_opacity and stats.pruned == 0
+    assert torch.equal(params["opacity_logits"].detach(), before)
+
+
 def test_state_dict_round_trip():
     s = DefaultStrategy(DefaultStrategyConfig(), scene_extent=2.0)
     a = s.initial_state(3, torch.device("cpu"), seed=4)

@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 
 import splatcli.train.loop as train_mod
 from splatcli.cli.main import app
-from splatcli.errors import Interrupted, TrainingDiverged
+from splatcli.errors import Interrupted, SplatError, TrainingDiverged
 from splatcli.events import Progress
 from splatcli.io.checkpoint import load_checkpoint, load_gaussians
 from splatcli.io.ply import ply_bytes
@@ -278,6 +278,17 @@ def test_time_budget_plans_a_compressed_schedule(tmp_path):
     assert cfg["strategy"]["refine_every"] == max(25, round(100 * ratio))  # never below 25 steps
     assert cfg["strategy"]["refine_stop"] == max(1, round(2000 * ratio))
     assert cfg["sh_degree_interval"] == max(1, round(600 * ratio))
+
+
+def test_plan_keeps_a_switched_off_reset_off():
+    from splatcli.train.plan import TimePlan
+
+    cfg = make_config("fast", reset_every=0, time_budget=60.0)
+    scaled = TimePlan.start(cfg).scaled(cfg, 700)
+    assert scaled.strategy.reset_every == 0 and scaled.strategy.refine_stop == 400
+    assert make_config("demo").strategy.reset_every == 0
+    with pytest.raises(SplatError, match="reset_every"):
+        make_config(reset_every=-1)
 
 
 @pytest.mark.parametrize("key,value", [("refine_every", 0), ("iterations", "many"), ("sh_degree", "seven"),

@@ -33,6 +33,7 @@ def train(
                                            "noise on nearly transparent ones, opacity and scale penalties (Kheradmand et al. 2024)."),
     init_far: Optional[int] = typer.Option(None, "--init-far", help=f"Also start with Gaussians on a sphere {_D.init_far_radius:g}x the cameras' extent away, this many over the whole sphere (those a training view sees are kept, coloured from it): a backdrop that structure from motion left empty gets a far depth instead of floaters (default {_D.init_far}: off)."),
     prune_views: Optional[int] = typer.Option(None, "--prune-views", help=f"While densifying, prune Gaussians that fewer than this many training views see (they can only explain those photos: floaters elsewhere; default {_D.support.prune_views}: off)."),
+    opacity_reset: Optional[int] = typer.Option(None, "--opacity-reset", help=f"While densifying, lower every opacity to {_D.strategy.reset_opacity} every this many steps, as 3DGS does against floaters near the cameras; Gaussians that are too large are pruned only after the first (default {_D.strategy.reset_every}, the preset may change it; 0: never, and no size pruning)."),
     opacity_reg: Optional[float] = typer.Option(None, "--opacity-reg", help=f"Add this x the mean opacity to the loss: unneeded Gaussians fade and are pruned (default {_D.reg.opacity_reg}: off; mcmc has its own {_D.mcmc.opacity_reg})."),
     scale_reg: Optional[float] = typer.Option(None, "--scale-reg", help=f"Add this x the mean scale (world units) to the loss: Gaussians stay small (default {_D.reg.scale_reg}: off; mcmc has its own {_D.mcmc.scale_reg})."),
     mask_mode: Optional[str] = typer.Option(None, "--mask-mode", help=f"What the project's masks do (default {_D.mask_mode}): ignore = masked pixels take no part in the "
@@ -74,7 +75,7 @@ def train(
     dev = resolve_device(device)
     given = dict(iterations=iterations, sh_degree=sh_degree, max_gaussians=max_gaussians, compact=compact or None,
                  density=strategy.strip().lower() if strategy else None, opacity_reg=opacity_reg, scale_reg=scale_reg,
-                 init_far=init_far, prune_views=prune_views, checkpoint_every=checkpoint_every,
+                 init_far=init_far, prune_views=prune_views, reset_every=opacity_reset, checkpoint_every=checkpoint_every,
                  keep_checkpoints=keep_checkpoints,
                  mip_filter=mip_filter or None,
                  mask_mode=mask_mode.strip().lower() if mask_mode else None,

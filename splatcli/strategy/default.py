@@ -22,7 +22,7 @@ class DefaultStrategyConfig:
     refine_start: int = 500  # first step that may clone/split/prune (exclusive)
     refine_stop: int = 15_000  # no refinement (nor accumulation) from here on
     refine_every: int = 100
-    reset_every: int = 3000  # opacity reset period, while refining
+    reset_every: int = 3000  # opacity reset period, while refining (0: never, and no size pruning)
     grow_grad2d: float = 2e-4  # average |d loss / d mean2d| in NDC units that triggers growth
     grow_scale3d: float = 0.01  # x extent: larger Gaussians split, smaller ones clone ("percent_dense")
     split_samples: int = 2
@@ -88,7 +88,7 @@ class DefaultStrategy(Strategy):
         if step > cfg.refine_start and step % cfg.refine_every == 0:
             info.combine(state)  # every rank decides from every rank's views
             self._refine(splats, state, step, stats)
-        if step % cfg.reset_every == 0:
+        if cfg.reset_every and step % cfg.reset_every == 0:
             # Clamp every opacity low so that the following densification has to
             # re-earn each Gaussian's opacity: floaters near cameras fade and get pruned.
             lim = math.log(cfg.reset_opacity / (1 - cfg.reset_opacity))
@@ -120,7 +120,7 @@ class DefaultStrategy(Strategy):
         opacity = torch.sigmoid(params["opacity_logits"])  # [N]
         max_scale = params["log_scales"].exp().amax(dim=-1)  # [N] world units
         prune = opacity < cfg.prune_opacity
-        if step > cfg.reset_every:  # 3DGS checks size only once a reset has happened
+        if cfg.reset_every and step > cfg.reset_every:  # 3DGS checks size only once a reset has happened
             limit = torch.full_like(max_scale, cfg.prune_scale3d * self.scene_extent)
             if self.scene_center is not None:
                 far = (params["means"].detach() - self.scene_center).norm(dim=-1) / self.scene_extent

@@ -241,7 +241,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     # `make demo` on sample_data (320x240, ~2k SfM points): a few minutes on 2 cores.
     # Everything 3DGS does, compressed: densify 300..900, SH every 300 steps, and a
     # budget of 20k Gaussians (unbudgeted it reaches ~30k for +0.3 dB at ~1.5x the time).
-    "demo": {"iterations": 1500, "refine_start": 300, "refine_stop": 900, "reset_every": 100_000,
+    "demo": {"iterations": 1500, "refine_start": 300, "refine_stop": 900, "reset_every": 0,
              "sh_degree_interval": 300, "eval_every": 500, "checkpoint_every": 500,
              "max_size": 256, "init_random_points": 20_000, "max_gaussians": 20_000},
 }
@@ -276,8 +276,8 @@ _STEP_COUNTS = ("iterations", "sh_degree_interval", "eval_every", "log_every", "
 
 # Counts that must be at least 1 / at least 0 (flat option names).
 _AT_LEAST_1 = ("sh_degree_interval", "log_every", "checkpoint_every", "keep_checkpoints", "refine_every",
-               "reset_every", "split_samples", "init_knn", "compact_rounds", "sh_auto_val_views")
-_AT_LEAST_0 = ("eval_max_views", "init_random_points", "init_far", "prune_views", "refine_start", "refine_stop", "compact_finetune",
+               "split_samples", "init_knn", "compact_rounds", "sh_auto_val_views")
+_AT_LEAST_0 = ("reset_every", "eval_max_views", "init_random_points", "init_far", "prune_views", "refine_start", "refine_stop", "compact_finetune",
                "max_bad_steps")
 
 

@@ -46,7 +46,7 @@ class TimePlan:
         fewer views are noise, and growth that fast outruns a short budget (fox at 480 px,
         120 s: refining every 2 steps grew 10k Gaussians to 72k in 167 steps)."""
         f = iterations / self.template["iterations"]
-        out = {k: max(1, round(v * f)) for k, v in self.template.items()}
+        out = {k: max(1, round(v * f)) if v else 0 for k, v in self.template.items()}  # 0: off stays off
         out["iterations"] = iterations
         out["refine_every"] = max(out["refine_every"], min(MIN_REFINE_EVERY, self.template["refine_every"]))
         return with_options(cfg, out)
