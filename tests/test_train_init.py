@@ -261,3 +261,16 @@ def test_support_prune_drops_what_few_views_see_on_the_refinement_schedule():
     stats = s.step_post_backward(sp, None, 200, None)
     assert stats.pruned == 2 and sp.params["means"][:, 0].tolist() == [0.0, 2.0]
     assert s.step_post_backward(sp, None, 500, None) is None  # after refine_stop
+
+
+def test_in_frustum_bounds_near_plane_and_margin():
+    from splatcli.render.project import NEAR, in_frustum
+
+    K = torch.tensor([[10.0, 0, 5], [0, 10.0, 4], [0, 0, 1]], dtype=torch.float64)
+    vm = torch.eye(4, dtype=torch.float64)
+    # centre; the right edge (u = 10 = width: outside); behind the near plane; 2 px left of the image
+    pts = torch.tensor([[0, 0, 1.0], [0.5, 0, 1], [0, 0, NEAR / 2], [-0.7, 0, 1]], dtype=torch.float64)
+    uv, z, inside = in_frustum(pts, vm, K, 10, 8)
+    torch.testing.assert_close(uv[0], torch.tensor([5.0, 4.0], dtype=torch.float64))
+    assert inside.tolist() == [True, False, False, False] and z[2] == NEAR / 2
+    assert in_frustum(pts, vm, K, 10, 8, margin=0.25)[2].tolist() == [True, True, False, True]  # 2.5 px grace

@@ -38,6 +38,29 @@ MAX_MEAN_PX = 1e12
 
 NEAR = 0.2  # Gaussians nearer the camera than this (world units, as 3DGS) are not drawn
 
+
+def in_frustum(
+    points: Tensor,  # [N, 3] world
+    viewmat: Tensor,  # [4, 4] world to camera
+    K: Tensor,  # [3, 3] pixels
+    width: int,
+    height: int,
+    margin: float = 0.0,  # a fraction of the image size also counted as inside, on every side
+) -> tuple[Tensor, Tensor, Tensor]:  # uv [N, 2] pixels, depth [N], inside [N] bool
+    """Where each point falls in the image (pixel coordinates of K), its depth, and
+    whether it lies in front of the near plane and inside the image grown by `margin`.
+    The one frustum test of training's bookkeeping (views that see a point, sampling
+    rates, colours of --init-far points); computed in the points' dtype."""
+    vm, k = viewmat.to(points), K.to(points)
+    cam = points @ vm[:3, :3].T + vm[:3, 3]  # [N, 3]
+    z = cam[:, 2]
+    front = z > NEAR
+    uv = (cam @ k.T)[:, :2] / torch.where(front, z, torch.ones_like(z))[:, None]
+    lo_u, lo_v = -margin * width, -margin * height
+    inside = (front & (uv[:, 0] >= lo_u) & (uv[:, 0] < width - lo_u)
+              & (uv[:, 1] >= lo_v) & (uv[:, 1] < height - lo_v))
+    return uv, z, inside
+
 @dataclass
 class Projection:
     means2d: Tensor  # [N, 2] pixel coordinates of the projected means (0 where culled)

@@ -24,7 +24,7 @@ import torch
 from torch import Tensor
 
 from ..gaussians import smooth_3d
-from ..render.project import NEAR
+from ..render.project import in_frustum
 from .base import RowState, Splats, StepInfo, Strategy
 
 VARIANCE = 0.2  # filter variance in squared sampling intervals (the paper's s; their code's 0.2)
@@ -38,23 +38,14 @@ CameraList = Iterable[tuple[Tensor, Tensor, int, int]]  # (viewmat [4, 4], K [3,
 def sampling_rate(
     means: Tensor,  # [N, 3] world
     cameras: CameraList,  # at the training resolution
-    near: float = NEAR,
     margin: float = MARGIN,
 ) -> Tensor:  # [N] pixels per world unit; 0 where no camera sees the centre
     """The highest rate at which any camera samples each centre: focal / depth."""
     nu = torch.zeros(means.shape[0], dtype=means.dtype, device=means.device)
     for viewmat, K, width, height in cameras:
-        vm, k = viewmat.to(means), K.to(means)
-        pc = means @ vm[:3, :3].T + vm[:3, 3]  # [N, 3] camera frame
-        z = pc[:, 2]
-        front = z > near
-        zs = torch.where(front, z, torch.ones_like(z))
-        u = k[0, 0] * pc[:, 0] / zs + k[0, 2]
-        v = k[1, 1] * pc[:, 1] / zs + k[1, 2]
-        inside = ((u >= -margin * width) & (u <= (1 + margin) * width)
-                  & (v >= -margin * height) & (v <= (1 + margin) * height))
-        rate = torch.maximum(k[0, 0], k[1, 1]) / zs
-        nu = torch.maximum(nu, torch.where(front & inside, rate, torch.zeros_like(rate)))
+        _, z, inside = in_frustum(means, viewmat, K, width, height, margin)
+        rate = K[:2, :2].diagonal().max().to(means) / torch.where(inside, z, torch.ones_like(z))
+        nu = torch.maximum(nu, torch.where(inside, rate, torch.zeros_like(rate)))
     return nu
 
 

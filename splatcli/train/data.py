@@ -28,7 +28,7 @@ from ..camera import Camera, scene_extent
 from ..errors import SplatError
 from ..project import Project
 from ..io.images import load_mask, load_rgb
-from ..render.project import NEAR
+from ..render.project import in_frustum
 from ..sfm.colmap import read_project_scene
 
 
@@ -73,10 +73,7 @@ def views_seeing(views: list[TrainView], means: Tensor) -> Tensor:  # means [N, 
     near plane, inside the image)."""
     count = torch.zeros(means.shape[0], dtype=torch.int32, device=means.device)
     for v in views:
-        cam = means @ v.viewmat[:3, :3].T + v.viewmat[:3, 3]
-        uv = (cam @ v.K.T)[:, :2] / cam[:, 2:3].clamp_min(1e-12)
-        count += ((cam[:, 2] > NEAR) & (uv[:, 0] >= 0) & (uv[:, 0] < v.camera.width) & (uv[:, 1] >= 0)
-                  & (uv[:, 1] < v.camera.height)).to(torch.int32)
+        count += in_frustum(means, v.viewmat, v.K, v.camera.width, v.camera.height)[2].to(torch.int32)
     return count
 
 

@@ -16,6 +16,7 @@ from torch import Tensor
 from ..errors import SplatError
 from ..gaussians import SH_C0, Gaussians, num_sh_bases
 from ..io.model import load_model
+from ..render.project import in_frustum
 from .config import TrainConfig
 from .data import TrainData, TrainView
 
@@ -119,14 +120,10 @@ def far_points(n: int, views: list[TrainView], center: np.ndarray, radius: float
     total = torch.zeros(n, 3, dtype=torch.float64, device=dev)
     seen = torch.zeros(n, dtype=torch.float64, device=dev)
     for v in views:
-        cam = pts @ v.viewmat[:3, :3].double().T + v.viewmat[:3, 3].double()
-        uvw = cam @ v.K.double().T
-        front = cam[:, 2] > 0
-        u = torch.floor(uvw[:, 0] / uvw[:, 2].clamp_min(1e-12))
-        w = torch.floor(uvw[:, 1] / uvw[:, 2].clamp_min(1e-12))
-        inside = front & (u >= 0) & (u < v.camera.width) & (w >= 0) & (w < v.camera.height)
+        uv, _, inside = in_frustum(pts, v.viewmat, v.K, v.camera.width, v.camera.height)
         idx = inside.nonzero().squeeze(1)
-        total[idx] += v.image[w[idx].long(), u[idx].long()].double() / 255.0
+        px = uv[idx].floor().long()  # [M, 2] the pixel each falls on
+        total[idx] += v.image[px[:, 1], px[:, 0]].double() / 255.0
         seen[idx] += 1
     keep = seen > 0
     return pts[keep].float(), (total[keep] / seen[keep, None]).float()
