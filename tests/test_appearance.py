@@ -243,3 +243,23 @@ def test_eval_reports_the_colour_fit_psnr(tmp_path):
     assert report["psnr_color_fit"] >= report["psnr"]
     assert all(s["psnr_color_fit"] >= s["psnr"] - 1e-9 for s in report["per_image"])
     assert "PSNR after a per-view colour fit" in (proj.reports_dir / "eval.md").read_text()
+
+
+def test_training_view_scores_go_through_each_photos_transform(monkeypatch):
+    """train_psnr and the --sh-degree auto / --compact validation scores compare a training
+    photo with its render through that photo's transform; held-out scores use the scene alone."""
+    import types
+
+    import splatcli.train.loop as loop
+
+    render = torch.full((12, 12, 3), 0.8)
+    monkeypatch.setattr(loop, "render_view", lambda state, v, bg, d: types.SimpleNamespace(image=render))
+    app = _appearance(3)
+    with torch.no_grad():
+        app.transforms[2, :, :3] *= 0.5  # photo 2 came out at half the exposure
+    state = types.SimpleNamespace(appearance=app)
+    photo = types.SimpleNamespace(target=lambda: render * 0.5, keep=None)
+    through, _ = loop.evaluate_views(state, [photo], torch.zeros(3), 0, train_index=[2])
+    alone, _ = loop.evaluate_views(state, [photo], torch.zeros(3), 0)
+    assert math.isinf(through) or through > 60, through
+    assert alone < 20, alone

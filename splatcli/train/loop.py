@@ -229,10 +229,10 @@ def _context(data: TrainData, box: list[TrainState], on_event: EventSink | None,
 
     def score(which: str, sh_degree: int) -> tuple[float, float] | None:
         if which == "test":
-            views = data.test
-        else:  # "val:K": K evenly spaced training views
-            views = subset(data.train, int(which.split(":")[1]))
-        return evaluate_views(box[0], views, data.background, sh_degree, comm) if views else None
+            return evaluate_views(box[0], data.test, data.background, sh_degree, comm) if data.test else None
+        # "val:K": K evenly spaced training views, each through its own colour transform
+        idx = subset(list(range(len(data.train))), int(which.split(":")[1]))
+        return evaluate_views(box[0], [data.train[i] for i in idx], data.background, sh_degree, comm, idx)
 
     def weights() -> Tensor:  # [N]
         p = box[0].params
@@ -303,22 +303,29 @@ def _measure(cfg: TrainConfig, data: TrainData, state: TrainState, step: int, to
 def _measure_fit(cfg: TrainConfig, data: TrainData, state: TrainState, step: int,
                  comm: Comm) -> tuple[float, float]:
     """PSNR / SSIM on as many evenly spaced training views as there are held-out ones,
-    rendered as those are: logged beside the held-out figures, the gap shows overfitting."""
-    return evaluate_views(state, subset(data.train, len(data.test)), data.background,
-                          state.active_sh_degree(step, cfg.sh_degree_interval), comm)
+    rendered as those are (through their colour transforms, with --appearance): logged
+    beside the held-out figures, the gap shows overfitting."""
+    idx = subset(list(range(len(data.train))), len(data.test))
+    return evaluate_views(state, [data.train[i] for i in idx], data.background,
+                          state.active_sh_degree(step, cfg.sh_degree_interval), comm, idx)
 
 
 @torch.no_grad()
 def evaluate_views(
     state: TrainState, views: list[TrainView], bg: Tensor, sh_degree: int,  # bg [3] in [0, 1]
-    comm: Comm | None = None,
+    comm: Comm | None = None, train_index: list[int] | None = None,
 ) -> tuple[float, float]:
     """Mean PSNR (dB) and SSIM over `views`, images clamped to [0, 1] as saved, over the
-    kept pixels of views with a mask (each rank of a data-parallel run renders its share)."""
+    kept pixels of views with a mask (each rank of a data-parallel run renders its share).
+    `train_index`: the views are these training images, drawn through their colour
+    transforms when the run learns them (--appearance); None: the scene alone."""
     comm = comm or Comm()
     ps, ss = [], []
-    for v in comm.share(views):
-        img = render_view(state, v, bg, sh_degree).image.clamp(0, 1)
+    for v, i in comm.share(list(zip(views, train_index or [None] * len(views)))):
+        img = render_view(state, v, bg, sh_degree).image
+        if i is not None and state.appearance is not None:
+            img = state.appearance.apply(img, i)
+        img = img.clamp(0, 1)
         t = v.target()
         ps.append(float(psnr(img, t, v.keep)))
         ss.append(float(ssim(img, t, v.keep)))
