@@ -1,6 +1,6 @@
 """Does held-out quality fall as training goes on?  Issue 15's overfitting study.
 
-    .venv/bin/python bench/overfit.py [--scenes object,fox-photos] [--variants base,reg,far,views,all]
+    .venv/bin/python bench/overfit.py [--scenes object,fox-photos] [--variants base,reg,far,views,all,noreset,far-noreset]
                                       [--no-write] [--doc-only]
 
 Each scene trains `--preset fast` (fox from its photos at `--max-size 320`) once per variant, one
@@ -44,6 +44,8 @@ VARIANTS = {
     "far": ["--init-far", "20000"],
     "views": ["--prune-views", "3"],
     "all": ["--opacity-reg", "0.01", "--scale-reg", "0.01", "--init-far", "20000", "--prune-views", "3"],
+    "noreset": ["--opacity-reset", "0"],
+    "far-noreset": ["--init-far", "20000", "--opacity-reset", "0"],
 }
 SCENES = {"object": [],
           "fox-photos": ["--max-size", "320"]}
