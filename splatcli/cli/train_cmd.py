@@ -23,7 +23,7 @@ _D = TrainConfig()  # the defaults, written once in the config
 def train(
     project: Path = typer.Argument(..., help="The project directory made by `splatcli process`."),
     preset: str = typer.Option(_D.preset, "--preset", help=f"{' | '.join(PRESETS)}: default = the paper's 30k steps; "
-                               "fast = 7k steps, densify to 4k, the first half at a resolution rising from 1/4 (CPU: less time per step early, "
+                               "fast = 7k steps, densify to 4k with no opacity reset, the first half at a resolution rising from 1/4 (CPU: less time per step early, "
                                "at the cost of fine detail learnt later); demo = a few minutes (make demo)."),
     iterations: Optional[int] = typer.Option(None, "--iterations", "-n", help=f"Optimiser steps (default {_D.iterations}; the preset may change it)."),
     sh_degree: Optional[str] = typer.Option(None, "--sh-degree", help=f"0-3, or auto: the lowest degree within {_D.sh_auto.tol_db} dB of 3 on training views (default {_D.sh_degree})."),
