@@ -277,7 +277,7 @@ def plan_eval(root: str | Path, config: EvalConfig, device: torch.device) -> Eva
     else:  # the resolution trained, also for a .ply scored against this project
         downscale, max_size = project.trained_resolution()
     drawn = [replace(v, camera=v.camera.at_resolution(downscale, max_size)) for v in views]
-    antialiased, why = choose_antialias(config.antialias, m.antialiased, _zoom(project, views, drawn))
+    antialiased, why = choose_antialias(config.antialias, m.antialiased, zoom_factor(project, drawn, views))
     notes += [why] if why else []
     views = drawn
     small = [v.camera for v in views if min(v.camera.width, v.camera.height) < 11]
@@ -294,15 +294,6 @@ def plan_eval(root: str | Path, config: EvalConfig, device: torch.device) -> Eva
                     background=tuple(bg_rgb), downscale=downscale,  # type: ignore[arg-type]
                     max_size=max_size, train_summary=tsum, notes=notes, lpips=lp, antialiased=antialiased)
 
-
-
-def _zoom(project: Project, views: Sequence[View], drawn: Sequence[View]) -> float | None:
-    """Drawn over trained resolution (None when the manifest does not say)."""
-    try:
-        trained = project.trained_resolution()
-    except SplatError:
-        return None
-    return zoom_factor(drawn, [replace(v, camera=v.camera.at_resolution(*trained)) for v in views])
 
 
 def run_eval(plan: EvalPlan, *, on_event: EventSink | None = None) -> EvalReport:

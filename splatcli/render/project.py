@@ -61,6 +61,7 @@ def in_frustum(
               & (uv[:, 1] >= lo_v) & (uv[:, 1] < height - lo_v))
     return uv, z, inside
 
+
 @dataclass
 class Projection:
     means2d: Tensor  # [N, 2] pixel coordinates of the projected means (0 where culled)

@@ -296,12 +296,7 @@ def _zoom(project: Project | None, config: RenderConfig, views: Sequence[View]) 
     """Drawn over trained resolution, for a project's cameras (None otherwise: unknown)."""
     if project is None or config.cameras is not None:
         return None
-    try:
-        res = project.trained_resolution()
-    except SplatError:
-        return None
-    trained = [replace(v, camera=v.camera.at_resolution(*res)) for v in dataset_views(project, "all")]
-    return zoom_factor(views, trained)
+    return zoom_factor(project, views, dataset_views(project, "all"))
 
 
 @dataclass

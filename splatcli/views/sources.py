@@ -135,11 +135,16 @@ def resize_views(views: list[View], *, width: int | None = None, height: int | N
 ANTIALIAS = ("auto", "on", "off")  # render / eval --antialias
 
 
-def zoom_factor(drawn: Sequence[View], trained: Sequence[View]) -> float:
-    """How much larger the drawn views sample the scene than the trained ones: the
-    ratio of their median focal lengths in pixels (1 at the trained resolution)."""
-    fx = lambda vs: float(np.median([v.camera.K[0, 0] for v in vs]))  # noqa: E731
-    return fx(drawn) / fx(trained)
+def zoom_factor(project: Project, drawn: Sequence[View], views: Sequence[View]) -> float | None:
+    """How much larger the drawn views sample the scene than `views` (the project's
+    cameras) did at the resolution trained: the ratio of their median focal lengths in
+    pixels (1 at the trained resolution; None when the manifest does not say)."""
+    try:
+        res = project.trained_resolution()
+    except SplatError:
+        return None
+    fx = lambda cams: float(np.median([c.K[0, 0] for c in cams]))  # noqa: E731
+    return fx(v.camera for v in drawn) / fx(v.camera.at_resolution(*res) for v in views)
 
 
 def choose_antialias(mode: str, trained_with: bool | None, zoom: float | None) -> tuple[bool, str | None]:
