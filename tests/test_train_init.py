@@ -195,6 +195,20 @@ def test_init_far_adds_the_sphere_to_the_sfm_points(tmp_path):
         make_config("fast", init_far=10, init_far_radius=0.5)
 
 
+def test_mcmc_starts_from_its_own_initial_opacity(tmp_path):
+    """--strategy mcmc starts at mcmc_init_opacity (0.5, the MCMC code's), the default
+    strategy at init_opacity (0.1, 3DGS's); out-of-range values are one-line errors."""
+    proj = make_tiny_project(tmp_path / "p", trained=False)
+    data = load_train_data(proj, 1.0, None, CPU)
+    plain = initial_gaussians(make_config("fast"), data, CPU)
+    mcmc = initial_gaussians(make_config("fast", density="mcmc", max_gaussians=10**6), data, CPU)
+    torch.testing.assert_close(torch.sigmoid(plain.opacity_logits), torch.full((len(plain),), 0.1))
+    torch.testing.assert_close(torch.sigmoid(mcmc.opacity_logits), torch.full((len(mcmc),), 0.5))
+    assert torch.equal(plain.means, mcmc.means) and torch.equal(plain.log_scales, mcmc.log_scales)
+    with pytest.raises(SplatError, match="mcmc_init_opacity"):
+        make_config("fast", mcmc_init_opacity=0.0)
+
+
 def test_far_gaussians_are_size_pruned_by_angle_not_world_size():
     """The default strategy's world-size prune (after the first reset) spares a large
     Gaussian far from the cameras when given the scene centre, and prunes it without."""

@@ -47,7 +47,7 @@ class TrainConfig:
     keep_checkpoints: int = 2  # older step files are deleted (each holds params + Adam state)
 
     # ---- initialisation ------------------------------------------------------
-    init_opacity: float = 0.1  # sigma^-1(0.1), the paper's
+    init_opacity: float = 0.1  # sigma^-1(0.1), the paper's (--strategy mcmc: mcmc_init_opacity)
     init_random_points: int = 100_000  # Blender scenes with no SfM points: uniform in the bounds (3DGS)
     init_knn: int = 3  # log scale from the RMS distance to the 3 nearest neighbours
     init_ply: str | None = None  # start from a splat file instead
@@ -307,6 +307,9 @@ def _check(cfg: TrainConfig) -> None:
         raise SplatError("--strategy mcmc needs --max-gaussians N: the fixed number of Gaussians it grows to")
     if not (math.isfinite(cfg.init_far_radius) and cfg.init_far_radius > 1):
         raise SplatError(f"init_far_radius {cfg.init_far_radius}: must be more than 1 (the sphere lies outside the cameras)")
+    for name in ("init_opacity", "mcmc_init_opacity"):
+        if not 0 < option(cfg, name) < 1:
+            raise SplatError(f"{name} {option(cfg, name)}: must be in (0, 1)")
     for name in ("opacity_reg", "scale_reg"):
         v = option(cfg, name)
         if not (math.isfinite(v) and v >= 0):

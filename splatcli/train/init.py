@@ -76,6 +76,7 @@ def initial_gaussians(cfg: TrainConfig, data: TrainData, device: torch.device) -
     in the scene box (seeded); then a seeded subset if there are more than --max-gaussians.
     SH is at the trained degree."""
     budget = cfg.strategy.max_gaussians
+    opacity = cfg.mcmc.init_opacity if cfg.density == "mcmc" else cfg.init_opacity
     if cfg.init_ply:
         g = load_model(cfg.init_ply, device).gaussians.with_sh_degree(cfg.max_sh_degree).to(device, torch.float32)
         return subsample(g, budget, cfg.seed) if budget is not None else g
@@ -89,7 +90,7 @@ def initial_gaussians(cfg: TrainConfig, data: TrainData, device: torch.device) -
     if cfg.init_far:
         far_pts, far_cols = far_points(cfg.init_far, data.train, data.center, cfg.init_far_radius * data.extent)
         if len(far_pts):
-            far = gaussians_from_points(far_pts.to(device), far_cols.to(device), cfg.max_sh_degree, cfg.init_opacity,
+            far = gaussians_from_points(far_pts.to(device), far_cols.to(device), cfg.max_sh_degree, opacity,
                                         cfg.init_knn)
             if budget is not None:
                 far = subsample(far, budget // 2, cfg.seed)
@@ -97,7 +98,7 @@ def initial_gaussians(cfg: TrainConfig, data: TrainData, device: torch.device) -
     if budget is not None and pts.shape[0] > budget:  # subset first: kNN scales then match the kept density
         idx = subsample_index(pts.shape[0], budget, cfg.seed).to(device)
         pts, cols = pts[idx], cols[idx]
-    g = gaussians_from_points(pts, cols, cfg.max_sh_degree, cfg.init_opacity, cfg.init_knn)
+    g = gaussians_from_points(pts, cols, cfg.max_sh_degree, opacity, cfg.init_knn)
     if far is None:
         return g
     return Gaussians(*(torch.cat([a, b]) for a, b in zip(g.as_dict().values(), far.as_dict().values())))
