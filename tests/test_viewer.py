@@ -163,7 +163,10 @@ def test_live_sink_publishes_at_most_every_period_and_passes_events_on():
 def _start_view(*args: str, env: dict | None = None) -> tuple[subprocess.Popen, dict]:
     p = subprocess.Popen([sys.executable, "-m", "splatcli", "view", *args, "--json"], cwd=REPO, text=True,
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, env={**os.environ, **(env or {})},
-                         start_new_session=True)
+                         start_new_session=True,
+                         # Ctrl-C as at a terminal, even when the tests run as a shell's background job
+                         # (which starts them with SIGINT ignored, and children inherit that)
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     line = p.stdout.readline()
     assert line, p.stderr.read()
     return p, json.loads(line)
