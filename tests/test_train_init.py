@@ -196,7 +196,7 @@ def test_init_far_adds_the_sphere_to_the_sfm_points(tmp_path):
 
 
 def test_mcmc_starts_from_its_own_initial_opacity(tmp_path):
-    """--strategy mcmc starts at mcmc_init_opacity (0.5, the MCMC code's), the default
+    """--strategy mcmc starts at mcmc_init_opacity (0.5, gsplat's MCMC example's), the default
     strategy at init_opacity (0.1, 3DGS's); out-of-range values are one-line errors."""
     proj = make_tiny_project(tmp_path / "p", trained=False)
     data = load_train_data(proj, 1.0, None, CPU)
