@@ -103,6 +103,32 @@ def test_learning_rate_decays_from_lr_to_lr_final():
     assert app.optimizer.param_groups[0]["lr"] == pytest.approx(0.001)
 
 
+def test_a_step_moves_only_the_views_trained_then_centres_all():
+    """A view's transform moves on the step its view is trained and never on its momentum
+    after (torch's Adam would carry row 0 on for the next ~20 steps); the centring moves
+    every row by one common amount; one step of a row is Adam's first step, lr x sign."""
+    app = _appearance(4)
+    gen = torch.Generator().manual_seed(3)
+    grads = torch.zeros(4, 3, 4)
+    grads[0] = torch.randn(3, 4, generator=gen)
+    app.transforms.grad = grads.clone()
+    app.optimizer.step()
+    moved = app.transforms.detach() - identity(4, CPU)
+    own = -0.01 * grads[0].sign()  # Adam's first step: lr x m_hat / sqrt(v_hat) = lr x sign(g)
+    torch.testing.assert_close(moved[0] - moved[1], own)
+    torch.testing.assert_close(moved[1:], (-own / 4).expand(3, 3, 4))
+    torch.testing.assert_close(moved.mean(0), torch.zeros(3, 4))
+    before = app.transforms.detach().clone()
+    grads = torch.zeros(4, 3, 4)
+    grads[2] = torch.randn(3, 4, generator=gen)
+    app.transforms.grad = grads
+    app.optimizer.step()
+    shift = app.transforms.detach() - before
+    torch.testing.assert_close(shift[0], shift[1])  # row 0: the centring only, no momentum
+    torch.testing.assert_close(shift[0], shift[3])
+    assert app.optimizer.state[app.transforms]["step"].tolist() == [1, 0, 1, 0]
+
+
 # ---- training ------------------------------------------------------------------------
 
 

@@ -58,7 +58,7 @@ class Appearance:
                  betas: tuple[float, float]) -> None:
         self.cfg = cfg
         self.transforms = nn.Parameter(identity(n, device))  # [n, 3, 4]
-        self.optimizer = _CentredAdam([self.transforms], lr=cfg.lr, eps=eps, betas=betas, fused=True)
+        self.optimizer = _CentredAdam([self.transforms], lr=cfg.lr, eps=eps, betas=betas)
 
     def apply(self, image: Tensor, i: int) -> Tensor:  # image [H, W, 3] -> [H, W, 3]
         """Training image `i`'s colour transform applied to a render of its view."""
@@ -93,13 +93,38 @@ class Appearance:
             self.optimizer.load_state_dict(d["optimizer"])
 
 
-class _CentredAdam(torch.optim.Adam):
-    """Adam, then every transform moved by one common amount so that their mean is [I | 0]."""
+class _CentredAdam(torch.optim.Optimizer):
+    """Adam on the rows (views) that have a gradient this step, then every transform moved
+    by one common amount so that their mean is [I | 0].
+
+    A row's moments and bias correction advance only when its view is trained (as a sparse
+    Adam's do). torch's Adam would keep moving every row on its decaying momentum for the
+    ~20 steps after its view was seen: with views coming back only every n_train steps, a
+    transform then lands about 9 learning rates past where its one gradient pointed, jumps
+    that far again at every visit, and the scene is fitted through the jitter (on lego at
+    2,000 steps the training loss ran 60% higher than without --appearance)."""
+
+    def __init__(self, params: Any, lr: float, eps: float, betas: tuple[float, float]) -> None:
+        super().__init__(params, {"lr": lr, "eps": eps, "betas": betas})
 
     @torch.no_grad()
     def step(self, closure: Any = None) -> Any:
-        loss = super().step(closure)
         for group in self.param_groups:
+            b1, b2 = group["betas"]
             for t in group["params"]:  # [n, 3, 4]
+                if t.grad is not None:
+                    rows = t.grad.flatten(1).ne(0).any(1).nonzero().squeeze(1)  # the views trained this step
+                    st = self.state[t]
+                    if not st or st["step"].dim() == 0:  # (first step)
+                        st["step"] = torch.zeros(t.shape[0], dtype=t.dtype, device=t.device)
+                        st["exp_avg"], st["exp_avg_sq"] = torch.zeros_like(t), torch.zeros_like(t)
+                    g = t.grad[rows]
+                    n = st["step"][rows] + 1
+                    m = st["exp_avg"][rows] * b1 + g * (1 - b1)
+                    v = st["exp_avg_sq"][rows] * b2 + g * g * (1 - b2)
+                    st["step"][rows], st["exp_avg"][rows], st["exp_avg_sq"][rows] = n, m, v
+                    m_hat = m / (1 - b1 ** n)[:, None, None]
+                    v_hat = v / (1 - b2 ** n)[:, None, None]
+                    t[rows] -= group["lr"] * m_hat / (v_hat.sqrt() + group["eps"])
                 t -= t.mean(0) - torch.eye(3, 4, dtype=t.dtype, device=t.device)
-        return loss
+        return None
