@@ -196,14 +196,20 @@ def test_init_far_adds_the_sphere_to_the_sfm_points(tmp_path):
 
 
 def test_mcmc_starts_from_its_own_initial_opacity(tmp_path):
-    """--strategy mcmc starts at mcmc_init_opacity (0.5, gsplat's MCMC example's), the default
-    strategy at init_opacity (0.1, 3DGS's); out-of-range values are one-line errors."""
+    """--strategy mcmc starts SfM points at mcmc_init_opacity (0.5, gsplat's MCMC example's),
+    the default strategy at init_opacity (0.1, 3DGS's); random points start at init_opacity
+    under either (0.5 fogs the box on lego); out-of-range values are one-line errors."""
     proj = make_tiny_project(tmp_path / "p", trained=False)
     data = load_train_data(proj, 1.0, None, CPU)
+    assert not len(data.points)  # the tiny project has no SfM points: random points in the box
+    rand = initial_gaussians(make_config("fast", density="mcmc", max_gaussians=500), data, CPU)
+    torch.testing.assert_close(torch.sigmoid(rand.opacity_logits), torch.full((len(rand),), 0.1))
+    rng = np.random.default_rng(0)
+    data.points, data.colors = rng.uniform(-1, 1, (64, 3)), rng.integers(0, 256, (64, 3), dtype=np.uint8)
     plain = initial_gaussians(make_config("fast"), data, CPU)
     mcmc = initial_gaussians(make_config("fast", density="mcmc", max_gaussians=10**6), data, CPU)
-    torch.testing.assert_close(torch.sigmoid(plain.opacity_logits), torch.full((len(plain),), 0.1))
-    torch.testing.assert_close(torch.sigmoid(mcmc.opacity_logits), torch.full((len(mcmc),), 0.5))
+    torch.testing.assert_close(torch.sigmoid(plain.opacity_logits), torch.full((64,), 0.1))
+    torch.testing.assert_close(torch.sigmoid(mcmc.opacity_logits), torch.full((64,), 0.5))
     assert torch.equal(plain.means, mcmc.means) and torch.equal(plain.log_scales, mcmc.log_scales)
     with pytest.raises(SplatError, match="mcmc_init_opacity"):
         make_config("fast", mcmc_init_opacity=0.0)

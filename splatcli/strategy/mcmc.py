@@ -27,7 +27,7 @@ from .regularize import regularize
 
 @dataclass(frozen=True)
 class MCMCStrategyConfig:
-    init_opacity: float = 0.5  # of the initial Gaussians, as gsplat's MCMC example (3DGS: 0.1); +0.38 dB on the demo scene
+    init_opacity: float = 0.5  # of SfM points (random ones: init_opacity), as gsplat's MCMC example; +0.38 dB on the demo scene
     min_opacity: float = 0.005  # below this a Gaussian is dead and relocated
     growth: float = 0.05  # the count grows by at least this fraction per refinement, up to the cap ...
     grow_until: float = 0.6  # ... and fast enough to reach it by this fraction of the refinement window
