@@ -38,7 +38,7 @@ SMALL = dict(iterations=20, init_random_points=300, max_gaussians=600, eval_ever
 
 
 def _appearance(n: int = 4) -> Appearance:
-    return Appearance(n, ExposureConfig(), CPU, eps=1e-15, betas=(0.9, 0.999))
+    return Appearance(n, ExposureConfig(), CPU)
 
 
 def _tiny(tmp_path, name="p", gains=None):

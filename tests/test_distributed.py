@@ -181,6 +181,7 @@ def test_the_scaling_rule_sees_as_many_images_and_keeps_one_process_unchanged():
     assert c2.lr_sh0 == pytest.approx(cfg.lr_sh0 * 2 ** 0.5) and c2.adam_eps == pytest.approx(cfg.adam_eps / 2 ** 0.5)
     assert c2.adam_beta2 == pytest.approx(cfg.adam_beta2 ** 2) and c2.coarse_until == cfg.coarse_until
     assert cfg.for_world(3).eval_every == round(cfg.eval_every / 3)
+    assert c2.exposure == cfg.exposure  # the transforms step per view trained (appearance.py)
 
 
 # ---- the collectives, in two spawned ranks --------------------------------------

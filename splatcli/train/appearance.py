@@ -6,8 +6,8 @@ colour to explain the differences. Here each training image i gets a transform
 [A_i | b_i] (A_i [3, 3], b_i [3]) that the rendered image passes through before the
 loss: `image @ A_i^T + b_i`, as the exposure option of the original 3DGS code does.
 The transforms start at [I | 0] and learn with their own Adam (learning rate decaying
-exponentially, 3DGS's 0.01 -> 0.001). Two things keep them honest, neither of which
-3DGS has:
+exponentially, 3DGS's 0.01 -> 0.001) that steps only the transforms of the views trained
+(`_CentredAdam`). Two more things keep them honest; 3DGS has none of the three:
 
 * after every step they are moved together so that their mean is [I | 0] again. The
   scene's colours and the transforms' common part are interchangeable (a brighter
@@ -54,11 +54,12 @@ def identity(n: int, device: torch.device) -> Tensor:  # -> [n, 3, 4]
 class Appearance:
     """The per-training-image transforms [n_train, 3, 4] and their optimiser."""
 
-    def __init__(self, n: int, cfg: ExposureConfig, device: torch.device, *, eps: float,
-                 betas: tuple[float, float]) -> None:
+    def __init__(self, n: int, cfg: ExposureConfig, device: torch.device) -> None:
         self.cfg = cfg
         self.transforms = nn.Parameter(identity(n, device))  # [n, 3, 4]
-        self.optimizer = _CentredAdam([self.transforms], lr=cfg.lr, eps=eps, betas=betas)
+        # Adam's own betas and 3DGS's epsilon, not the rank-scaled ones of TrainConfig.for_world:
+        # a row steps once per time its view is trained, however many ranks share a step.
+        self.optimizer = _CentredAdam([self.transforms], lr=cfg.lr, eps=1e-15, betas=(0.9, 0.999))
 
     def apply(self, image: Tensor, i: int) -> Tensor:  # image [H, W, 3] -> [H, W, 3]
         """Training image `i`'s colour transform applied to a render of its view."""

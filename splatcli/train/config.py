@@ -119,9 +119,10 @@ class TrainConfig:
         steps = {name: max(1, round(option(self, name) / k)) for name in _STEP_COUNTS if option(self, name) > 0}
         steps["refine_stop"] = round(self.strategy.refine_stop / k)
         r = math.sqrt(k)
+        # (not exposure_lr: the transforms' Adam steps a view's row once per time the view is
+        # trained, however many ranks share a step; appearance.py)
         lrs = {name: option(self, name) * r for name in ("lr_means", "lr_means_final", "lr_sh0", "lr_opacity",
-                                                           "lr_scales", "lr_quats", "exposure_lr",
-                                                           "exposure_lr_final")}
+                                                           "lr_scales", "lr_quats")}
         return with_options(self, {**steps, **lrs, "adam_eps": self.adam_eps / r,
                                    "adam_beta1": self.adam_beta1 ** k, "adam_beta2": self.adam_beta2 ** k})
 

@@ -165,7 +165,7 @@ def _make_optimizers(params: dict[str, nn.Parameter], cfg: TrainConfig, extent: 
 def _appearance(cfg: TrainConfig, n_train: int, device: torch.device) -> Appearance | None:
     if cfg.appearance == "none":
         return None
-    return Appearance(n_train, cfg.exposure, device, eps=cfg.adam_eps, betas=(cfg.adam_beta1, cfg.adam_beta2))
+    return Appearance(n_train, cfg.exposure, device)
 
 
 def _params(g: Gaussians, names: list[str]) -> dict[str, nn.Parameter]:
