@@ -209,3 +209,24 @@ def test_auto_antialias_follows_the_zoom_of_a_plain_model(tmp_path):
         r = run_cli("render", proj.root, "--json", "-o", tmp_path / downscale, "--downscale", downscale)
         assert r.exit_code == 0, r.output
         assert json.loads(r.stdout)["antialiased"] is on, downscale
+
+
+def test_the_filters_lower_the_growth_threshold_and_plain_training_keeps_it():
+    """Under --mip-filter the default strategy grows at GROW_GRAD2D x grow_grad2d (the filters
+    lower small Gaussians' view-space gradients), a user-set threshold included."""
+    from splatcli.strategy import Context, DefaultStrategy
+    from splatcli.strategy.mip import GROW_GRAD2D
+    from splatcli.train.config import make_config
+    from splatcli.train.state import make_strategies
+
+    ctx = Context(score=lambda *a: None, weights=lambda: torch.zeros(0), note=lambda m: None, cameras=lambda: [])
+
+    def threshold(**opts) -> float:
+        (d,) = [s for s in make_strategies(make_config("fast", **opts), 1.0, ctx) if isinstance(s, DefaultStrategy)]
+        return d.config.grow_grad2d
+
+    assert 0 < GROW_GRAD2D < 1
+    assert threshold() == make_config("fast").strategy.grow_grad2d
+    assert threshold(mip_filter=True) == pytest.approx(GROW_GRAD2D * make_config("fast").strategy.grow_grad2d)
+    assert threshold(mip_filter=True, grow_grad2d=1e-3) == pytest.approx(GROW_GRAD2D * 1e-3)
+    assert threshold(grow_grad2d=1e-3) == 1e-3

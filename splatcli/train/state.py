@@ -22,6 +22,7 @@ from ..io.checkpoint import Checkpoint, save_checkpoint
 from ..strategy import (CompactStep, Context, DefaultStrategy, MCMCStrategy, MipFilter, RegularizeStep, ShAutoStep, Splats,
                         Strategy, SupportPrune,
                         sh_degree_of)
+from ..strategy.mip import GROW_GRAD2D as MIP_GROW_GRAD2D
 from .appearance import Appearance
 from .config import TrainConfig
 from .plan import TimePlan
@@ -124,7 +125,8 @@ def make_strategies(cfg: TrainConfig, extent: float, ctx: Context) -> list[Strat
         density: Strategy = MCMCStrategy(cfg.mcmc, s.max_gaussians, s.refine_start, stop, s.refine_every)
     else:
         # With far points (--init-far) the size limit is an angle: far Gaussians may be large.
-        density = DefaultStrategy(replace(cfg.strategy, refine_stop=stop), extent,
+        grow = cfg.strategy.grow_grad2d * (MIP_GROW_GRAD2D if cfg.mip_filter else 1.0)
+        density = DefaultStrategy(replace(cfg.strategy, refine_stop=stop, grow_grad2d=grow), extent,
                                   ctx.center if cfg.init_far else None)
     out: list[Strategy] = [density]
     if cfg.reg.enabled:
