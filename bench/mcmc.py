@@ -15,6 +15,7 @@ import argparse
 import json
 import os
 import sys
+import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -36,27 +37,28 @@ def main() -> None:
     path = OUT / "results.json"
     prev = json.loads(path.read_text())["results"] if path.exists() else []
     counts = {k: int(v) for k, v in (kv.split("=") for kv in args.counts.split(",") if kv)}
-    rows = []
-    for scene in [s for s in args.scenes.split(",") if s]:
+    scenes = [s for s in args.scenes.split(",") if s]
+    kept = OUT / "mcmc.json"  # each scene's last pair: a run of some scenes keeps the others'
+    rows = [r for r in (json.loads(kept.read_text()) if kept.exists() else []) if r["scene"] not in scenes]
+    for scene in scenes:
         runs = [r for r in prev if r["scene"] == scene and r["variant"] == "default"]
         full = {"num_gaussians": runs[-1]["num_gaussians"] if runs else counts[scene]}
         budget = max(1, full["num_gaussians"] // 3)
         for variant, extra in (("budget", []), ("mcmc", ["--strategy", "mcmc"])):
             load0 = os.getloadavg()[0]
             r = train_variant(scene, variant, ["--max-gaussians", str(budget), *extra], args.preset, args.iterations, 1)
-            r.update(budget=budget, default_count=full["num_gaussians"], load=[round(load0, 2),
+            r.update(date=time.strftime("%Y-%m-%d"), budget=budget, default_count=full["num_gaussians"], load=[round(load0, 2),
                                                                               round(os.getloadavg()[0], 2)])
             rows.append(r)
-    (OUT / "mcmc.json").write_text(json.dumps(rows, indent=1))
+    kept.write_text(json.dumps(rows, indent=1))
     lines = ["## MCMC at one budget", "",
              "Measured by `python bench/mcmc.py`: each scene's preset (bench/train.py: `fast`, the sample scene `demo`)"
-             + (f" cut to {args.iterations} steps" if args.iterations else "")
              + " with `--max-gaussians` a third of the default run's final count, once with the default strategy "
              "and once with `--strategy mcmc`, one after the other on this machine (one torch thread).", "",
-             "| scene | strategy | budget (default run's count) | steps | train s | held-out PSNR / SSIM | Gaussians | load |",
-             "| --- | --- | --- | ---: | ---: | --- | ---: | --- |"]
+             "| date | scene | strategy | budget (default run's count) | steps | train s | held-out PSNR / SSIM | Gaussians | load |",
+             "| --- | --- | --- | --- | ---: | ---: | --- | ---: | --- |"]
     for r in rows:
-        lines.append(f"| {r['scene']} | {'mcmc' if r['variant'] == 'mcmc' else 'default'} | {r['budget']:,} "
+        lines.append(f"| {r.get('date', '')} | {r['scene']} | {'mcmc' if r['variant'] == 'mcmc' else 'default'} | {r['budget']:,} "
                      f"({r['default_count']:,}) | {r['steps']} | {r['train_seconds']:.0f} | "
                      f"{r['final_psnr']:.2f} / {r['final_ssim']:.4f} | {r['num_gaussians']:,} | "
                      f"{r['load'][0]} → {r['load'][1]} |")

@@ -81,7 +81,7 @@ def test_grows_by_the_fraction_up_to_the_cap_and_never_past_it():
 def test_dead_gaussians_move_onto_live_ones_with_fresh_moments():
     op = torch.full((50,), 0.6)
     op[:10] = 0.001  # dead
-    s = _strategy(cap=50, noise_lr=0.0)
+    s = _strategy(cap=50, noise_lr=0.0, spread=0.0)  # the paper's: copies on their source's centre
     sp = _splats(50, op)
     st = s.initial_state(50, torch.device("cpu"))
     before = {k: v.detach().clone() for k, v in sp.params.items()}
@@ -100,6 +100,47 @@ def test_dead_gaussians_move_onto_live_ones_with_fresh_moments():
     assert bool((m1[10:][untouched] != 0).all())  # rows not drawn keep theirs
     # a drawn source and its copies share the opacity the relocation set (lower than 0.6)
     assert float(after[:10].detach().max()) < 0.6
+
+
+def test_copies_are_drawn_from_their_source_gaussian():
+    """With `spread` (the default), each copy sits at a draw from its source Gaussian (after
+    the relocation's scale): spread along the long axis, not along the short ones, and
+    no two copies on one spot."""
+    op = torch.full((401,), 0.001)  # 400 dead, one live source
+    op[0] = 0.9
+    s = _strategy(cap=401, noise_lr=0.0)
+    assert s.config.spread == 1.0
+    sp = _splats(401, op)
+    with torch.no_grad():
+        sp.params["quats"][0] = torch.tensor([1.0, 0.0, 0.0, 0.0])  # axes = world axes
+        sp.params["log_scales"][0] = torch.log(torch.tensor([0.5, 0.01, 0.01]))
+    centre = sp.params["means"][0].detach().clone()
+    s.step_post_backward(sp, s.initial_state(401, torch.device("cpu")), 100, _info(401))
+    new_s = sp.params["log_scales"][0].detach().exp()  # the source's scale after relocation, copies share it
+    off = sp.params["means"][1:].detach() - centre  # [400, 3]
+    std = off.std(dim=0)
+    # 400 draws: the sample std is within 15% of the true one with overwhelming probability (~6 sigma)
+    torch.testing.assert_close(std / new_s, torch.ones(3), atol=0.15, rtol=0)
+    assert float(std[0] / std[1]) > 20  # anisotropic, as the source
+    assert torch.cdist(off, off).add(torch.eye(400)).min() > 0  # no two on one spot
+    torch.testing.assert_close(sp.params["means"][0].detach(), centre)  # the source stays put
+
+
+def test_relocation_goes_on_after_growth_stops():
+    """Growth ends with the refinement window; dead Gaussians are still moved until
+    `relocate_stop` (the late deaths are reused instead of wasting the budget)."""
+    op = torch.full((50,), 0.6)
+    s = MCMCStrategy(MCMCStrategyConfig(noise_lr=0.0), cap=80, refine_start=0, refine_stop=500, refine_every=100,
+                     relocate_stop=1000)
+    sp = _splats(50, op)
+    st = s.initial_state(50, torch.device("cpu"))
+    for step, dead in ((600, 8), (1000, 5)):
+        with torch.no_grad():
+            sp.params["opacity_logits"][:dead] = -10.0
+        stats = s.step_post_backward(sp, st, step, _info(len(sp)))
+        assert len(sp) == 50  # no growth after refine_stop
+        assert stats.pruned == (dead if step < 1000 else 0)
+    assert int((torch.sigmoid(sp.params["opacity_logits"]) < 0.005).sum()) == 5  # left alone at relocate_stop
 
 
 def test_noise_moves_transparent_gaussians_only():
