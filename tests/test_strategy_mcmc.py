@@ -182,6 +182,12 @@ def test_mcmc_options_are_checked(tmp_path):
     proj = make_tiny_project(tmp_path / "p", trained=False, photos=False)
     assert_user_error(run_cli("train", proj.root, "--strategy", "mcmc"), "--max-gaussians")
     assert_user_error(run_cli("train", proj.root, "--strategy", "annealing"), "--strategy 'annealing'", "mcmc")
+    from splatcli.train.config import make_config
+
+    for name, bad in (("mcmc_min_opacity", 0.0), ("mcmc_relocate_until", 1.5), ("mcmc_spread", -1.0)):
+        with pytest.raises(Exception, match=f"{name} {bad}"):  # a damaged stored config: one line naming the key
+            make_config("fast", **{name: bad})
+    make_config("fast", mcmc_min_opacity=0.005, mcmc_relocate_until=0.0, mcmc_spread=0.0)  # the paper's settings
 
 
 def test_opacity_and_scale_reg_are_a_step_of_their_own_for_the_default_strategy():

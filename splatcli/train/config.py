@@ -308,9 +308,13 @@ def _check(cfg: TrainConfig) -> None:
         raise SplatError("--strategy mcmc needs --max-gaussians N: the fixed number of Gaussians it grows to")
     if not (math.isfinite(cfg.init_far_radius) and cfg.init_far_radius > 1):
         raise SplatError(f"init_far_radius {cfg.init_far_radius}: must be more than 1 (the sphere lies outside the cameras)")
-    for name in ("init_opacity", "mcmc_init_opacity"):
+    for name in ("init_opacity", "mcmc_init_opacity", "mcmc_min_opacity"):
         if not 0 < option(cfg, name) < 1:
             raise SplatError(f"{name} {option(cfg, name)}: must be in (0, 1)")
+    if not 0 <= cfg.mcmc.relocate_until <= 1:
+        raise SplatError(f"mcmc_relocate_until {cfg.mcmc.relocate_until}: must be in [0, 1] (a fraction of the run)")
+    if not (math.isfinite(cfg.mcmc.spread) and cfg.mcmc.spread >= 0):
+        raise SplatError(f"mcmc_spread {cfg.mcmc.spread}: must be 0 or more")
     for name in ("opacity_reg", "scale_reg"):
         v = option(cfg, name)
         if not (math.isfinite(v) and v >= 0):
