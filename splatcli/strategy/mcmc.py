@@ -158,8 +158,7 @@ class MCMCStrategy(Strategy):
         out = {k: v[src] for k, v in rows.items()}
         if self.config.spread > 0:
             z = torch.randn(out["means"].shape, generator=state.generator, device=src.device, dtype=out["means"].dtype)
-            rot = quat_to_rotmat(out["quats"])  # [M, 3, 3]
-            out["means"] = out["means"] + self.config.spread * torch.einsum("mij,mj->mi", rot, z * out["log_scales"].exp())
+            out["means"] = out["means"] + self.config.spread * ops.draws(out["quats"], out["log_scales"], z)
         return out
 
     @torch.no_grad()

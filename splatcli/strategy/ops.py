@@ -79,6 +79,12 @@ def clone_rows(params: dict[str, Tensor], sel: Tensor) -> dict[str, Tensor]:  # 
     return {n: p.detach()[sel] for n, p in params.items()}
 
 
+def draws(quats: Tensor, log_scales: Tensor, noise: Tensor) -> Tensor:
+    """Offsets of points drawn from the Gaussians themselves, R diag(s) z, for standard
+    normal `noise` z. quats [M, 4], log_scales [M, 3], noise [..., M, 3] -> [..., M, 3]."""
+    return torch.einsum("mij,...mj->...mi", quat_to_rotmat(quats), noise * log_scales.exp())
+
+
 @torch.no_grad()
 def split_rows(
     params: dict[str, Tensor],
@@ -91,9 +97,8 @@ def split_rows(
     the Gaussian itself, scales divided by `scale_div`, the rest copied."""
     means = params["means"][sel]  # [M, 3]
     log_scales = params["log_scales"][sel]  # [M, 3]
-    rot = quat_to_rotmat(params["quats"][sel])  # [M, 3, 3]
     noise = torch.randn((samples, means.shape[0], 3), generator=generator, device=means.device, dtype=means.dtype)
-    offsets = torch.einsum("mij,smj->smi", rot, noise * log_scales.exp()[None])  # [S, M, 3]
+    offsets = draws(params["quats"][sel], log_scales, noise)  # [S, M, 3]
     rows: dict[str, Tensor] = {}
     for n, p in params.items():
         v = p.detach()[sel]
