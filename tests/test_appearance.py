@@ -26,7 +26,7 @@ from splatcli.events import Progress
 from splatcli.io.checkpoint import load_checkpoint, save_checkpoint
 from splatcli.io.formats import write_format
 from splatcli.io.ply import write_ply
-from splatcli.train.appearance import Appearance, ExposureConfig, identity
+from splatcli.train.appearance import Appearance, ExposureConfig, identity, smooth_basis
 from splatcli.train.config import make_config
 from splatcli.train.loop import train
 from splatcli.train.loss import photometric_loss
@@ -127,6 +127,43 @@ def test_a_step_moves_only_the_views_trained_then_centres_all():
     torch.testing.assert_close(shift[0], shift[1])  # row 0: the centring only, no momentum
     torch.testing.assert_close(shift[0], shift[3])
     assert app.optimizer.state[app.transforms]["step"].tolist() == [1, 0, 1, 0]
+
+
+def _ring(n: int) -> torch.Tensor:  # [n, 3] cameras on a circle, in capture order
+    a = torch.arange(n, dtype=torch.float64) * (2 * math.pi / n)
+    return torch.stack([a.cos(), a.sin(), torch.zeros(n, dtype=torch.float64)], 1)
+
+
+def test_smooth_basis_is_orthonormal_starts_with_the_mean_and_holds_slow_drift():
+    """The modes are orthonormal, the first is the constant, and on a ring of cameras a
+    slow exposure drift (one period round the ring) lies in the first 3 modes while
+    shot-to-shot gains (seeded, independent) mostly do not."""
+    n = 40
+    b = smooth_basis(_ring(n), 6).double()
+    torch.testing.assert_close(b.T @ b, torch.eye(6, dtype=torch.float64), atol=1e-6, rtol=0)  # float32 basis
+    torch.testing.assert_close(b[:, 0], torch.full((n,), 1 / math.sqrt(n), dtype=torch.float64), atol=1e-6, rtol=0)
+    a = torch.arange(n, dtype=torch.float64) * (2 * math.pi / n)
+    drift = 0.1 * torch.cos(a + 0.3)
+    b3 = b[:, :3]
+    assert float((b3 @ (b3.T @ drift) - drift).norm()) < 1e-3 * float(drift.norm())
+    shots = torch.rand(n, generator=torch.Generator().manual_seed(0), dtype=torch.float64) - 0.5
+    shots -= shots.mean()
+    kept = float((b.T @ shots).norm() ** 2 / shots.norm() ** 2)
+    assert kept < 0.35, kept  # 6 of 40 modes: about 15% of independent gains' variance expected
+    assert smooth_basis(_ring(n), 1).shape == (n, 1)
+
+
+def test_a_step_removes_the_smooth_modes_from_the_transforms():
+    """With `modes` > 1 the step leaves the transforms' deviation from [I | 0] with no
+    part in the smooth modes (with 1, their mean is the identity, as above)."""
+    n = 12
+    app = Appearance(n, ExposureConfig(smooth=0.25), CPU, _ring(n).float())
+    app.transforms.grad = torch.randn(n, 3, 4, generator=torch.Generator().manual_seed(1))
+    app.optimizer.step()
+    dev = (app.transforms.detach() - identity(n, CPU)).flatten(1)  # [n, 12]
+    b = smooth_basis(_ring(n), 3)
+    torch.testing.assert_close(b.T @ dev, torch.zeros(3, 12), atol=1e-6, rtol=0)
+    assert float(dev.abs().max()) > 1e-3  # and the rest was kept
 
 
 # ---- training ------------------------------------------------------------------------

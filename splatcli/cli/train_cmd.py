@@ -41,7 +41,8 @@ def train(
                                             "off = masks unused; auto = background for masks from an alpha channel, ignore for mask files."),
     appearance: Optional[str] = typer.Option(None, "--appearance", help=f"none | exposure: exposure learns one colour transform "
                                              "(a 3x3 matrix and an offset) per training photo, pulled towards the identity, for captures whose "
-                                             "exposure or white balance varies; held-out views, eval and exported files use the scene alone "
+                                             "exposure or white balance varies; what varies smoothly from camera to camera is left to the scene "
+                                             "(held-out views between them see it); held-out views, eval and exported files use the scene alone "
                                              f"(default {_D.appearance})."),
     compact: bool = typer.Option(False, "--compact", help=f"After training, keep {_D.compact.keep:.0%} of the Gaussians, those with the most blending weight (cut in {_D.compact.rounds} rounds), while fine-tuning {_D.compact.finetune} more steps."),
     mip_filter: bool = typer.Option(_D.mip_filter, "--mip-filter", help="Mip-Splatting's filters (Yu et al. 2024): no Gaussian "

@@ -337,6 +337,8 @@ def _check(cfg: TrainConfig) -> None:
     if not (e.lr > 0 and e.lr_final > 0 and e.reg >= 0):
         raise SplatError(f"exposure_lr {e.lr} / exposure_lr_final {e.lr_final} / exposure_reg {e.reg}: "
                          "the learning rates must be positive, the weight 0 or more")
+    if not 0 <= e.smooth <= 1:
+        raise SplatError(f"exposure_smooth {e.smooth}: must be in [0, 1] (a fraction of the training photos)")
 
 
 # ---- the contract other commands read -------------------------------------------

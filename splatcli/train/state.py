@@ -165,10 +165,12 @@ def _make_optimizers(params: dict[str, nn.Parameter], cfg: TrainConfig, extent: 
                                 betas=(cfg.adam_beta1, cfg.adam_beta2), fused=True) for k, p in params.items()}
 
 
-def _appearance(cfg: TrainConfig, n_train: int, device: torch.device) -> Appearance | None:
+def _appearance(cfg: TrainConfig, n_train: int, device: torch.device, ctx: Context) -> Appearance | None:
     if cfg.appearance == "none":
         return None
-    return Appearance(n_train, cfg.exposure, device)
+    cams = ctx.cameras()
+    centres = torch.stack([-(vm[:3, :3].T @ vm[:3, 3]).cpu() for vm, *_ in cams]) if len(cams) == n_train else None
+    return Appearance(n_train, cfg.exposure, device, centres)
 
 
 def _params(g: Gaussians, names: list[str]) -> dict[str, nn.Parameter]:
@@ -191,7 +193,7 @@ def new_state(g: Gaussians, cfg: TrainConfig, extent: float, device: torch.devic
                       perm=torch.randperm(n_train, generator=view_gen), pos=0, world=world,
                       loss_acc=torch.zeros(2, dtype=torch.float64, device=device),
                       plan=TimePlan.start(cfg) if cfg.time_budget is not None else None,
-                      appearance=_appearance(cfg, n_train, device))
+                      appearance=_appearance(cfg, n_train, device, ctx))
 
 
 def save_state(path: Path, state: TrainState, cfg: TrainConfig) -> Path:
@@ -248,7 +250,7 @@ def state_from_checkpoint(ck: Checkpoint, cfg: TrainConfig, extent: float, devic
         torch.set_rng_state(ck.rng["torch"])
     if "cuda" in ck.rng and torch.cuda.is_available() and device.type == "cuda":
         torch.cuda.set_rng_state_all(ck.rng["cuda"])
-    appearance = _appearance(cfg, n_train, device)
+    appearance = _appearance(cfg, n_train, device, ctx)
     if appearance is not None and ck.appearance:
         appearance.load_state_dict(ck.appearance, str(ck.path))
     return TrainState(
