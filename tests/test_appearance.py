@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 import torch
 
-from splatcli.errors import Interrupted
+from splatcli.errors import Interrupted, SplatError
 from splatcli.eval.metrics import color_fit, psnr, psnr_color_fit
 from splatcli.events import Progress
 from splatcli.io.checkpoint import load_checkpoint, save_checkpoint
@@ -255,6 +255,8 @@ def test_bad_appearance_is_a_one_line_error(tmp_path):
     proj = _tiny(tmp_path)
     r = run_cli("train", proj.root, "--appearance", "vignette")
     assert r.exit_code == 2 and "--appearance" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    with pytest.raises(SplatError, match="exposure_smooth"):
+        make_config("demo", exposure_smooth=1.5)
 
 
 @pytest.mark.slow

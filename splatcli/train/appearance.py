@@ -9,12 +9,17 @@ The transforms start at [I | 0] and learn with their own Adam (learning rate dec
 exponentially, 3DGS's 0.01 -> 0.001) that steps only the transforms of the views trained
 (`_CentredAdam`). Two more things keep them honest; 3DGS has none of the three:
 
-* after every step they are moved together so that their mean is [I | 0] again. The
-  scene's colours and the transforms' common part are interchangeable (a brighter
-  scene seen through darker transforms renders the same training images), so without
-  this the scene drifts away from the photos' average exposure, which is what a
-  held-out view, rendered with the identity, needs (early in training the transforms
-  learn faster than the Gaussians' colours and take up any common error);
+* after every step, the part of their deviations from [I | 0] that varies smoothly over
+  the camera positions (the `smooth` x n smoothest modes of the cameras' graph, the first
+  being the constant) is taken out. The scene's colours and the transforms' common part
+  are interchangeable (a brighter scene seen through darker transforms renders the same
+  training images), so without this the scene drifts away from the photos' average
+  exposure, which is what a held-out view, rendered with the identity, needs (early in
+  training the transforms learn faster than the Gaussians' colours and take up any common
+  error). Beyond the mean, an exposure that drifts slowly along the capture path (a phone
+  sweep) is left to the scene's view-dependent colour, which carries it to the held-out
+  views between the training ones; the transforms keep what changes from shot to shot
+  (fox at 2,000 steps: the mean alone -1.97 dB against no transforms, 6 of 43 modes +0.57);
 * each step adds `reg * mean((T_i - [I | 0])^2)` for the view seen: a pull towards the
   identity, so a transform explains a photo's colour shift, not its view-dependent
   content.
@@ -124,8 +129,9 @@ def smooth_basis(centres: Tensor,  # [n, 3]
 
 
 class _CentredAdam(torch.optim.Optimizer):
-    """Adam on the rows (views) that have a gradient this step, then every transform moved
-    by one common amount so that their mean is [I | 0].
+    """Adam on the rows (views) that have a gradient this step, then the deviations from
+    [I | 0] projected off `basis` (the smooth modes: with the constant alone, every
+    transform moved by one common amount so that their mean is [I | 0]).
 
     A row's moments and bias correction advance only when its view is trained (as a sparse
     Adam's do). torch's Adam would keep moving every row on its decaying momentum for the
