@@ -109,8 +109,8 @@ def smooth_basis(centres: Tensor,  # [n, 3]
                  modes: int) -> Tensor:  # -> [n, modes], orthonormal columns
     """The `modes` smoothest functions over the cameras: the eigenvectors of the lowest
     eigenvalues of the graph Laplacian with Gaussian weights exp(-d^2 / 2 sigma^2), sigma
-    twice the median distance from a camera to its nearest neighbour. The first is the
-    constant (the transforms' mean)."""
+    twice the median distance from a camera to its nearest neighbour, and fewer where not
+    that many vary slowly. The first is the constant (the transforms' mean)."""
     c = centres.detach().double().cpu()
     n = c.shape[0]
     modes = max(1, min(int(modes), n))
@@ -121,7 +121,10 @@ def smooth_basis(centres: Tensor,  # [n, 3]
     sigma = 2.0 * float(nearest.median().clamp_min(1e-12))
     w = torch.exp(-d.square() / (2 * sigma**2))
     w.fill_diagonal_(0.0)
-    _, vecs = torch.linalg.eigh(torch.diag(w.sum(1)) - w)
+    vals, vecs = torch.linalg.eigh(torch.diag(w.sum(1)) - w)
+    # Only modes that do vary slowly: below half the mean degree (cameras all on one spot, a
+    # panorama, make a complete graph whose other eigenvalues are n / (n - 1) x the degree).
+    modes = max(1, min(modes, int((vals < 0.5 * w.sum(1).mean()).sum())))
     basis = vecs[:, :modes]
     basis[:, 0] = 1.0 / math.sqrt(n)  # exactly the mean (eigh's null vector, without its rounding)
     q, r = torch.linalg.qr(basis)
