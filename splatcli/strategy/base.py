@@ -121,6 +121,8 @@ class Context:
     views_seeing: Callable[[Tensor], Tensor] = lambda means: torch.zeros(len(means))
     # -> (viewmat [4, 4], K [3, 3], width, height) of every training view at the training resolution
     cameras: Callable[[], list[tuple[Tensor, Tensor, int, int]]] = lambda: []
+    # -> [n_train, 3] the training cameras' centres (Camera.center), in training-view order
+    centres: Callable[[], Tensor | None] = lambda: None
 
 
 class Strategy:

@@ -16,6 +16,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any, Iterator
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -243,7 +244,8 @@ def _context(data: TrainData, box: list[TrainState], on_event: EventSink | None,
     center = torch.as_tensor(data.center, dtype=torch.float32, device=data.background.device)
     return Context(score=score, weights=weights, note=lambda m: emit(on_event, Note(m)), center=center,
                    views_seeing=lambda means: views_seeing(data.train, means),
-                   cameras=lambda: [(v.viewmat, v.K, v.camera.width, v.camera.height) for v in data.train])
+                   cameras=lambda: [(v.viewmat, v.K, v.camera.width, v.camera.height) for v in data.train],
+                   centres=lambda: torch.from_numpy(np.stack([v.camera.center for v in data.train])))
 
 
 def _interrupt(project: Project, cfg: TrainConfig, state: TrainState, comm: Comm) -> None:

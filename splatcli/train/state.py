@@ -168,9 +168,7 @@ def _make_optimizers(params: dict[str, nn.Parameter], cfg: TrainConfig, extent: 
 def _appearance(cfg: TrainConfig, n_train: int, device: torch.device, ctx: Context) -> Appearance | None:
     if cfg.appearance == "none":
         return None
-    cams = ctx.cameras()
-    centres = torch.stack([-(vm[:3, :3].T @ vm[:3, 3]).cpu() for vm, *_ in cams]) if len(cams) == n_train else None
-    return Appearance(n_train, cfg.exposure, device, centres)
+    return Appearance(n_train, cfg.exposure, device, ctx.centres())
 
 
 def _params(g: Gaussians, names: list[str]) -> dict[str, nn.Parameter]:
