@@ -164,6 +164,21 @@ def test_penalties_reach_the_gradients_before_the_loss():
     torch.testing.assert_close(sp.params["log_scales"].grad, 0.25 * sp.params["log_scales"].detach().exp() / 30)
 
 
+def test_penalties_stop_at_reg_stop():
+    """After `reg_stop` the penalties no longer pull opacities and scales down: the fixed set
+    fits the photos alone (lego: +0.3 dB, docs/benchmarks.md "MCMC: findings")."""
+    s = MCMCStrategy(MCMCStrategyConfig(opacity_reg=0.5, scale_reg=0.25), cap=10, refine_start=0, refine_stop=500,
+                     refine_every=100, reg_stop=600)
+    sp = _splats(10)
+    st = s.initial_state(10, torch.device("cpu"))
+    s.step_pre_backward(sp, st, 599, _info(10))
+    assert bool((sp.params["opacity_logits"].grad > 0).all())
+    sp.params["opacity_logits"].grad = None
+    sp.params["log_scales"].grad = None
+    s.step_pre_backward(sp, st, 600, _info(10))
+    assert sp.params["opacity_logits"].grad is None and sp.params["log_scales"].grad is None
+
+
 def test_train_with_mcmc_holds_the_budget_and_the_loop_knows_nothing_of_it(tmp_path):
     proj = make_tiny_project(tmp_path / "p", trained=False)
     r = run_cli("train", proj.root, "--strategy", "mcmc", "--max-gaussians", "500", "--iterations", "600",
@@ -184,10 +199,12 @@ def test_mcmc_options_are_checked(tmp_path):
     assert_user_error(run_cli("train", proj.root, "--strategy", "annealing"), "--strategy 'annealing'", "mcmc")
     from splatcli.train.config import make_config
 
-    for name, bad in (("mcmc_min_opacity", 0.0), ("mcmc_relocate_until", 1.5), ("mcmc_spread", -1.0)):
+    for name, bad in (("mcmc_min_opacity", 0.0), ("mcmc_relocate_until", 1.5), ("mcmc_spread", -1.0),
+                      ("mcmc_reg_until", -0.5)):
         with pytest.raises(Exception, match=f"{name} {bad}"):  # a damaged stored config: one line naming the key
             make_config("fast", **{name: bad})
-    make_config("fast", mcmc_min_opacity=0.005, mcmc_relocate_until=0.0, mcmc_spread=0.0)  # the paper's settings
+    make_config("fast", mcmc_min_opacity=0.005, mcmc_relocate_until=0.0, mcmc_spread=0.0,
+                mcmc_reg_until=1.0)  # the paper's settings
 
 
 def test_opacity_and_scale_reg_are_a_step_of_their_own_for_the_default_strategy():

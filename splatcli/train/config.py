@@ -311,8 +311,9 @@ def _check(cfg: TrainConfig) -> None:
     for name in ("init_opacity", "mcmc_init_opacity", "mcmc_min_opacity"):
         if not 0 < option(cfg, name) < 1:
             raise SplatError(f"{name} {option(cfg, name)}: must be in (0, 1)")
-    if not 0 <= cfg.mcmc.relocate_until <= 1:
-        raise SplatError(f"mcmc_relocate_until {cfg.mcmc.relocate_until}: must be in [0, 1] (a fraction of the run)")
+    for name in ("mcmc_relocate_until", "mcmc_reg_until"):
+        if not 0 <= option(cfg, name) <= 1:
+            raise SplatError(f"{name} {option(cfg, name)}: must be in [0, 1] (a fraction of the run)")
     if not (math.isfinite(cfg.mcmc.spread) and cfg.mcmc.spread >= 0):
         raise SplatError(f"mcmc_spread {cfg.mcmc.spread}: must be 0 or more")
     for name in ("opacity_reg", "scale_reg"):

@@ -123,7 +123,8 @@ def make_strategies(cfg: TrainConfig, extent: float, ctx: Context) -> list[Strat
     if cfg.density == "mcmc":
         s = cfg.strategy
         density: Strategy = MCMCStrategy(cfg.mcmc, s.max_gaussians, s.refine_start, stop, s.refine_every,
-                                         min(cfg.iterations, round(cfg.mcmc.relocate_until * cfg.iterations)))
+                                         min(cfg.iterations, round(cfg.mcmc.relocate_until * cfg.iterations)),
+                                         round(cfg.mcmc.reg_until * cfg.iterations))
     else:
         # With far points (--init-far) the size limit is an angle: far Gaussians may be large.
         grow = cfg.strategy.grow_grad2d * (MIP_GROW_GRAD2D if cfg.mip_filter else 1.0)
