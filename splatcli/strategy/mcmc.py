@@ -45,7 +45,7 @@ class MCMCStrategyConfig:
     scale_reg: float = 0.01  # x mean scale (world units)
     max_ratio: int = 51  # a Gaussian is split into at most this many by one relocation
     relocate_until: float = 0.95  # relocation goes on to this fraction of the run (growth stops with the window; lego +0.42 dB)
-    reg_until: float = 0.6  # the penalties act until this fraction of the run (1: all of it, the paper's; lego +0.27 dB, fox +0.3 at step 5,000)
+    reg_until: float = 0.6  # the penalties act until this fraction of the run (1: all of it, the paper's; fast preset: lego +0.27 dB, fox +0.12)
     spread: float = 1.0  # copies go to a draw from their source Gaussian x this (0: on top of it, the paper's; lego +1.46 dB)
 
 
