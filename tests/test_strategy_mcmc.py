@@ -200,7 +200,7 @@ def test_mcmc_options_are_checked(tmp_path):
     from splatcli.train.config import make_config
 
     for name, bad in (("mcmc_min_opacity", 0.0), ("mcmc_relocate_until", 1.5), ("mcmc_spread", -1.0),
-                      ("mcmc_reg_until", -0.5)):
+                      ("mcmc_reg_until", -0.5), ("mcmc_grow_until", 2.0)):
         with pytest.raises(Exception, match=f"{name} {bad}"):  # a damaged stored config: one line naming the key
             make_config("fast", **{name: bad})
     make_config("fast", mcmc_min_opacity=0.005, mcmc_relocate_until=0.0, mcmc_spread=0.0,

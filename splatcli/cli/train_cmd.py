@@ -29,7 +29,7 @@ def train(
     sh_degree: Optional[str] = typer.Option(None, "--sh-degree", help=f"0-3, or auto: the lowest degree within {_D.sh_auto.tol_db} dB of 3 on training views (default {_D.sh_degree})."),
     max_gaussians: Optional[int] = typer.Option(None, "--max-gaussians", help="Hard budget; growth goes to the highest gradients first (with --strategy mcmc: the count it grows to)."),
     strategy: Optional[str] = typer.Option(None, "--strategy", help=f"Density control: default = 3DGS's clone/split/prune; mcmc = a fixed budget "
-                                           f"(--max-gaussians), grown {_D.mcmc.growth:.0%} per refinement, dead Gaussians moved onto live ones, "
+                                           f"(--max-gaussians), grown at least {_D.mcmc.growth:.0%} per refinement and to the cap by {_D.mcmc.grow_until:.0%} of the refinement window, dead Gaussians moved onto live ones, "
                                            "noise on nearly transparent ones, opacity and scale penalties (Kheradmand et al. 2024)."),
     init_far: Optional[int] = typer.Option(None, "--init-far", help=f"Also start with Gaussians on a sphere {_D.init_far_radius:g}x the cameras' extent away, this many over the whole sphere (those a training view sees are kept, coloured from it): a backdrop that structure from motion left empty gets a far depth instead of floaters (default {_D.init_far}: off)."),
     prune_views: Optional[int] = typer.Option(None, "--prune-views", help=f"While densifying, prune Gaussians that fewer than this many training views see (they can only explain those photos: floaters elsewhere; default {_D.support.prune_views}: off)."),

@@ -311,7 +311,7 @@ def _check(cfg: TrainConfig) -> None:
     for name in ("init_opacity", "mcmc_init_opacity", "mcmc_min_opacity"):
         if not 0 < option(cfg, name) < 1:
             raise SplatError(f"{name} {option(cfg, name)}: must be in (0, 1)")
-    for name in ("mcmc_relocate_until", "mcmc_reg_until"):
+    for name in ("mcmc_relocate_until", "mcmc_reg_until", "mcmc_grow_until"):
         if not 0 <= option(cfg, name) <= 1:
             raise SplatError(f"{name} {option(cfg, name)}: must be in [0, 1] (a fraction of the run)")
     if not (math.isfinite(cfg.mcmc.spread) and cfg.mcmc.spread >= 0):
