@@ -313,7 +313,7 @@ def _check(cfg: TrainConfig) -> None:
             raise SplatError(f"{name} {option(cfg, name)}: must be in (0, 1)")
     for name in ("mcmc_relocate_until", "mcmc_reg_until", "mcmc_grow_until"):
         if not 0 <= option(cfg, name) <= 1:
-            raise SplatError(f"{name} {option(cfg, name)}: must be in [0, 1] (a fraction of the run)")
+            raise SplatError(f"{name} {option(cfg, name)}: must be in [0, 1] (a fraction of the run, or of the refinement window for mcmc_grow_until)")
     if not (math.isfinite(cfg.mcmc.spread) and cfg.mcmc.spread >= 0):
         raise SplatError(f"mcmc_spread {cfg.mcmc.spread}: must be 0 or more")
     for name in ("opacity_reg", "scale_reg"):
