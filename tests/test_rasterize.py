@@ -197,3 +197,14 @@ def test_banded_rendering_matches(monkeypatch):
     torch.testing.assert_close(o2.depth, o1.depth, atol=1e-12, rtol=0)
     for a, b in zip(g2, g1):
         torch.testing.assert_close(a, b, atol=1e-10, rtol=1e-9)
+
+
+@pytest.mark.parametrize("sigma, many, expected", [(3.0, 2000, 4), (12.0, 5000, 8), (120.0, 20, 16)])
+def test_auto_block_follows_screen_size_not_overlap(sigma, many, expected):
+    """The chooser's measured cost model: small blocks for small Gaussians, 16 px only for
+    ones hundreds of pixels wide. Stacking the same Gaussians deeper (more overlap, which
+    the old model answered with larger blocks at 1.3-1.5x the time on fox) changes nothing."""
+    for n in (many, 10 * many):
+        cov2d = torch.tensor([[sigma**2, 0.0, sigma**2]]).repeat(n, 1)
+        opac = torch.full((n,), 0.9)
+        assert composite.choose_block(cov2d, opac, torch.ones(n, dtype=torch.bool), 1000, 1000) == expected

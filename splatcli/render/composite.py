@@ -78,10 +78,14 @@ def _feats(block: int, dtype: torch.dtype, device: torch.device) -> Tensor:  # [
     return torch.stack([torch.ones_like(lx), lx, ly, lx * lx, lx * ly, ly * ly])
 
 
-# Cost model for choosing the block size (ns, measured on CPU): per (Gaussian, block)
-# pair to plan and sort, per pair that is actually blended (slot setup and gradient
-# scatter), and per dense [pixel, pair] element (forward + backward).
-_COST_PAIR, _COST_SLOT, _COST_ELEM = 60.0, 100.0, 12.0
+# Cost model for choosing the block size (ns per (Gaussian, block) pair and per dense
+# [pixel, pair] element, forward + backward, one CPU thread). Fitted on 2026-11-25 to
+# the fastest block of 111 views: lego at 200 and 800 px, fox at 480 and 960 px and the
+# sample scene, models from step 50 to the end, both strategies (bench: docs/benchmarks.md
+# "Block size"). 16 px blocks were never the fastest there, and the old model, which
+# favoured large blocks where many Gaussians overlap (early termination), chose them
+# on fox at 1.3-1.5x the time: a block stops only when all its pixels have saturated.
+_COST_SLOT, _COST_ELEM = 50.0, 12.0
 
 
 def choose_block(
@@ -92,8 +96,7 @@ def choose_block(
     height: int,
 ) -> int:
     """The block side (4, 8 or 16 px) that minimises a simple cost model: small blocks
-    waste fewer pixels on small Gaussians, large blocks make fewer pairs to sort,
-    which wins when most pairs lie behind saturated pixels (early termination)."""
+    waste fewer pixels on small Gaussians, large blocks make fewer pairs."""
     with torch.no_grad():
         o = opacities.detach()[active].double()
         cv = cov2d.detach()[active].double()
@@ -101,23 +104,11 @@ def choose_block(
         ok = t2 > 0
         if not bool(ok.any()):
             return 8
-        o, cv, t2 = o[ok], cv[ok], t2[ok]
+        cv, t2 = cv[ok], t2[ok]
         w = (2 * torch.sqrt(t2 * cv[:, 0])).clamp_max(width)
         h = (2 * torch.sqrt(t2 * cv[:, 2])).clamp_max(height)
-        # Optical depth per pixel: sum of area x -ln(1 - mean alpha inside the ellipse);
-        # pixels saturate (T < 1e-4) at about 9.2, so roughly this share of the dense
-        # work is done before early termination.
-        area = (math.pi / 4) * w * h
-        mean_a = ((o - 1 / 255) / torch.log(o * 255)).clamp(0, 0.99)
-        tau = float((area * -torch.log1p(-mean_a)).sum()) / (width * height)
-        f = min(1.0, 9.2 / max(tau, 1e-9))
-        best, best_cost = 8, float("inf")
-        for b in (4, 8, 16):
-            pairs = float(((w / b + 1) * (h / b + 1)).sum())
-            cost = pairs * (_COST_PAIR + f * (_COST_SLOT + _COST_ELEM * b * b))
-            if cost < best_cost * 0.97:  # prefer the earlier (smaller) block on near-ties
-                best, best_cost = b, cost
-        return best
+        cost = {b: float(((w / b + 1) * (h / b + 1)).sum()) * (_COST_SLOT + _COST_ELEM * b * b) for b in (4, 8, 16)}
+        return min(cost, key=cost.get)
 
 
 def make_plan(
