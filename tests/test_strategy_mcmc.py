@@ -81,7 +81,7 @@ def test_grows_by_the_fraction_up_to_the_cap_and_never_past_it():
 def test_dead_gaussians_move_onto_live_ones_with_fresh_moments():
     op = torch.full((50,), 0.6)
     op[:10] = 0.001  # dead
-    s = _strategy(cap=50, noise_lr=0.0, spread=0.0)  # the paper's: copies on their source's centre
+    s = _strategy(cap=50, noise_lr=0.0, spread=0.0, shrink=1.0)  # the paper's: copies on their source's centre
     sp = _splats(50, op)
     st = s.initial_state(50, torch.device("cpu"))
     before = {k: v.detach().clone() for k, v in sp.params.items()}
@@ -117,10 +117,15 @@ def test_copies_are_drawn_from_their_source_gaussian():
     centre = sp.params["means"][0].detach().clone()
     s.step_post_backward(sp, s.initial_state(401, torch.device("cpu")), 100, _info(401))
     new_s = sp.params["log_scales"][0].detach().exp()  # the source's scale after relocation, copies share it
+    torch.testing.assert_close(sp.params["log_scales"][1:].detach().exp(), new_s.expand(400, 3))
+    o_eq9, s_eq9 = relocation(torch.tensor([0.9]), torch.tensor([[0.5, 0.01, 0.01]]), torch.tensor([401]), s.config.max_ratio)
+    # eq. 9's scale, then shrunk; rtol: the strategy starts from sigmoid(logit(0.9)) in float32
+    torch.testing.assert_close(new_s * s.config.shrink, s_eq9[0], rtol=1e-3, atol=0)
     off = sp.params["means"][1:].detach() - centre  # [400, 3]
     std = off.std(dim=0)
-    # 400 draws: the sample std is within 15% of the true one with overwhelming probability (~6 sigma)
-    torch.testing.assert_close(std / new_s, torch.ones(3), atol=0.15, rtol=0)
+    # 400 draws from the Gaussian before it shrank by `shrink`: the sample std is within 15%
+    # of the true one with overwhelming probability (~6 sigma)
+    torch.testing.assert_close(std / (new_s * s.config.shrink), torch.ones(3), atol=0.15, rtol=0)
     assert float(std[0] / std[1]) > 20  # anisotropic, as the source
     assert torch.cdist(off, off).add(torch.eye(400)).min() > 0  # no two on one spot
     torch.testing.assert_close(sp.params["means"][0].detach(), centre)  # the source stays put
@@ -200,11 +205,11 @@ def test_mcmc_options_are_checked(tmp_path):
     from splatcli.train.config import make_config
 
     for name, bad in (("mcmc_min_opacity", 0.0), ("mcmc_relocate_until", 1.5), ("mcmc_spread", -1.0),
-                      ("mcmc_reg_until", -0.5), ("mcmc_grow_until", 2.0)):
+                      ("mcmc_reg_until", -0.5), ("mcmc_grow_until", 2.0), ("mcmc_shrink", 0.5)):
         with pytest.raises(Exception, match=f"{name} {bad}"):  # a damaged stored config: one line naming the key
             make_config("fast", **{name: bad})
     make_config("fast", mcmc_min_opacity=0.005, mcmc_relocate_until=0.0, mcmc_spread=0.0,
-                mcmc_reg_until=1.0)  # the paper's settings
+                mcmc_reg_until=1.0, mcmc_shrink=1.0)  # the paper's settings
 
 
 def test_opacity_and_scale_reg_are_a_step_of_their_own_for_the_default_strategy():

@@ -7,7 +7,9 @@ opacity. A Gaussian drawn k times becomes k + 1 Gaussians whose opacity and scal
 set so that their sum renders like the one did (the paper's relocation, eq. 9); the
 copies are then placed at draws from their source Gaussian, as 3DGS places a split's
 halves (the paper leaves them on its centre, where identical copies get nearly the same
-gradients and separate slowly: on lego at 2k steps +1.46 dB). Growth ends with the
+gradients and separate slowly: on lego at 2k steps +1.46 dB), and, like those halves,
+they and their source shrink by 1.6: at full size the spread copies cover more than
+their source did, and the larger Gaussians cost render time. Growth ends with the
 refinement window, relocation goes on to `relocate_until` of the run, so that
 Gaussians that die late are reused instead of wasting the budget. After
 every optimiser step, positions get noise shaped by each Gaussian's own covariance and
@@ -47,6 +49,7 @@ class MCMCStrategyConfig:
     relocate_until: float = 0.95  # relocation goes on to this fraction of the run (growth stops with the window; lego +0.42 dB)
     reg_until: float = 0.6  # the penalties act until this fraction of the run (1: all of it, the paper's; fast preset: lego +0.27 dB, fox +0.12)
     spread: float = 1.0  # copies go to a draw from their source Gaussian x this (0: on top of it, the paper's; lego +1.46 dB)
+    shrink: float = 1.6  # ... and they and their source then get the scale / this, as 3DGS's split halves (1: the paper's; see SHRINK_NOTE)
 
 
 @dataclass
@@ -156,16 +159,20 @@ class MCMCStrategy(Strategy):
         logits = torch.logit(new_o.clamp(eps, 1 - eps))
         rows = {k: v.detach().clone() for k, v in p.items()}
         rows["opacity_logits"][idx] = logits
-        rows["log_scales"][idx] = new_s.clamp_min(1e-12).log()
-        ops.replace_rows(splats, idx, {k: v[idx] for k, v in rows.items()})
+        rows["log_scales"][idx] = new_s.clamp_min(1e-12).log()  # the copies are drawn from this Gaussian
+        own = {k: v[idx] for k, v in rows.items()}
+        own["log_scales"] = own["log_scales"] - math.log(self.config.shrink)
+        ops.replace_rows(splats, idx, own)
         return rows
 
     def _copies(self, rows: dict[str, Tensor], src: Tensor, state: MCMCStrategyState) -> dict[str, Tensor]:
-        """The copies' rows ([M] drawn sources), each moved by `spread` x a draw from its Gaussian."""
+        """The copies' rows ([M] drawn sources), each moved by `spread` x a draw from its
+        Gaussian, then shrunk by `shrink`."""
         out = {k: v[src] for k, v in rows.items()}
         if self.config.spread > 0:
             z = torch.randn(out["means"].shape, generator=state.generator, device=src.device, dtype=out["means"].dtype)
             out["means"] = out["means"] + self.config.spread * ops.draws(out["quats"], out["log_scales"], z)
+        out["log_scales"] = out["log_scales"] - math.log(self.config.shrink)
         return out
 
     @torch.no_grad()

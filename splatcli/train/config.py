@@ -316,6 +316,8 @@ def _check(cfg: TrainConfig) -> None:
             raise SplatError(f"{name} {option(cfg, name)}: must be in [0, 1] (a fraction of the run, or of the refinement window for mcmc_grow_until)")
     if not (math.isfinite(cfg.mcmc.spread) and cfg.mcmc.spread >= 0):
         raise SplatError(f"mcmc_spread {cfg.mcmc.spread}: must be 0 or more")
+    if not (math.isfinite(cfg.mcmc.shrink) and cfg.mcmc.shrink >= 1):
+        raise SplatError(f"mcmc_shrink {cfg.mcmc.shrink}: must be 1 (no shrinking) or more")
     for name in ("opacity_reg", "scale_reg"):
         v = option(cfg, name)
         if not (math.isfinite(v) and v >= 0):
