@@ -49,7 +49,7 @@ class MCMCStrategyConfig:
     relocate_until: float = 0.95  # relocation goes on to this fraction of the run (growth stops with the window; lego +0.42 dB)
     reg_until: float = 0.6  # the penalties act until this fraction of the run (1: all of it, the paper's; fast preset: lego +0.27 dB, fox +0.12)
     spread: float = 1.0  # copies go to a draw from their source Gaussian x this (0: on top of it, the paper's; lego +1.46 dB)
-    shrink: float = 1.6  # ... and they and their source then get the scale / this, as 3DGS's split halves (1: the paper's; see SHRINK_NOTE)
+    shrink: float = 1.6  # ... then they and their source get the scale / this, as 3DGS's split halves (1: the paper's; lego, fast preset: 34.73 dB against 34.00, in 0.91x the default strategy's time beside it)
 
 
 @dataclass
