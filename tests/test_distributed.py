@@ -139,6 +139,19 @@ def test_a_killed_rank_ends_the_run_in_one_line_and_the_checkpoint_stays_whole(t
     assert not _children(p.pid)
 
 
+def test_the_rank_that_died_is_named_not_the_ones_the_launcher_stopped(tmp_path):
+    """Once a rank dies the launcher sends SIGTERM to the others: the report names the
+    first cause (a rank that aborted at exit, in a CI run), not rank 0's SIGTERM."""
+    from splatcli.train.launch import RankDied, _report
+
+    (tmp_path / "errors").mkdir()
+    root = _project(tmp_path).root
+    err = _report(tmp_path / "errors", {0: -signal.SIGTERM, 1: -signal.SIGABRT}, root)
+    assert isinstance(err, RankDied) and "rank 1 was killed by SIGABRT" in str(err), err
+    err = _report(tmp_path / "errors", {0: -signal.SIGTERM, 1: -signal.SIGTERM}, root)
+    assert "rank 0 was killed by SIGTERM" in str(err)  # stopped from outside: the lowest rank
+
+
 def test_sigterm_to_the_launcher_checkpoints_once_and_exits_130(tmp_path):
     proj = _project(tmp_path)
     p = _start_long_run(proj)

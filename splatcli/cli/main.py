@@ -95,6 +95,12 @@ class _Group(TyperGroup):
                 sys.stdout.write(json.dumps({"error": error, "exit_code": code, "hint": hint}) + "\n")
         sys.stderr.flush()
         sys.stdout.flush()
+        if to and standalone_mode:
+            # A launched worker ends here without the interpreter's shutdown, where a
+            # thread of torch's process group that still holds a tensor aborts the
+            # process (and the launcher then stops the healthy ranks). Its files are
+            # closed and its output flushed.
+            os._exit(code)
         if standalone_mode:
             sys.exit(code)
         return code

@@ -90,9 +90,11 @@ def train(
         return launch(sys.argv[1:], nproc, port, project, dev)  # K copies of this command; rank 0 reports
     comm = join(dev)  # under torchrun: this process's rank (else a single process)
     ui = Ui(quiet=quiet or not comm.main, json_out=json_out and comm.main)
-    with ui.progress() as sink, live_viewer(ui, project, viewer and comm.main, viewer_host, viewer_port, sink) as sink:
-        s = run_train(project, cfg, dev, resume=resume, overrides=overrides, on_event=sink, comm=comm)
-    comm.close()
+    try:
+        with ui.progress() as sink, live_viewer(ui, project, viewer and comm.main, viewer_host, viewer_port, sink) as sink:
+            s = run_train(project, cfg, dev, resume=resume, overrides=overrides, on_event=sink, comm=comm)
+    finally:
+        comm.close()  # on every path: gloo's threads must be gone before the interpreter exits
     psnr = f", held-out PSNR {s.psnr:.2f} dB" if s.psnr is not None else ""
     ui.summary(s.to_json(), title=f"trained {s.steps} steps in {s.train_seconds:.0f} s{psnr}",
                lines=[f"{s.num_gaussians} Gaussians, SH degree {s.sh_degree}, .ply {s.ply_bytes / 1e6:.2f} MB",

@@ -123,7 +123,8 @@ def _report(errors: Path, codes: dict[int, int], project_dir: Path,
     """The one exception that explains a failed run: a rank that died without a word
     (killed) first, then the lowest rank's own error."""
     said = _read(errors)
-    for rank, code in sorted(codes.items()):
+    # The launcher stops the other ranks with SIGTERM once one fails: that one explains.
+    for rank, code in sorted(codes.items(), key=lambda rc: (rc[1] == -signal.SIGTERM, rc[0])):
         if rank not in said:
             how = f"exited with code {code}"
             if code < 0:
