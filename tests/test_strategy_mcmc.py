@@ -212,6 +212,17 @@ def test_mcmc_options_are_checked(tmp_path):
                 mcmc_reg_until=1.0, mcmc_shrink=1.0)  # the paper's settings
 
 
+def test_a_config_stored_before_mcmc_shrink_resumes_without_shrinking():
+    """Checkpoints written before `mcmc_shrink` existed trained with unshrunk copies: a
+    resume goes on that way, and a stored value is kept."""
+    from splatcli.train.config import TrainConfig, make_config
+
+    d = make_config("fast", density="mcmc", max_gaussians=1000).to_dict()
+    assert TrainConfig.from_dict(d).mcmc.shrink == 1.6
+    del d["mcmc"]["shrink"]
+    assert TrainConfig.from_dict(d).mcmc.shrink == 1.0
+
+
 def test_opacity_and_scale_reg_are_a_step_of_their_own_for_the_default_strategy():
     """--opacity-reg / --scale-reg add the same penalties to a default-strategy run (a
     RegularizeStep after density control), and none when they are 0 (the default)."""

@@ -141,6 +141,8 @@ class TrainConfig:
                 opts.update({by_path[(k, s)]: x for s, x in v.items() if (k, s) in by_path})
             elif k in OPTION_PATHS:
                 opts[k] = v
+        if isinstance(d.get("mcmc"), dict) and "shrink" not in d["mcmc"]:
+            opts.setdefault("mcmc_shrink", 1.0)  # stored before the option: its copies kept their scale
         for k, v in opts.items():
             if not _type_ok(v, OPTION_TYPES[k]):
                 shown = " ".join(repr(v).split())[:40]
