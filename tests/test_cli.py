@@ -117,6 +117,23 @@ def test_json_is_one_object_on_stdout(capsys):
     assert out.count("\n") == 1
 
 
+def test_a_stage_without_a_count_shows_no_count(capsys):
+    """`eval`'s "rank Gaussians" has no units to count: its bar said 0/0."""
+    from splatcli.cli.common import Ui
+    from splatcli.events import Progress, Stage, StageDone
+
+    with Ui().progress() as sink:
+        sink(Stage("rank", total=None))
+        sink(StageDone("rank", 0.1))
+        sink(Stage("eval", total=4))
+        sink(Progress("eval", 4, 4))
+        sink(StageDone("eval", 0.1))
+    err = capsys.readouterr().err
+    rank = next(line for line in err.splitlines() if "rank" in line)
+    assert "/" not in rank, rank  # no count at all (it said 0/0)
+    assert "4/4" in next(line for line in err.splitlines() if "eval" in line)
+
+
 def _json_error(r) -> dict:
     lines = r.stdout.strip().splitlines()
     assert len(lines) == 1, r.stdout  # one object, nothing else on stdout

@@ -16,6 +16,7 @@ from typing import Any, Iterator
 import typer
 from rich.console import Console
 from rich.markup import escape
+from rich.text import Text
 from rich.progress import (
     BarColumn,
     MofNCompleteColumn,
@@ -63,6 +64,13 @@ def parse_background(text: str | None, *, auto: bool = False) -> tuple[float, fl
     return rgb  # type: ignore[return-value]
 
 
+class _Count(MofNCompleteColumn):
+    """`done/total`, left blank for a stage that has no count (a spinner and a time)."""
+
+    def render(self, task: Any) -> Any:
+        return super().render(task) if task.fields.get("counted", True) else Text("")
+
+
 def _fmt(v: Any) -> str:
     if isinstance(v, float):
         return f"{v:.4g}"
@@ -96,7 +104,7 @@ class Ui:
             SpinnerColumn(),
             TextColumn("[bold]{task.description}"),
             BarColumn(),
-            MofNCompleteColumn(),
+            _Count(),
             TimeElapsedColumn(),
             TimeRemainingColumn(),
             TextColumn("{task.fields[info]}"),
@@ -119,12 +127,12 @@ class Ui:
             if isinstance(ev, (Stage, Progress)):
                 start()
             if isinstance(ev, Stage):
-                tasks[ev.name] = bars.add_task(ev.name, total=ev.total, info="")
+                tasks[ev.name] = bars.add_task(ev.name, total=ev.total, info="", counted=ev.total is not None)
             elif isinstance(ev, Progress):
                 if ev.name not in tasks:
-                    tasks[ev.name] = bars.add_task(ev.name, total=ev.total, info="")
+                    tasks[ev.name] = bars.add_task(ev.name, total=ev.total, info="", counted=True)
                 info = "  ".join(f"{k} {_fmt(v)}" for k, v in ev.info.items())
-                bars.update(tasks[ev.name], completed=ev.done, total=ev.total, info=info)
+                bars.update(tasks[ev.name], completed=ev.done, total=ev.total, info=info, counted=True)
             elif isinstance(ev, StageDone):
                 tid = tasks.get(ev.name)
                 if tid is not None:
