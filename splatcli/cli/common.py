@@ -16,7 +16,6 @@ from typing import Any, Iterator
 import typer
 from rich.console import Console
 from rich.markup import escape
-from rich.text import Text
 from rich.progress import (
     BarColumn,
     MofNCompleteColumn,
@@ -27,6 +26,7 @@ from rich.progress import (
     TimeElapsedColumn,
     TimeRemainingColumn,
 )
+from rich.text import Text
 
 from ..errors import SplatError
 from ..io.atomic import json_default
@@ -130,7 +130,7 @@ class Ui:
                 tasks[ev.name] = bars.add_task(ev.name, total=ev.total, info="", counted=ev.total is not None)
             elif isinstance(ev, Progress):
                 if ev.name not in tasks:
-                    tasks[ev.name] = bars.add_task(ev.name, total=ev.total, info="", counted=True)
+                    tasks[ev.name] = bars.add_task(ev.name, total=ev.total, info="")
                 info = "  ".join(f"{k} {_fmt(v)}" for k, v in ev.info.items())
                 bars.update(tasks[ev.name], completed=ev.done, total=ev.total, info=info, counted=True)
             elif isinstance(ev, StageDone):
