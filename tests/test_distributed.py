@@ -189,8 +189,8 @@ def test_the_scaling_rule_sees_as_many_images_and_keeps_one_process_unchanged():
     cfg = make_config("fast")
     assert cfg.for_world(1) is cfg
     c2 = cfg.for_world(2)
-    assert c2.iterations * 2 == cfg.iterations and c2.strategy.refine_every * 2 == cfg.strategy.refine_every
-    assert c2.strategy.refine_stop * 2 == cfg.strategy.refine_stop and c2.sh_degree_interval * 2 == cfg.sh_degree_interval
+    assert c2.iterations * 2 == cfg.iterations and c2.default.refine_every * 2 == cfg.default.refine_every
+    assert c2.default.refine_stop * 2 == cfg.default.refine_stop and c2.sh_degree_interval * 2 == cfg.sh_degree_interval
     assert c2.lr_sh0 == pytest.approx(cfg.lr_sh0 * 2 ** 0.5) and c2.adam_eps == pytest.approx(cfg.adam_eps / 2 ** 0.5)
     assert c2.adam_beta2 == pytest.approx(cfg.adam_beta2 ** 2) and c2.coarse_until == cfg.coarse_until
     assert cfg.for_world(3).eval_every == round(cfg.eval_every / 3)

@@ -248,7 +248,8 @@ def test_manifest_random_json(data) -> None:
 
 # ---- the stored train config (checkpoints carry it; --resume reads it) ----------------
 
-from splatcli.train.config import OPTION_PATHS, TrainConfig  # noqa: E402
+from splatcli.options import table  # noqa: E402
+from splatcli.train.config import TrainConfig  # noqa: E402
 
 CONFIG_VALUES = (st.none() | st.booleans() | st.integers(-3, 5) | st.integers(-2**70, 2**70)
                  | st.floats(allow_nan=True, allow_infinity=True) | st.text(max_size=6)
@@ -256,7 +257,7 @@ CONFIG_VALUES = (st.none() | st.booleans() | st.integers(-3, 5) | st.integers(-2
 
 
 @SETTINGS
-@given(st.dictionaries(st.sampled_from(sorted(OPTION_PATHS) + ["strategy", "compact", "sh_auto"]), CONFIG_VALUES,
+@given(st.dictionaries(st.sampled_from(sorted(table(TrainConfig)) + ["default", "mcmc", "compact", "sh_auto", "exposure", "density"]), CONFIG_VALUES,
                        max_size=6))
 def test_stored_train_config_random_values(d: dict) -> None:
     """Garbled values either give a config the loop can run with, or one line naming the key."""
@@ -266,7 +267,7 @@ def test_stored_train_config_random_values(d: dict) -> None:
         msg = str(e)
         assert "\n" not in msg and msg.startswith("CKPT: stored train config"), msg
         return
-    assert cfg.iterations >= 1 and cfg.strategy.refine_every >= 1 and cfg.checkpoint_every >= 1 and cfg.log_every >= 1
+    assert cfg.iterations >= 1 and cfg.refine.refine_every >= 1 and cfg.checkpoint_every >= 1 and cfg.log_every >= 1
     assert cfg.sh_degree == "auto" or 0 <= int(cfg.sh_degree) <= 3
     assert cfg.train_scale(1) > 0  # the schedule evaluates
 

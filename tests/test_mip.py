@@ -226,7 +226,7 @@ def test_the_filters_lower_the_growth_threshold_and_plain_training_keeps_it():
         return d.config.grow_grad2d
 
     assert 0 < GROW_GRAD2D < 1
-    assert threshold() == make_config("fast").strategy.grow_grad2d
-    assert threshold(mip_filter=True) == pytest.approx(GROW_GRAD2D * make_config("fast").strategy.grow_grad2d)
+    assert threshold() == make_config("fast").default.grow_grad2d
+    assert threshold(mip_filter=True) == pytest.approx(GROW_GRAD2D * make_config("fast").default.grow_grad2d)
     assert threshold(mip_filter=True, grow_grad2d=1e-3) == pytest.approx(GROW_GRAD2D * 1e-3)
     assert threshold(grow_grad2d=1e-3) == 1e-3

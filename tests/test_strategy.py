@@ -108,7 +108,7 @@ def test_refine_clones_small_splits_large_prunes_transparent():
     with torch.no_grad():
         params["log_scales"][3] = math.log(0.5)  # large: > 1% of extent 1
         params["opacity_logits"][4] = -10.0  # transparent: pruned
-    cfg = DefaultStrategyConfig(refine_start=0, refine_every=1, reset_every=1000)
+    cfg = DefaultStrategyConfig(refine_start=0, refine_every=1, opacity_reset=1000)
     s = DefaultStrategy(cfg, scene_extent=1.0)
     state = s.initial_state(5, torch.device("cpu"))
     grad = torch.zeros(5, 2)
@@ -133,7 +133,7 @@ def test_accumulates_only_visible_and_in_ndc_units():
 def test_budget_is_never_exceeded_and_takes_highest_gradients():
     n, budget = 10, 13
     params, optims = _params(n=n)
-    cfg = DefaultStrategyConfig(refine_start=0, refine_every=1, reset_every=1000, max_gaussians=budget)
+    cfg = DefaultStrategyConfig(refine_start=0, refine_every=1, opacity_reset=1000, max_gaussians=budget)
     s = DefaultStrategy(cfg, scene_extent=1.0)
     state = s.initial_state(n, torch.device("cpu"))
     grad = torch.zeros(n, 2)
@@ -149,7 +149,7 @@ def test_opacity_reset_clamps_and_zeroes_moments():
     with torch.no_grad():
         params["opacity_logits"].copy_(torch.tensor([-8.0, 0.0, 3.0, -4.0]))
     _adam_step(params, optims)
-    s = DefaultStrategy(DefaultStrategyConfig(reset_every=7), scene_extent=1.0)
+    s = DefaultStrategy(DefaultStrategyConfig(opacity_reset=7), scene_extent=1.0)
     state = s.initial_state(4, torch.device("cpu"))
     stats = s.step_post_backward(Splats(params, optims, [state]), state, 7, _info(4, torch.zeros(4, 2)))
     assert stats.reset_opacity
@@ -164,7 +164,7 @@ def test_opacity_reset_zero_never_resets_nor_prunes_by_size():
         params["opacity_logits"].copy_(torch.tensor([0.0, 1.0, 3.0, 2.0]))
         params["log_scales"][0] = 5.0  # far larger than prune_scale3d x extent
     before = params["opacity_logits"].detach().clone()
-    s = DefaultStrategy(DefaultStrategyConfig(reset_every=0, refine_start=0, refine_every=100), scene_extent=1.0)
+    s = DefaultStrategy(DefaultStrategyConfig(opacity_reset=0, refine_start=0, refine_every=100), scene_extent=1.0)
     state = s.initial_state(4, torch.device("cpu"))
     for step in (100, 3000, 6000):
         stats = s.step_post_backward(Splats(params, optims, [state]), state, step, _info(4, torch.zeros(4, 2)))

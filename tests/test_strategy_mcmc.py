@@ -62,7 +62,7 @@ def _info(n: int) -> StepInfo:
 
 
 def _strategy(cap: int, **kw) -> MCMCStrategy:
-    return MCMCStrategy(MCMCStrategyConfig(**kw), cap=cap, refine_start=0, refine_stop=10_000, refine_every=100)
+    return MCMCStrategy(MCMCStrategyConfig(max_gaussians=cap, refine_start=0, refine_stop=10_000, refine_every=100, **kw))
 
 
 def test_grows_by_the_fraction_up_to_the_cap_and_never_past_it():
@@ -135,8 +135,8 @@ def test_relocation_goes_on_after_growth_stops():
     """Growth ends with the refinement window; dead Gaussians are still moved until
     `relocate_stop` (the late deaths are reused instead of wasting the budget)."""
     op = torch.full((50,), 0.6)
-    s = MCMCStrategy(MCMCStrategyConfig(noise_lr=0.0), cap=80, refine_start=0, refine_stop=500, refine_every=100,
-                     relocate_stop=1000)
+    s = MCMCStrategy(MCMCStrategyConfig(noise_lr=0.0, max_gaussians=80, refine_start=0, refine_stop=500,
+                                        refine_every=100), relocate_stop=1000)
     sp = _splats(50, op)
     st = s.initial_state(50, torch.device("cpu"))
     for step, dead in ((600, 8), (1000, 5)):
@@ -172,8 +172,8 @@ def test_penalties_reach_the_gradients_before_the_loss():
 def test_penalties_stop_at_reg_stop():
     """After `reg_stop` the penalties no longer pull opacities and scales down: the fixed set
     fits the photos alone (lego: +0.27 dB, docs/benchmarks.md "MCMC: findings")."""
-    s = MCMCStrategy(MCMCStrategyConfig(opacity_reg=0.5, scale_reg=0.25), cap=10, refine_start=0, refine_stop=500,
-                     refine_every=100, reg_stop=600)
+    s = MCMCStrategy(MCMCStrategyConfig(opacity_reg=0.5, scale_reg=0.25, max_gaussians=10, refine_start=0,
+                                        refine_stop=500, refine_every=100), reg_stop=600)
     sp = _splats(10)
     st = s.initial_state(10, torch.device("cpu"))
     s.step_pre_backward(sp, st, 599, _info(10))
@@ -193,7 +193,7 @@ def test_train_with_mcmc_holds_the_budget_and_the_loop_knows_nothing_of_it(tmp_p
     assert s["num_gaussians"] <= 500  # the tiny scene starts at its cap: relocation and noise only
     assert s["psnr"] > 12  # it trains (the default strategy reaches 16.1 dB here, MCMC 14.0)
     stored = json.loads((proj.root / "splatcli.json").read_text())["steps"]["train"]["config"]
-    assert stored["density"] == "mcmc"
+    assert stored["strategy"] == "mcmc"
     loop = (REPO / "splatcli" / "train" / "loop.py").read_text().lower()
     assert "mcmc" not in loop  # a new strategy never edits the loop
 
@@ -202,22 +202,27 @@ def test_mcmc_options_are_checked(tmp_path):
     proj = make_tiny_project(tmp_path / "p", trained=False, photos=False)
     assert_user_error(run_cli("train", proj.root, "--strategy", "mcmc"), "--max-gaussians")
     assert_user_error(run_cli("train", proj.root, "--strategy", "annealing"), "--strategy 'annealing'", "mcmc")
+    assert_user_error(run_cli("train", proj.root, "--strategy", "mcmc", "--max-gaussians", "9", "--opacity-reset", "9"),
+                      "--opacity-reset does not apply to --strategy mcmc")
     from splatcli.train.config import make_config
 
+    mcmc = {"strategy": "mcmc", "max_gaussians": 1000}
     for name, bad in (("mcmc_min_opacity", 0.0), ("mcmc_relocate_until", 1.5), ("mcmc_spread", -1.0),
                       ("mcmc_reg_until", -0.5), ("mcmc_grow_until", 2.0), ("mcmc_shrink", 0.5)):
         with pytest.raises(Exception, match=f"{name} {bad}"):  # a damaged stored config: one line naming the key
-            make_config("fast", **{name: bad})
-    make_config("fast", mcmc_min_opacity=0.005, mcmc_relocate_until=0.0, mcmc_spread=0.0,
+            make_config("fast", **mcmc, **{name: bad})
+    make_config("fast", **mcmc, mcmc_min_opacity=0.005, mcmc_relocate_until=0.0, mcmc_spread=0.0,
                 mcmc_reg_until=1.0, mcmc_shrink=1.0)  # the paper's settings
+    with pytest.raises(Exception, match="mcmc_shrink does not apply to --strategy default"):
+        make_config("fast", mcmc_shrink=1.0)
 
 
 def test_a_config_stored_before_mcmc_shrink_resumes_without_shrinking():
     """Checkpoints written before `mcmc_shrink` existed trained with unshrunk copies: a
     resume goes on that way, and a stored value is kept."""
-    from splatcli.train.config import TrainConfig, make_config
+    from splatcli.train.config import TrainConfig
 
-    d = make_config("fast", density="mcmc", max_gaussians=1000).to_dict()
+    d = json.loads((REPO / "tests" / "data" / "train_config_dced6d2.json").read_text())["mcmc_run"]
     assert TrainConfig.from_dict(d).mcmc.shrink == 1.6
     del d["mcmc"]["shrink"]
     assert TrainConfig.from_dict(d).mcmc.shrink == 1.0

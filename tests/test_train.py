@@ -29,7 +29,7 @@ CPU = torch.device("cpu")
 # Every feature inside 50 steps: SH growth, refinement, an opacity reset, a
 # checkpoint, evaluation, then --sh-degree auto, --compact and its fine-tune.
 SMALL = dict(iterations=30, init_random_points=300, max_gaussians=600, eval_every=15, log_every=10,
-             refine_start=4, refine_every=4, reset_every=16, sh_degree_interval=8, checkpoint_every=10,
+             refine_start=4, refine_every=4, opacity_reset=16, sh_degree_interval=8, checkpoint_every=10,
              grow_grad2d=2e-5)
 
 
@@ -227,7 +227,7 @@ def test_finished_run_resumed_with_compact_equals_a_compact_run(tmp_path, uninte
 
 def test_no_opacity_reset_on_the_last_step(tmp_path):
     proj = tiny(tmp_path)
-    train(proj.root, make_config(**{**SMALL, "iterations": 16, "reset_every": 16, "refine_stop": 1000}), CPU)
+    train(proj.root, make_config(**{**SMALL, "iterations": 16, "opacity_reset": 16, "refine_stop": 1000}), CPU)
     g = load_gaussians(proj.latest_checkpoint(), CPU)
     assert float(torch.sigmoid(g.opacity_logits).max()) > 0.05  # a reset would have clamped all to 0.01
 
@@ -266,7 +266,7 @@ def test_time_budget_plans_a_compressed_schedule(tmp_path):
     proj = tiny(tmp_path)
     budget = 3.0
     # a preset-shaped template far longer than the budget allows
-    template = {**SMALL, "iterations": 3000, "refine_start": 300, "refine_every": 100, "reset_every": 1500,
+    template = {**SMALL, "iterations": 3000, "refine_start": 300, "refine_every": 100, "opacity_reset": 1500,
                 "refine_stop": 2000, "sh_degree_interval": 600}
     s = train(proj.root, make_config(**template, time_budget=budget), CPU)
     plan = s.plan
@@ -276,20 +276,20 @@ def test_time_budget_plans_a_compressed_schedule(tmp_path):
     assert s.train_seconds <= 1.25 * budget  # a tiny scene: plans are coarse at this scale
     cfg = proj.step("train")["config"]
     ratio = cfg["iterations"] / 3000
-    assert cfg["strategy"]["refine_every"] == max(25, round(100 * ratio))  # never below 25 steps
-    assert cfg["strategy"]["refine_stop"] == max(1, round(2000 * ratio))
+    assert cfg["default"]["refine_every"] == max(25, round(100 * ratio))  # never below 25 steps
+    assert cfg["default"]["refine_stop"] == max(1, round(2000 * ratio))
     assert cfg["sh_degree_interval"] == max(1, round(600 * ratio))
 
 
 def test_plan_keeps_a_switched_off_reset_off():
     from splatcli.train.plan import TimePlan
 
-    cfg = make_config("fast", reset_every=0, time_budget=60.0)
+    cfg = make_config("fast", opacity_reset=0, time_budget=60.0)
     scaled = TimePlan.start(cfg).scaled(cfg, 700)
-    assert scaled.strategy.reset_every == 0 and scaled.strategy.refine_stop == 400
-    assert make_config("demo").strategy.reset_every == 0
-    with pytest.raises(SplatError, match="reset_every"):
-        make_config(reset_every=-1)
+    assert scaled.default.opacity_reset == 0 and scaled.default.refine_stop == 400
+    assert make_config("demo").default.opacity_reset == 0
+    with pytest.raises(SplatError, match="--opacity-reset -1"):
+        make_config(opacity_reset=-1)
 
 
 @pytest.mark.parametrize("key,value", [("refine_every", 0), ("iterations", "many"), ("sh_degree", "seven"),
@@ -308,7 +308,7 @@ def test_resume_from_a_checkpoint_with_a_garbled_config_is_one_line(tmp_path, ke
     if key in cfg:
         cfg[key] = value
     else:
-        cfg["strategy"] = {**cfg["strategy"], key: value}
+        cfg["default"] = {**cfg["default"], key: value}
     save_checkpoint(path, step=ck.step, gaussians=ck.gaussians, sh_degree=ck.sh_degree, optimizer=ck.optimizer,
                     strategy=ck.strategy, rng=ck.rng, config=cfg, extra=ck.extra)
     r = CliRunner().invoke(app, [*args, "--resume", "--iterations", "5"])

@@ -202,12 +202,12 @@ def test_mcmc_starts_from_its_own_initial_opacity(tmp_path):
     proj = make_tiny_project(tmp_path / "p", trained=False)
     data = load_train_data(proj, 1.0, None, CPU)
     assert not len(data.points)  # the tiny project has no SfM points: random points in the box
-    rand = initial_gaussians(make_config("fast", density="mcmc", max_gaussians=500), data, CPU)
+    rand = initial_gaussians(make_config("fast", strategy="mcmc", max_gaussians=500), data, CPU)
     torch.testing.assert_close(torch.sigmoid(rand.opacity_logits), torch.full((len(rand),), 0.1))
     rng = np.random.default_rng(0)
     data.points, data.colors = rng.uniform(-1, 1, (64, 3)), rng.integers(0, 256, (64, 3), dtype=np.uint8)
     plain = initial_gaussians(make_config("fast"), data, CPU)
-    mcmc = initial_gaussians(make_config("fast", density="mcmc", max_gaussians=10**6), data, CPU)
+    mcmc = initial_gaussians(make_config("fast", strategy="mcmc", max_gaussians=10**6), data, CPU)
     torch.testing.assert_close(torch.sigmoid(plain.opacity_logits), torch.full((64,), 0.1))
     torch.testing.assert_close(torch.sigmoid(mcmc.opacity_logits), torch.full((64,), 0.5))
     assert torch.equal(plain.means, mcmc.means) and torch.equal(plain.log_scales, mcmc.log_scales)
@@ -230,7 +230,7 @@ def test_far_gaussians_are_size_pruned_by_angle_not_world_size():
              "sh0": torch.zeros(2, 1, 3)}
         params = {k: nn.Parameter(v) for k, v in p.items()}
         sp = Splats(params, {k: torch.optim.Adam([v]) for k, v in params.items()}, [])
-        s = DefaultStrategy(DefaultStrategyConfig(refine_start=0, reset_every=10, refine_every=100), 10.0, center)
+        s = DefaultStrategy(DefaultStrategyConfig(refine_start=0, opacity_reset=10, refine_every=100), 10.0, center)
         st = s.initial_state(2, CPU)
         sp.states.append(st)
         z = torch.zeros(2)

@@ -1,15 +1,15 @@
 """Density and model control: when to clone, split, prune, reset and compact Gaussians,
 and the one set of ops that edits parameters, Adam moments and strategy state together."""
 
-from .base import Context, RefineStats, RowState, Splats, StepInfo, Strategy
+from .base import Context, RefineConfig, RefineStats, RowState, Splats, StepInfo, Strategy
 from .compact import CompactConfig, CompactReport, CompactStep, ShAutoConfig, ShAutoStep, sh_degree_of
 from .default import DefaultStrategy, DefaultStrategyConfig, DefaultStrategyState
 from .mcmc import MCMCStrategy, MCMCStrategyConfig, MCMCStrategyState
 from .mip import MipFilter, MipFilterState
-from .regularize import RegularizeConfig, RegularizeStep
+from .regularize import RegularizeStep
 from .support import SupportConfig, SupportPrune
 
 __all__ = ["CompactConfig", "CompactReport", "CompactStep", "Context", "DefaultStrategy", "DefaultStrategyConfig",
            "DefaultStrategyState", "MCMCStrategy", "MCMCStrategyConfig", "MCMCStrategyState", "MipFilter",
-           "MipFilterState", "RefineStats", "RegularizeConfig", "RegularizeStep", "RowState", "ShAutoConfig",
+           "MipFilterState", "RefineConfig", "RefineStats", "RegularizeStep", "RowState", "ShAutoConfig",
            "ShAutoStep", "Splats", "StepInfo", "Strategy", "SupportConfig", "SupportPrune", "sh_degree_of"]

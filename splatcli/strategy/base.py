@@ -22,10 +22,31 @@ from typing import Any, Callable, ClassVar
 import torch
 from torch import Tensor, nn
 
+from ..options import MODEL, opt
 from ..render.output import RenderOutput
 
 Params = dict[str, nn.Parameter]
 Optimizers = dict[str, torch.optim.Optimizer]
+
+
+@dataclass(frozen=True)
+class RefineConfig:
+    """What every density strategy has, each with its own values: when it refines, the
+    most Gaussians it may hold, and the penalties on opacity and scale. The options are
+    shared: `--max-gaussians` sets the chosen strategy's (options.py)."""
+
+    refine_start: int = opt(500, "First step that may refine (exclusive).", shared=True, at_least=0,
+                            steps="schedule")
+    refine_stop: int = opt(15_000, "No refinement from this step on.", shared=True, at_least=0, steps="schedule")
+    refine_every: int = opt(100, "Steps between refinements.", shared=True, at_least=1, steps="schedule")
+    max_gaussians: int | None = opt(
+        None, "The most Gaussians the model may hold: the default strategy's growth goes to the highest "
+        "gradients first and stops there; mcmc grows to exactly this many (and needs it).",
+        shared=True, group=MODEL, at_least=1)
+    opacity_reg: float = opt(0.0, "Add this x the mean opacity to the loss: unneeded Gaussians fade and are "
+                             "pruned or reused.", shared=True, group=MODEL, at_least=0)
+    scale_reg: float = opt(0.0, "Add this x the mean scale (world units) to the loss: Gaussians stay small.",
+                           shared=True, group=MODEL, at_least=0)
 
 
 @dataclass

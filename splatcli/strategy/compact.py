@@ -18,6 +18,7 @@ import torch
 
 from ..gaussians import sh_degree_from_bases
 from ..io.ply import ply_bytes
+from ..options import MODEL, opt
 from . import ops
 from .base import ModelStep, RefineStats, RowState, Splats, StepInfo
 
@@ -30,8 +31,9 @@ def sh_degree_of(splats: Splats) -> int:
 
 @dataclass(frozen=True)
 class ShAutoConfig:
-    tol_db: float = 0.05  # the lowest degree within this of the full degree's validation PSNR
-    val_views: int = 8  # validation subset of the *training* views
+    tol_db: float = opt(0.05, "--sh-degree auto keeps the lowest degree within this of the full degree's validation "
+                        "PSNR (dB).", at_least=0)
+    val_views: int = opt(8, "... measured on this many of the *training* views.", at_least=1)
 
 
 @dataclass
@@ -68,10 +70,14 @@ class ShAutoStep(ModelStep):
 
 @dataclass(frozen=True)
 class CompactConfig:
-    enabled: bool = False
-    keep: float = 1 / 3  # fraction of Gaussians kept, ranked by total blending weight
-    finetune: int = 3000  # steps after the first cut (lego: 1000 lost 0.42 dB, 3000 0.04)
-    rounds: int = 3  # cuts, spread over the first half of the fine-tune
+    enabled: bool = opt(False, "After training, keep compact_keep of the Gaussians (a third), those with the most "
+                        "blending weight, cut in compact_rounds rounds while fine-tuning compact_finetune more steps.",
+                        name="compact", group=MODEL)
+    keep: float = opt(1 / 3, "Fraction of Gaussians --compact keeps, ranked by total blending weight.",
+                      more_than=0, at_most=1)
+    finetune: int = opt(3000, "Steps after the first cut (lego: 1000 lost 0.42 dB, 3000 0.04).", at_least=0,
+                        steps="schedule")
+    rounds: int = opt(3, "Cuts, spread over the first half of the fine-tune.", at_least=1)
 
 
 @dataclass

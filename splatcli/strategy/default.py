@@ -14,24 +14,27 @@ import torch
 from torch import Tensor
 
 from . import ops
-from .base import RefineStats, RowState, Splats, StepInfo, Strategy
+from ..options import MODEL, opt
+from .base import RefineConfig, RefineStats, RowState, Splats, StepInfo, Strategy
 
 
 @dataclass(frozen=True)
-class DefaultStrategyConfig:
-    refine_start: int = 500  # first step that may clone/split/prune (exclusive)
-    refine_stop: int = 15_000  # no refinement (nor accumulation) from here on
-    refine_every: int = 100
-    reset_every: int = 3000  # opacity reset period, while refining (0: never, and no size pruning)
-    grow_grad2d: float = 2e-4  # average |d loss / d mean2d| in NDC units that triggers growth
-    grow_scale3d: float = 0.01  # x extent: larger Gaussians split, smaller ones clone ("percent_dense")
-    split_samples: int = 2
-    prune_opacity: float = 0.005
-    prune_scale3d: float = 0.1  # x extent: world-space size that is "too large" (after the first reset)
-    prune_scale2d: float = 0.15  # screen radius / max(W, H) that is "too large" (after the first reset);
+class DefaultStrategyConfig(RefineConfig):
+    opacity_reset: int = opt(
+        3000, "While densifying, lower every opacity to reset_opacity every this many steps, as 3DGS does against "
+        "floaters near the cameras; Gaussians that are too large are pruned only after the first (0: never, and no "
+        "size pruning).", group=MODEL, at_least=0, steps="schedule")
+    grow_grad2d: float = opt(2e-4, "Average |d loss / d mean2d| in NDC units that triggers growth.", more_than=0)
+    grow_scale3d: float = opt(0.01, "x extent: larger Gaussians split, smaller ones clone (3DGS's percent_dense).",
+                              more_than=0)
+    split_samples: int = opt(2, "Gaussians a split makes.", at_least=1)
+    prune_opacity: float = opt(0.005, "Gaussians below this opacity are pruned.", at_least=0, less_than=1)
+    prune_scale3d: float = opt(0.1, "x extent: a world-space size that is too large (after the first reset).",
+                               more_than=0)
     # 3DGS's fixed 20 px assumes ~1-1.6k px images; a fraction keeps its meaning at 200 px
-    reset_opacity: float = 0.01  # opacities are clamped to at most this at a reset
-    max_gaussians: int | None = None  # hard budget: growth never takes the count past it
+    prune_scale2d: float = opt(0.15, "Screen radius / max(W, H) that is too large (after the first reset).",
+                               more_than=0)
+    reset_opacity: float = opt(0.01, "Opacities are clamped to at most this at a reset.", more_than=0, less_than=1)
 
 
 @dataclass
@@ -88,7 +91,7 @@ class DefaultStrategy(Strategy):
         if step > cfg.refine_start and step % cfg.refine_every == 0:
             info.combine(state)  # every rank decides from every rank's views
             self._refine(splats, state, step, stats)
-        if cfg.reset_every and step % cfg.reset_every == 0:
+        if cfg.opacity_reset and step % cfg.opacity_reset == 0:
             # Clamp every opacity low so that the following densification has to
             # re-earn each Gaussian's opacity: floaters near cameras fade and get pruned.
             lim = math.log(cfg.reset_opacity / (1 - cfg.reset_opacity))
@@ -120,7 +123,7 @@ class DefaultStrategy(Strategy):
         opacity = torch.sigmoid(params["opacity_logits"])  # [N]
         max_scale = params["log_scales"].exp().amax(dim=-1)  # [N] world units
         prune = opacity < cfg.prune_opacity
-        if cfg.reset_every and step > cfg.reset_every:  # 3DGS checks size only once a reset has happened
+        if cfg.opacity_reset and step > cfg.opacity_reset:  # 3DGS checks size only once a reset has happened
             limit = torch.full_like(max_scale, cfg.prune_scale3d * self.scene_extent)
             if self.scene_center is not None:
                 far = (params["means"].detach() - self.scene_center).norm(dim=-1) / self.scene_extent

@@ -31,25 +31,36 @@ from torch import Tensor
 
 from ..render.project import quat_to_rotmat
 from . import ops
-from .base import RefineStats, RowState, Splats, StepInfo, Strategy
+from ..options import opt, override
+from .base import RefineConfig, RefineStats, RowState, Splats, StepInfo, Strategy
 from .regularize import regularize
 
 
 @dataclass(frozen=True)
-class MCMCStrategyConfig:
-    init_opacity: float = 0.5  # of SfM points (random ones: init_opacity), as gsplat's MCMC example; +0.38 dB on the demo scene
-    min_opacity: float = 0.02  # below this a Gaussian is dead and relocated (lego at 2k steps: the paper's 0.005 29.65 dB, 0.01 29.99, 0.02 30.22)
-    growth: float = 0.05  # the count grows by at least this fraction per refinement, up to the cap ...
-    grow_until: float = 0.4  # ... and fast enough to reach it by this fraction of the refinement window (0.6 before: lego +0.10 dB at the fast preset; fox 31.94 against 31.84 dB, not in one run)
-    noise_lr: float = 5e5  # position noise = noise_lr x the means' learning rate x covariance x gate
-    noise_gate_k: float = 100.0  # gate = sigmoid(k (1 - opacity - (1 - min_opacity)))
-    opacity_reg: float = 0.01  # x mean opacity, added to the loss's gradient
-    scale_reg: float = 0.01  # x mean scale (world units)
-    max_ratio: int = 51  # a Gaussian is split into at most this many by one relocation
-    relocate_until: float = 0.95  # relocation goes on to this fraction of the run (growth stops with the window; lego +0.42 dB)
-    reg_until: float = 0.6  # the penalties act until this fraction of the run (1: all of it, the paper's; fast preset: lego +0.27 dB, fox +0.12)
-    spread: float = 1.0  # copies go to a draw from their source Gaussian x this (0: on top of it, the paper's; lego +1.46 dB)
-    shrink: float = 1.6  # ... then they and their source get the scale / this, as 3DGS's split halves (1: the paper's; lego, fast preset: 34.73 dB against 34.00, in 0.91x the default strategy's time beside it)
+class MCMCStrategyConfig(RefineConfig):
+    # its schedule and cap are the RefineConfig fields (the cap: max_gaussians, which it needs)
+    opacity_reg: float = override(RefineConfig, "opacity_reg", 0.01)  # the paper's
+    scale_reg: float = override(RefineConfig, "scale_reg", 0.01)
+    init_opacity: float = opt(0.5, "Opacity of SfM points at the start (random ones: init_opacity), as gsplat's MCMC "
+                              "example; +0.38 dB on the demo scene.", more_than=0, less_than=1)
+    min_opacity: float = opt(0.02, "Below this a Gaussian is dead and relocated (lego at 2k steps: the paper's 0.005 "
+                             "29.65 dB, 0.01 29.99, 0.02 30.22).", more_than=0, less_than=1)
+    growth: float = opt(0.05, "The count grows by at least this fraction per refinement, up to the cap ...", at_least=0)
+    grow_until: float = opt(0.4, "... and fast enough to reach it by this fraction of the refinement window (0.6 "
+                            "before: lego +0.10 dB at the fast preset; fox 31.94 against 31.84 dB, not in one run).",
+                            at_least=0, at_most=1)
+    noise_lr: float = opt(5e5, "Position noise = this x the means' learning rate x covariance x gate.", at_least=0)
+    noise_gate_k: float = opt(100.0, "Gate = sigmoid(k (1 - opacity - (1 - min_opacity))).", at_least=0)
+    max_ratio: int = opt(51, "One relocation splits a Gaussian into at most this many.", at_least=1)
+    relocate_until: float = opt(0.95, "Relocation goes on to this fraction of the run (growth stops with the "
+                                "refinement window; lego +0.42 dB).", at_least=0, at_most=1)
+    reg_until: float = opt(0.6, "The penalties act until this fraction of the run (1: all of it, the paper's; fast "
+                           "preset: lego +0.27 dB, fox +0.12).", at_least=0, at_most=1)
+    spread: float = opt(1.0, "Copies go to a draw from their source Gaussian x this (0: on top of it, the paper's; "
+                        "lego +1.46 dB).", at_least=0)
+    shrink: float = opt(1.6, "... then they and their source get the scale / this, as 3DGS's split halves (1: the "
+                        "paper's; lego, fast preset: 34.73 dB against 34.00, in 0.91x the default strategy's time "
+                        "beside it).", at_least=1)
 
 
 @dataclass
@@ -78,13 +89,17 @@ def relocation(opacity: Tensor, scales: Tensor, ratio: Tensor, max_ratio: int) -
 class MCMCStrategy(Strategy):
     name = "mcmc"
 
-    def __init__(self, config: MCMCStrategyConfig, cap: int, refine_start: int, refine_stop: int,
-                 refine_every: int, relocate_stop: int | None = None, reg_stop: int | None = None) -> None:
-        """Growth in (refine_start, refine_stop); relocation until `relocate_stop` (default:
-        refine_stop); the penalties before step `reg_stop` (default: every step)."""
+    def __init__(self, config: MCMCStrategyConfig, relocate_stop: int | None = None,
+                 reg_stop: int | None = None) -> None:
+        """Growth in (refine_start, refine_stop) to `config.max_gaussians`; relocation until
+        `relocate_stop` (default: refine_stop); the penalties before step `reg_stop` (default:
+        every step)."""
+        if config.max_gaussians is None:
+            raise ValueError("MCMCStrategy needs config.max_gaussians")
         self.config = config
-        self.cap, self.refine_start, self.refine_stop, self.refine_every = cap, refine_start, refine_stop, refine_every
-        self.relocate_stop = max(refine_stop, relocate_stop or 0)
+        self.cap = config.max_gaussians
+        self.refine_start, self.refine_stop, self.refine_every = config.refine_start, config.refine_stop, config.refine_every
+        self.relocate_stop = max(self.refine_stop, relocate_stop or 0)
         self.reg_stop = reg_stop
 
     def initial_state(self, n: int, device: torch.device, seed: int = 0) -> MCMCStrategyState:

@@ -9,21 +9,9 @@ two add up), so the loop does not change.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import torch
 
 from .base import Params, Splats, StepInfo, Strategy
-
-
-@dataclass(frozen=True)
-class RegularizeConfig:
-    opacity_reg: float = 0.0  # x mean opacity, added to the loss (0: off)
-    scale_reg: float = 0.0  # x mean scale in world units (0: off)
-
-    @property
-    def enabled(self) -> bool:
-        return self.opacity_reg > 0 or self.scale_reg > 0
 
 
 def regularize(params: Params, opacity_reg: float, scale_reg: float) -> None:
@@ -37,8 +25,8 @@ def regularize(params: Params, opacity_reg: float, scale_reg: float) -> None:
 class RegularizeStep(Strategy):
     name = "regularize"
 
-    def __init__(self, config: RegularizeConfig) -> None:
-        self.config = config
+    def __init__(self, opacity_reg: float, scale_reg: float) -> None:
+        self.opacity_reg, self.scale_reg = opacity_reg, scale_reg
 
     def step_pre_backward(self, splats: Splats, state: object, step: int, info: StepInfo) -> None:
-        regularize(splats.params, self.config.opacity_reg, self.config.scale_reg)
+        regularize(splats.params, self.opacity_reg, self.scale_reg)

@@ -7,13 +7,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from ..options import MODEL, opt
 from . import ops
 from .base import Context, RefineStats, Splats, StepInfo, Strategy
 
 
 @dataclass(frozen=True)
 class SupportConfig:
-    prune_views: int = 0  # prune Gaussians fewer than this many training views see (0: off)
+    prune_views: int = opt(0, "While densifying, prune Gaussians that fewer than this many training views see (they "
+                           "can only explain those photos: floaters elsewhere; 0: off).", group=MODEL, at_least=0)
 
 
 class SupportPrune(Strategy):

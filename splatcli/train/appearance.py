@@ -40,17 +40,20 @@ import torch
 from torch import Tensor, nn
 
 from ..errors import SplatError
+from ..options import opt
 
 APPEARANCE = ("none", "exposure")  # --appearance
 
 
 @dataclass(frozen=True)
 class ExposureConfig:
-    lr: float = 0.01  # Adam learning rate of the transforms at step 0 (3DGS's exposure_lr_init) ...
-    lr_final: float = 0.001  # ... decaying exponentially to this over `iterations` (exposure_lr_final)
-    reg: float = 0.01  # weight of the mean squared distance of the view's [A | b] from [I | 0]
-    smooth: float = 0.15  # the smoothest round(this x n_train) modes over the cameras are kept out of the transforms
-    # (at least 1, their mean; fox at 2,000 steps: 0 -1.97 dB against no --appearance, 6 of 43 modes +0.57)
+    lr: float = opt(0.01, "Adam learning rate of the transforms at step 0 (3DGS's exposure_lr_init) ...", more_than=0)
+    lr_final: float = opt(0.001, "... decaying exponentially to this over `iterations` (3DGS's exposure_lr_final).",
+                          more_than=0)
+    reg: float = opt(0.01, "Weight of the mean squared distance of the view's [A | b] from [I | 0].", at_least=0)
+    smooth: float = opt(0.15, "The smoothest round(this x n_train) modes over the cameras (at least 1, their mean) "
+                        "are kept out of the transforms (fox at 2,000 steps: 0 -1.97 dB against no --appearance, 6 of "
+                        "43 modes +0.57).", at_least=0, at_most=1)
 
 
 def identity(n: int, device: torch.device) -> Tensor:  # -> [n, 3, 4]

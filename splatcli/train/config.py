@@ -1,93 +1,151 @@
 """What `splatcli train` is asked to do, and what it reports back.
 
-`TrainConfig` holds every training default once, named after the 3DGS paper
-(Kerbl et al. 2023) where it comes from one; the strategies' hyperparameters are
-nested in it, declared once in strategy/. Presets override a few of them.
-`TrainSummary` is the contract other commands read from the manifest
-(`steps.train.summary`).
-
-Options are given flat, as on the command line (`max_gaussians`, `compact`,
-`compact_finetune`, `refine_stop`); `OPTION_PATHS` says where each one lives.
+`TrainConfig` holds every training option once, at its field: default, help, range, and
+the `--help` heading when the command line shows it (options.py; cli/options.py builds the
+Typer options from it). Defaults are named after the 3DGS paper (Kerbl et al. 2023) where
+they come from one. The chosen strategy's hyperparameters, its schedule and its budget are
+its own section (`default` or `mcmc`, declared in strategy/). Presets override a few
+options; explicit options override the preset. `TrainSummary` is the contract other
+commands read from the manifest (`steps.train.summary`).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
+from .. import options
 from ..errors import SplatError
 from ..gaussians import Histogram
-from ..strategy import (CompactConfig, CompactReport, DefaultStrategyConfig, MCMCStrategyConfig, RegularizeConfig,
+from ..options import APPEARANCE as APPEARANCE_GROUP
+from ..options import DATA, INIT, MODEL, OUTPUT, RUN, SCHEDULE, opt, section
+from ..strategy import (CompactConfig, CompactReport, DefaultStrategyConfig, MCMCStrategyConfig, RefineConfig,
                         ShAutoConfig, SupportConfig)
 from .appearance import APPEARANCE, ExposureConfig
 
 MAX_SH_DEGREE = 3
+PRESET_NAMES = ("default", "fast", "demo")
+STRATEGIES = ("default", "mcmc")  # --strategy: each is the section of its name
+MASK_MODES = ("auto", "ignore", "background", "off")  # --mask-mode (Project.mask_mode resolves them)
+
+
+def parse_sh_degree(text: str) -> int | str:
+    t = text.strip().lower()
+    if t == "auto":
+        return "auto"
+    if t.isdigit() and 0 <= int(t) <= MAX_SH_DEGREE:
+        return int(t)
+    raise ValueError("expected 0, 1, 2, 3 or auto")
+
+
+def _lower(text: str) -> str:
+    return text.strip().lower()
 
 
 @dataclass(frozen=True)
 class TrainConfig:
     # ---- schedule ------------------------------------------------------------
-    iterations: int = 30_000  # the paper's schedule
-    preset: str = "default"
-    sh_degree: int | str = 3  # 0..3, or "auto" (train at 3, keep the lowest degree within sh_auto.tol_db)
-    sh_degree_interval: int = 1000  # the active SH degree grows by one every this many steps
-
-    time_budget: float | None = None  # training seconds: plan the schedule to end within them (train/plan.py)
+    preset: str = opt("default", "default = the paper's 30k steps; fast = 7k steps, densify to 4k with no opacity "
+                      "reset, the first half at a resolution rising from 1/4 (CPU: less time per step early, at the "
+                      "cost of fine detail learnt later); demo = a few minutes (make demo).",
+                      group=SCHEDULE, choices=PRESET_NAMES, parse=_lower)
+    iterations: int = opt(30_000, "Optimiser steps (the paper's schedule).", group=SCHEDULE, short="-n", at_least=1,
+                          steps="schedule")
+    time_budget: float | None = opt(None, "Training seconds to fit in: the run measures its speed and plans the "
+                                    "preset's schedule, compressed, to end within them (evaluation not counted).",
+                                    group=SCHEDULE, more_than=0, metavar="SECONDS")
+    sh_degree: int | str = opt(3, "0-3, or auto: train at 3, keep the lowest degree within sh_auto_tol_db of it on "
+                               "training views.", group=SCHEDULE, parse=parse_sh_degree, at_least=0,
+                               at_most=MAX_SH_DEGREE, metavar="[0|1|2|3|auto]")
+    sh_degree_interval: int = opt(1000, "The active SH degree grows by one every this many steps.", at_least=1,
+                                  steps="schedule")
 
     # ---- data ----------------------------------------------------------------
-    downscale: float = 1.0  # divide the stored image size by this
-    max_size: int = 1600  # then cap the longest side (pixels), as 3DGS does for large photos
-    coarse_scale: float = 1.0  # coarse-to-fine: resolution (fraction of the above) at step 0; 1 = off
-    coarse_until: float = 0.5  # ... rising linearly (in steps of 1/8) to full resolution by this fraction of `iterations`
-    eval_every: int = 1000  # held-out PSNR/SSIM every this many steps (0: only at the end)
-    eval_max_views: int = 0  # 0: every held-out view; else an evenly spaced subset
-    log_every: int = 100  # one train_log.jsonl line every this many steps
-    checkpoint_every: int = 5000  # also on interrupt and at the end
-    keep_checkpoints: int = 2  # older step files are deleted (each holds params + Adam state)
+    downscale: float = opt(1.0, "Train at the stored image size divided by this.", group=DATA, more_than=0, at_most=64)
+    max_size: int = opt(1600, "Then cap the longest image side at this (pixels), as 3DGS does for large photos.",
+                        group=DATA, at_least=16)
+    coarse_scale: float = opt(1.0, "Coarse to fine: the resolution (a fraction of the above) at step 0; 1 = off ...",
+                              at_least=0.1, at_most=1)
+    coarse_until: float = opt(0.5, "... rising linearly (in steps of 1/8) to full resolution by this fraction of "
+                              "`iterations`.", more_than=0, at_most=1)
+    mask_mode: str = opt("auto", "What the project's masks do: ignore = masked pixels take no part in the loss "
+                         "(people, moving objects); background = they are trained to the background colour (object "
+                         "captures); off = masks unused; auto = background for masks from an alpha channel, ignore "
+                         "for mask files.", group=DATA, choices=MASK_MODES, parse=_lower, metavar="MODE")
+    lambda_dssim: float = opt(0.2, "loss = (1 - l) L1 + l (1 - SSIM).", at_least=0, at_most=1)
 
-    # ---- initialisation ------------------------------------------------------
-    init_opacity: float = 0.1  # sigma^-1(0.1), the paper's (--strategy mcmc: mcmc_init_opacity)
-    init_random_points: int = 100_000  # Blender scenes with no SfM points: uniform in the bounds (3DGS)
-    init_knn: int = 3  # log scale from the RMS distance to the 3 nearest neighbours
-    init_ply: str | None = None  # start from a splat file instead
-    init_far: int = 0  # also points on a far sphere (this many over the whole sphere; those some training view sees are kept)
-    init_far_radius: float = 5.0  # ... of this radius x the cameras' extent, about their centre, coloured from the views
+    # ---- model and density control (strategy/) ---------------------------------
+    strategy: str = opt("default", "Density control: default = 3DGS's clone/split/prune; mcmc = a fixed budget "
+                        "(--max-gaussians), grown by at least mcmc_growth per refinement and to the cap by "
+                        "mcmc_grow_until of the refinement window, dead Gaussians moved onto live ones, noise on nearly "
+                        "transparent ones, opacity and scale penalties (Kheradmand et al. 2024).",
+                        group=MODEL, choices=STRATEGIES, parse=_lower)
+    default: DefaultStrategyConfig = section(DefaultStrategyConfig, "3DGS adaptive density control",
+                                             when=("strategy", "default"))
+    mcmc: MCMCStrategyConfig = section(MCMCStrategyConfig, "MCMC (a fixed budget)", prefix="mcmc_",
+                                       when=("strategy", "mcmc"))
+    support: SupportConfig = section(SupportConfig, "--prune-views")
+    sh_auto: ShAutoConfig = section(ShAutoConfig, "--sh-degree auto", prefix="sh_auto_")
+    compact: CompactConfig = section(CompactConfig, "--compact", prefix="compact_")
+    mip_filter: bool = opt(False, "Mip-Splatting's filters (Yu et al. 2024): no Gaussian finer than the training "
+                           "views sample it (a 3D filter, folded into the exported scales and opacities), drawn with "
+                           "the 2D antialiasing filter: renders at other resolutions keep their look.", group=MODEL)
+
+    # ---- starting points -------------------------------------------------------
+    init_ply: str | None = opt(None, "Start from a splat file (.ply, .spz, .sog, .compressed.ply, .splat) instead of "
+                               "the SfM/random points.", group=INIT, metavar="PATH")
+    init_far: int = opt(0, "Also start with Gaussians on a sphere init_far_radius x the cameras' extent away, this "
+                        "many over the whole sphere (those a training view sees are kept, coloured from it): a backdrop "
+                        "that structure from motion left empty gets a far depth instead of floaters (0: off).",
+                        group=INIT, at_least=0)
+    init_far_radius: float = opt(5.0, "The sphere's radius, x the cameras' extent, about their centre.", more_than=1)
+    init_opacity: float = opt(0.1, "Starting opacity, the paper's (--strategy mcmc: mcmc_init_opacity for SfM points).",
+                              more_than=0, less_than=1)
+    init_random_points: int = opt(100_000, "Scenes with no SfM points: this many uniform in the bounds (3DGS).",
+                                  at_least=0)
+    init_knn: int = opt(3, "Starting log scale from the RMS distance to this many nearest neighbours.", at_least=1)
+
+    # ---- appearance ----------------------------------------------------------
+    appearance: str = opt("none", "none | exposure: exposure learns one colour transform (a 3x3 matrix and an offset) "
+                          "per training photo, pulled towards the identity, for captures whose exposure or white "
+                          "balance varies; what varies smoothly from camera to camera is left to the scene (held-out "
+                          "views between them see it); held-out views, eval and exported files use the scene alone.",
+                          group=APPEARANCE_GROUP, choices=APPEARANCE, parse=_lower)
+    exposure: ExposureConfig = section(ExposureConfig, "--appearance exposure", prefix="exposure_")
 
     # ---- optimiser (Adam, per attribute) -------------------------------------
-    lr_means: float = 1.6e-4  # x scene extent, decays exponentially ...
-    lr_means_final: float = 1.6e-6  # ... to this x extent over `iterations`
-    lr_sh0: float = 2.5e-3
-    lr_shN_div: float = 20.0  # higher SH bands learn 20x slower
-    lr_opacity: float = 0.05  # the reference code's 0.05 (the paper's table says 0.05 too)
-    lr_scales: float = 5e-3
-    lr_quats: float = 1e-3
-    adam_eps: float = 1e-15  # as 3DGS: moments of tiny gradients must still move parameters
-    adam_beta1: float = 0.9
-    adam_beta2: float = 0.999
+    lr_means: float = opt(1.6e-4, "Learning rate of the means, x scene extent, decaying exponentially ...", more_than=0)
+    lr_means_final: float = opt(1.6e-6, "... to this x extent over `iterations`.", more_than=0)
+    lr_sh0: float = opt(2.5e-3, "Learning rate of the SH DC.", more_than=0)
+    lr_shN_div: float = opt(20.0, "Higher SH bands learn this many times slower.", more_than=0)
+    lr_opacity: float = opt(0.05, "Learning rate of the opacity logits (the reference code's and the paper's).",
+                            more_than=0)
+    lr_scales: float = opt(5e-3, "Learning rate of the log scales.", more_than=0)
+    lr_quats: float = opt(1e-3, "Learning rate of the quaternions.", more_than=0)
+    adam_eps: float = opt(1e-15, "As 3DGS: moments of tiny gradients must still move parameters.", more_than=0)
+    adam_beta1: float = opt(0.9, "Adam's beta1.", at_least=0, less_than=1)
+    adam_beta2: float = opt(0.999, "Adam's beta2.", at_least=0, less_than=1)
 
-    # ---- loss ----------------------------------------------------------------
-    lambda_dssim: float = 0.2  # loss = (1 - l) L1 + l (1 - SSIM)
-    mask_mode: str = "auto"  # the project's masks: auto | ignore | background | off (Project.mask_mode)
-    appearance: str = "none"  # --appearance: "none" or "exposure" (a colour transform per training image, appearance.py)
-    exposure: ExposureConfig = field(default_factory=ExposureConfig)  # its learning rate and pull towards identity
-
-    # ---- strategies (strategy/) ----------------------------------------------
-    density: str = "default"  # --strategy: "default" (3DGS adaptive density control) or "mcmc" (a fixed budget)
-    strategy: DefaultStrategyConfig = field(default_factory=DefaultStrategyConfig)  # adaptive density control
-    mcmc: MCMCStrategyConfig = field(default_factory=MCMCStrategyConfig)  # --strategy mcmc (its schedule and cap: strategy's)
-    reg: RegularizeConfig = field(default_factory=RegularizeConfig)  # --opacity-reg, --scale-reg (mcmc has its own)
-    support: SupportConfig = field(default_factory=SupportConfig)  # --prune-views
-    sh_auto: ShAutoConfig = field(default_factory=ShAutoConfig)  # used with sh_degree "auto"
-    compact: CompactConfig = field(default_factory=CompactConfig)  # --compact
-    mip_filter: bool = False  # Mip-Splatting's 3D smoothing filter and 2D filter (strategy/mip.py)
-
-    # ---- reliability ---------------------------------------------------------
-    max_bad_steps: int = 20  # consecutive non-finite steps before TrainingDiverged
+    # ---- checkpoints and logs --------------------------------------------------
+    eval_every: int = opt(1000, "Held-out PSNR/SSIM every this many steps (0: only at the end).", group=OUTPUT,
+                          at_least=0, steps="cadence")
+    eval_max_views: int = opt(0, "0: every held-out view; else an evenly spaced subset.", at_least=0)
+    log_every: int = opt(100, "One train_log.jsonl line every this many steps.", at_least=1, steps="cadence")
+    checkpoint_every: int = opt(5000, "Write a checkpoint every this many steps (also at the end and on Ctrl-C).",
+                                group=OUTPUT, at_least=1, steps="cadence")
+    keep_checkpoints: int = opt(2, "Keep the newest this many checkpoints (each holds parameters and Adam's state).",
+                                group=OUTPUT, at_least=1)
 
     # ---- run -----------------------------------------------------------------
-    seed: int = 0
-    device: str = "cpu"  # resolved device string, for the record
+    max_bad_steps: int = opt(20, "Consecutive non-finite steps before the run stops (TrainingDiverged).", at_least=0)
+    seed: int = opt(0, "Random seed; the same seed on CPU gives the same result.", group=RUN)
+    device: str = "cpu"  # the resolved device, for the record (the command line's --device is shared by commands)
+
+    @property
+    def refine(self) -> RefineConfig:
+        """The chosen strategy's section: its schedule, budget and penalties."""
+        return self.mcmc if self.strategy == "mcmc" else self.default
 
     @property
     def max_sh_degree(self) -> int:
@@ -107,6 +165,16 @@ class TrainConfig:
         """Optimiser steps including the compaction fine-tune."""
         return self.iterations + (self.compact.finetune if self.compact.enabled else 0)
 
+    def with_options(self, given: dict[str, Any], *, strict: bool = True) -> "TrainConfig":
+        """This config with named options set (options.apply), checked."""
+        cfg = options.apply(self, given, strict=strict)
+        _check(cfg)
+        return cfg
+
+    def value(self, name: str) -> Any:
+        """The value of a named option."""
+        return options.value(self, name)
+
     def for_world(self, k: int) -> "TrainConfig":
         """The schedule K data-parallel ranks run so as to see the same images as one
         process: each step averages K views' gradients, so every step count is divided
@@ -116,38 +184,28 @@ class TrainConfig:
         forgets as much history as K steps did). K = 1 returns the config unchanged."""
         if k == 1:
             return self
-        steps = {name: max(1, round(option(self, name) / k)) for name in _STEP_COUNTS if option(self, name) > 0}
-        steps["refine_stop"] = round(self.strategy.refine_stop / k)
+
+        def per_rank(name: str, v: int) -> int:
+            return round(v / k) if name == "refine_stop" else max(1, round(v / k)) if v > 0 else v
+
+        cfg = options.scaled(self, options.steps_options(TrainConfig), per_rank)
         r = math.sqrt(k)
         # (not exposure_lr: the transforms' Adam steps a view's row once per time the view is
         # trained, however many ranks share a step; appearance.py)
-        lrs = {name: option(self, name) * r for name in ("lr_means", "lr_means_final", "lr_sh0", "lr_opacity",
-                                                           "lr_scales", "lr_quats")}
-        return with_options(self, {**steps, **lrs, "adam_eps": self.adam_eps / r,
-                                   "adam_beta1": self.adam_beta1 ** k, "adam_beta2": self.adam_beta2 ** k})
+        lrs = ("lr_means", "lr_means_final", "lr_sh0", "lr_opacity", "lr_scales", "lr_quats")
+        cfg = options.scaled(cfg, lrs, lambda name, v: v * r)
+        return replace(cfg, adam_eps=self.adam_eps / r, adam_beta1=self.adam_beta1 ** k, adam_beta2=self.adam_beta2 ** k)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
 
     @staticmethod
     def from_dict(d: dict[str, Any], where: str = "stored train config") -> "TrainConfig":
-        """The stored form back (unknown keys ignored; flat option names accepted). A
+        """The stored form back (unknown keys ignored, missing ones the defaults; a config
+        stored before the strategies had their own sections is read as it trained). A
         value of the wrong type or out of range (a damaged or hand-edited file) is a
         one-line SplatError naming `where` and the key."""
-        by_path = {path: name for name, path in OPTION_PATHS.items()}
-        opts: dict[str, Any] = {}
-        for k, v in d.items():
-            if k in _NESTED and isinstance(v, dict):
-                opts.update({by_path[(k, s)]: x for s, x in v.items() if (k, s) in by_path})
-            elif k in OPTION_PATHS:
-                opts[k] = v
-        if isinstance(d.get("mcmc"), dict) and "shrink" not in d["mcmc"]:
-            opts.setdefault("mcmc_shrink", 1.0)  # stored before the option: its copies kept their scale
-        for k, v in opts.items():
-            if not _type_ok(v, OPTION_TYPES[k]):
-                shown = " ".join(repr(v).split())[:40]
-                raise SplatError(f"{where}: {k} is {shown}, expected {OPTION_TYPES[k]}")
-        cfg = with_options(TrainConfig(), opts)
+        cfg = options.load(TrainConfig, _upgrade(d), where)
         try:
             _check(cfg)
         except SplatError as exc:
@@ -155,80 +213,38 @@ class TrainConfig:
         return cfg
 
 
-_NESTED = {"strategy": "", "reg": "", "support": "", "sh_auto": "sh_auto_", "compact": "compact_", "mcmc": "mcmc_",
-           "exposure": "exposure_"}  # nested config -> option prefix
+def _upgrade(d: dict[str, Any]) -> dict[str, Any]:
+    """A config stored before dced6d2's successor (`density` chose the strategy, `strategy`
+    held the default strategy's settings and every strategy's schedule and cap, and `reg`
+    the extra penalties) in today's form. Old MCMC runs with `reg` trained with both
+    penalties, which add up (the extra one also went on past mcmc_reg_until)."""
+    if "density" not in d:
+        return d
+    d = dict(d)
+    old = d.pop("strategy", None)
+    old = dict(old) if isinstance(old, dict) else {}
+    reg = d.pop("reg", None)
+    reg = reg if isinstance(reg, dict) else {}
+    d["strategy"] = d.pop("density")
+    if "reset_every" in old:
+        old["opacity_reset"] = old.pop("reset_every")
+    shared = {k: old[k] for k in ("refine_start", "refine_stop", "refine_every", "max_gaussians") if k in old}
+    d["default"] = {**old, **{k: reg[k] for k in ("opacity_reg", "scale_reg") if k in reg}}
+    mcmc = d.get("mcmc")
+    mcmc = dict(mcmc) if isinstance(mcmc, dict) else {}
+    if "shrink" not in mcmc:
+        mcmc["shrink"] = 1.0  # stored before the option: its copies kept their scale
+    for k in ("opacity_reg", "scale_reg"):
+        extra = reg.get(k)
+        if isinstance(extra, (int, float)) and not isinstance(extra, bool) and extra:
+            base = mcmc.get(k, 0.01)
+            mcmc[k] = base + extra if isinstance(base, (int, float)) and not isinstance(base, bool) else base
+    d["mcmc"] = {**mcmc, **shared}
+    return d
 
 
-def _option_paths() -> dict[str, tuple[str, ...]]:
-    paths: dict[str, tuple[str, ...]] = {}
-    for f in fields(TrainConfig):
-        if f.name not in _NESTED:
-            paths[f.name] = (f.name,)
-    defaults = TrainConfig()
-    for name, prefix in _NESTED.items():
-        for sub in fields(type(getattr(defaults, name))):
-            paths[prefix + sub.name] = (name, sub.name)
-    paths["compact"] = ("compact", "enabled")  # --compact
-    paths.pop("compact_enabled")
-    return paths
-
-
-OPTION_PATHS = _option_paths()
-
-
-def _option_types() -> dict[str, str]:
-    """Each flat option's annotation, as written in the dataclasses ("int | None", ...)."""
-    types: dict[str, str] = {}
-    for name, path in OPTION_PATHS.items():
-        owner: Any = TrainConfig
-        for part in path[:-1]:
-            owner = {f.name: f for f in fields(owner)}[part].default_factory  # type: ignore[union-attr]
-        types[name] = str({f.name: f for f in fields(owner)}[path[-1]].type)
-    return types
-
-
-OPTION_TYPES = _option_types()
-
-
-def _type_ok(v: Any, annotation: str) -> bool:
-    kinds = {k.strip() for k in annotation.split("|")}
-    if v is None:
-        return "None" in kinds
-    if isinstance(v, bool):
-        return "bool" in kinds
-    if isinstance(v, int):
-        return bool(kinds & {"int", "float"})
-    if isinstance(v, float):
-        return "float" in kinds and math.isfinite(v)
-    if isinstance(v, str):
-        return "str" in kinds
-    return False
-
-
-def with_options(cfg: TrainConfig, options: dict[str, Any]) -> TrainConfig:
-    """`cfg` with flat options applied (see OPTION_PATHS); an unknown name is a bug."""
-    top: dict[str, Any] = {}
-    subs: dict[str, dict[str, Any]] = {}
-    for k, v in options.items():
-        path = OPTION_PATHS[k]
-        if len(path) == 1:
-            top[path[0]] = v
-        else:
-            subs.setdefault(path[0], {})[path[1]] = v
-    for name, vals in subs.items():
-        top[name] = replace(getattr(cfg, name), **vals)
-    return replace(cfg, **top)
-
-
-def option(cfg: TrainConfig, name: str) -> Any:
-    """The value of a flat option (see OPTION_PATHS)."""
-    v: Any = cfg
-    for part in OPTION_PATHS[name]:
-        v = getattr(v, part)
-    return v
-
-
-# Presets override the defaults above; explicit options override the preset.
+# Presets override the defaults above; explicit options override the preset. A preset's
+# option that does not apply to the chosen strategy is left out.
 PRESETS: dict[str, dict[str, Any]] = {
     # The paper: 30k steps, densify 500..15k.
     "default": {},
@@ -242,108 +258,36 @@ PRESETS: dict[str, dict[str, Any]] = {
     # No opacity reset: with 4k steps of densifying, the reset at 3k leaves too few to win the
     # model back (bench/overfit.py: held-out 24.4 -> 16.8 dB on the object capture, 23.6 at the
     # end; without it 25.0, its best; fox from its photos ends at 32.21, 0.03 below its best).
-    "fast": {"iterations": 7000, "refine_stop": 4000, "reset_every": 0, "checkpoint_every": 1000,
+    "fast": {"iterations": 7000, "refine_stop": 4000, "opacity_reset": 0, "checkpoint_every": 1000,
              "init_random_points": 10_000, "coarse_scale": 0.25, "coarse_until": 0.5},
     # `make demo` on sample_data (320x240, ~2k SfM points): a few minutes on 2 cores.
     # Everything 3DGS does, compressed: densify 300..900, SH every 300 steps, and a
     # budget of 20k Gaussians (unbudgeted it reaches ~30k for +0.3 dB at ~1.5x the time).
-    "demo": {"iterations": 1500, "refine_start": 300, "refine_stop": 900, "reset_every": 0,
+    "demo": {"iterations": 1500, "refine_start": 300, "refine_stop": 900, "opacity_reset": 0,
              "sh_degree_interval": 300, "eval_every": 500, "checkpoint_every": 500,
              "max_size": 256, "init_random_points": 20_000, "max_gaussians": 20_000},
 }
+assert tuple(PRESETS) == PRESET_NAMES
 
 
-def make_config(preset: str = "default", **options: Any) -> TrainConfig:
-    """The preset, then every option that is not None. Validates ranges."""
+def make_config(preset: str = "default", *, device: str = "cpu", **given: Any) -> TrainConfig:
+    """The preset, then every option given that is not None (text is parsed as on the
+    command line), for `device`. Checks types and ranges; an option of a strategy not
+    chosen is an error."""
+    given = {k: v for k, v in given.items() if v is not None}
+    preset = options.apply(TrainConfig(), {"preset": preset}).preset
     if preset not in PRESETS:
         raise SplatError(f"--preset {preset!r} is not known; choose one of {', '.join(PRESETS)}")
-    cfg = with_options(replace(TrainConfig(), preset=preset), PRESETS[preset])
-    given = {k: v for k, v in options.items() if v is not None}
-    sh = given.get("sh_degree")
-    if isinstance(sh, str):
-        s = sh.strip().lower()
-        if s == "auto":
-            given["sh_degree"] = "auto"
-        elif s.isdigit() and 0 <= int(s) <= MAX_SH_DEGREE:
-            given["sh_degree"] = int(s)
-        else:
-            raise SplatError(f"--sh-degree {sh!r}: expected 0, 1, 2, 3 or auto")
-    cfg = with_options(cfg, given)
-    _check(cfg)
-    return cfg
-
-
-DENSITY = ("default", "mcmc")  # --strategy
-MASK_MODES = ("auto", "ignore", "background", "off")  # --mask-mode (Project.mask_mode resolves them)
-
-# Options counted in optimiser steps (TrainConfig.for_world divides them by the ranks).
-_STEP_COUNTS = ("iterations", "sh_degree_interval", "eval_every", "log_every", "checkpoint_every", "refine_start",
-                "refine_every", "reset_every", "compact_finetune")
-
-# Counts that must be at least 1 / at least 0 (flat option names).
-_AT_LEAST_1 = ("sh_degree_interval", "log_every", "checkpoint_every", "keep_checkpoints", "refine_every",
-               "split_samples", "init_knn", "compact_rounds", "sh_auto_val_views")
-_AT_LEAST_0 = ("reset_every", "eval_max_views", "init_random_points", "init_far", "prune_views", "refine_start", "refine_stop", "compact_finetune",
-               "max_bad_steps")
+    choice = {k: given[k] for k in ("strategy",) if k in given}  # the preset's options go to the chosen strategy
+    cfg = options.apply(TrainConfig(preset=preset, device=device), choice)
+    cfg = options.apply(cfg, PRESETS[preset], strict=False)
+    return cfg.with_options(given)
 
 
 def _check(cfg: TrainConfig) -> None:
-    if isinstance(cfg.sh_degree, str) and cfg.sh_degree != "auto":
-        raise SplatError(f"--sh-degree {cfg.sh_degree!r}: expected 0, 1, 2, 3 or auto")
-    for name in _AT_LEAST_1 + _AT_LEAST_0:
-        v, low = option(cfg, name), 1 if name in _AT_LEAST_1 else 0
-        if not isinstance(v, int) or v < low:
-            raise SplatError(f"{name} {v!r}: must be a whole number of at least {low}")
-    if cfg.time_budget is not None and not (math.isfinite(cfg.time_budget) and cfg.time_budget > 0):
-        raise SplatError(f"--time-budget {cfg.time_budget}: must be a positive number of seconds")
-    if cfg.iterations < 1:
-        raise SplatError(f"--iterations {cfg.iterations}: must be at least 1")
-    if isinstance(cfg.sh_degree, int) and not 0 <= cfg.sh_degree <= MAX_SH_DEGREE:
-        raise SplatError(f"--sh-degree {cfg.sh_degree}: expected 0..{MAX_SH_DEGREE} or auto")
-    if cfg.strategy.max_gaussians is not None and cfg.strategy.max_gaussians < 1:
-        raise SplatError(f"--max-gaussians {cfg.strategy.max_gaussians}: must be at least 1")
-    if cfg.mask_mode not in MASK_MODES:
-        raise SplatError(f"--mask-mode {cfg.mask_mode!r} is not known; choose one of {', '.join(MASK_MODES)}")
-    if cfg.density not in DENSITY:
-        raise SplatError(f"--strategy {cfg.density!r} is not known; choose one of {', '.join(DENSITY)}")
-    if cfg.density == "mcmc" and cfg.strategy.max_gaussians is None:
+    options.check(cfg)
+    if cfg.strategy == "mcmc" and cfg.mcmc.max_gaussians is None:
         raise SplatError("--strategy mcmc needs --max-gaussians N: the fixed number of Gaussians it grows to")
-    if not (math.isfinite(cfg.init_far_radius) and cfg.init_far_radius > 1):
-        raise SplatError(f"init_far_radius {cfg.init_far_radius}: must be more than 1 (the sphere lies outside the cameras)")
-    for name in ("init_opacity", "mcmc_init_opacity", "mcmc_min_opacity"):
-        if not 0 < option(cfg, name) < 1:
-            raise SplatError(f"{name} {option(cfg, name)}: must be in (0, 1)")
-    for name in ("mcmc_relocate_until", "mcmc_reg_until", "mcmc_grow_until"):
-        if not 0 <= option(cfg, name) <= 1:
-            raise SplatError(f"{name} {option(cfg, name)}: must be in [0, 1] (a fraction of the run, or of the refinement window for mcmc_grow_until)")
-    if not (math.isfinite(cfg.mcmc.spread) and cfg.mcmc.spread >= 0):
-        raise SplatError(f"mcmc_spread {cfg.mcmc.spread}: must be 0 or more")
-    if not (math.isfinite(cfg.mcmc.shrink) and cfg.mcmc.shrink >= 1):
-        raise SplatError(f"mcmc_shrink {cfg.mcmc.shrink}: must be 1 (no shrinking) or more")
-    for name in ("opacity_reg", "scale_reg"):
-        v = option(cfg, name)
-        if not (math.isfinite(v) and v >= 0):
-            raise SplatError(f"--{name.replace('_', '-')} {v}: must be 0 or more")
-    if cfg.downscale <= 0 or cfg.downscale > 64:
-        raise SplatError(f"--downscale {cfg.downscale}: must be in (0, 64]")
-    if cfg.max_size < 16:
-        raise SplatError(f"--max-size {cfg.max_size}: must be at least 16 pixels")
-    if cfg.eval_every < 0:
-        raise SplatError(f"--eval-every {cfg.eval_every}: must be 0 or more")
-    if not 0.1 <= cfg.coarse_scale <= 1 or not 0 < cfg.coarse_until <= 1:
-        raise SplatError(f"coarse_scale {cfg.coarse_scale} / coarse_until {cfg.coarse_until}: must be in [0.1, 1] / (0, 1]")
-    if not (0 <= cfg.adam_beta1 < 1 and 0 <= cfg.adam_beta2 < 1):
-        raise SplatError(f"adam_beta1 {cfg.adam_beta1} / adam_beta2 {cfg.adam_beta2}: must be in [0, 1)")
-    if not 0 < cfg.compact.keep <= 1:
-        raise SplatError(f"compact_keep {cfg.compact.keep}: must be in (0, 1]")
-    if cfg.appearance not in APPEARANCE:
-        raise SplatError(f"--appearance {cfg.appearance!r} is not known; choose one of {', '.join(APPEARANCE)}")
-    e = cfg.exposure
-    if not (e.lr > 0 and e.lr_final > 0 and e.reg >= 0):
-        raise SplatError(f"exposure_lr {e.lr} / exposure_lr_final {e.lr_final} / exposure_reg {e.reg}: "
-                         "the learning rates must be positive, the weight 0 or more")
-    if not 0 <= e.smooth <= 1:
-        raise SplatError(f"exposure_smooth {e.smooth}: must be in [0, 1] (a fraction of the training photos)")
 
 
 # ---- the contract other commands read -------------------------------------------

@@ -75,11 +75,11 @@ def initial_gaussians(cfg: TrainConfig, data: TrainData, device: torch.device) -
     """From --init-ply (any splat file we read), else the SfM points, else random points
     in the scene box (seeded); then a seeded subset if there are more than --max-gaussians.
     SH is at the trained degree."""
-    budget = cfg.strategy.max_gaussians
+    budget = cfg.refine.max_gaussians
     # mcmc starts SfM points at its own opacity; random points always at init_opacity: they
     # fill the scene box, and at 0.5 they are a fog that hides the scene (lego, 2,000 steps:
     # held-out 26.57 dB from 0.5, 27.78 from 0.1; docs/benchmarks.md "MCMC")
-    opacity = cfg.mcmc.init_opacity if cfg.density == "mcmc" and len(data.points) else cfg.init_opacity
+    opacity = cfg.mcmc.init_opacity if cfg.strategy == "mcmc" and len(data.points) else cfg.init_opacity
     if cfg.init_ply:
         g = load_model(cfg.init_ply, device).gaussians.with_sh_degree(cfg.max_sh_degree).to(device, torch.float32)
         return subsample(g, budget, cfg.seed) if budget is not None else g

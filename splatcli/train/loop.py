@@ -30,7 +30,7 @@ from ..render.weights import blending_weights
 from ..sfm.colmap import read_project_scene
 from ..strategy import Context, StepInfo
 from . import log
-from .config import TrainConfig, TrainSummary, with_options
+from .config import TrainConfig, TrainSummary
 from .data import TrainData, TrainView, load_train_data, subset, views_seeing
 from .distributed import Comm
 from .init import initial_gaussians
@@ -74,7 +74,7 @@ def _train(project: Project, cfg: TrainConfig, device: torch.device, resume: boo
         else:
             ck = load_checkpoint(path, device)
             stored = TrainConfig.from_dict(ck.config, where=f"{path}: stored train config")
-            new = with_options(stored, overrides or {})
+            new = stored.with_options(overrides or {})
             if new.compact.enabled and not stored.compact.enabled:
                 # --compact added on resume brings its own settings (this version's),
                 # not the ones stored unused with the run.
@@ -91,7 +91,7 @@ def _train(project: Project, cfg: TrainConfig, device: torch.device, resume: boo
         cams = [c.at_resolution(cfg.downscale, cfg.max_size) for c in read_project_scene(project).cameras]
         facts = project.manifest().get("scene") or {}
         init = len(ck.gaussians) if ck is not None else int(facts.get("num_points") or cfg.init_random_points)
-        check_memory(plan_memory(cams, init, cfg.strategy.max_gaussians, copies=comm.local_world), cfg.max_size)
+        check_memory(plan_memory(cams, init, cfg.refine.max_gaussians, copies=comm.local_world), cfg.max_size)
     data = load_train_data(project, cfg.downscale, cfg.max_size, device, cfg.eval_max_views, cfg.mask_mode)
     if cfg.mask_mode in ("ignore", "background") and data.mask_mode == "off":
         emit(on_event, Note(f"--mask-mode {cfg.mask_mode}: the project has no masks; training on whole images",

@@ -18,11 +18,11 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from .config import TrainConfig, option, with_options
+from .. import options
+from .config import TrainConfig
 
-# Step counts of the schedule, scaled together (flat option names, see config.OPTION_PATHS).
-SCHEDULE = ("iterations", "refine_start", "refine_stop", "refine_every", "reset_every", "sh_degree_interval",
-            "compact_finetune")
+# Step counts of the schedule, scaled together (options counted in steps="schedule").
+SCHEDULE = options.steps_options(TrainConfig, "schedule")
 MIN_ITERATIONS = 30  # a plan never shrinks the run below this
 MIN_REFINE_EVERY = 25  # steps between refinements, at least (or the template's, when smaller)
 
@@ -37,7 +37,8 @@ class TimePlan:
 
     @staticmethod
     def start(cfg: TrainConfig) -> "TimePlan":
-        return TimePlan(budget_s=float(cfg.time_budget), template={k: int(option(cfg, k)) for k in SCHEDULE},
+        template = {k: int(cfg.value(k)) for k in SCHEDULE if options.resolve(cfg, k) is not None}
+        return TimePlan(budget_s=float(cfg.time_budget), template=template,
                         probe_s=min(5.0, 0.05 * float(cfg.time_budget)))
 
     def scaled(self, cfg: TrainConfig, iterations: int) -> TrainConfig:
@@ -49,7 +50,7 @@ class TimePlan:
         out = {k: max(1, round(v * f)) if v else 0 for k, v in self.template.items()}  # 0: off stays off
         out["iterations"] = iterations
         out["refine_every"] = max(out["refine_every"], min(MIN_REFINE_EVERY, self.template["refine_every"]))
-        return with_options(cfg, out)
+        return options.apply(cfg, out, strict=False)  # (a stored template may name the other strategy's options)
 
     def due(self, step: int, elapsed: float) -> bool:
         nxt = self.probe_s if not self.history else self.history[-1]["elapsed_s"] + self.replan_every * self.budget_s
@@ -79,5 +80,7 @@ class TimePlan:
 
     @staticmethod
     def from_record(d: dict[str, Any]) -> "TimePlan":
-        return TimePlan(budget_s=float(d["budget_s"]), template={k: int(v) for k, v in d["template"].items()},
+        renamed = {"reset_every": "opacity_reset"}  # as stored before the option took its command-line name
+        template = {renamed.get(k, k): int(v) for k, v in d["template"].items()}
+        return TimePlan(budget_s=float(d["budget_s"]), template=template,
                         probe_s=float(d["probe_s"]), history=list(d["history"]))

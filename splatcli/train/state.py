@@ -119,23 +119,22 @@ def make_strategies(cfg: TrainConfig, extent: float, ctx: Context) -> list[Strat
     """The run's strategies, in the order the loop calls them. Density control never
     acts on the last step of the main schedule (a reset there would be the final
     model) nor during a compaction fine-tune."""
-    stop = min(cfg.strategy.refine_stop, cfg.iterations)
-    if cfg.density == "mcmc":
-        s = cfg.strategy
-        density: Strategy = MCMCStrategy(cfg.mcmc, s.max_gaussians, s.refine_start, stop, s.refine_every,
+    r = cfg.refine
+    stop = min(r.refine_stop, cfg.iterations)
+    if cfg.strategy == "mcmc":
+        density: Strategy = MCMCStrategy(replace(cfg.mcmc, refine_stop=stop),
                                          min(cfg.iterations, round(cfg.mcmc.relocate_until * cfg.iterations)),
                                          round(cfg.mcmc.reg_until * cfg.iterations))
     else:
         # With far points (--init-far) the size limit is an angle: far Gaussians may be large.
-        grow = cfg.strategy.grow_grad2d * (MIP_GROW_GRAD2D if cfg.mip_filter else 1.0)
-        density = DefaultStrategy(replace(cfg.strategy, refine_stop=stop, grow_grad2d=grow), extent,
+        grow = cfg.default.grow_grad2d * (MIP_GROW_GRAD2D if cfg.mip_filter else 1.0)
+        density = DefaultStrategy(replace(cfg.default, refine_stop=stop, grow_grad2d=grow), extent,
                                   ctx.center if cfg.init_far else None)
     out: list[Strategy] = [density]
-    if cfg.reg.enabled:
-        out.append(RegularizeStep(cfg.reg))
+    if cfg.strategy == "default" and (cfg.default.opacity_reg > 0 or cfg.default.scale_reg > 0):
+        out.append(RegularizeStep(cfg.default.opacity_reg, cfg.default.scale_reg))  # mcmc applies its own
     if cfg.support.prune_views:
-        s = cfg.strategy
-        out.append(SupportPrune(cfg.support, s.refine_start, stop, s.refine_every, ctx))
+        out.append(SupportPrune(cfg.support, r.refine_start, stop, r.refine_every, ctx))
     if cfg.sh_degree == "auto":
         out.append(ShAutoStep(cfg.sh_auto, cfg.iterations, ctx))
     if cfg.compact.enabled:
