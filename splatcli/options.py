@@ -223,6 +223,15 @@ def steps_options(root: type, kind: str | None = None) -> tuple[str, ...]:
     return tuple(n for n, alts in table(root).items() if alts[0].spec.steps and kind in (None, alts[0].spec.steps))
 
 
+def as_argv(root: type, given: dict[str, Any]) -> list[str]:
+    """Command-line words that give these options (for the processes of `train --nproc`)."""
+    out: list[str] = []
+    for name, v in given.items():
+        flag = table(root)[name][0].flag
+        out += [flag if v else f"--no-{flag[2:]}"] if isinstance(v, bool) else [flag, str(v)]
+    return out
+
+
 # ---- checking -------------------------------------------------------------------
 
 

@@ -178,11 +178,23 @@ def test_a_port_in_use_and_a_bad_option_are_one_line_errors(tmp_path):
         r = _run("train", str(proj.root), *FAST, "--iterations", "10", "--nproc", "2", "--port", str(port))
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and f"--port {port}" in r.stderr, r.stderr
     # A user error inside the workers (every rank raises it) is reported once.
-    r = _run("train", str(proj.root), *FAST, "--iterations", "10", "--nproc", "2", "--time-budget", "5")
+    r = _run("train", str(proj.root), *FAST, "--iterations", "10", "--nproc", "2", "--init-ply", "nowhere.ply")
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
-    assert "--time-budget" in r.stderr
+    assert "nowhere.ply" in r.stderr
     r = _run("train", str(proj.root), *FAST, "--nproc", "0")
     assert r.returncode == 2 and "--nproc 0" in r.stderr
+
+
+def test_a_time_budget_plans_with_every_process_counted(tmp_path):
+    """--time-budget with --nproc: the ranks plan from one clock (they agree on every
+    plan, so their parameters stay equal) and the run ends near the budget."""
+    proj = _project(tmp_path)
+    s = _summary(_run("train", str(proj.root), *FAST, "--nproc", "2", "--time-budget", "8", "--checkpoint-every", "50",
+                      "--json"))
+    plan = s["plan"]
+    assert s["nproc"] == 2 and s["rank_checks"] >= 1 and len(plan["history"]) >= 2
+    assert s["steps"] == plan["history"][-1]["iterations"]  # views seen, as one process counts them
+    assert s["train_seconds"] <= 8 * 1.25
 
 
 def test_the_scaling_rule_sees_as_many_images_and_keeps_one_process_unchanged():

@@ -95,3 +95,4 @@ def config_options(root: type, presets: dict[str, dict[str, Any]] | None = None)
         return command
 
     return wrap
+

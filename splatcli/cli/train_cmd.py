@@ -1,5 +1,4 @@
-"""`splatcli train`: optimise Gaussians on a processed project (3DGS recipe). Its
-training options come from TrainConfig's fields (cli/options.py)."""
+"""`splatcli train`: optimise Gaussians on a processed project; options from TrainConfig's fields (cli/options.py)."""
 
 from __future__ import annotations
 
@@ -12,6 +11,7 @@ import typer
 from ..device import resolve_device
 from ..options import RUN
 from ..project import Project
+from ..train.auto import choose, inherited, summary_line
 from ..train.config import PRESETS, TrainConfig, make_config
 from ..train.distributed import in_worker, join
 from ..train.launch import launch
@@ -39,19 +39,22 @@ def train(
     """Fit 3D Gaussians to the training views; checkpoints go to PROJECT/checkpoints, the
     speed/error log to PROJECT/reports/train_log.jsonl. Ctrl-C saves a checkpoint (exit 130)."""
     dev = resolve_device(device)
-    cfg = make_config(**given, device=str(dev))
-    overrides = {k: cfg.value(k) for k in given if k not in ("preset", "seed")}  # what a --resume changes
-    Project.open(project).require_processed()  # input errors before the progress display starts
-    if nproc is not None and not in_worker():
-        return launch(sys.argv[1:], nproc, port, project, dev)  # K copies of this command; rank 0 reports
+    (proj := Project.open(project)).require_processed()  # input errors before the progress display starts
+    chosen = inherited(given) if in_worker() else choose(proj, given, nproc, dev, resume)  # train/auto.py
+    cfg = make_config(**chosen.options, device=str(dev))
+    overrides = {k: cfg.value(k) for k in chosen.options if k not in ("preset", "seed")}  # what a --resume changes
+    if chosen.choices and not in_worker():
+        Ui(quiet=quiet).note(summary_line(chosen, cfg.time_budget))
+    if chosen.nproc is not None and not in_worker():  # K copies of this command, the choices as words; rank 0 reports
+        return launch(sys.argv[1:] + chosen.words(), chosen.nproc, port, project, dev, chosen.env())
     comm = join(dev)  # under torchrun: this process's rank (else a single process)
     ui = Ui(quiet=quiet or not comm.main, json_out=json_out and comm.main)
     try:
         with ui.progress() as sink, live_viewer(ui, project, viewer and comm.main, viewer_host, viewer_port, sink) as sink:
-            s = run_train(project, cfg, dev, resume=resume, overrides=overrides, on_event=sink, comm=comm)
+            s = run_train(project, cfg, dev, resume=resume, overrides=overrides, on_event=sink, comm=comm,
+                          chosen=chosen.record())
     finally:
         comm.close()  # on every path: gloo's threads must be gone before the interpreter exits
     psnr = f", held-out PSNR {s.psnr:.2f} dB" if s.psnr is not None else ""
-    ui.summary(s.to_json(), title=f"trained {s.steps} steps in {s.train_seconds:.0f} s{psnr}",
-               lines=[f"{s.num_gaussians} Gaussians, SH degree {s.sh_degree}, .ply {s.ply_bytes / 1e6:.2f} MB",
-                      f"checkpoint: {s.checkpoint}"])
+    ui.summary(s.to_json(), title=f"trained {s.steps} steps in {s.train_seconds:.0f} s{psnr}", lines=[
+        f"{s.num_gaussians} Gaussians, SH degree {s.sh_degree}, .ply {s.ply_bytes / 1e6:.2f} MB", f"checkpoint: {s.checkpoint}"])

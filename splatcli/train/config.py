@@ -116,7 +116,9 @@ class TrainConfig:
 
     # ---- optimiser (Adam, per attribute) -------------------------------------
     lr_means: float = opt(1.6e-4, "Learning rate of the means, x scene extent, decaying exponentially ...", more_than=0)
-    lr_means_final: float = opt(1.6e-6, "... to this x extent over `iterations`.", more_than=0)
+    lr_means_final: float = opt(1.6e-6, "... to this x extent by the end of `iterations` ...", more_than=0)
+    lr_hold: float = opt(0.0, "... after holding lr_means for this fraction of them (--time-budget: 0.6).", at_least=0,
+                         less_than=1)
     lr_sh0: float = opt(2.5e-3, "Learning rate of the SH DC.", more_than=0)
     lr_shN_div: float = opt(20.0, "Higher SH bands learn this many times slower.", more_than=0)
     lr_opacity: float = opt(0.05, "Learning rate of the opacity logits (the reference code's and the paper's).",
@@ -317,6 +319,7 @@ class TrainSummary:
     comm_seconds: float | None = None  # time rank 0 spent in collectives (exchanging and waiting)
     rank_checks: int | None = None  # checkpoints at which every rank's parameters equalled rank 0's
     mask_mode: str = "off"  # what was done with the masks (Project.mask_mode); eval scores the same way
+    chosen: list[dict[str, Any]] | None = None  # what `train` chose for options not given, and why (train/auto.py)
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)

@@ -48,9 +48,10 @@ def free_port(port: int) -> int:
         return int(s.getsockname()[1])
 
 
-def launch(argv: list[str], nproc: int, port: int, project_dir: Path, device: torch.device) -> None:
+def launch(argv: list[str], nproc: int, port: int, project_dir: Path, device: torch.device,
+           env: dict[str, str] | None = None) -> None:
     """Run `python -m splatcli <argv>` (a train command of `project_dir`) as `nproc`
-    ranks; return when all succeed. A failure raises one exception with one line:
+    ranks, with `env` added to their environment; return when all succeed. A failure raises one exception with one line:
     Interrupted (exit 130), the workers' own SplatError (exit 2), or RankDied (exit 1)
     naming the rank that died and the last checkpoint."""
     from torch.distributed.elastic.multiprocessing.api import DefaultLogsSpecs, SignalException
@@ -73,8 +74,9 @@ def launch(argv: list[str], nproc: int, port: int, project_dir: Path, device: to
     with tempfile.TemporaryDirectory(prefix="splatcli-ranks-") as tmp:
         errors = Path(tmp) / "errors"
         errors.mkdir()
-        env_before = {k: os.environ.get(k) for k in (ERRORS_ENV, "OMP_NUM_THREADS")}
-        os.environ[ERRORS_ENV] = str(errors)
+        env = {ERRORS_ENV: str(errors), **(env or {})}
+        env_before = {k: os.environ.get(k) for k in (*env, "OMP_NUM_THREADS")}
+        os.environ.update(env)
         os.environ.setdefault("OMP_NUM_THREADS", "1")
         config = LaunchConfig(
             min_nodes=1, max_nodes=1, nproc_per_node=nproc, run_id=uuid.uuid4().hex,

@@ -24,6 +24,7 @@ from .distributed import Comm
 from .state import TrainState
 
 PROGRESS_PERIOD_S = 0.25  # progress-bar refresh; a loss read is a host sync on CUDA
+ETA_AFTER_S = 20.0  # training seconds measured before a run without a time budget says when it ends
 REFINED = ("cloned", "split", "pruned")
 
 
@@ -111,6 +112,33 @@ class LogWriter:
         return info
 
 
+class Eta:
+    """The one note a run without a time budget gives once its speed is measured: when
+    it ends at that speed (a growing model slows it; --time-budget plans to a time)."""
+
+    def __init__(self, state: TrainState) -> None:
+        self.start = (state.images, state.elapsed_s)
+        self.told = False
+
+    def tell(self, state: TrainState, total: int, on_event: EventSink | None) -> None:
+        views, elapsed = state.images - self.start[0], state.elapsed_s - self.start[1]
+        if self.told or elapsed < ETA_AFTER_S or views <= 0:
+            return
+        self.told = True
+        left = (total - state.images) * elapsed / views
+        emit(on_event, Note(f"about {duration(left)} of training left at {views / elapsed:.2f} steps/s (growing "
+                            "models slow down; --time-budget SECONDS plans the run to end in time)"))
+
+
+def duration(seconds: float) -> str:
+    """12 s, 4 min, 1 h 05 min."""
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 5400:
+        return f"{seconds / 60:.0f} min"
+    return f"{int(seconds // 3600)} h {int(seconds % 3600 // 60):02d} min"
+
+
 def rss_mb() -> int | None:
     """Current resident set size in MiB (Linux /proc; None elsewhere)."""
     try:
@@ -151,7 +179,7 @@ def prune_checkpoints(project: Project, keep: int) -> None:
 
 
 def finish(project: Project, cfg: TrainConfig, state: TrainState, resumed_from: int | None,
-           comm: Comm | None = None) -> TrainSummary:
+           comm: Comm | None = None, chosen: list[dict[str, Any]] | None = None) -> TrainSummary:
     """Write reports/train.json and the manifest's train summary (rank 0 of a
     data-parallel run; the others only return it). Steps count views seen."""
     comm = comm or Comm()
@@ -181,6 +209,7 @@ def finish(project: Project, cfg: TrainConfig, state: TrainState, resumed_from: 
         comm_seconds=round(comm.seconds, 3) if comm.world > 1 else None,
         rank_checks=comm.checks if comm.world > 1 else None,
         mask_mode=project.mask_mode(cfg.mask_mode),
+        chosen=chosen or None,
         **owned,
     )
     if not comm.main:

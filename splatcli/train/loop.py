@@ -36,7 +36,7 @@ from .distributed import Comm
 from .init import initial_gaussians
 from .loss import photometric_loss
 from .memory import check_memory, is_out_of_memory, plan_memory
-from .state import TrainState, make_strategies, means_lr, new_state, save_state, state_from_checkpoint
+from .state import TrainState, make_strategies, means_lr, new_state, save_state, state_from_checkpoint, time_plan
 
 STAGE = "train"
 
@@ -50,20 +50,23 @@ def train(
     overrides: dict[str, Any] | None = None,
     on_event: EventSink | None = None,
     comm: Comm | None = None,
+    chosen: list[dict[str, Any]] | None = None,
 ) -> TrainSummary:
     """Train (or resume) the project's model; return the summary also recorded in
     the manifest. `overrides` are the options given explicitly (flat names, as
     `make_config` takes them), applied on top of a resumed run's stored config.
     `comm`: this process's rank in a data-parallel run (distributed.py); rank 0
-    alone writes the project. SIGINT/SIGTERM: checkpoint, raise Interrupted."""
+    alone writes the project. `chosen`: what train/auto.py chose and why, for the record.
+    SIGINT/SIGTERM: checkpoint, raise Interrupted."""
     project = Project.open(project_dir)
     comm = comm or Comm()
     with writer_lock(project.root, "train") if comm.main else contextlib.nullcontext():
-        return _train(project, cfg, device, resume, overrides, on_event, comm)
+        return _train(project, cfg, device, resume, overrides, on_event, comm, chosen)
 
 
 def _train(project: Project, cfg: TrainConfig, device: torch.device, resume: bool,
-           overrides: dict[str, Any] | None, on_event: EventSink | None, comm: Comm) -> TrainSummary:
+           overrides: dict[str, Any] | None, on_event: EventSink | None, comm: Comm,
+           chosen: list[dict[str, Any]] | None) -> TrainSummary:
     project.require_processed()
     resumed_from = None
     ck = None
@@ -81,9 +84,6 @@ def _train(project: Project, cfg: TrainConfig, device: torch.device, resume: boo
                 new = replace(new, compact=replace(cfg.compact, enabled=True))
             cfg = replace(new, device=str(device))
             resumed_from = ck.step
-    if comm.world > 1 and cfg.time_budget is not None:
-        raise SplatError("--time-budget plans one process's schedule; it cannot be combined with more than one "
-                         "training process yet", hint="drop --time-budget or --nproc")
     run = cfg.for_world(comm.world)  # the schedule K ranks follow (config.py)
     # Reading the scene imports pycolmap, whose glog installs its own SIGTERM handler:
     # ours goes in after it.
@@ -101,17 +101,19 @@ def _train(project: Project, cfg: TrainConfig, device: torch.device, resume: boo
     with _stop_on_signal() as stop:  # from here on a signal means: checkpoint, exit 130
         if ck is not None:
             state = state_from_checkpoint(ck, run, data.extent, device, len(data.train), ctx, comm.world)
+            state.plan = time_plan(cfg, ck.extra.get("plan"))
             if comm.main:
                 log.trim_log(project.train_log_path, ck.step)
         else:
             state = new_state(initial_gaussians(cfg, data, device), run, data.extent, device, len(data.train), ctx,
                               comm.world)
+            state.plan = time_plan(cfg)
             if comm.main:
                 log.start_fresh(project, on_event)
         comm.broadcast_params(state.trainable())  # identical from the first step, whatever each rank computed
         box.append(state)
         cfg = _loop(project, cfg, run, data, state, ctx, stop, on_event, comm)
-    return log.finish(project, cfg, state, resumed_from, comm)
+    return log.finish(project, cfg, state, resumed_from, comm, chosen)
 
 
 def render_view(state: TrainState, view: TrainView, bg: Tensor, sh_degree: int) -> RenderOutput:  # bg [3]
@@ -129,6 +131,7 @@ def _loop(project: Project, base: TrainConfig, cfg: TrainConfig, data: TrainData
     k = comm.world
     emit(on_event, Stage(STAGE, total * k))
     writer = log.LogWriter(project.train_log_path, state, enabled=comm.main)
+    eta = log.Eta(state)
     for strategy, st in zip(state.strategies, state.splats.states):  # a resumed run: what is due now
         writer.refined(strategy.catch_up(state.splats, st, state.step))
     if _agreed_stop(comm, stop):  # signalled during setup: keep what there is (a resume starts here)
@@ -183,10 +186,12 @@ def _loop(project: Project, base: TrainConfig, cfg: TrainConfig, data: TrainData
             for strategy, st in zip(state.strategies, state.splats.states):
                 writer.refined(strategy.step_post_backward(state.splats, st, step, info))
         state.elapsed_s += time.perf_counter() - t1
-        if state.plan is not None and state.plan.due(step, state.elapsed_s):
-            planned = state.plan.replan(cfg, step, state.elapsed_s)
-            if planned is not None:  # the strategies' schedules follow the new plan (one process only)
-                cfg = base = planned
+        if state.plan is not None:
+            if k > 1:  # every rank plans from the same clock
+                state.elapsed_s = float(comm.mean(torch.tensor([state.elapsed_s, 1.0], dtype=torch.float64))[0])
+            planned = state.plan.replan(base, state.images, state.elapsed_s) if state.plan.due(state.elapsed_s) else None
+            if planned is not None:  # the strategies' schedules follow the new plan
+                base, cfg = planned, planned.for_world(k)
                 state.strategies = make_strategies(cfg, data.extent, ctx)
                 total = cfg.total_steps
         evaluated = info.heldout
@@ -195,6 +200,8 @@ def _loop(project: Project, base: TrainConfig, cfg: TrainConfig, data: TrainData
             fitted = _measure_fit(cfg, data, state, step, comm) if evaluated is not None else None
         writer.line(step, state, evaluated, fitted, cfg.log_every, force=step == total)
         emit(on_event, Progress(STAGE, state.images, total * k, writer.info(state)))
+        if comm.main and state.plan is None:
+            eta.tell(state, total * k, on_event)
         if comm.main:
             emit(on_event, Snapshot(state.images, state.model))  # for live displays (train --viewer)
         if stopping or (k == 1 and stop.is_set()):

@@ -1,16 +1,26 @@
-"""`train --time-budget SECONDS`: a schedule planned to end within a training time on
-the machine the run is on.
+"""`train --time-budget SECONDS`: a run planned to end within a training time on the
+machine it runs on (issue 35).
 
-The preset's schedule is kept in shape and scaled in length: every step count of
-it (iterations, refinement start/stop/period, opacity reset, SH growth, the
-compaction fine-tune) is multiplied by one factor, so a budgeted run is the preset
-compressed in time, learning-rate decay included. The run measures its own speed
-over its first steps (`probe_s`), plans the step count that fits the rest of the
-budget, and plans again every `replan_every` of the budget: steps slow down as
-densification adds Gaussians, and a shared machine changes speed. Once the budget
-is spent the main schedule ends at that step. Training seconds are counted, as in
-train_log.jsonl (held-out evaluation is not training); the plan and its outcome
-are recorded in train.json.
+The run measures its own speed over its first seconds (`probe_s`) and plans how many
+views it can train in the rest of the budget; it plans again every `replan_every` of the
+budget, since steps slow down as the model grows and a shared machine changes speed.
+Once the budget is spent the main schedule ends at that step. What a plan sets:
+
+* the preset's schedule in proportion (refinement window, SH growth, fine-tune), with
+  refinement at least every MIN_REFINE_EVERY steps;
+* the means' learning rate held at its initial value for the first LR_HOLD of the run
+  (`lr_hold`), then decaying: a compressed exponential decay leaves a short run's last
+  half at a tenth of the rate, before the model has its shape;
+* the Gaussian count on a curve tied to the resolution schedule (as DashGaussian does):
+  the strategy's budget is cap x (scale at the next plan)^2, where scale is the
+  coarse-to-fine resolution, so that cheap coarse steps are not slowed by Gaussians
+  only the full resolution can use, and the full budget arrives with the full size.
+
+Counts are in views seen (one process's steps): with K data-parallel processes each
+step trains K views, every rank plans from the same (averaged) clock, and the config
+they run is the plan's `for_world(K)`. Training seconds are counted, as in
+train_log.jsonl (held-out evaluation is not training); the plan and its outcome are
+recorded in train.json.
 """
 
 from __future__ import annotations
@@ -25,6 +35,7 @@ from .config import TrainConfig
 SCHEDULE = options.steps_options(TrainConfig, "schedule")
 MIN_ITERATIONS = 30  # a plan never shrinks the run below this
 MIN_REFINE_EVERY = 25  # steps between refinements, at least (or the template's, when smaller)
+LR_HOLD = 0.6  # the fraction of a planned run the means' learning rate stays at its initial value
 
 
 @dataclass
@@ -33,54 +44,68 @@ class TimePlan:
     template: dict[str, int]  # the preset's schedule, unscaled
     probe_s: float = 0.0  # training seconds measured before the first plan
     replan_every: float = 0.1  # fraction of the budget between plans
+    cap: int | None = None  # the strategy's Gaussian budget at the end (None: no curve)
     history: list[dict[str, Any]] = field(default_factory=list)  # one entry per plan
 
     @staticmethod
     def start(cfg: TrainConfig) -> "TimePlan":
         template = {k: int(cfg.value(k)) for k in SCHEDULE if options.resolve(cfg, k) is not None}
         return TimePlan(budget_s=float(cfg.time_budget), template=template,
-                        probe_s=min(5.0, 0.05 * float(cfg.time_budget)))
+                        probe_s=min(5.0, 0.05 * float(cfg.time_budget)), cap=cfg.refine.max_gaussians)
 
-    def scaled(self, cfg: TrainConfig, iterations: int) -> TrainConfig:
-        """`cfg` with the template schedule scaled to `iterations` main steps. Refinement
-        keeps at least MIN_REFINE_EVERY steps between decisions: gradients averaged over
-        fewer views are noise, and growth that fast outruns a short budget (fox at 480 px,
-        120 s: refining every 2 steps grew 10k Gaussians to 72k in 167 steps)."""
+    def scaled(self, cfg: TrainConfig, iterations: int, at: int = 0) -> TrainConfig:
+        """`cfg` with the template schedule scaled to `iterations` main steps, the learning
+        rate held, and the Gaussian budget of the curve at step `at`. Refinement keeps at
+        least MIN_REFINE_EVERY steps between decisions: gradients averaged over fewer
+        views are noise, and growth that fast outruns a short budget (fox at 480 px, 120 s:
+        refining every 2 steps grew 10k Gaussians to 72k in 167 steps)."""
         f = iterations / self.template["iterations"]
-        out = {k: max(1, round(v * f)) if v else 0 for k, v in self.template.items()}  # 0: off stays off
+        out: dict[str, Any] = {k: max(1, round(v * f)) if v else 0 for k, v in self.template.items()}  # 0 stays off
         out["iterations"] = iterations
         out["refine_every"] = max(out["refine_every"], min(MIN_REFINE_EVERY, self.template["refine_every"]))
-        return options.apply(cfg, out, strict=False)  # (a stored template may name the other strategy's options)
+        out["lr_hold"] = max(cfg.lr_hold, LR_HOLD)
+        cfg = options.apply(cfg, out, strict=False)  # (a stored template may name the other strategy's options)
+        if self.cap is not None:
+            cfg = options.apply(cfg, {"max_gaussians": self.curve(cfg, at)})
+        return cfg
 
-    def due(self, step: int, elapsed: float) -> bool:
+    def curve(self, cfg: TrainConfig, step: int) -> int:
+        """The Gaussian budget at `step` of `cfg`: cap x the resolution's area then."""
+        return max(1, round(self.cap * cfg.train_scale(step) ** 2))  # type: ignore[operator]
+
+    def due(self, elapsed: float) -> bool:
         nxt = self.probe_s if not self.history else self.history[-1]["elapsed_s"] + self.replan_every * self.budget_s
         return elapsed >= nxt or elapsed >= self.budget_s
 
-    def replan(self, cfg: TrainConfig, step: int, elapsed: float) -> TrainConfig | None:
-        """The schedule that ends the main steps when the budget is spent, at the speed of
-        the steps since the last plan; at once when it is spent already. None once the
-        main schedule is over (a fine-tune may follow): nothing is left to plan."""
-        if step >= cfg.iterations:
+    def replan(self, cfg: TrainConfig, views: int, elapsed: float) -> TrainConfig | None:
+        """The schedule (one process's, in views) that ends the main steps when the budget
+        is spent, at the speed of the views since the last plan; at once when it is spent
+        already. None once the main schedule is over (a fine-tune may follow)."""
+        if views >= cfg.iterations:
             return None
         last = self.history[-1] if self.history else {"step": 0, "elapsed_s": 0.0}
-        rate = (step - last["step"]) / max(elapsed - last["elapsed_s"], 1e-9)  # steps per training second, recently
+        rate = (views - last["step"]) / max(elapsed - last["elapsed_s"], 1e-9)  # views per training second, recently
         # The compaction fine-tune (if any) runs after the main steps at about the same speed.
         share = self.template["iterations"] / (self.template["iterations"] + (
-            self.template["compact_finetune"] if cfg.compact.enabled else 0))
+            self.template.get("compact_finetune", 0) if cfg.compact.enabled else 0))
         # At least one more step: this step's post-processing hooks have run already.
-        iterations = step + max(1, int(rate * (self.budget_s - elapsed) * share))
+        iterations = views + max(1, int(rate * (self.budget_s - elapsed) * share))
         iterations = max(iterations, min(MIN_ITERATIONS, self.template["iterations"]))
-        self.history.append({"step": step, "elapsed_s": round(elapsed, 3), "steps_per_s": round(rate, 3),
-                             "iterations": iterations})
-        return self.scaled(cfg, iterations)
+        # The budget until the next plan: where the run will be then, at this speed.
+        ahead = min(iterations, views + int(rate * self.replan_every * self.budget_s))
+        planned = self.scaled(cfg, iterations, ahead)
+        self.history.append({"step": views, "elapsed_s": round(elapsed, 3), "steps_per_s": round(rate, 3),
+                             "iterations": iterations,
+                             **({"max_gaussians": planned.refine.max_gaussians} if self.cap is not None else {})})
+        return planned
 
     def record(self) -> dict[str, Any]:
-        return {"budget_s": self.budget_s, "template": self.template, "probe_s": self.probe_s,
+        return {"budget_s": self.budget_s, "template": self.template, "probe_s": self.probe_s, "cap": self.cap,
                 "history": list(self.history)}
 
     @staticmethod
     def from_record(d: dict[str, Any]) -> "TimePlan":
         renamed = {"reset_every": "opacity_reset"}  # as stored before the option took its command-line name
         template = {renamed.get(k, k): int(v) for k, v in d["template"].items()}
-        return TimePlan(budget_s=float(d["budget_s"]), template=template,
-                        probe_s=float(d["probe_s"]), history=list(d["history"]))
+        return TimePlan(budget_s=float(d["budget_s"]), template=template, probe_s=float(d["probe_s"]),
+                        cap=d.get("cap"), history=list(d["history"]))

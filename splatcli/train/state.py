@@ -145,9 +145,10 @@ def make_strategies(cfg: TrainConfig, extent: float, ctx: Context) -> list[Strat
 
 
 def means_lr(cfg: TrainConfig, step: int, extent: float) -> float:
-    """Exponential (log-linear) decay from lr_means to lr_means_final, times the
-    scene extent, over `iterations`; held at the final value afterwards."""
+    """lr_means for the first `lr_hold` of `iterations`, then an exponential (log-linear)
+    decay to lr_means_final at the end; held there afterwards. Times the scene extent."""
     t = min(max(step / max(cfg.iterations, 1), 0.0), 1.0)
+    t = max(0.0, t - cfg.lr_hold) / (1.0 - cfg.lr_hold)
     return math.exp(math.log(cfg.lr_means) * (1 - t) + math.log(cfg.lr_means_final) * t) * extent
 
 
@@ -190,7 +191,6 @@ def new_state(g: Gaussians, cfg: TrainConfig, extent: float, device: torch.devic
     return TrainState(splats=splats, strategies=strategies, view_gen=view_gen,
                       perm=torch.randperm(n_train, generator=view_gen), pos=0, world=world,
                       loss_acc=torch.zeros(2, dtype=torch.float64, device=device),
-                      plan=TimePlan.start(cfg) if cfg.time_budget is not None else None,
                       appearance=_appearance(cfg, n_train, device, ctx))
 
 
@@ -264,12 +264,13 @@ def state_from_checkpoint(ck: Checkpoint, cfg: TrainConfig, extent: float, devic
         bad_run=int(ex.get("bad_run", 0)),
         loss_acc=ex.get("loss_acc", torch.zeros(2, dtype=torch.float64)).to(device),
         refine_acc={k: int(v) for k, v in (ex.get("refine_acc") or {}).items()},
-        plan=_resumed_plan(cfg, ex.get("plan")),
         appearance=appearance,
     )
 
 
-def _resumed_plan(cfg: TrainConfig, record: Any) -> TimePlan | None:
+def time_plan(cfg: TrainConfig, record: Any = None) -> TimePlan | None:
+    """The --time-budget plan of `cfg` (one process's config): a new one, or the one a
+    checkpoint recorded, with the budget now given."""
     if cfg.time_budget is None:
         return None
     if isinstance(record, dict):

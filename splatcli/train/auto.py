@@ -1,0 +1,134 @@
+"""What `splatcli train` chooses when it is not told: on a CPU, a run that ends in
+minutes, sized to the capture and to the machine (issue 35).
+
+With no schedule given (no --preset, --iterations or --time-budget) a CPU run gets the
+fast preset's shape planned into a time budget, at a training size a CPU handles, with
+MCMC's fixed Gaussian budget grown on a curve tied to the time (train/plan.py), and one
+process per free core. A run given only a --time-budget gets the preset, the strategy,
+the Gaussian budget and the processes. Every choice yields to the option given for it; each is recorded with
+its reason (train.json's `chosen`). On CUDA nothing is chosen: the paper's schedule.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import torch
+
+from .. import options
+from ..project import Project
+from ..sfm.colmap import read_project_scene
+from .config import TrainConfig
+
+BUDGET_S = 600.0  # training seconds of a default CPU run: with loading and the last evaluation, ends within 15 min
+MAX_SIZE = 480  # px, the longest side a default CPU run trains at
+GAUSSIANS_PER_PIXEL = 0.45  # the MCMC budget per training pixel (fox at 480 px: 58k; lego at 200 px: 18k)
+MIN_GAUSSIANS, MAX_GAUSSIANS = 5_000, 400_000
+MAX_PROCESSES = 8  # data-parallel processes at most (measured up to 2 here; docs/benchmarks.md)
+CHOSEN_ENV = "SPLATCLI_CHOSEN"  # the launcher's choices, for the record its processes write
+
+
+@dataclass(frozen=True)
+class Choice:
+    option: str  # the option's name (make_config's), or "nproc"
+    value: Any
+    why: str
+
+
+@dataclass
+class Chosen:
+    options: dict[str, Any]  # what make_config gets: the options given and the ones chosen
+    nproc: int | None  # data-parallel processes (None: one, in this process)
+    choices: list[Choice] = field(default_factory=list)
+
+    def record(self) -> list[dict[str, Any]]:
+        return [asdict(c) for c in self.choices]
+
+    def words(self) -> list[str]:
+        """The chosen options as command-line words (the processes of `train --nproc`)."""
+        return options.as_argv(TrainConfig, {c.option: c.value for c in self.choices if c.option != "nproc"})
+
+    def env(self) -> dict[str, str]:
+        """What the processes of `train --nproc` inherit (they get the options as words)."""
+        return {CHOSEN_ENV: json.dumps(self.record())}
+
+
+def inherited(given: dict[str, Any]) -> Chosen:
+    """In a process the launcher started: its options (the launcher's choices among
+    them, as words) and the launcher's record of what it chose and why."""
+    try:
+        choices = [Choice(**c) for c in json.loads(os.environ.get(CHOSEN_ENV) or "[]")]
+    except (ValueError, TypeError):
+        choices = []
+    return Chosen(dict(given), None, choices)
+
+
+def free_cores() -> int:
+    """Cores this process may use that are not busy now (never fewer than 1): the
+    affinity mask's size less the one-minute load average, rounded."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cores = os.cpu_count() or 1
+    try:
+        load = os.getloadavg()[0]
+    except OSError:
+        load = 0.0
+    return max(1, min(cores, cores - int(round(load))))
+
+
+def choose(project: Project, given: dict[str, Any], nproc: int | None, device: torch.device,
+           resume: bool = False) -> Chosen:
+    """The options for a run of `project` on `device`: `given` (the user's), plus what
+    this module chooses for the rest (module docstring)."""
+    out = Chosen(dict(given), nproc)
+    if device.type != "cpu" or resume:
+        return out
+    default_run = not any(k in given for k in ("preset", "iterations", "time_budget"))
+    if not default_run and "time_budget" not in given:
+        return out  # a step schedule: what was asked, in one process unless --nproc
+
+    def pick(option: str, value: Any, why: str) -> None:
+        if option not in given:
+            out.options[option] = value
+            out.choices.append(Choice(option, value, why))
+
+    cams = read_project_scene(project).cameras
+    longest = max(max(c.width, c.height) for c in cams)
+    pick("preset", "fast", "the fast preset's shape (coarse to fine; grow, then refine a fixed set), planned into "
+         "the time")
+    if default_run:
+        pick("time_budget", BUDGET_S, f"{BUDGET_S / 60:.0f} minutes of training on a CPU; more time, more quality")
+        if longest / float(given.get("downscale", 1.0)) > MAX_SIZE:
+            pick("max_size", MAX_SIZE, f"the photos are {longest} px across; {MAX_SIZE} px trains in minutes on a CPU")
+        photos = project.mask_source() != "alpha"  # alpha: a rendered (synthetic) scene, one exposure
+        if photos and len(cams) >= 8:
+            pick("appearance", "exposure", "photographs: their exposure and white balance vary from shot to shot")
+    max_size = int(out.options.get("max_size", 1600))
+    downscale = float(out.options.get("downscale", 1.0))
+    train_px = sorted(c.at_resolution(downscale, max_size).width * c.at_resolution(downscale, max_size).height
+                      for c in cams)[len(cams) // 2]
+    if out.options.get("strategy", "mcmc") == "mcmc":
+        pick("strategy", "mcmc", "a fixed Gaussian budget, grown on a curve planned to the time")
+        pick("max_gaussians", int(min(MAX_GAUSSIANS, max(MIN_GAUSSIANS, round(GAUSSIANS_PER_PIXEL * train_px, -3)))),
+             f"{GAUSSIANS_PER_PIXEL} per pixel of a {train_px:,}-pixel training view")
+    if nproc is None:
+        k = min(free_cores(), MAX_PROCESSES, max(1, len(cams) // 8))
+        if k > 1:
+            out.nproc = k
+            out.choices.append(Choice("nproc", k, f"{k} free cores: one training process each (--nproc 1 for one)"))
+    return out
+
+
+def summary_line(chosen: Chosen, budget_s: float | None) -> str:
+    """The one line a CLI shows before training: what was chosen, the time it will take,
+    and what to change for more quality or more speed."""
+    what = ", ".join(f"{c.option.replace('_', '-')} {c.value}" for c in chosen.choices)
+    if budget_s is None:
+        return f"chose {what}"
+    eta = f"trains for {budget_s / 60:.0f} min" if budget_s >= 90 else f"trains for {budget_s:.0f} s"
+    return (f"{eta} ({what}); more quality: --time-budget {int(budget_s * 3)}, sooner: --time-budget "
+            f"{int(max(30, budget_s / 4))}; every choice yields to its option (train --help)")

@@ -1,0 +1,98 @@
+"""What `train` chooses when it is not told (splatcli/train/auto.py): on a CPU with no
+schedule given, a time-budgeted run sized to the capture and the machine; every choice
+yields to its option; on CUDA and with a step schedule, nothing is chosen."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from splatcli.train import auto
+from splatcli.train.config import make_config
+from tiny_project import make_tiny_project, run_cli
+
+CPU = torch.device("cpu")
+
+
+@pytest.fixture
+def proj(tmp_path):
+    return make_tiny_project(tmp_path / "p", trained=False, photos=False)
+
+
+def _chosen(c: auto.Chosen) -> dict:
+    return {x.option: x.value for x in c.choices}
+
+
+def test_a_default_cpu_run_is_planned_into_minutes(proj, monkeypatch):
+    monkeypatch.setattr(auto, "free_cores", lambda: 1)
+    c = auto.choose(proj, {}, None, CPU)
+    got = _chosen(c)
+    assert got["preset"] == "fast" and got["time_budget"] == auto.BUDGET_S and got["strategy"] == "mcmc"
+    assert got["max_gaussians"] == auto.MIN_GAUSSIANS  # 48x40 px: the smallest budget
+    assert "max_size" not in got  # the images are smaller than 480 px already
+    assert c.nproc is None and all(x.why for x in c.choices)
+    cfg = make_config(**c.options)  # the choices make a valid config
+    assert cfg.time_budget == auto.BUDGET_S and cfg.mcmc.max_gaussians == auto.MIN_GAUSSIANS
+    line = auto.summary_line(c, cfg.time_budget)
+    assert "trains for 10 min" in line and "--time-budget" in line
+
+
+def test_every_choice_yields_to_its_option(proj, monkeypatch):
+    monkeypatch.setattr(auto, "free_cores", lambda: 1)
+    c = auto.choose(proj, {"strategy": "default", "max_size": 300}, None, CPU)
+    got = _chosen(c)
+    assert "strategy" not in got and "max_gaussians" not in got and "max_size" not in got
+    assert c.options["strategy"] == "default" and c.options["max_size"] == 300
+    # A step schedule is the user's: nothing is chosen, one process.
+    c = auto.choose(proj, {"iterations": 50}, None, CPU)
+    assert c.choices == [] and c.nproc is None and c.options == {"iterations": 50}
+    # A time budget alone gets the rest of a planned run.
+    got = _chosen(auto.choose(proj, {"time_budget": 30.0}, None, CPU))
+    assert set(got) == {"preset", "strategy", "max_gaussians"}
+
+
+def test_cuda_and_resume_choose_nothing(proj):
+    assert auto.choose(proj, {}, None, torch.device("cuda")).choices == []  # the paper's schedule
+    assert auto.choose(proj, {}, None, CPU, resume=True).choices == []  # the stored run's settings
+
+
+def test_free_cores_become_processes_and_words_for_them(proj, monkeypatch):
+    monkeypatch.setattr(auto, "free_cores", lambda: 4)
+    c = auto.choose(proj, {}, None, CPU)
+    assert c.nproc == 1 or c.nproc is None  # 10 views: one process per 8 views at most
+    monkeypatch.setattr(auto, "MAX_PROCESSES", 8)
+    c = auto.choose(proj, {}, 3, CPU)
+    assert c.nproc == 3 and "nproc" not in _chosen(c)  # --nproc given
+    words = c.words()
+    assert words[:2] == ["--preset", "fast"] and "--max-gaussians" in words
+    assert "nproc" not in " ".join(words)
+    back = auto.inherited({"preset": "fast"})  # a launched process reads the launcher's record
+    assert back.choices == [] and back.nproc is None
+    monkeypatch.setenv(auto.CHOSEN_ENV, c.env()[auto.CHOSEN_ENV])
+    assert [x.option for x in auto.inherited({}).choices] == [x.option for x in c.choices]
+
+
+def test_free_cores_leave_busy_cores_alone(monkeypatch):
+    monkeypatch.setattr(auto.os, "sched_getaffinity", lambda pid: {0, 1, 2, 3})
+    monkeypatch.setattr(auto.os, "getloadavg", lambda: (2.6, 0.0, 0.0))
+    assert auto.free_cores() == 1
+    monkeypatch.setattr(auto.os, "getloadavg", lambda: (9.0, 0.0, 0.0))
+    assert auto.free_cores() == 1  # never fewer than one
+    monkeypatch.setattr(auto.os, "getloadavg", lambda: (0.1, 0.0, 0.0))
+    assert auto.free_cores() == 4
+
+
+def test_train_with_no_options_says_what_it_chose_and_records_it(proj, monkeypatch):
+    monkeypatch.setattr(auto, "free_cores", lambda: 1)
+    monkeypatch.setattr(auto, "BUDGET_S", 4.0)
+    r = run_cli("train", proj.root, "--json")
+    assert r.exit_code == 0, r.output
+    assert "trains for 4 s" in r.stderr and "strategy mcmc" in r.stderr
+    s = json.loads(r.stdout.strip().splitlines()[-1])
+    assert [c["option"] for c in s["chosen"]] == ["preset", "time_budget", "appearance", "strategy",
+                                                  "max_gaussians"]
+    assert s["plan"]["budget_s"] == 4.0 and s["train_seconds"] <= 4.0 * 1.5
+    stored = json.loads((proj.root / "splatcli.json").read_text())["steps"]["train"]["config"]
+    assert stored["strategy"] == "mcmc" and stored["time_budget"] == 4.0
