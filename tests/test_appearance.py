@@ -26,7 +26,7 @@ from splatcli.events import Progress
 from splatcli.io.checkpoint import load_checkpoint, save_checkpoint
 from splatcli.io.formats import write_format
 from splatcli.io.ply import write_ply
-from splatcli.train.appearance import Appearance, ExposureConfig, identity, smooth_basis
+from splatcli.train.appearance import Exposure, ExposureConfig, identity, smooth_basis
 from splatcli.train.config import make_config
 from splatcli.train.loop import train
 from splatcli.train.loss import photometric_loss
@@ -37,8 +37,8 @@ SMALL = dict(iterations=20, init_random_points=300, max_gaussians=600, eval_ever
              refine_every=4, opacity_reset=100, sh_degree_interval=8, checkpoint_every=10, appearance="exposure")
 
 
-def _appearance(n: int = 4) -> Appearance:
-    return Appearance(n, ExposureConfig(), CPU)
+def _appearance(n: int = 4) -> Exposure:
+    return Exposure(n, ExposureConfig(), CPU)
 
 
 def _tiny(tmp_path, name="p", gains=None):
@@ -159,7 +159,7 @@ def test_a_step_removes_the_smooth_modes_from_the_transforms():
     """With `modes` > 1 the step leaves the transforms' deviation from [I | 0] with no
     part in the smooth modes (with 1, their mean is the identity, as above)."""
     n = 40
-    app = Appearance(n, ExposureConfig(smooth=0.075), CPU, _ring(n).float())  # 3 modes
+    app = Exposure(n, ExposureConfig(smooth=0.075), CPU, _ring(n).float())  # 3 modes
     app.transforms.grad = torch.randn(n, 3, 4, generator=torch.Generator().manual_seed(1))
     app.optimizer.step()
     dev = (app.transforms.detach() - identity(n, CPU)).flatten(1)  # [n, 12]
@@ -325,7 +325,7 @@ def test_training_view_scores_go_through_each_photos_transform(monkeypatch):
     app = _appearance(3)
     with torch.no_grad():
         app.transforms[2, :, :3] *= 0.5  # photo 2 came out at half the exposure
-    state = types.SimpleNamespace(appearance=app)
+    state = types.SimpleNamespace(image_model=app)
     photo = types.SimpleNamespace(target=lambda: render * 0.5, keep=None)
     through, _ = loop.evaluate_views(state, [photo], torch.zeros(3), 0, train_index=[2])
     alone, _ = loop.evaluate_views(state, [photo], torch.zeros(3), 0)

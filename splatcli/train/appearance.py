@@ -1,4 +1,12 @@
-"""`train --appearance exposure`: one learned affine colour transform per training image.
+"""Image models: what lies between the rendered scene and a training photo, learnt per
+photo. The loop calls one at a single point, where a render meets its photo
+(`ImageModel.shade`); TrainState keeps its parameters beside the Gaussians (trained and
+all-reduced with them), its optimiser and its checkpoint state. A new one (a bilateral
+grid, as gsplat and brush ship) is a subclass made in `make_image_model`: the loop and
+TrainState do not change. Held-out views, eval and every exported file see the scene
+alone. `ImageModel` itself is the identity (`--appearance none`).
+
+`train --appearance exposure`: one learned affine colour transform per training image.
 
 Photographs of one scene often differ in exposure and white balance. Fitting them
 all with one set of Gaussians, training bends the geometry and the view-dependent
@@ -34,7 +42,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable, ClassVar
 
 import torch
 from torch import Tensor, nn
@@ -61,8 +69,41 @@ def identity(n: int, device: torch.device) -> Tensor:  # -> [n, 3, 4]
     return torch.eye(3, 4, device=device).expand(n, 3, 4).contiguous()
 
 
-class Appearance:
+class ImageModel:
+    """The identity: the render is compared with the photo as it is."""
+
+    name: ClassVar[str] = "none"
+
+    def shade(self, image: Tensor, view: int, step: int | None = None,  # image [H, W, 3]
+              iterations: int = 1) -> tuple[Tensor, Tensor | float]:  # -> ([H, W, 3], penalty)
+        """Training image `view`'s render as the photo shows it, and the model's penalty
+        for it; `step` (training) also sets the model's schedule for that step of
+        `iterations`, None (measuring) gives no penalty."""
+        return image, 0.0
+
+    def parameters(self) -> dict[str, nn.Parameter]:
+        return {}
+
+    def optimizers(self) -> list[torch.optim.Optimizer]:
+        return []
+
+    def state_dict(self) -> dict[str, Any]:
+        return {}
+
+    def load_state_dict(self, d: dict[str, Any], where: str) -> None:
+        """Restore a checkpoint's state (`where` names the file in errors)."""
+
+
+def make_image_model(cfg: Any, n: int, device: torch.device,
+                     centres: Callable[[], Tensor | None]) -> ImageModel:  # -> [n, 3]: the training cameras'
+    """The image model a TrainConfig's --appearance names, for `n` training images."""
+    return Exposure(n, cfg.exposure, device, centres()) if cfg.appearance == "exposure" else ImageModel()
+
+
+class Exposure(ImageModel):
     """The per-training-image transforms [n_train, 3, 4] and their optimiser."""
+
+    name = "exposure"
 
     def __init__(self, n: int, cfg: ExposureConfig, device: torch.device,
                  centres: Tensor | None = None) -> None:  # centres [n, 3]: the training cameras'
@@ -74,6 +115,19 @@ class Appearance:
         # a row steps once per time its view is trained, however many ranks share a step.
         self.optimizer = _CentredAdam([self.transforms], lr=cfg.lr, eps=1e-15, betas=(0.9, 0.999),
                                       basis=basis.to(device))
+
+    def shade(self, image: Tensor, view: int, step: int | None = None,  # image [H, W, 3]
+              iterations: int = 1) -> tuple[Tensor, Tensor | float]:
+        if step is None:
+            return self.apply(image, view), 0.0
+        self.schedule(step, iterations)
+        return self.apply(image, view), self.penalty(view)
+
+    def parameters(self) -> dict[str, nn.Parameter]:
+        return {"transforms": self.transforms}
+
+    def optimizers(self) -> list[torch.optim.Optimizer]:
+        return [self.optimizer]
 
     def apply(self, image: Tensor, i: int) -> Tensor:  # image [H, W, 3] -> [H, W, 3]
         """Training image `i`'s colour transform applied to a render of its view."""
@@ -96,7 +150,6 @@ class Appearance:
         return {"kind": "exposure", "transforms": self.transforms.detach(), "optimizer": self.optimizer.state_dict()}
 
     def load_state_dict(self, d: dict[str, Any], where: str) -> None:
-        """Restore a checkpoint's transforms (`where` names the file in errors)."""
         t = d.get("transforms")
         if not isinstance(t, Tensor) or tuple(t.shape) != tuple(self.transforms.shape):
             shown = tuple(t.shape) if isinstance(t, Tensor) else type(t).__name__

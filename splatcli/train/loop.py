@@ -140,8 +140,6 @@ def _loop(project: Project, base: TrainConfig, cfg: TrainConfig, data: TrainData
         step = state.step + 1
         t0 = time.perf_counter()
         state.optimizers["means"].param_groups[0]["lr"] = means_lr(cfg, step, data.extent)
-        if state.appearance is not None:
-            state.appearance.schedule(step, cfg.iterations)
         views = [state.next_view(len(data.train)) for _ in range(k)]  # the one-process stream, dealt out
         view = data.train[views[comm.rank]].at_scale(cfg.train_scale(step))
         with _out_of_memory(project, base, state, step, save=True, comm=comm):  # nothing is updated yet: save this state
@@ -149,10 +147,7 @@ def _loop(project: Project, base: TrainConfig, cfg: TrainConfig, data: TrainData
             info = StepInfo(out, view.camera.width, view.camera.height, combine=comm.combine_rows)
             for strategy, st in zip(state.strategies, state.splats.states):
                 strategy.step_pre_backward(state.splats, st, step, info)
-            image, penalty = out.image, 0.0
-            if state.appearance is not None:  # the training image's own colour transform (appearance.py)
-                i = views[comm.rank]
-                image, penalty = state.appearance.apply(image, i), state.appearance.penalty(i)
+            image, penalty = state.image_model.shade(out.image, views[comm.rank], step, cfg.iterations)
             loss = photometric_loss(image, view.target(), cfg.lambda_dssim, view.keep) + penalty
             loss.backward()
         loss, stopping = comm.reduce_step(state.trainable(), loss, stop.is_set())
@@ -332,8 +327,8 @@ def evaluate_views(
     ps, ss = [], []
     for v, i in comm.share(list(zip(views, train_index or [None] * len(views)))):
         img = render_view(state, v, bg, sh_degree).image
-        if i is not None and state.appearance is not None:
-            img = state.appearance.apply(img, i)
+        if i is not None:
+            img = state.image_model.shade(img, i)[0]
         img = img.clamp(0, 1)
         t = v.target()
         ps.append(float(psnr(img, t, v.keep)))

@@ -23,7 +23,7 @@ from ..strategy import (CompactStep, Context, DefaultStrategy, MCMCStrategy, Mip
                         Strategy, SupportPrune,
                         sh_degree_of)
 from ..strategy.mip import GROW_GRAD2D as MIP_GROW_GRAD2D
-from .appearance import Appearance
+from .appearance import ImageModel, make_image_model
 from .config import TrainConfig
 from .plan import TimePlan
 
@@ -43,7 +43,7 @@ class TrainState:
     loss_acc: Tensor = field(default_factory=lambda: torch.zeros(2, dtype=torch.float64))  # [sum, count] since the last log line
     refine_acc: dict[str, int] = field(default_factory=dict)  # cloned / split / pruned since the last log line
     plan: TimePlan | None = None  # --time-budget
-    appearance: Appearance | None = None  # --appearance exposure: per-training-image colour transforms
+    image_model: ImageModel = field(default_factory=ImageModel)  # --appearance: between a render and its photo
 
     @property
     def params(self) -> dict[str, nn.Parameter]:
@@ -54,14 +54,12 @@ class TrainState:
         return self.splats.optimizers
 
     def trainable(self) -> dict[str, nn.Parameter]:
-        """Every tensor a step's backward reaches: the Gaussians' parameters, and the
-        per-image colour transforms with --appearance (what the ranks all-reduce)."""
-        if self.appearance is None:
-            return self.params
-        return {**self.params, "appearance": self.appearance.transforms}
+        """Every tensor a step's backward reaches: the Gaussians' parameters and the image
+        model's (what the ranks all-reduce)."""
+        return {**self.params, **{f"{self.image_model.name}.{k}": p for k, p in self.image_model.parameters().items()}}
 
     def all_optimizers(self) -> list[torch.optim.Optimizer]:
-        return list(self.optimizers.values()) + ([self.appearance.optimizer] if self.appearance is not None else [])
+        return list(self.optimizers.values()) + self.image_model.optimizers()
 
     @property
     def images(self) -> int:
@@ -166,12 +164,6 @@ def _make_optimizers(params: dict[str, nn.Parameter], cfg: TrainConfig, extent: 
                                 betas=(cfg.adam_beta1, cfg.adam_beta2), fused=True) for k, p in params.items()}
 
 
-def _appearance(cfg: TrainConfig, n_train: int, device: torch.device, ctx: Context) -> Appearance | None:
-    if cfg.appearance == "none":
-        return None
-    return Appearance(n_train, cfg.exposure, device, ctx.centres())
-
-
 def _params(g: Gaussians, names: list[str]) -> dict[str, nn.Parameter]:
     raw = {"means": g.means, "quats": g.quats, "log_scales": g.log_scales, "opacity_logits": g.opacity_logits,
            "sh0": g.sh[:, :1], "shN": g.sh[:, 1:]}
@@ -191,7 +183,7 @@ def new_state(g: Gaussians, cfg: TrainConfig, extent: float, device: torch.devic
     return TrainState(splats=splats, strategies=strategies, view_gen=view_gen,
                       perm=torch.randperm(n_train, generator=view_gen), pos=0, world=world,
                       loss_acc=torch.zeros(2, dtype=torch.float64, device=device),
-                      appearance=_appearance(cfg, n_train, device, ctx))
+                      image_model=make_image_model(cfg, n_train, device, ctx.centres))
 
 
 def save_state(path: Path, state: TrainState, cfg: TrainConfig) -> Path:
@@ -210,7 +202,7 @@ def save_state(path: Path, state: TrainState, cfg: TrainConfig) -> Path:
         strategy={s.name: st.state_dict() for s, st in zip(state.strategies, state.splats.states)},
         rng=rng,
         config=cfg.to_dict(),
-        appearance=state.appearance.state_dict() if state.appearance is not None else None,
+        appearance=state.image_model.state_dict() or None,
         extra={
             "perm": state.perm, "pos": state.pos, "elapsed_s": state.elapsed_s, "bad_steps": state.bad_steps,
             "bad_run": state.bad_run, "param_names": list(state.params), "loss_acc": state.loss_acc,
@@ -248,9 +240,9 @@ def state_from_checkpoint(ck: Checkpoint, cfg: TrainConfig, extent: float, devic
         torch.set_rng_state(ck.rng["torch"])
     if "cuda" in ck.rng and torch.cuda.is_available() and device.type == "cuda":
         torch.cuda.set_rng_state_all(ck.rng["cuda"])
-    appearance = _appearance(cfg, n_train, device, ctx)
-    if appearance is not None and ck.appearance:
-        appearance.load_state_dict(ck.appearance, str(ck.path))
+    image_model = make_image_model(cfg, n_train, device, ctx.centres)
+    if ck.appearance.get("kind") == image_model.name:  # (a model added on resume starts fresh)
+        image_model.load_state_dict(ck.appearance, str(ck.path))
     return TrainState(
         splats=Splats(params, optimizers, states),
         strategies=strategies,
@@ -264,7 +256,7 @@ def state_from_checkpoint(ck: Checkpoint, cfg: TrainConfig, extent: float, devic
         bad_run=int(ex.get("bad_run", 0)),
         loss_acc=ex.get("loss_acc", torch.zeros(2, dtype=torch.float64)).to(device),
         refine_acc={k: int(v) for k, v in (ex.get("refine_acc") or {}).items()},
-        appearance=appearance,
+        image_model=image_model,
     )
 
 
