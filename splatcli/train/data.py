@@ -111,14 +111,10 @@ def load_train_data(
     scene = read_project_scene(project)
     facts = project.manifest().get("scene") or {}
     bg = project.background() or (0.0, 0.0, 0.0)
-    splits = project.splits()
     by_name = {c.name: c for c in scene.cameras}
+    splits = project.splits(list(by_name))  # none recorded: the hold-out rule (project.holdout_split)
     train_names = [n for n in splits["train"] if n in by_name]
     test_names = [n for n in splits["test"] if n in by_name]
-    if not splits["train"] and not splits["test"]:  # no recorded split: every 8th image is held out
-        names = sorted(by_name)
-        train_names = [n for i, n in enumerate(names) if i % 8 != 0] or names
-        test_names = [n for i, n in enumerate(names) if i % 8 == 0 and len(names) > 1]
     if not train_names:
         raise SplatError(f"{project.manifest_path}: the train split names no registered image")
     test_names = subset(test_names, eval_max_views)
