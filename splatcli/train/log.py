@@ -13,6 +13,7 @@ from typing import Any
 import torch
 
 from ..eval.curve import TrainLogLine, read_log
+from ..eval.score import REPORTED
 from ..events import EventSink, Note, emit
 from ..gaussians import histogram
 from ..io.atomic import append_line, atomic_write_json, atomic_write_text
@@ -189,6 +190,8 @@ def finish(project: Project, cfg: TrainConfig, state: TrainState, resumed_from: 
     opac = torch.sigmoid(g.opacity_logits.double()).cpu().numpy()
     report = TrainReport(summary=summary, scale_hist=histogram(max_scale),
                          opacity_hist=histogram(opac, range_=(0.0, 1.0)), config=cfg.to_dict())
-    atomic_write_json(project.train_report_path, report.to_json())
-    project.record_step("train", config=cfg.to_dict(), summary=summary.to_json())
+    # how psnr/ssim (the held-out log's last figures) were scored: eval/score.py, as eval scores
+    recorded = {**summary.to_json(), "quantisation": REPORTED}
+    atomic_write_json(project.train_report_path, {**report.to_json(), "summary": recorded})
+    project.record_step("train", config=cfg.to_dict(), summary=recorded)
     return summary
