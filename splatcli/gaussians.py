@@ -115,6 +115,26 @@ def smooth_3d(
     return ls, op
 
 
+def kept_count(n: int, fraction: float) -> int:
+    """How many of `n` Gaussians a budget of `fraction` (in (0, 1]) keeps: the nearest whole
+    number, halves up, and at least one of a non-empty set. Nearest, not floor or ceiling:
+    the kept fraction is then the closest to the one asked, and floating-point noise in
+    `fraction * n` cannot move the count by a whole Gaussian when the product is meant to
+    be whole (0.1 * 30 is 3.0000000000000004, whose ceiling is 4; 0.29 * 100 is
+    28.999999999999996, which int() cuts to 28)."""
+    if n <= 0:
+        return 0
+    return min(n, max(1, math.floor(n * fraction + 0.5)))
+
+
+def top_by_weight(weight: Tensor, k: int) -> Tensor:  # [N] -> [N] bool
+    """The `k` largest entries of `weight` as a mask (ties: the lower index), the one
+    top-k rule of --compact (strategy/compact.py) and eval's budgets (eval/budgets.py)."""
+    keep = torch.zeros(weight.shape[0], dtype=torch.bool, device=weight.device)
+    keep[torch.argsort(weight, descending=True, stable=True)[: max(k, 0)]] = True
+    return keep
+
+
 @dataclass
 class Histogram:
     edges: list[float]  # len(counts) + 1

@@ -40,6 +40,7 @@ SCHEMA_VERSION = 1
 MANIFEST_NAME = "splatcli.json"
 LOCK_NAME = ".splatcli.lock"
 FRAME_CONVENTION = "opencv"  # x right, y down, z forward; viewmat maps world to camera
+HOLDOUT_EVERY = 8  # without the data's own test split, every 8th image is held out (holdout_split)
 _CKPT_RE = re.compile(r"^step-(\d{9})\.pt$")
 
 
@@ -188,10 +189,15 @@ class Project:
         return self.manifest().get("steps", {}).get(step)
 
     # ---- splits ------------------------------------------------------------
-    def splits(self) -> dict[str, list[str]]:
-        """Image names per split: {"train": [...], "test": [...]}."""
+    def splits(self, names: list[str] | None = None) -> dict[str, list[str]]:
+        """Image names per split: {"train": [...], "test": [...]}, as `process` recorded them.
+        With `names` (the registered images) and no split recorded (a project assembled by
+        hand), the hold-out rule's split of them (`holdout_split`), so every command uses one."""
         s = self.manifest().get("splits") or {}
-        return {"train": list(s.get("train", [])), "test": list(s.get("test", []))}
+        out = {"train": list(s.get("train", [])), "test": list(s.get("test", []))}
+        if names is not None and not out["train"] and not out["test"]:
+            return holdout_split(names)
+        return out
 
     # ---- scene facts -------------------------------------------------------
     def background(self) -> tuple[float, float, float] | None:
@@ -326,6 +332,18 @@ def _live_holders(text: str) -> list[str]:
                 pass
             out.append(line.strip())
     return out[-2:]
+
+
+def holdout_split(names: list[str], test: list[str] | None = None) -> dict[str, list[str]]:
+    """The one hold-out rule: the data's own `test` images when it names some, else every
+    HOLDOUT_EVERY-th image by sorted name (index % 8 == 0, the 3DGS convention); a single
+    image is trained on, never held out. Returns {"train": [...], "test": [...]}, sorted."""
+    names = sorted(names)
+    if test:
+        held = set(test)
+    else:
+        held = set(names[::HOLDOUT_EVERY]) if len(names) > 1 else set()
+    return {"train": [n for n in names if n not in held], "test": [n for n in names if n in held]}
 
 
 def is_project(path: str | Path) -> bool:

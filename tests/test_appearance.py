@@ -326,7 +326,7 @@ def test_training_view_scores_go_through_each_photos_transform(monkeypatch):
     with torch.no_grad():
         app.transforms[2, :, :3] *= 0.5  # photo 2 came out at half the exposure
     state = types.SimpleNamespace(image_model=app)
-    photo = types.SimpleNamespace(target=lambda: render * 0.5, keep=None)
+    photo = types.SimpleNamespace(image=torch.full((12, 12, 3), 102, dtype=torch.uint8), keep=None)  # 0.4 = 0.8 / 2
     through, _ = loop.evaluate_views(state, [photo], torch.zeros(3), 0, train_index=[2])
     alone, _ = loop.evaluate_views(state, [photo], torch.zeros(3), 0)
     assert math.isinf(through) or through > 60, through

@@ -14,7 +14,9 @@ import torch
 from skimage.metrics import structural_similarity
 
 from splatcli.device import resolve_device
+from splatcli.errors import SplatError
 from splatcli.eval.budgets import contributions, prune_to
+from splatcli.eval.evaluate import EvalConfig, check_eval_config
 from splatcli.eval.report import used_sh_degree
 from splatcli.gaussians import SH_C0
 from splatcli.io.checkpoint import load_gaussians
@@ -86,12 +88,15 @@ def test_eval_report_keys_and_numbers(evaluated) -> None:
     assert sum(st["opacity_hist"]["counts"]) == 300 and sum(st["log10_scale_hist"]["counts"]) == 900
     assert sum(st["sh_degree_counts"]) == 300
     assert proj.step("eval")["summary"]["psnr"] == data["psnr"]
+    # scored as 8-bit images (eval/score.py); the tiny project's log predates the field: unquantised
+    assert data["quantisation"] == summary["quantisation"] == "8-bit" and data["curve_quantisation"] == "none"
 
 
 def test_eval_markdown_and_plots(evaluated) -> None:
     proj, _ = evaluated
     md = proj.eval_md_path.read_text()
-    for needle in ("## Summary", "| PSNR (mean over views) |", "## Speed against error", "| 50% | 150 |",
+    for needle in ("## Summary", "Scores: 8-bit renders, as saved to PNG.", "| PSNR (mean over views) |",
+                   "(reports/train_log.jsonl; unquantised renders", "## Speed against error", "| 50% | 150 |",
                    "## Worst five views", "| img_008.png |", "## Model statistics", "![speed against error](speed_vs_error.png)"):
         assert needle in md, needle
     for name in ("speed_vs_error", "scales", "opacities", "sh_degrees"):
@@ -177,7 +182,7 @@ def test_compare_folders(tmp_path: Path) -> None:
     r = run_cli("eval", "--pred", tmp_path / "pred", "--gt", tmp_path / "gt", "--json")
     assert r.exit_code == 0, r.output
     s = json.loads(r.stdout)
-    assert s["missing"] == ["extra.png"] and s["num_images"] == 3
+    assert s["missing"] == ["extra.png"] and s["num_images"] == 3 and s["quantisation"] == "8-bit"
     ref = [10 * np.log10(1 / np.mean((pred[k][..., ::-1] / 255.0 - gt[k][..., ::-1] / 255.0) ** 2)) for k in sorted(gt)]
     assert s["psnr"] == pytest.approx(np.mean(ref), abs=1e-9)
     assert [x["name"] for x in s["per_image"]] == sorted(gt)
@@ -198,6 +203,11 @@ def test_eval_option_errors(proj: Project, args: list[str], fragments: list[str]
     before = snapshot(proj.root)
     assert_user_error(run_cli("eval", proj.root, *args), *fragments)
     assert snapshot(proj.root) == before
+
+
+def test_eval_refuses_an_unknown_quantisation(proj: Project) -> None:
+    with pytest.raises(SplatError, match="quantisation '16-bit' is not known"):
+        check_eval_config(EvalConfig(quantisation="16-bit"))
 
 
 def test_eval_needs_a_project_or_folders(tmp_path: Path) -> None:

@@ -3,6 +3,7 @@ the non-finite guard, the budget, --compact and --sh-degree auto, the CLI."""
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
@@ -15,6 +16,8 @@ from typer.testing import CliRunner
 import splatcli.train.loop as train_mod
 from splatcli.cli.main import app
 from splatcli.errors import Interrupted, SplatError, TrainingDiverged
+from splatcli.eval.evaluate import EvalConfig, plan_eval, run_eval
+from splatcli.eval.score import REPORTED
 from splatcli.events import Progress
 from splatcli.io.checkpoint import load_checkpoint, load_gaussians
 from splatcli.io.ply import ply_bytes
@@ -225,6 +228,27 @@ def test_finished_run_resumed_with_compact_equals_a_compact_run(tmp_path, uninte
         assert torch.equal(pa[k], pb[k]), k
 
 
+@pytest.mark.parametrize("quantisation", ["8-bit", "none"])
+def test_final_heldout_scores_are_evals(tmp_path, monkeypatch, quantisation):
+    """train.json's held-out PSNR / SSIM and eval's of the final model are one figure when
+    scored with the same quantisation (eval/score.py), and differ under the other."""
+    if quantisation != REPORTED:
+        monkeypatch.setattr(train_mod, "evaluate_views",
+                            functools.partial(train_mod.evaluate_views, quantisation=quantisation))
+    proj = tiny(tmp_path)
+    s = train(proj.root, make_config(**SMALL), CPU)
+    assert json.loads(proj.train_report_path.read_text())["summary"]["quantisation"] == REPORTED
+
+    def evaluated(q: str):
+        return run_eval(plan_eval(proj.root, EvalConfig(budgets=(1.0,), plots=False, write=False, quantisation=q), CPU))
+
+    same = evaluated(quantisation)
+    assert [x.name for x in same.per_image] == proj.splits()["test"] and same.quantisation == quantisation
+    assert abs(s.psnr - same.psnr) <= 5e-5 and abs(s.ssim - same.ssim) <= 5e-6  # the log's 4 and 5 decimals
+    other = evaluated("none" if quantisation == "8-bit" else "8-bit")
+    assert abs(s.psnr - other.psnr) > 1e-4
+
+
 def test_no_opacity_reset_on_the_last_step(tmp_path):
     proj = tiny(tmp_path)
     train(proj.root, make_config(**{**SMALL, "iterations": 16, "opacity_reset": 16, "refine_stop": 1000}), CPU)
@@ -236,9 +260,10 @@ def test_compact_prunes_in_rounds_to_a_third(tmp_path):
     proj = tiny(tmp_path)
     s = train(proj.root, make_config(**SMALL, compact=True, compact_finetune=12, compact_rounds=3), CPU)
     c = s.compact
-    assert c.after_count == int(c.before_count / 3) and s.num_gaussians == c.after_count
+    # a third to the nearest (gaussians.kept_count, eval's budgets' rule too)
+    assert c.after_count == math.floor(c.before_count / 3 + 0.5) and s.num_gaussians == c.after_count
     counts = {r["step"]: r["num_gaussians"] for r in read_log(proj.train_log_path)}
-    assert counts[30] == int(c.before_count * (1 / 3) ** (1 / 3))  # round 1 of 3 right after training
+    assert counts[30] == round(c.before_count * (1 / 3) ** (1 / 3))  # round 1 of 3 right after training
     assert c.before_psnr is not None and c.after_psnr is not None
     assert s.ply_bytes == ply_bytes(c.after_count, s.sh_degree) == c.after_bytes
 

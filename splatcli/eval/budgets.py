@@ -7,14 +7,12 @@ the training views (render/weights.py, exact through autograd).
 
 from __future__ import annotations
 
-import math
 from typing import Sequence
 
-import torch
 from torch import Tensor
 
 from ..camera import Camera
-from ..gaussians import Gaussians
+from ..gaussians import Gaussians, kept_count, top_by_weight
 from ..render.weights import blending_weights
 
 
@@ -25,10 +23,10 @@ def contributions(g: Gaussians, cams: Sequence[Camera]) -> Tensor:  # -> [N] tot
 
 
 def prune_to(g: Gaussians, weight: Tensor, fraction: float) -> Gaussians:  # weight [N]
-    """The `fraction` of the Gaussians with the largest weight (ties: lower index first)."""
-    k = max(1, int(math.ceil(fraction * len(g))))
+    """The `fraction` of the Gaussians with the largest weight (gaussians.kept_count and
+    top_by_weight: the rules --compact uses), in their original order (depth sorting does
+    not care, files diff better)."""
+    k = kept_count(len(g), fraction)
     if k >= len(g):
         return g
-    order = torch.argsort(-weight, stable=True)[:k]
-    keep, _ = torch.sort(order)  # keep the original order (depth sorting does not care, files diff better)
-    return g.select(keep)
+    return g.select(top_by_weight(weight, k))

@@ -13,8 +13,11 @@ two speed-against-error curves:
   clamp at 0 is inactive) the image is sum_i w_i c_i + T bg, linear in c_i, so
   d(sum image_R) / d(dc_i,R) = SH_C0 * sum_pixels w_i.
 
-Rendered images are quantised to 8 bits before scoring, as the PNGs a user
-sees (and the original 3DGS metrics script) are.
+Views are scored by score.py, as training's held-out log scores them: renders
+quantised to 8 bits by default, as the PNGs a user sees (and the original 3DGS
+metrics script) are (`EvalConfig.quantisation`; the report says which:
+`quantisation`), against the photographs as training fitted them
+(score.load_target).
 
 Masks are scored as training used them (`mask_mode` in the train summary;
 Project.mask_mode("auto") for a model from elsewhere): "ignore" scores the
@@ -44,7 +47,7 @@ from ..errors import SplatError
 from ..events import EventSink, Note, Progress, Stage, StageDone, emit
 from ..gaussians import Gaussians
 from ..io.atomic import atomic_write_json, atomic_write_text
-from ..io.images import load_mask, load_rgb
+from ..io.images import load_rgb
 from ..io.formats import check_format, default_name, read_format, write_format
 from ..io.model import load_model
 from ..io.ply import ply_bytes
@@ -54,7 +57,7 @@ from ..views.sources import SPLITS, View, choose_antialias, dataset_views, zoom_
 from .budgets import contributions, prune_to
 from .curve import read_curve
 from .lpips import MIN_SIZE as LPIPS_MIN_SIZE, Lpips, load_lpips
-from .metrics import psnr, psnr_color_fit, ssim
+from .score import QUANTISATIONS, REPORTED, load_target, score_image
 from .report import (NO_PLOTS_HINT, BudgetPoint, EvalReport, FormatPoint, ImageScore, model_stats, write_plots,
                      write_report_md)
 
@@ -76,6 +79,7 @@ class EvalConfig:
     formats: tuple[str, ...] = ()  # file formats to encode, decode and score (size against error)
     lpips_weights: Path | None = None  # torchvision's AlexNet weights for LPIPS (None: the torch hub cache)
     antialias: str = "auto"  # auto | on | off: the 2D filter (views/sources.choose_antialias)
+    quantisation: str = REPORTED  # renders as scored: "8-bit" (as PNG, training's held-out log too) | "none"
 
 
 @dataclass
@@ -89,10 +93,11 @@ class FolderReport:
     pred_dir: Path
     gt_dir: Path
     missing: list[str]  # predictions with no ground truth of the same name
+    quantisation: str = REPORTED  # the files are 8-bit as read (io/images.load_rgb), so this changes nothing
 
     def summary(self) -> dict[str, Any]:
         return {"psnr": self.psnr, "ssim": self.ssim, "lpips": self.lpips, "num_images": len(self.per_image),
-                "pred": self.pred_dir, "gt": self.gt_dir, "missing": self.missing,
+                "pred": self.pred_dir, "gt": self.gt_dir, "missing": self.missing, "quantisation": self.quantisation,
                 "per_image": [asdict(s) for s in self.per_image]}
 
 
@@ -102,22 +107,11 @@ def load_image(path: Path, background: Sequence[float] = (0.0, 0.0, 0.0),
     return torch.from_numpy(load_rgb(path, size, tuple(background))).to(torch.float64) / 255.0
 
 
-def quantise(img: Tensor) -> Tensor:  # [H, W, 3] -> [H, W, 3] float64 in 1/255 steps
-    return (img.detach().clamp(0, 1) * 255).round().to(torch.float64).cpu() / 255.0
-
-
-def score(name: str, pred: Tensor, gt: Tensor, lp: Lpips | None = None,
-          keep: Tensor | None = None) -> ImageScore:  # [H, W, 3] each, keep [H, W]
-    """PSNR, SSIM (and LPIPS) of one view; with `keep`, over the kept pixels only (LPIPS
-    sees the photograph's own pixels where masked, so they add nothing)."""
-    if keep is not None and lp is not None:
-        lp_pred = torch.where(keep[..., None], pred, gt.to(pred.dtype))
-    else:
-        lp_pred = pred
-    return ImageScore(name=name, psnr=float(psnr(pred, gt, keep)),
-                      ssim=float(ssim(pred.to(torch.float64), gt.to(torch.float64), keep)),
-                      lpips=lp(lp_pred, gt) if lp is not None else None,
-                      psnr_color_fit=psnr_color_fit(pred, gt, keep))
+def score(name: str, pred: Tensor, gt: Tensor, lp: Lpips | None = None, keep: Tensor | None = None,
+          quantisation: str = REPORTED) -> ImageScore:  # [H, W, 3] each, keep [H, W]
+    """PSNR, SSIM, the colour-fit PSNR (and LPIPS) of one view (score.score_image)."""
+    s = score_image(pred, gt, keep, quantisation=quantisation, color_fit=True, lpips=lp)
+    return ImageScore(name=name, psnr=s.psnr, ssim=s.ssim, lpips=s.lpips, psnr_color_fit=s.psnr_color_fit)
 
 
 MASKED_SCORING = {  # eval's `masks` line, by the mode training used
@@ -128,23 +122,14 @@ MASKED_SCORING = {  # eval's `masks` line, by the mode training used
 
 def _ground_truth(project: Project, views: Sequence[View], bg_rgb: tuple[float, float, float], mode: str,
                   on_event: EventSink | None) -> tuple[list[Tensor], list[Tensor | None]]:
-    """Each view's photograph ([H, W, 3] float64) and, in "ignore" mode, its kept pixels
-    ([H, W] bool); "background" with mask files paints the masked pixels in `bg_rgb`."""
-    files = project.mask_source() == "files"
+    """Each view's photograph ([H, W, 3] float64) and its kept pixels ([H, W] bool) or
+    None, as training fitted them (score.load_target)."""
     gts, keeps = [], []
     emit(on_event, Stage("load images", total=len(views)))
     for i, v in enumerate(views):
-        assert v.image is not None
-        size = (v.camera.width, v.camera.height)
-        gt = load_image(v.image, bg_rgb, size)
-        keep = None
-        if mode == "ignore" or (mode == "background" and files):
-            keep = torch.from_numpy(load_mask(project.mask_path(v.camera.name), size))
-        if mode == "background" and keep is not None:
-            gt = torch.where(keep[..., None], gt, torch.tensor(bg_rgb, dtype=gt.dtype))
-            keep = None
-        gts.append(gt)
-        keeps.append(keep)
+        rgb, keep = load_target(project, v.camera.name, (v.camera.width, v.camera.height), bg_rgb, mode)
+        gts.append(torch.from_numpy(rgb).to(torch.float64) / 255.0)
+        keeps.append(torch.from_numpy(keep) if keep is not None else None)
         emit(on_event, Progress("load images", i + 1, len(views)))
     emit(on_event, StageDone("load images", 0.0))
     return gts, keeps
@@ -152,8 +137,8 @@ def _ground_truth(project: Project, views: Sequence[View], bg_rgb: tuple[float, 
 
 def _score_views(g: Gaussians, views: Sequence[View], gts: Sequence[Tensor], keeps: Sequence[Tensor | None],
                  bg: Tensor, lp: Lpips | None, on_event: EventSink | None, stage: str,
-                 antialiased: bool) -> tuple[list[ImageScore], float]:
-    """Render, quantise and score every view; returns scores and the median
+                 antialiased: bool, quantisation: str) -> tuple[list[ImageScore], float]:
+    """Render and score every view (quantised: score.py); returns scores and the median
     render seconds per frame (the median: other processes sharing the CPU make
     single frames slow, and the first call of a process pays one-off set-up, so
     one warm-up render comes first)."""
@@ -167,7 +152,7 @@ def _score_views(g: Gaussians, views: Sequence[View], gts: Sequence[Tensor], kee
         out = render_camera(g, v.camera, bg, antialiased=antialiased)
         synchronize(g.device)
         times.append(time.perf_counter() - t0)
-        scores.append(score(v.camera.name, quantise(out.image), gt, lp, keep))
+        scores.append(score(v.camera.name, out.image, gt, lp, keep, quantisation))
         emit(on_event, Progress(stage, i + 1, len(views), {"psnr": float(np.mean([x.psnr for x in scores]))}))
     emit(on_event, StageDone(stage, time.perf_counter() - t_all))
     return scores, float(np.median(times))
@@ -175,7 +160,7 @@ def _score_views(g: Gaussians, views: Sequence[View], gts: Sequence[Tensor], kee
 
 def _score_formats(g: Gaussians, formats: Sequence[str], views: Sequence[View], gts: Sequence[Tensor],
                    keeps: Sequence[Tensor | None], bg: Tensor, lp: Lpips | None, full_psnr: float,
-                   on_event: EventSink | None, antialiased: bool) -> list[FormatPoint]:
+                   on_event: EventSink | None, antialiased: bool, quantisation: str) -> list[FormatPoint]:
     """Each format: write the model, read it back through our reader, score the views."""
     out = []
     ply_size = ply_bytes(len(g), g.sh_degree)
@@ -187,7 +172,8 @@ def _score_formats(g: Gaussians, formats: Sequence[str], views: Sequence[View], 
             t1 = time.perf_counter()
             back = read_format(path, g.device, fmt).gaussians
             t2 = time.perf_counter()
-            sc, _ = _score_views(back, views, gts, keeps, bg, lp, on_event, f"format {fmt}", antialiased)
+            sc, _ = _score_views(back, views, gts, keeps, bg, lp, on_event, f"format {fmt}", antialiased,
+                                 quantisation)
             p = _mean_psnr(sc)
             out.append(FormatPoint(format=fmt, bytes=w.bytes, bytes_per_gaussian=w.bytes / max(len(g), 1),
                                    ratio=ply_size / max(w.bytes, 1), psnr=p, ssim=float(np.mean([x.ssim for x in sc])),
@@ -230,6 +216,8 @@ def check_eval_config(config: EvalConfig) -> None:
     if config.contribution_views < 1:
         raise SplatError(f"contribution_views {config.contribution_views}: must be at least 1")
     choose_antialias(config.antialias, None, None)  # refuses an unknown mode
+    if config.quantisation not in QUANTISATIONS:
+        raise SplatError(f"quantisation {config.quantisation!r} is not known; allowed values: {', '.join(QUANTISATIONS)}")
 
 
 @dataclass
@@ -320,8 +308,8 @@ def _run_eval(plan: EvalPlan, on_event: EventSink | None) -> EvalReport:
         masks = MASKED_SCORING[mode] if project.mask_source() == "files" or mode == "ignore" else \
             "whole images, composited over the background (the masks are the images' alpha)"
 
-    lp, aa = plan.lpips, plan.antialiased
-    per_image, secs = _score_views(g, views, gts, keeps, bg, lp, on_event, "eval", aa)
+    lp, aa, q = plan.lpips, plan.antialiased, config.quantisation
+    per_image, secs = _score_views(g, views, gts, keeps, bg, lp, on_event, "eval", aa, q)
     fps = 1.0 / max(secs, 1e-9)
     mean_psnr = _mean_psnr(per_image)
     mean_ssim = float(np.mean([s.ssim for s in per_image]))
@@ -341,15 +329,17 @@ def _run_eval(plan: EvalPlan, on_event: EventSink | None) -> EvalReport:
         emit(on_event, StageDone("rank Gaussians", time.perf_counter() - t0))
         for f in fractions:
             gp = prune_to(g, weight, f)
-            sc, s = _score_views(gp, views, gts, keeps, bg, lp, on_event, f"budget {f:.0%}", aa)
+            sc, s = _score_views(gp, views, gts, keeps, bg, lp, on_event, f"budget {f:.0%}", aa, q)
             budgets.append(BudgetPoint(fraction=f, num_gaussians=len(gp), ply_bytes=ply_bytes(len(gp), gp.sh_degree),
                                        psnr=_mean_psnr(sc), ssim=float(np.mean([x.ssim for x in sc])),
                                        render_fps=1.0 / max(s, 1e-9), ms_per_frame=1000 * s, lpips=_mean_lpips(sc)))
     if 1.0 not in config.budgets:
         budgets = budgets[1:]
 
-    formats = _score_formats(g, config.formats, views, gts, keeps, bg, lp, mean_psnr, on_event, aa)
+    formats = _score_formats(g, config.formats, views, gts, keeps, bg, lp, mean_psnr, on_event, aa, q)
     curve = read_curve(project.train_log_path) if config.model is None else []
+    # the log's scores: 8-bit since train recorded its quantisation, unquantised before
+    curve_q = str(tsum.get("quantisation", "none")) if curve else None
     report = EvalReport(
         psnr=mean_psnr,
         ssim=mean_ssim,
@@ -372,6 +362,8 @@ def _run_eval(plan: EvalPlan, on_event: EventSink | None) -> EvalReport:
         formats=formats,
         training_curve=curve,
         masks=masks,
+        quantisation=q,
+        curve_quantisation=curve_q,
         stats=model_stats(g),
         notes=notes,
     )
@@ -393,7 +385,7 @@ def _run_eval(plan: EvalPlan, on_event: EventSink | None) -> EvalReport:
             project.record_step("eval", config={"split": config.split, "background": list(bg_rgb),
                                                 "downscale": downscale, "max_size": max_size,
                                                 "budgets": list(config.budgets), "formats": list(config.formats),
-                                                "antialiased": aa},
+                                                "antialiased": aa, "quantisation": q},
                                 summary=report.summary())
     return report
 

@@ -21,7 +21,12 @@ from ..gaussians import Gaussians, Histogram, histogram
 from ..io.atomic import atomic_path
 from ..project import Project
 from .curve import CurvePoint
+from .score import REPORTED
 
+QUANTISATION_WORDS = {  # eval.md's word for each quantisation (eval/score.py)
+    "8-bit": "8-bit renders, as saved to PNG",
+    "none": "unquantised renders (clamped to [0, 1])",
+}
 SH_USED_TOL = 0.01  # a band is "used" when some coefficient moves colour by > 1% (SH value x basis ~ coefficient)
 
 
@@ -90,6 +95,8 @@ class EvalReport:
     model: str = ""  # what was scored: "checkpoint step 7000" or the .ply path
     lpips: float | None = None  # mean over the split; None when LPIPS is unavailable (a note says why)
     masks: str | None = None  # how the project's masks entered the scores (None: no masks)
+    quantisation: str = REPORTED  # renders as scored (eval/score.py): "8-bit" as saved to PNG, or "none"
+    curve_quantisation: str | None = None  # the same for training_curve (train.json's summary; None: no curve)
     psnr_color_fit: float | None = None  # mean over views of the PSNR after each view's colour fit (metrics.color_fit)
     budgets: list[BudgetPoint] = field(default_factory=list)
     formats: list[FormatPoint] = field(default_factory=list)  # size against error, by file format
@@ -106,12 +113,13 @@ class EvalReport:
         """The headline numbers (what `--json` prints)."""
         return {k: getattr(self, k) for k in ("psnr", "ssim", "lpips", "num_gaussians", "sh_degree", "ply_bytes",
                                               "train_seconds", "train_steps", "render_fps", "device", "split",
-                                              "width", "height", "step", "model", "masks", "psnr_color_fit")} | {"num_images": len(self.per_image)}
+                                              "width", "height", "step", "model", "masks", "quantisation",
+                                              "psnr_color_fit")} | {"num_images": len(self.per_image)}
 
     def to_json(self) -> dict[str, Any]:
         d = asdict(self)
         return {**self.summary(), **{k: d[k] for k in ("per_image", "budgets", "formats", "training_curve", "stats",
-                                                       "plots", "notes")}}
+                                                       "plots", "notes", "curve_quantisation")}}
 
 
 def used_sh_degree(sh: Tensor) -> Tensor:  # [N, K, 3] -> [N] int
@@ -263,6 +271,8 @@ def write_report_md(report: EvalReport, project: Project) -> str:
         f"Model: {r.model}. {r.split[0].upper() + r.split[1:]} split ({len(r.per_image)} views at {r.width}x{r.height}), "
         f"rendered on {r.device}.",
         "",
+        f"Scores: {QUANTISATION_WORDS.get(r.quantisation, r.quantisation)}.",
+        "",
         *([f"Masks: scored on {r.masks}.", ""] if r.masks else []),
         "## Summary",
         "",
@@ -311,7 +321,8 @@ def write_report_md(report: EvalReport, project: Project) -> str:
                          f"{p.ssim:.4f} | {_lp(p.lpips)} | {p.db_lost:.2f} | {p.encode_s:.2f} | {p.decode_s:.2f} |")
         lines.append("")
     if r.training_curve:
-        lines += ["Held-out PSNR while training (reports/train_log.jsonl):", "",
+        q = QUANTISATION_WORDS.get(r.curve_quantisation or "", r.curve_quantisation)
+        lines += [f"Held-out PSNR while training (reports/train_log.jsonl; {q}):", "",
                   "| step | training time (s) | PSNR (dB) | SSIM | Gaussians |", "| --- | --- | --- | --- | --- |"]
         for p in r.training_curve:
             lines.append(f"| {p.step} | {p.elapsed_s:.1f} | {p.psnr:.2f} | {_opt(p.ssim, '.4f')} | "

@@ -203,6 +203,15 @@ def composite(img: np.ndarray, alpha: np.ndarray, background: tuple[float, float
     return np.clip(out + 0.5, 0, 255).astype(np.uint8)
 
 
+def paint_masked(rgb: np.ndarray, keep: np.ndarray,
+                 background: tuple[float, float, float]) -> np.ndarray:  # [H, W, 3] uint8, [H, W] bool -> uint8
+    """`rgb` (RGB uint8) with its masked pixels (keep False) in the background colour (RGB
+    in [0, 1]), rounded as `composite` rounds a transparent pixel: --mask-mode background
+    with mask files, for training and the scores alike."""
+    fill = np.clip(np.asarray(background, np.float32) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    return np.where(keep[..., None], rgb, fill)
+
+
 def write_image(path: Path, img: np.ndarray) -> None:
     """Atomically encode `img` in the format of `path`'s suffix."""
     suffix = path.suffix.lower()

@@ -15,20 +15,12 @@ import numpy as np
 from ..camera import Camera
 from ..events import Stages
 from ..io.atomic import atomic_write_json
-from ..project import Project
+from ..project import Project, holdout_split
 from ..sfm.colmap import model_digest, read_scene
 from .bounds import frustum_bounds, points_bounds
 from .config import ProcessConfig, ProcessResult
 from .dataset import Dataset
 from .detect import InputSpec
-
-
-def split_names(names: list[str], test: list[str] | None) -> dict[str, list[str]]:
-    names = sorted(names)
-    if test:
-        t = set(test)
-        return {"train": [n for n in names if n not in t], "test": [n for n in names if n in t]}
-    return {"train": [n for i, n in enumerate(names) if i % 8 != 0], "test": names[::8]}
 
 
 def scene_facts(cameras: list[Camera], points: np.ndarray, background: tuple[float, float, float]) -> dict[str, Any]:
@@ -57,7 +49,7 @@ def publish(root: Path, stage: Path, spec: InputSpec, cfg: ProcessConfig, ds: Da
     if missing_files:  # our own bug if it happens; never publish an inconsistent project
         raise RuntimeError(f"staged model lists images that were not written: {missing_files[:3]}")
     background = ds.background if ds.background is not None else ((1.0, 1.0, 1.0) if ds.mask_source == "alpha" else (0.0, 0.0, 0.0))
-    splits = split_names(names, ds.test)
+    splits = holdout_split(names, ds.test)
     facts = scene_facts(scene.cameras, scene.points, background)
     facts["masks"] = ds.masks
     facts["mask_source"] = ds.mask_source

@@ -14,9 +14,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import torch
 
-from ..gaussians import sh_degree_from_bases
+from ..gaussians import kept_count, sh_degree_from_bases, top_by_weight
 from ..io.ply import ply_bytes
 from ..options import MODEL, opt
 from . import ops
@@ -129,7 +128,8 @@ class CompactStep(ModelStep):
 
     def _cut(self, splats: Splats, state: CompactState, step: int, r: int,
              heldout: tuple[float, float] | None) -> RefineStats:
-        """Round r of R: keep the n0 * keep^(r/R) Gaussians with the most blending weight."""
+        """Round r of R: keep the n0 * keep^(r/R) Gaussians with the most blending weight
+        (gaussians.kept_count rounds it: the last round keeps keep * n0 to the nearest)."""
         n = len(splats)
         if r == 1:
             if heldout is None:
@@ -137,12 +137,11 @@ class CompactStep(ModelStep):
             state.before_count, state.before_bytes = n, ply_bytes(n, sh_degree_of(splats))
             state.before_psnr = heldout[0] if heldout is not None else None
         n0, rounds = state.before_count, len(self.prune_steps())
-        k = max(1, int(n0 * self.config.keep ** (r / rounds)))  # the last round keeps exactly int(keep * n0)
+        k = kept_count(n0, self.config.keep ** (r / rounds))
         stats = RefineStats(step=step, before=n, after=n)
         if k < n:
             weight = self.ctx.weights()
-            keep = torch.zeros(n, dtype=torch.bool, device=weight.device)
-            keep[torch.argsort(weight, descending=True, stable=True)[:k]] = True
+            keep = top_by_weight(weight, k)
             state.kept_weight.append(float(weight[keep].sum() / weight.sum().clamp_min(1e-12)))
             ops.keep(splats, keep)
             stats.pruned, stats.after = n - k, k

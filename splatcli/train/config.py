@@ -320,6 +320,7 @@ class TrainSummary:
     rank_checks: int | None = None  # checkpoints at which every rank's parameters equalled rank 0's
     mask_mode: str = "off"  # what was done with the masks (Project.mask_mode); eval scores the same way
     chosen: list[dict[str, Any]] | None = None  # what `train` chose for options not given, and why (train/auto.py)
+    quantisation: str = "8-bit"  # how psnr/ssim (the held-out log's last figures) were scored (eval/score.py)
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)

@@ -5,11 +5,12 @@ as uint8 tensors on the training device, [H, W, 3]; a step converts one to float
 (cheaper than keeping float copies of a large capture). Images in the project are
 already composited over the scene background by `process`.
 
-Masks (--mask-mode, Project.mask_mode): "ignore" keeps each view's mask
-beside its image ([H, W] bool, resized like the image, then cut at half);
-"background" with mask files paints the masked pixels in the background colour
-once, at load (with alpha masks the images already are); "off" loads none, and
-a view without a mask costs nothing more.
+Images and masks come through eval/score.load_target, the rule the scores use
+too (--mask-mode, Project.mask_mode): "ignore" keeps each view's mask beside its
+image ([H, W] bool, resized like the image, then cut at half); "background" with
+mask files paints the masked pixels in the background colour once, at load (with
+alpha masks the images already are); "off" loads none, and a view without a mask
+costs nothing more.
 
 Only the training split is ever fitted; the test split is measured.
 """
@@ -26,8 +27,8 @@ from torch import Tensor
 
 from ..camera import Camera, scene_extent
 from ..errors import SplatError
+from ..eval.score import load_target
 from ..project import Project
-from ..io.images import load_mask, load_rgb
 from ..render.project import in_frustum
 from ..sfm.colmap import read_project_scene
 
@@ -111,29 +112,18 @@ def load_train_data(
     scene = read_project_scene(project)
     facts = project.manifest().get("scene") or {}
     bg = project.background() or (0.0, 0.0, 0.0)
-    splits = project.splits()
     by_name = {c.name: c for c in scene.cameras}
+    splits = project.splits(list(by_name))  # none recorded: the hold-out rule (project.holdout_split)
     train_names = [n for n in splits["train"] if n in by_name]
     test_names = [n for n in splits["test"] if n in by_name]
-    if not splits["train"] and not splits["test"]:  # no recorded split: every 8th image is held out
-        names = sorted(by_name)
-        train_names = [n for i, n in enumerate(names) if i % 8 != 0] or names
-        test_names = [n for i, n in enumerate(names) if i % 8 == 0 and len(names) > 1]
     if not train_names:
         raise SplatError(f"{project.manifest_path}: the train split names no registered image")
     test_names = subset(test_names, eval_max_views)
-    source = project.mask_source()
     mode = project.mask_mode(mask_mode)
-    with_masks = mode == "ignore" or (mode == "background" and source == "files")
 
     def view(name: str) -> TrainView:
         cam = by_name[name].at_resolution(downscale, max_size)
-        path = project.images_dir / name
-        rgb = load_rgb(path, (cam.width, cam.height), bg)
-        keep = load_mask(project.mask_path(name), (cam.width, cam.height)) if with_masks else None
-        if mode == "background" and keep is not None:
-            rgb = np.where(keep[..., None], rgb, np.round(np.asarray(bg) * 255).astype(np.uint8))
-            keep = None
+        rgb, keep = load_target(project, name, (cam.width, cam.height), bg, mode)
         img = torch.from_numpy(np.ascontiguousarray(rgb)).to(device)
         vm, K = cam.torch(device)
         return TrainView(cam, img, vm, K, torch.from_numpy(keep).to(device) if keep is not None else None)

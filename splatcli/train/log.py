@@ -13,6 +13,7 @@ from typing import Any
 import torch
 
 from ..eval.curve import TrainLogLine, read_log
+from ..eval.score import REPORTED
 from ..events import EventSink, Note, emit
 from ..gaussians import histogram
 from ..io.atomic import append_line, atomic_write_json, atomic_write_text
@@ -210,6 +211,7 @@ def finish(project: Project, cfg: TrainConfig, state: TrainState, resumed_from: 
         rank_checks=comm.checks if comm.world > 1 else None,
         mask_mode=project.mask_mode(cfg.mask_mode),
         chosen=chosen or None,
+        quantisation=REPORTED,
         **owned,
     )
     if not comm.main:

@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 from ..errors import Interrupted, SplatError, TrainingDiverged
-from ..eval.metrics import psnr, ssim
+from ..eval.score import REPORTED, score_image
 from ..events import EventSink, Note, Progress, Snapshot, Stage, StageDone, emit
 from ..io.checkpoint import load_checkpoint
 from ..project import Project, writer_lock
@@ -317,22 +317,23 @@ def _measure_fit(cfg: TrainConfig, data: TrainData, state: TrainState, step: int
 @torch.no_grad()
 def evaluate_views(
     state: TrainState, views: list[TrainView], bg: Tensor, sh_degree: int,  # bg [3] in [0, 1]
-    comm: Comm | None = None, train_index: list[int] | None = None,
+    comm: Comm | None = None, train_index: list[int] | None = None, quantisation: str = REPORTED,
 ) -> tuple[float, float]:
-    """Mean PSNR (dB) and SSIM over `views`, images clamped to [0, 1] as saved, over the
-    kept pixels of views with a mask (each rank of a data-parallel run renders its share).
-    `train_index`: the views are these training images, drawn through their colour
-    transforms when the run learns them (--appearance); None: the scene alone."""
+    """Mean PSNR (dB) and SSIM over `views`, scored as eval scores them (eval/score.py:
+    renders quantised to 8 bits as saved, over the kept pixels of views with a mask), so
+    the final held-out figure is eval's for the same views; each rank of a data-parallel
+    run renders its share. `train_index`: the views are these training images, drawn
+    through their colour transforms when the run learns them (--appearance); None: the
+    scene alone."""
     comm = comm or Comm()
     ps, ss = [], []
     for v, i in comm.share(list(zip(views, train_index or [None] * len(views)))):
         img = render_view(state, v, bg, sh_degree).image
         if i is not None:
             img = state.image_model.shade(img, i)[0]
-        img = img.clamp(0, 1)
-        t = v.target()
-        ps.append(float(psnr(img, t, v.keep)))
-        ss.append(float(ssim(img, t, v.keep)))
+        sc = score_image(img, v.image, v.keep, quantisation=quantisation)  # the uint8 photograph, as eval reads it
+        ps.append(sc.psnr)
+        ss.append(sc.ssim)
     p, s = comm.mean(torch.tensor([sum(ps), sum(ss), float(len(ps))], dtype=torch.float64)).tolist()
     return p, s
 

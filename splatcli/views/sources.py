@@ -57,7 +57,7 @@ def dataset_views(project: Project, split: str) -> list[View]:
         raise SplatError(f"--split {split!r} is not known; allowed values: {', '.join(SPLITS)}")
     cams = project_cameras(project)
     if split != "all":
-        wanted = set(project.splits()[split])
+        wanted = set(project.splits([c.name for c in cams])[split])
         cams = [c for c in cams if c.name in wanted]
     if not cams:
         other = "train" if split == "test" else "all"
