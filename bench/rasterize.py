@@ -42,7 +42,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from splatcli.render import rasterize  # noqa: E402
-from splatcli.render.project import project, tile_rect  # noqa: E402
+from splatcli.render.projection import project, tile_rect  # noqa: E402
 from splatcli.render.reference import rasterize_reference  # noqa: E402
 from splatcli.render.sh import SH_C0  # noqa: E402
 from scenes import benchmark_scene  # noqa: E402  (bench/scenes.py)

@@ -29,7 +29,7 @@ from _doc import write_section  # noqa: E402  (bench/ is on sys.path when run as
 from splatcli.io.checkpoint import load_checkpoint  # noqa: E402
 from splatcli.project import Project  # noqa: E402
 from splatcli.render.composite import choose_block, composite, make_plan  # noqa: E402
-from splatcli.render.project import project, tile_rect  # noqa: E402
+from splatcli.render.projection import project, tile_rect  # noqa: E402
 from splatcli.train.data import load_train_data  # noqa: E402
 from splatcli.train.loss import photometric_loss  # noqa: E402
 

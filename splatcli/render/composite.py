@@ -41,7 +41,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .project import TILE
+from .projection import TILE
 
 ALPHA_MIN = 1.0 / 255.0  # contributions below this are skipped
 ALPHA_MAX = 0.99  # alpha is clamped to this

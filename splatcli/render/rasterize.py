@@ -2,7 +2,7 @@
 
     out = rasterize(means, quats, log_scales, opacity_logits, sh, viewmat, K, W, H)
 
-Forward model (3DGS, exactly): see `project.py` (per Gaussian) and `composite.py`
+Forward model (3DGS, exactly): see `projection.py` (per Gaussian) and `composite.py`
 (per pixel). Gradients reach every raw parameter, the returned `means2d` (call
 `out.means2d.retain_grad()` before backward to read it) and the background.
 """
@@ -18,7 +18,7 @@ from ..camera import Camera
 from ..gaussians import Gaussians
 from .composite import choose_block, composite, estimate_pairs, make_plan
 from .output import RenderOutput
-from .project import TILE, project, tile_rect
+from .projection import TILE, project, tile_rect
 
 # Above this many (Gaussian, block) pairs the image is rendered in bands of tile rows,
 # each planned on its own and re-planned in backward, so memory stays bounded

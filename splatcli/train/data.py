@@ -28,7 +28,7 @@ from ..camera import Camera, scene_extent
 from ..errors import SplatError
 from ..project import Project
 from ..io.images import load_mask, load_rgb
-from ..render.project import in_frustum
+from ..render.projection import in_frustum
 from ..sfm.colmap import read_project_scene
 
 
