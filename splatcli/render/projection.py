@@ -125,14 +125,13 @@ def tile_rect(
     height: int,
 ) -> Tensor:  # [N, 4] int64 (tx0, ty0, tx1, ty1), tiles [tx0, tx1) x [ty0, ty1), clamped
     """The 16x16 tiles that the 3-sigma square [mean - r, mean + r]^2 overlaps."""
-    gx, gy = math.ceil(width / TILE), math.ceil(height / TILE)
     m = means2d.detach().to(torch.float64)  # float64: exact integer tile bounds
-    r = radii.to(torch.float64)
-    tx0 = torch.floor((m[:, 0] - r) / TILE).clamp(0, gx)
-    tx1 = torch.ceil((m[:, 0] + r) / TILE).clamp(0, gx)
-    ty0 = torch.floor((m[:, 1] - r) / TILE).clamp(0, gy)
-    ty1 = torch.ceil((m[:, 1] + r) / TILE).clamp(0, gy)
-    return torch.stack([tx0, ty0, tx1, ty1], -1).to(torch.int64)
+    r = radii.to(torch.float64)[:, None]
+    g = torch.tensor([math.ceil(width / TILE), math.ceil(height / TILE)], dtype=torch.float64, device=m.device)
+    zero = torch.zeros((), dtype=torch.float64, device=m.device)
+    lo = torch.clamp(torch.floor((m - r) / TILE), zero, g)
+    hi = torch.clamp(torch.ceil((m + r) / TILE), zero, g)
+    return torch.cat([lo, hi], 1).to(torch.int64)
 
 
 def project(
@@ -185,19 +184,18 @@ def _cull(
     near: float,
     zs: Tensor,  # [N] depth, 1 where not beyond the near plane
     uv: Tensor,  # [2, N] px
-    tc: Tensor,  # [2, N] clamped x/z, y/z
     scales: Tensor,  # [3, N] exp(log_scales)
     cam: _Camera,
     width: int,
     height: int,
 ) -> Tensor:  # [N] bool: may be drawn
-    """A cheap superset of the Gaussians beyond the near plane whose 3-sigma square can overlap the tile grid:
-    lambda_max(Sigma') <= trace(Sigma') = |J W R S|_F^2 + 2 BLUR <= |J|_F^2 max(s)^2 + 2 BLUR
-    (W R is a rotation), and the radius is ceil(3 sqrt(lambda_max)). Slack covers rounding;
-    a bound that is NaN keeps the row (the projection then finds it invalid)."""
-    jf2 = (cam.f * cam.f * (1 + tc * tc)).sum(0) / (zs * zs)  # |J|_F^2
-    smax = scales.amax(0)
-    rad = 3 * torch.sqrt(jf2 * (smax * smax) + 2 * BLUR) * (1 + 1e-4) + 2  # px
+    """A cheap superset of the Gaussians beyond the near plane whose 3-sigma square can
+    overlap the tile grid: lambda_max(Sigma') <= trace(Sigma') = |J W R S|_F^2 + 2 BLUR
+    <= |J|_F^2 max(s)^2 + 2 BLUR (W R is a rotation), with |J|_F^2 <= sum f^2 (1 + lim^2) / z^2
+    (the FOV clamp bounds x/z, y/z in J), and the radius is ceil(3 sqrt(lambda_max)). Slack
+    covers rounding; a bound that is NaN keeps the row (the projection then finds it invalid)."""
+    jz = math.sqrt(float((cam.f * cam.f * (1 + cam.lim * cam.lim)).sum())) * scales.amax(0) / zs  # >= |J|_F max(s)
+    rad = torch.sqrt(jz * jz + 2 * BLUR) * (3 * (1 + 1e-4)) + 2  # px
     grid = torch.tensor([[TILE * math.ceil(width / TILE)], [TILE * math.ceil(height / TILE)]], dtype=uv.dtype,
                         device=uv.device)
     return (z > near) & ~((uv + rad <= 0) | (uv - rad >= grid)).any(0)
@@ -284,7 +282,7 @@ class _Project(torch.autograd.Function):
         z = pc[2]
         zs = torch.where(z > near, z, torch.ones_like(z))
         r, uv, tc = _mean2d(pc[:2], zs, cam)
-        keep = _cull(z, near, zs, uv, tc, scales, cam, width, height)
+        keep = _cull(z, near, zs, uv, scales, cam, width, height)
         front = (z > near) & (uv.abs() < MAX_MEAN_PX).all(0)
         uv_all = uv  # every row's means2d
         idx, nkeep = None, int(keep.sum())
@@ -300,11 +298,12 @@ class _Project(torch.autograd.Function):
         shr = sh[:, :nk] if idx is None else sh[:, :nk].index_select(0, idx)  # [S, nk, 3]
 
         g = _cov2d(tc, zs, qr, scales, cam)
+        # lambda_max(Sigma'), the largest eigenvalue of [[a + BLUR, b], [b, c + BLUR]]
         lam = 0.5 * (g["a"] + g["c"]) + BLUR + torch.sqrt((0.5 * (g["a"] - g["c"])) ** 2 + g["b"] * g["b"])
         # NaN fails every comparison, and lam bounds a, c and |b|: this is "finite and sane".
         sane = lam < MAX_VAR_PX2
         valid = frontr & sane if keep is None else frontr & sane & keep
-        if not bool((torch.isfinite(lam) & torch.isfinite(g["det0"])).all()):
+        if not bool(torch.isfinite(lam + g["det0"]).all()):  # both >= 0 (or NaN)
             # Recompute with benign inputs where the numbers overflowed: the backward multiplies
             # their (zero) gradients by these intermediates, and 0 * inf would be NaN.
             zs = torch.where(valid, z, torch.ones_like(z))
@@ -322,7 +321,6 @@ class _Project(torch.autograd.Function):
             ratio = det0 / det
             aa = torch.sqrt(torch.clamp_min(ratio, 1e-30))
             opac = opac * aa
-        lam = 0.5 * (ap + cp) + torch.sqrt((0.5 * (ap - cp)) ** 2 + b * b)
         radii = torch.where(valid, torch.ceil(3.0 * torch.sqrt(lam)), torch.zeros_like(lam)).clamp(0, 2**30)
         radii = radii.to(torch.int32)
 

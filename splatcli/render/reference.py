@@ -3,9 +3,10 @@
 `project_autograd` is the per-Gaussian model (projection, SH colour) through plain
 autograd: the twin of `projection.project`, whose backward is written by hand.
 
-`rasterize_reference` is a slow rasterizer of the same model. Dense: every Gaussian is evaluated at every pixel ([N, H*W] tensors), written with
-explicit 3x3 / 2x3 matrices straight from the 3DGS paper, and differentiated by
-plain autograd. Use float64 and small scenes (memory is O(N * H * W)).
+`rasterize_reference` is a slow rasterizer of the same model. Dense: every Gaussian
+is evaluated at every pixel ([N, H*W] tensors), written with explicit 3x3 / 2x3
+matrices straight from the 3DGS paper, and differentiated by plain autograd. Use
+float64 and small scenes (memory is O(N * H * W)).
 
 It applies exactly the fast path's rules: near-plane culling, the 16x16 tile rule
 (a Gaussian reaches a pixel only if its 3-sigma square overlaps the pixel's tile),
