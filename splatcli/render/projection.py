@@ -371,6 +371,7 @@ class _Project(torch.autograd.Function):
             _full(vis, idx, N),
         ) + fp
         ctx.mark_non_differentiable(*out[5:])
+        ctx.set_materialize_grads(False)  # no zero-filled gradients for outputs nothing used
         ctx.save_for_backward(sh)
         ctx.idx, ctx.keep, ctx.N, ctx.cam, ctx.deg, ctx.antialiased = idx, keep, N, cam, sh_degree, antialiased
         ctx.valid, ctx.zs, ctx.r, ctx.tc, ctx.g, ctx.scales = valid, zs, r, tc, g, scales
@@ -392,7 +393,7 @@ class _Project(torch.autograd.Function):
             if x is None:
                 return ctx.zs.new_zeros((k, S) if k else (S,))
             x = x if idx is None else x.index_select(0, idx)
-            return x.T if k else x
+            return x.T.contiguous() if k else x
 
         # Outputs are 0 where invalid (means, conics, opacities) or culled (colour; no depth gradient).
         gu = torch.where(valid, rows(g_means2d, 2), zero)
@@ -472,7 +473,8 @@ class _Project(torch.autograd.Function):
         g_v = None
         if deg > 0:
             shr = sh[:, :nk] if idx is None else sh[:, :nk].index_select(0, idx)
-            g_dir = sh_basis_rows_backward(ctx.dirs, torch.bmm(shr, g_raw[:, :, None])[:, :, 0].T, deg)
+            g_basis = torch.bmm(g_raw[:, None, :], shr.transpose(1, 2))[:, 0]  # [S, nk] (faster than shr @ g_raw)
+            g_dir = sh_basis_rows_backward(ctx.dirs, g_basis.T, deg)
             dirs, dn = ctx.dirs, ctx.dn
             g_v = torch.where(dn >= 1e-12, (g_dir - dirs * (dirs * g_dir).sum(0)) / dn, g_dir / 1e-12)
         if need[0]:
