@@ -9,6 +9,10 @@ Gaussians (a seeded random subset) and each resolution (a fraction of the traine
 size, as coarse-to-fine renders), it times the stages of a training step on the
 first training views, one torch thread, and prints medians in ms. The backward is
 split by running it in three parts: the loss, the compositor and the projection.
+Stages as rasterize() runs them: *project* is the fused projection (cull, screen
+ellipses, SH colour, and the planner's per-Gaussian footprint: tile rects, depth
+order); *plan* is the block choice, the pair estimate and make_plan (per block row and
+per pair).
 Results go to the "## Where a training step goes" section of docs/benchmarks.md.
 """
 

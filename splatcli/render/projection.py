@@ -18,10 +18,12 @@ back; it also hands the planner the screen footprint of the drawable rows, in de
 order (`Footprint`). `reference.project_autograd` is the same model through autograd,
 and the tests hold the two together.
 
-Exactness: culling changes no picture. Every transcendental function and matrix
-product runs on all N rows before the cull selects any (`exp`, `sigmoid`, the camera
-transform), and everything after it is elementwise, so a row's numbers do not depend
-on which other rows were kept.
+Exactness: culling changes no picture. The transcendental functions and the matrix
+product across rows (`exp`, `sigmoid`, the camera transform) run on all N rows before
+the cull selects any, and everything after it is elementwise or within a row (the SH
+colour's batched 1x16 @ 16x3 products), so a row's numbers do not depend on which other
+rows were kept. When few rows are culled they are masked rather than gathered
+(`COMPACT_BELOW`): gathering costs more than it saves there.
 
 Robustness: a Gaussian whose screen data is not finite and sane (behind the near plane,
 non-finite or huge 2D covariance or mean, ...) is invalid: not drawn, and its inputs are
@@ -374,6 +376,7 @@ class _Project(torch.autograd.Function):
         ctx.set_materialize_grads(False)  # no zero-filled gradients for outputs nothing used
         ctx.save_for_backward(sh)
         ctx.idx, ctx.keep, ctx.N, ctx.cam, ctx.deg, ctx.antialiased = idx, keep, N, cam, sh_degree, antialiased
+        ctx.camera_dtypes = viewmat.dtype, K.dtype
         ctx.valid, ctx.zs, ctx.r, ctx.tc, ctx.g, ctx.scales = valid, zs, r, tc, g, scales
         ctx.det, ctx.con, ctx.sig, ctx.mr = det, con, sigr, mr
         ctx.dirs, ctx.dn, ctx.basis, ctx.raw = dirs, dn, basis, raw
@@ -456,6 +459,8 @@ class _Project(torch.autograd.Function):
             gqn = 2 * (Gq * qn[None]).sum(1)
             gq = torch.where(qnorm >= 1e-12, (gqn - qn * (qn * gqn).sum(0)) / qnorm, gqn / 1e-12)
             grads[1] = _full((gq / g["qs"]).T, idx, N)
+        if not (need[0] or need[5] or need[6]):
+            return (*grads, None, None, None, None, None)
         gT = (gB_[:, None] * g["R"][None]).sum(2)  # [2, 3, S]: d / d (J W)
 
         # --- J = [[fx/z, 0, -fx tx/z], [0, fy/z, -fy ty/z]] and the mean ------------------
@@ -471,7 +476,7 @@ class _Project(torch.autograd.Function):
 
         # --- SH direction: dir = normalise(mean - campos) ----------------------------------
         g_v = None
-        if deg > 0:
+        if deg > 0 and (need[0] or need[5]):
             shr = sh[:, :nk] if idx is None else sh[:, :nk].index_select(0, idx)
             g_basis = torch.bmm(g_raw[:, None, :], shr.transpose(1, 2))[:, 0]  # [S, nk] (faster than shr @ g_raw)
             g_dir = sh_basis_rows_backward(ctx.dirs, g_basis.T, deg)
@@ -493,6 +498,7 @@ class _Project(torch.autograd.Function):
                 gt += Rw @ gvs
             grads[5] = torch.zeros(4, 4, dtype=gRw.dtype, device=gRw.device)
             grads[5][:3, :3], grads[5][:3, 3] = gRw, gt
+            grads[5] = grads[5].to(ctx.camera_dtypes[0])
         if need[6]:
             clamped = (r > cam.lim).to(r.dtype) - (r < -cam.lim).to(r.dtype)
             g_lim = (g_tc * clamped).sum(1)  # lim = 0.65 width / fx
@@ -500,4 +506,5 @@ class _Project(torch.autograd.Function):
             gc = gu.sum(1)
             grads[6] = torch.zeros(3, 3, dtype=gf.dtype, device=gf.device)
             grads[6][0, 0], grads[6][1, 1], grads[6][0, 2], grads[6][1, 2] = gf[0], gf[1], gc[0], gc[1]
+            grads[6] = grads[6].to(ctx.camera_dtypes[1])
         return (*grads, None, None, None, None, None)
