@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from _doc import write_section  # noqa: E402
 from splatcli.io.checkpoint import load_checkpoint  # noqa: E402
 from splatcli.project import Project  # noqa: E402
-from splatcli.render.project import project as project_view  # noqa: E402
+from splatcli.render.projection import project as project_view  # noqa: E402
 from splatcli.train.data import load_train_data  # noqa: E402
 
 ROW = 59  # floats per Gaussian at SH degree 3: 3 + 4 + 3 + 1 + 48

@@ -42,7 +42,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from splatcli.render import rasterize  # noqa: E402
-from splatcli.render.project import project, tile_rect  # noqa: E402
+from splatcli.render.projection import project  # noqa: E402
 from splatcli.render.reference import rasterize_reference  # noqa: E402
 from splatcli.render.sh import SH_C0  # noqa: E402
 from scenes import benchmark_scene  # noqa: E402  (bench/scenes.py)
@@ -134,10 +134,11 @@ def count_pairs(wl: Workload) -> tuple[int, int]:
     W, H = wl.width, wl.height
     with torch.no_grad():
         pr = project(*wl.args[:5], wl.args[5], wl.args[6], W, H, int(math.isqrt(wl.args[4].shape[1])) - 1)
-        rect = tile_rect(pr.means2d, pr.radii, W, H)
-        vis = pr.valid & (rect[:, 2] > rect[:, 0]) & (rect[:, 3] > rect[:, 1])
+        vis = pr.visible
         m = pr.means2d[vis].double()
-        a, b, c = pr.cov2d[vis].double().unbind(1)
+        A, B, C = pr.conics[vis].double().unbind(1)  # the 2D covariance is the conic's inverse
+        idet = A * C - B * B
+        a, b, c = C / idet, -B / idet, A / idet
         det = a * c - b * b
         total = 0
         for s in range(0, m.shape[0], 20_000):
@@ -246,15 +247,11 @@ def flattened(means, quats, log_scales, opacity_logits, sh, viewmat, K, width, h
     index_add into pixels; backward by autograd. Same model and picture as rasterize()."""
     W, H = width, height
     pr = project(means, quats, log_scales, opacity_logits, sh, viewmat, K, W, H, int(math.isqrt(sh.shape[1])) - 1)
-    rect = tile_rect(pr.means2d, pr.radii, W, H)
-    vis = pr.valid & (rect[:, 2] > rect[:, 0]) & (rect[:, 3] > rect[:, 1])
     with torch.no_grad():
-        o = pr.opacities.detach().double()
-        t2 = 2 * torch.log((o * 255).clamp_min(1e-30)) + 1e-3
-        idx = torch.nonzero(vis & (t2 > 0)).squeeze(1)
-        idx = idx[torch.argsort(pr.depths.detach()[idx], stable=True)]
-        m, cv, rc = pr.means2d.detach()[idx].double(), pr.cov2d[idx].double(), rect[idx]
-        hx, hy = (t2[idx] * cv[:, 0]).sqrt(), (t2[idx] * cv[:, 2]).sqrt()
+        fp = pr.footprint  # the drawable Gaussians in depth order
+        idx, m, cv, rc = fp.gid, fp.means2d, fp.cov2d, fp.rect
+        t2 = 2 * torch.log((fp.opacities * 255).clamp_min(1e-30)) + 1e-3
+        hx, hy = (t2 * cv[:, 0]).sqrt(), (t2 * cv[:, 2]).sqrt()
         x0 = torch.maximum(torch.ceil(m[:, 0] - hx - 0.5), rc[:, 0] * 16.0).clamp_min(0).long()
         x1 = torch.minimum(torch.floor(m[:, 0] + hx - 0.5), rc[:, 2] * 16.0 - 1).clamp_max(W - 1).long()
         y0 = torch.maximum(torch.ceil(m[:, 1] - hy - 0.5), rc[:, 1] * 16.0).clamp_min(0).long()

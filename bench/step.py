@@ -9,6 +9,10 @@ Gaussians (a seeded random subset) and each resolution (a fraction of the traine
 size, as coarse-to-fine renders), it times the stages of a training step on the
 first training views, one torch thread, and prints medians in ms. The backward is
 split by running it in three parts: the loss, the compositor and the projection.
+Stages as rasterize() runs them: *project* is the fused projection (cull, screen
+ellipses, SH colour, and the planner's per-Gaussian footprint: tile rects, depth
+order); *plan* is the block choice, the pair estimate and make_plan (per block row and
+per pair).
 Results go to the "## Where a training step goes" section of docs/benchmarks.md.
 """
 
@@ -28,8 +32,8 @@ import torch  # noqa: E402
 from _doc import write_section  # noqa: E402  (bench/ is on sys.path when run as a script)
 from splatcli.io.checkpoint import load_checkpoint  # noqa: E402
 from splatcli.project import Project  # noqa: E402
-from splatcli.render.composite import choose_block, composite, make_plan  # noqa: E402
-from splatcli.render.project import project, tile_rect  # noqa: E402
+from splatcli.render.composite import choose_block, composite, estimate_pairs, make_plan  # noqa: E402
+from splatcli.render.projection import project  # noqa: E402
 from splatcli.train.data import load_train_data  # noqa: E402
 from splatcli.train.loss import photometric_loss  # noqa: E402
 
@@ -50,10 +54,10 @@ def step_times(p: dict, view, bg) -> tuple[dict, int]:
 
     pr = project(*(p[k] for k in NAMES), view.viewmat, view.K, W, H, 3)
     lap("project")
-    rect = tile_rect(pr.means2d, pr.radii, W, H)
-    vis = pr.valid & (rect[:, 2] > rect[:, 0]) & (rect[:, 3] > rect[:, 1])
-    plan = make_plan(pr.means2d, pr.cov2d, pr.conics, pr.opacities, pr.depths, rect, vis, W, H,
-                     choose_block(pr.cov2d, pr.opacities, vis, W, H))
+    fp = pr.footprint
+    block = choose_block(fp.cov2d, fp.opacities, W, H)
+    estimate_pairs(fp.cov2d, fp.opacities, block)  # rasterize's check for banding
+    plan = make_plan(fp, W, H, block)
     lap("plan")
     mid = [x.detach().requires_grad_(True) for x in (pr.means2d, pr.conics, pr.opacities, pr.colors, pr.depths)]
     img = composite(plan, *mid, bg)[0]

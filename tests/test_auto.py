@@ -9,6 +9,7 @@ import json
 import pytest
 import torch
 
+from splatcli.errors import SplatError
 from splatcli.train import auto
 from splatcli.train.config import make_config
 from tiny_project import make_tiny_project, run_cli
@@ -48,6 +49,11 @@ def test_every_choice_yields_to_its_option(proj, monkeypatch):
     # A step schedule is the user's: nothing is chosen, one process.
     c = auto.choose(proj, {"iterations": 50}, None, CPU)
     assert c.choices == [] and c.nproc is None and c.options == {"iterations": 50}
+    # An option of the default strategy keeps it: mcmc is not chosen over what was asked.
+    got = _chosen(auto.choose(proj, {"opacity_reset": 500}, None, CPU))
+    assert "strategy" not in got and "max_gaussians" not in got and got["time_budget"] == auto.BUDGET_S
+    with pytest.raises(SplatError, match="--max-size 0"):  # what was given is checked first
+        auto.choose(proj, {"max_size": 0}, None, CPU)
     # A time budget alone gets the rest of a planned run.
     got = _chosen(auto.choose(proj, {"time_budget": 30.0}, None, CPU))
     assert set(got) == {"preset", "strategy", "max_gaussians"}

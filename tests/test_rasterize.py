@@ -207,4 +207,4 @@ def test_auto_block_follows_screen_size_not_overlap(sigma, many, expected):
     for n in (many, 10 * many):
         cov2d = torch.tensor([[sigma**2, 0.0, sigma**2]]).repeat(n, 1)
         opac = torch.full((n,), 0.9)
-        assert composite.choose_block(cov2d, opac, torch.ones(n, dtype=torch.bool), 1000, 1000) == expected
+        assert composite.choose_block(cov2d, opac, 1000, 1000) == expected

@@ -200,9 +200,10 @@ def test_train_with_mcmc_holds_the_budget_and_the_loop_knows_nothing_of_it(tmp_p
 
 def test_mcmc_options_are_checked(tmp_path):
     proj = make_tiny_project(tmp_path / "p", trained=False, photos=False)
-    assert_user_error(run_cli("train", proj.root, "--strategy", "mcmc"), "--max-gaussians")
+    assert_user_error(run_cli("train", proj.root, "--strategy", "mcmc", "--iterations", "10"), "--max-gaussians")
     assert_user_error(run_cli("train", proj.root, "--strategy", "annealing"), "--strategy 'annealing'", "mcmc")
-    assert_user_error(run_cli("train", proj.root, "--strategy", "mcmc", "--max-gaussians", "9", "--opacity-reset", "9"),
+    assert_user_error(run_cli("train", proj.root, "--strategy", "mcmc", "--max-gaussians", "9", "--opacity-reset", "9",
+                              "--iterations", "9"),
                       "--opacity-reset does not apply to --strategy mcmc")
     from splatcli.train.config import make_config
 

@@ -246,7 +246,7 @@ def test_final_heldout_scores_are_evals(tmp_path, monkeypatch, quantisation):
     assert [x.name for x in same.per_image] == proj.splits()["test"] and same.quantisation == quantisation
     assert abs(s.psnr - same.psnr) <= 5e-5 and abs(s.ssim - same.ssim) <= 5e-6  # the log's 4 and 5 decimals
     other = evaluated("none" if quantisation == "8-bit" else "8-bit")
-    assert abs(s.psnr - other.psnr) > 1e-4
+    assert abs(same.psnr - other.psnr) > 1e-6  # (at 11 dB, 8 bits move PSNR by only ~1e-4: the log's last digit)
 
 
 def test_no_opacity_reset_on_the_last_step(tmp_path):

@@ -284,7 +284,7 @@ def test_support_prune_drops_what_few_views_see_on_the_refinement_schedule():
 
 
 def test_in_frustum_bounds_near_plane_and_margin():
-    from splatcli.render.project import NEAR, in_frustum
+    from splatcli.render.projection import NEAR, in_frustum
 
     K = torch.tensor([[10.0, 0, 5], [0, 10.0, 4], [0, 0, 1]], dtype=torch.float64)
     vm = torch.eye(4, dtype=torch.float64)

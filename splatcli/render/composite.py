@@ -41,7 +41,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .project import TILE
+from .projection import TILE, Footprint
 
 ALPHA_MIN = 1.0 / 255.0  # contributions below this are skipped
 ALPHA_MAX = 0.99  # alpha is clamped to this
@@ -89,17 +89,16 @@ _COST_SLOT, _COST_ELEM = 50.0, 12.0
 
 
 def choose_block(
-    cov2d: Tensor,  # [N, 3] px^2
-    opacities: Tensor,  # [N]
-    active: Tensor,  # [N] bool
+    cov2d: Tensor,  # [S, 3] px^2, of the Gaussians that may be drawn (a Footprint's)
+    opacities: Tensor,  # [S]
     width: int,
     height: int,
 ) -> int:
     """The block side (4, 8 or 16 px) that minimises a simple cost model: small blocks
     waste fewer pixels on small Gaussians, large blocks make fewer pairs."""
     with torch.no_grad():
-        o = opacities.detach()[active].double()
-        cv = cov2d.detach()[active].double()
+        o = opacities.detach().double()
+        cv = cov2d.detach().double()
         t2 = 2.0 * torch.log(torch.clamp_min(o * 255.0, 1e-30))
         ok = t2 > 0
         if not bool(ok.any()):
@@ -112,68 +111,65 @@ def choose_block(
 
 
 def make_plan(
-    means2d: Tensor,  # [N, 2] px
-    cov2d: Tensor,  # [N, 3] (a, b, c) px^2, incl. blur
-    conics: Tensor,  # [N, 3] (A, B, C) inverse of cov2d
-    opacities: Tensor,  # [N]
-    depths: Tensor,  # [N]
-    rect: Tensor,  # [N, 4] int64 tile rect (tx0, ty0, tx1, ty1), exclusive ends
-    active: Tensor,  # [N] bool
+    fp: Footprint,
     width: int,
     height: int,
     block: int = 8,
+    rows: tuple[int, int] | None = None,
     chunk_elems: int | None = None,
     seg: int | None = None,
 ) -> Plan:
     """Pairs (Gaussian, block) for every block that holds a pixel centre inside both the
-    Gaussian's tiles and its alpha >= 1/255 ellipse, sorted by (block, depth).
+    Gaussian's tiles and its alpha >= 1/255 ellipse, sorted by (block, depth). `rows`
+    (y0, y1), y0 a multiple of 16: the plan of that band of image rows alone, in the
+    band's own pixel coordinates (rows y0.. become 0..).
 
     Enumeration is exact per block row: over a row band, the ellipse's x-extent is an
     interval whose ends are found in closed form (x given y is a 1D Gaussian with mean
     (b / c) dy and variance 1 / A), so corner blocks outside the ellipse never appear."""
     assert TILE % block == 0
-    dev = means2d.device
+    y0, y1 = rows or (0, height)
+    assert y0 % TILE == 0
+    height = y1 - y0
+    dev = fp.gid.device
     f64, i64 = torch.float64, torch.int64
     nbx, nby = math.ceil(width / block), math.ceil(height / block)
     nblocks = nbx * nby
     with torch.no_grad():
-        o = opacities.detach().to(f64)
         # alpha >= 1/255  <=>  d^T Sigma'^-1 d <= 2 ln(255 o). Slightly generous margin:
-        # the per-pixel test in the compositor is the exact one.
-        t2 = 2.0 * torch.log(torch.clamp_min(o * 255.0, 1e-30)) + 1e-3
-        idx = torch.nonzero(active & (t2 > 0)).squeeze(1)
-        # Depth order (stable: ties keep index order, as in the reference).
-        idx = idx[torch.argsort(depths.detach()[idx], stable=True)]
-        m = means2d.detach()[idx].to(f64)
-        cv = cov2d.detach()[idx].to(f64)
-        vx = 1.0 / conics.detach()[idx, 0].to(f64)  # var(x | y) = det / c
-        t2 = t2[idx] * (1 + 1e-6)
-        rc = rect[idx]
-        hy = torch.sqrt(t2 * cv[:, 2])
+        # the per-pixel test in the compositor is the exact one. The footprint holds the
+        # rows where this is positive, in depth order.
+        t2 = (2.0 * torch.log(torch.clamp_min(fp.opacities * 255.0, 1e-30)) + 1e-3) * (1 + 1e-6)
+        u, v = fp.means2d.unbind(1)
+        a, b, c = fp.cov2d.unbind(1)
+        rc = fp.rect * TILE
+        hy = torch.sqrt(t2 * c)
         # Pixel i is sampled at i + 0.5: inside [lo, hi] iff ceil(lo - .5) <= i <= floor(hi - .5).
-        py0 = torch.maximum(torch.ceil(m[:, 1] - hy - 0.5), (rc[:, 1] * TILE).to(f64)).clamp_min(0).to(i64)
-        py1 = torch.minimum(torch.floor(m[:, 1] + hy - 0.5), (rc[:, 3] * TILE - 1).to(f64)).clamp_max(height - 1).to(i64)
+        py0 = torch.maximum(torch.ceil(v - hy - 0.5), rc[:, 1].to(f64)).clamp_min(y0).to(i64) - y0
+        py1 = torch.minimum(torch.floor(v + hy - 0.5), (rc[:, 3] - 1).to(f64)).clamp_max(y1 - 1).to(i64) - y0
         by0 = torch.div(py0, block, rounding_mode="floor")
         nrow = (torch.div(py1, block, rounding_mode="floor") - by0 + 1).clamp_min(0)
         nrow = torch.where(py1 >= py0, nrow, torch.zeros_like(nrow))
+        # What each row of a Gaussian needs, one column per Gaussian (gathered once per row):
+        # the mean (v in band coordinates), x | y's slope b / c and variance, the dy of the
+        # ellipse's rightmost point, t2, c, the pixel rows and the tile columns.
+        per = torch.stack([u, v - y0, b / c, fp.vx, torch.sqrt(t2 / a) * b, t2, c, py0.to(f64), py1.to(f64),
+                           rc[:, 0].to(f64), (rc[:, 2] - 1).to(f64)])
         # --- one entry per (Gaussian, block row) ---
-        sel = lambda x, i: torch.index_select(x, 0, i)  # noqa: E731  (faster than x[i] on CPU)
-        S = idx.numel()
+        S = fp.gid.numel()
         rg = torch.repeat_interleave(torch.arange(S, device=dev), nrow)
         R = rg.numel()
-        by = sel(by0 - (torch.cumsum(nrow, 0) - nrow), rg) + torch.arange(R, device=dev)
-        mr, cr, vxr, t2r = sel(m, rg), sel(cv, rg), sel(vx, rg), sel(t2, rg)
-        ylo = torch.maximum(by * block, sel(py0, rg)).to(f64) + 0.5 - mr[:, 1]
-        yhi = torch.minimum(by * block + block - 1, sel(py1, rg)).to(f64) + 0.5 - mr[:, 1]
-        k = cr[:, 1] / cr[:, 2]
-        dys = torch.sqrt(t2r / cr[:, 0]) * cr[:, 1]  # dy of the ellipse's rightmost point
+        by = (by0 - (torch.cumsum(nrow, 0) - nrow)).index_select(0, rg) + torch.arange(R, device=dev)
+        ur, vr, kr, vxr, dys, t2r, cr, py0r, py1r, rx0, rx1 = per.index_select(1, rg)
+        top = (by * block).to(f64)
+        ylo = torch.maximum(top, py0r) + 0.5 - vr
+        yhi = torch.minimum(top + (block - 1), py1r) + 0.5 - vr
         dmax = torch.minimum(torch.maximum(dys, ylo), yhi)
         dmin = torch.minimum(torch.maximum(-dys, ylo), yhi)
-        xhi = mr[:, 0] + k * dmax + torch.sqrt((vxr * (t2r - dmax * dmax / cr[:, 2])).clamp_min(0))
-        xlo = mr[:, 0] + k * dmin - torch.sqrt((vxr * (t2r - dmin * dmin / cr[:, 2])).clamp_min(0))
-        rcr = sel(rc, rg)
-        px0 = torch.maximum(torch.ceil(xlo - 0.5), (rcr[:, 0] * TILE).to(f64)).clamp_min(0).to(i64)
-        px1 = torch.minimum(torch.floor(xhi - 0.5), (rcr[:, 2] * TILE - 1).to(f64)).clamp_max(width - 1).to(i64)
+        xhi = ur + kr * dmax + torch.sqrt((vxr * (t2r - dmax * dmax / cr)).clamp_min(0))
+        xlo = ur + kr * dmin - torch.sqrt((vxr * (t2r - dmin * dmin / cr)).clamp_min(0))
+        px0 = torch.maximum(torch.ceil(xlo - 0.5), rx0).clamp_min(0).to(i64)
+        px1 = torch.minimum(torch.floor(xhi - 0.5), rx1).clamp_max(width - 1).to(i64)
         bx0 = torch.div(px0, block, rounding_mode="floor")
         ncol = (torch.div(px1, block, rounding_mode="floor") - bx0 + 1).clamp_min(0)
         ncol = torch.where(px1 >= px0, ncol, torch.zeros_like(ncol))
@@ -185,7 +181,7 @@ def make_plan(
         # (block, depth) order; small integer keys sort fastest.
         kdt = torch.int16 if nblocks < 2**15 else (torch.int32 if nblocks < 2**31 else i64)
         perm = torch.sort(bid.to(kdt), stable=True).indices
-        pair_gid = sel(torch.repeat_interleave(sel(idx, rg), ncol, output_size=M), perm)
+        pair_gid = torch.repeat_interleave(fp.gid.index_select(0, rg), ncol, output_size=M).index_select(0, perm)
         count = torch.bincount(bid, minlength=nblocks)
         start = torch.cumsum(count, 0) - count
         seg = seg or SEGMENT
@@ -471,15 +467,14 @@ def _block(plan: Plan, g_image, g_alpha, g_depth):
 
 
 def estimate_pairs(
-    cov2d: Tensor,  # [N, 3] px^2
-    opacities: Tensor,  # [N]
-    active: Tensor,  # [N] bool
+    cov2d: Tensor,  # [S, 3] px^2, of the Gaussians that may be drawn (a Footprint's)
+    opacities: Tensor,  # [S]
     block: int,
 ) -> float:
     """About how many (Gaussian, block) pairs a plan will hold (from alpha bounding boxes)."""
     with torch.no_grad():
-        o = opacities.detach()[active].double()
-        cv = cov2d.detach()[active].double()
+        o = opacities.detach().double()
+        cv = cov2d.detach().double()
         t2 = (2.0 * torch.log(torch.clamp_min(o * 255.0, 1e-30))).clamp_min(0)
         w = 2 * torch.sqrt(t2 * cv[:, 0])
         h = 2 * torch.sqrt(t2 * cv[:, 2])

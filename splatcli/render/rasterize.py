@@ -2,7 +2,7 @@
 
     out = rasterize(means, quats, log_scales, opacity_logits, sh, viewmat, K, W, H)
 
-Forward model (3DGS, exactly): see `project.py` (per Gaussian) and `composite.py`
+Forward model (3DGS, exactly): see `projection.py` (per Gaussian) and `composite.py`
 (per pixel). Gradients reach every raw parameter, the returned `means2d` (call
 `out.means2d.retain_grad()` before backward to read it) and the background.
 """
@@ -18,7 +18,7 @@ from ..camera import Camera
 from ..gaussians import Gaussians
 from .composite import choose_block, composite, estimate_pairs, make_plan
 from .output import RenderOutput
-from .project import TILE, project, tile_rect
+from .projection import TILE, project
 
 # Above this many (Gaussian, block) pairs the image is rendered in bands of tile rows,
 # each planned on its own and re-planned in backward, so memory stays bounded
@@ -26,7 +26,8 @@ from .project import TILE, project, tile_rect
 PAIR_BUDGET = 1 << 25
 
 
-def _check(name: str, x: Tensor, shape: tuple, dtype: torch.dtype | None, device: torch.device | None) -> None:
+def _check(name: str, x: Tensor, shape: tuple, dtype: torch.dtype | None, device: torch.device | None,
+           values: bool) -> None:
     if not isinstance(x, Tensor):
         raise ValueError(f"rasterize: {name} must be a tensor, got {type(x).__name__}")
     if x.dim() != len(shape) or any(s is not None and s != d for s, d in zip(shape, x.shape)):
@@ -36,7 +37,7 @@ def _check(name: str, x: Tensor, shape: tuple, dtype: torch.dtype | None, device
         raise ValueError(f"rasterize: {name} is {x.dtype}, expected {dtype} like means")
     if device is not None and x.device != device:
         raise ValueError(f"rasterize: {name} is on {x.device}, expected {device} like means")
-    if not bool(torch.isfinite(x.detach()).all()):
+    if values and not bool(torch.isfinite(x.detach()).all()):  # a host sync
         raise ValueError(f"rasterize: {name} contains non-finite values (NaN or inf)")
 
 
@@ -56,6 +57,7 @@ def rasterize(
     near: float = 0.2,
     antialiased: bool = False,
     block: int | str = "auto",
+    check: bool = True,
 ) -> RenderOutput:
     """Render N Gaussians into a width x height image.
 
@@ -63,7 +65,10 @@ def rasterize(
     (sum of blending weight times view depth), and per Gaussian means2d [N, 2] px,
     radii [N] int32, visible [N] bool, depths [N] view z. `block` (4, 8, 16 or "auto")
     is a speed knob only: the picture does not depend on it.
-    Raises ValueError naming the parameter for bad shapes or non-finite values.
+    Raises ValueError naming the parameter for bad shapes or non-finite values. A caller
+    that has checked the values already (the training loop checks every gradient) passes
+    check=False: shapes, dtypes and devices are still checked, but not the values (finite
+    inputs, positive focal lengths), which costs a host sync per tensor.
     """
     if not isinstance(means, Tensor) or means.dim() != 2 or means.shape[1] != 3:
         raise ValueError(f"rasterize: means must be a [N, 3] tensor, got {getattr(means, 'shape', type(means))}")
@@ -75,16 +80,16 @@ def rasterize(
     width, height = int(width), int(height)
     if not (isinstance(near, (int, float)) and math.isfinite(near) and near > 0):
         raise ValueError(f"rasterize: near must be a positive finite number, got {near}")
-    _check("means", means, (N, 3), dt, dev)
-    _check("quats", quats, (N, 4), dt, dev)
-    _check("log_scales", log_scales, (N, 3), dt, dev)
-    _check("opacity_logits", opacity_logits, (N,), dt, dev)
-    _check("sh", sh, (N, None, 3), dt, dev)
-    _check("viewmat", viewmat, (4, 4), dt, dev)
-    _check("K", K, (3, 3), dt, dev)
+    _check("means", means, (N, 3), dt, dev, check)
+    _check("quats", quats, (N, 4), dt, dev, check)
+    _check("log_scales", log_scales, (N, 3), dt, dev, check)
+    _check("opacity_logits", opacity_logits, (N,), dt, dev, check)
+    _check("sh", sh, (N, None, 3), dt, dev, check)
+    _check("viewmat", viewmat, (4, 4), dt, dev, check)
+    _check("K", K, (3, 3), dt, dev, check)
     if background is None:
         background = torch.zeros(3, dtype=dt, device=dev)
-    _check("background", background, (3,), dt, dev)
+    _check("background", background, (3,), dt, dev, check)
     nb = sh.shape[1]
     d_have = int(round(math.sqrt(nb))) - 1
     if (d_have + 1) ** 2 != nb or d_have > 3:
@@ -93,46 +98,38 @@ def rasterize(
         sh_degree = d_have
     if not 0 <= sh_degree <= d_have:
         raise ValueError(f"rasterize: sh_degree {sh_degree} is outside 0..{d_have} (what sh holds)")
-    if not (float(K[0, 0].detach()) > 0 and float(K[1, 1].detach()) > 0):
+    if check and not (float(K[0, 0].detach()) > 0 and float(K[1, 1].detach()) > 0):
         raise ValueError("rasterize: K must have positive focal lengths K[0,0], K[1,1]")
     if block not in (4, 8, 16, "auto"):
         raise ValueError(f"rasterize: block must be 4, 8, 16 or 'auto', got {block!r}")
 
     pr = project(means, quats, log_scales, opacity_logits, sh, viewmat, K, width, height, sh_degree, near, antialiased)
-    rect = tile_rect(pr.means2d, pr.radii, width, height)
-    visible = pr.valid & (rect[:, 2] > rect[:, 0]) & (rect[:, 3] > rect[:, 1])
+    fp = pr.footprint
     if block == "auto":
-        block = choose_block(pr.cov2d, pr.opacities, visible, width, height)
-    est = estimate_pairs(pr.cov2d, pr.opacities, visible, block)
+        block = choose_block(fp.cov2d, fp.opacities, width, height)
+    est = estimate_pairs(fp.cov2d, fp.opacities, block)
     nbands = min(math.ceil(est / PAIR_BUDGET), math.ceil(height / TILE)) if est > PAIR_BUDGET else 1
     if nbands == 1:
-        plan = make_plan(pr.means2d, pr.cov2d, pr.conics, pr.opacities, pr.depths, rect, visible, width, height, block)
+        plan = make_plan(fp, width, height, block)
         image, alpha, depth = composite(plan, pr.means2d, pr.conics, pr.opacities, pr.colors, pr.depths, background)
     else:
-        image, alpha, depth = _banded(pr, rect, visible, width, height, block, background, nbands)
-    radii = torch.where(visible, pr.radii, torch.zeros_like(pr.radii))
-    return RenderOutput(
-        image=image, alpha=alpha, depth=depth, means2d=pr.means2d, radii=radii, visible=visible, depths=pr.depths
-    )
+        image, alpha, depth = _banded(pr, width, height, block, background, nbands)
+    return RenderOutput(image=image, alpha=alpha, depth=depth, means2d=pr.means2d, radii=pr.radii,
+                        visible=pr.visible, depths=pr.depths)
 
 
-def _banded(pr, rect, visible, width, height, block, background, nbands):
-    """Render bands of whole tile rows one after another. Each band is the same model on
-    the rows [y0, y1) (y0 a multiple of 16, so the tile rule is unchanged): means shift
-    by -y0, tile rows by -y0 / 16."""
+def _banded(pr, width, height, block, background, nbands):
+    """Render bands of whole tile rows one after another, each planned on its own (and
+    re-planned in backward) so memory stays bounded. A band is the same model on the rows
+    [y0, y1) (y0 a multiple of 16, so the tile rule is unchanged): means shift by -y0."""
     band = math.ceil(math.ceil(height / nbands) / TILE) * TILE
-    m2 = pr.means2d.detach()
-    cov2d, conics, opac, depths = pr.cov2d, pr.conics.detach(), pr.opacities.detach(), pr.depths.detach()
     outs = []
     for y0 in range(0, height, band):
         y1 = min(height, y0 + band)
-        shift = torch.tensor([0.0, float(y0)], dtype=m2.dtype, device=m2.device)
-        r = rect - torch.tensor([0, y0 // TILE, 0, y0 // TILE], device=rect.device)
-        r[:, 1::2] = r[:, 1::2].clamp(0, math.ceil((y1 - y0) / TILE))
-        act = visible & (r[:, 3] > r[:, 1])
+        shift = torch.tensor([0.0, float(y0)], dtype=pr.means2d.dtype, device=pr.means2d.device)
 
-        def planner(m=m2 - shift, r=r, act=act, h=y1 - y0):
-            return make_plan(m, cov2d, conics, opac, depths, r, act, width, h, block)
+        def planner(rows=(y0, y1)):
+            return make_plan(pr.footprint, width, height, block, rows)
 
         outs.append(composite(planner, pr.means2d - shift, pr.conics, pr.opacities, pr.colors, pr.depths, background))
     return tuple(torch.cat([o[i] for o in outs], 0) for i in range(3))

@@ -38,10 +38,14 @@ assert math.isclose(SH_C0, 0.5 / math.sqrt(math.pi))
 
 
 def sh_basis(dirs: Tensor, degree: int) -> Tensor:  # dirs [N, 3] unit -> [N, (degree+1)^2]
-    """The (degree+1)^2 real SH basis functions at unit directions `dirs`."""
+    """The (degree+1)^2 real SH basis functions at unit directions `dirs` (fastest when
+    dirs is the transpose of a contiguous [3, N]: each component is then contiguous)."""
+    return torch.stack(_terms(*dirs.unbind(-1), degree), dim=-1)
+
+
+def _terms(x: Tensor, y: Tensor, z: Tensor, degree: int) -> list[Tensor]:
     if not 0 <= degree <= 3:
         raise ValueError(f"sh degree {degree} is not supported (0..3)")
-    x, y, z = dirs.unbind(-1)
     cols = [torch.full_like(x, SH_C0)]
     if degree >= 1:
         cols += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
@@ -65,7 +69,59 @@ def sh_basis(dirs: Tensor, degree: int) -> Tensor:  # dirs [N, 3] unit -> [N, (d
             SH_C3[5] * z * (xx - yy),
             SH_C3[6] * x * (xx - 3.0 * yy),
         ]
-    return torch.stack(cols, dim=-1)
+    return cols
+
+
+# The same basis as polynomials, term by term: Y_k = sum coef x^i y^j z^l over (coef, (i, j, l)).
+# `sh_basis_rows_backward` differentiates these; the tests hold them to `_terms`.
+_POLY = (
+    ((SH_C0, (0, 0, 0)),),
+    ((-SH_C1, (0, 1, 0)),),
+    ((SH_C1, (0, 0, 1)),),
+    ((-SH_C1, (1, 0, 0)),),
+    ((SH_C2[0], (1, 1, 0)),),
+    ((SH_C2[1], (0, 1, 1)),),
+    ((2 * SH_C2[2], (0, 0, 2)), (-SH_C2[2], (2, 0, 0)), (-SH_C2[2], (0, 2, 0))),
+    ((SH_C2[3], (1, 0, 1)),),
+    ((SH_C2[4], (2, 0, 0)), (-SH_C2[4], (0, 2, 0))),
+    ((3 * SH_C3[0], (2, 1, 0)), (-SH_C3[0], (0, 3, 0))),
+    ((SH_C3[1], (1, 1, 1)),),
+    ((4 * SH_C3[2], (0, 1, 2)), (-SH_C3[2], (2, 1, 0)), (-SH_C3[2], (0, 3, 0))),
+    ((2 * SH_C3[3], (0, 0, 3)), (-3 * SH_C3[3], (2, 0, 1)), (-3 * SH_C3[3], (0, 2, 1))),
+    ((4 * SH_C3[4], (1, 0, 2)), (-SH_C3[4], (3, 0, 0)), (-SH_C3[4], (1, 2, 0))),
+    ((SH_C3[5], (2, 0, 1)), (-SH_C3[5], (0, 2, 1))),
+    ((SH_C3[6], (3, 0, 0)), (-3 * SH_C3[6], (1, 2, 0))),
+)
+# The monomials of degree <= 2 that the derivatives are made of, in `_monomials2`'s order.
+_MONO2 = ((0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1), (2, 0, 0), (0, 2, 0), (0, 0, 2), (1, 1, 0), (1, 0, 1), (0, 1, 1))
+
+
+def _gradient_matrix() -> list[list[list[float]]]:  # [3 * 10, 16]: d Y_k / d x_i in monomials
+    D = [[0.0] * 16 for _ in range(3 * len(_MONO2))]
+    for k, poly in enumerate(_POLY):
+        for coef, e in poly:
+            for i in range(3):
+                if e[i]:
+                    d = tuple(p - (j == i) for j, p in enumerate(e))
+                    D[i * len(_MONO2) + _MONO2.index(d)][k] += coef * e[i]
+    return D
+
+
+_DY = _gradient_matrix()
+
+
+def sh_basis_rows_backward(
+    dirs: Tensor,  # [3, N] the directions the basis was evaluated at
+    g: Tensor,  # [(degree+1)^2, N] d loss / d basis
+    degree: int,
+) -> Tensor:  # [3, N] d loss / d (x, y, z), each component taken as free
+    """The chain rule through `sh_basis`: sum_k g_k grad Y_k, with each grad Y_k a
+    combination of the monomials of degree <= 2 (one matrix product, then one weighted sum)."""
+    k = (degree + 1) ** 2
+    x, y, z = dirs
+    mono = torch.stack([torch.ones_like(x), x, y, z, x * x, y * y, z * z, x * y, x * z, y * z])  # [10, N]
+    D = torch.tensor(_DY, dtype=g.dtype, device=g.device)[:, :k]
+    return (torch.mm(D, g).view(3, len(_MONO2), -1) * mono).sum(1)
 
 
 def eval_sh(

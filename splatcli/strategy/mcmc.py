@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..render.project import quat_to_rotmat
+from ..render.projection import quat_to_rotmat
 from . import ops
 from ..options import opt, override
 from .base import RefineConfig, RefineStats, RowState, Splats, StepInfo, Strategy

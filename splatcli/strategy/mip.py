@@ -24,7 +24,7 @@ import torch
 from torch import Tensor
 
 from ..gaussians import smooth_3d
-from ..render.project import in_frustum
+from ..render.projection import in_frustum
 from .base import RowState, Splats, StepInfo, Strategy
 
 VARIANCE = 0.2  # filter variance in squared sampling intervals (the paper's s; their code's 0.2)

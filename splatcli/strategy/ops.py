@@ -15,7 +15,7 @@ from typing import Callable, Iterable
 import torch
 from torch import Tensor, nn
 
-from ..render.project import quat_to_rotmat
+from ..render.projection import quat_to_rotmat
 from .base import Splats
 
 _MOMENTS = ("exp_avg", "exp_avg_sq")

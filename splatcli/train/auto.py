@@ -84,6 +84,7 @@ def choose(project: Project, given: dict[str, Any], nproc: int | None, device: t
            resume: bool = False) -> Chosen:
     """The options for a run of `project` on `device`: `given` (the user's), plus what
     this module chooses for the rest (module docstring)."""
+    options.check(options.apply(TrainConfig(), given))  # what was given is checked before anything is chosen
     out = Chosen(dict(given), nproc)
     if device.type != "cpu" or resume:
         return out
@@ -111,7 +112,8 @@ def choose(project: Project, given: dict[str, Any], nproc: int | None, device: t
     downscale = float(out.options.get("downscale", 1.0))
     train_px = sorted(c.at_resolution(downscale, max_size).width * c.at_resolution(downscale, max_size).height
                       for c in cams)[len(cams) // 2]
-    if out.options.get("strategy", "mcmc") == "mcmc":
+    mcmc = options.apply(TrainConfig(), {"strategy": "mcmc"})
+    if out.options.get("strategy", "mcmc") == "mcmc" and all(options.resolve(mcmc, k) for k in given):
         pick("strategy", "mcmc", "a fixed Gaussian budget, grown on a curve planned to the time")
         pick("max_gaussians", int(min(MAX_GAUSSIANS, max(MIN_GAUSSIANS, round(GAUSSIANS_PER_PIXEL * train_px, -3)))),
              f"{GAUSSIANS_PER_PIXEL} per pixel of a {train_px:,}-pixel training view")

@@ -29,7 +29,7 @@ from ..camera import Camera, scene_extent
 from ..errors import SplatError
 from ..eval.score import load_target
 from ..project import Project
-from ..render.project import in_frustum
+from ..render.projection import in_frustum
 from ..sfm.colmap import read_project_scene
 
 

@@ -120,7 +120,8 @@ def render_view(state: TrainState, view: TrainView, bg: Tensor, sh_degree: int) 
     """The current Gaussians seen from `view` at the training resolution."""
     g = state.drawn()
     return rasterize(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh, view.viewmat, view.K,
-                     view.camera.width, view.camera.height, bg, sh_degree=sh_degree, antialiased=state.antialiased)
+                     view.camera.width, view.camera.height, bg, sh_degree=sh_degree, antialiased=state.antialiased,
+                     check=False)  # the loop checks every gradient for non-finite values
 
 
 def _loop(project: Project, base: TrainConfig, cfg: TrainConfig, data: TrainData, state: TrainState, ctx: Context,

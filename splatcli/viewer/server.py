@@ -36,7 +36,7 @@ import torch
 from ..errors import SplatError
 from ..gaussians import SH_C0, Gaussians
 from ..io.ply import gaussians_to_rows, ply_bytes, ply_header
-from ..render.project import NEAR
+from ..render.projection import NEAR
 
 DEFAULT_PORT = 7007  # nerfstudio's viewer port: what users of the field try first
 PORT_TRIES = 50
