@@ -11,7 +11,7 @@ the note saying what was skipped.
 Nothing here runs structure from motion: the `process` cases that must get past
 it replace `run_sfm` with a stand-in that poses the staged images on a ring
 (what is under test is how the input is read, not SfM). Projects are the hand-made
-tiny project of tests/tiny_project.py, copied per test.
+tiny project of bench/tiny_project.py, copied per test.
 """
 
 from __future__ import annotations

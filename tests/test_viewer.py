@@ -215,7 +215,7 @@ def test_train_with_viewer(tmp_path):
     assert "live viewer at http://127.0.0.1:" in r.stderr
 
 
-# a real browser: headless Chromium on SwiftShader (tests/browser.py), against `splatcli render`
+# a real browser: headless Chromium on SwiftShader (bench/browser.py), against `splatcli render`
 
 
 @pytest.mark.skipif(browser_problem() is not None, reason=str(browser_problem()))
