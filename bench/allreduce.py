@@ -23,8 +23,8 @@ from pathlib import Path
 import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
-from common import write_section
 
+from common import write_section
 from splatcli.io.checkpoint import load_checkpoint
 from splatcli.project import Project
 from splatcli.render.project import project as project_view

@@ -20,8 +20,8 @@ import time
 from pathlib import Path
 
 import torch
-from common import write_section
 
+from common import write_section
 from splatcli.io.checkpoint import load_checkpoint
 from splatcli.project import Project
 from splatcli.render.rasterize import rasterize

@@ -23,8 +23,21 @@ import os
 import shlex
 from pathlib import Path
 
-from common import (FIGURES, REPO, SCENES, TOL_DB, ensure_processed, figure, fresh_copy, plot_psnr_curves, psnr_curve,
-                    save_figure, seconds_to, splatcli, write_section)
+from common import (
+    FIGURES,
+    REPO,
+    SCENES,
+    TOL_DB,
+    ensure_processed,
+    figure,
+    fresh_copy,
+    plot_psnr_curves,
+    psnr_curve,
+    save_figure,
+    seconds_to,
+    splatcli,
+    write_section,
+)
 
 OUT = REPO / "bench" / "out" / "distributed"
 

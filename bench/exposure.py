@@ -31,8 +31,8 @@ import shutil
 from pathlib import Path
 
 import numpy as np
-from common import REPO, SCENES, ensure_processed, fresh_copy, loadavg, splatcli, write_section
 
+from common import REPO, SCENES, ensure_processed, fresh_copy, loadavg, splatcli, write_section
 from splatcli.io.checkpoint import load_checkpoint
 from splatcli.project import Project
 

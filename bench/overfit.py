@@ -23,7 +23,6 @@ import time
 from pathlib import Path
 
 from common import REPO, ensure_processed, fresh_copy, loadavg, make_scene, splatcli, write_section
-
 from splatcli.eval.curve import read_log
 from splatcli.project import Project
 

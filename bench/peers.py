@@ -33,9 +33,9 @@ import time
 from pathlib import Path
 
 import torch
+
 from common import REPO, write_section
 from scenes import workloads
-
 from splatcli.gaussians import SH_C0
 from splatcli.render import rasterize
 

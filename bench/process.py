@@ -26,9 +26,9 @@ import time
 from pathlib import Path
 
 import numpy as np
+
 from align import PoseErrors, compare_poses
 from common import DOC, REPO, data_dir, make_scene, write_section
-
 from splatcli.camera import Camera
 from splatcli.io.transforms import read_transforms
 from splatcli.process.run import ProcessConfig, ProcessResult, process

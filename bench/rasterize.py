@@ -35,9 +35,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
+
 from common import write_section
 from scenes import Workload, workloads
-
 from splatcli.render import rasterize
 from splatcli.render.project import project, tile_rect
 from splatcli.render.reference import rasterize_reference

@@ -9,9 +9,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from common import data_dir
 from torch import Tensor
 
+from common import data_dir
 from splatcli.render.sh import SH_C0
 
 

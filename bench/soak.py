@@ -15,9 +15,8 @@ import tempfile
 from pathlib import Path
 
 from common import SPLATCLI, run, write_section
-from tiny_project import make_tiny_project  # the scene tests/test_soak.py runs
-
 from splatcli.eval.curve import read_log
+from tiny_project import make_tiny_project  # the scene tests/test_soak.py runs
 
 
 def main() -> None:

@@ -35,7 +35,6 @@ import shutil
 from pathlib import Path
 
 from common import PROCESSED, SCENES, ensure_processed, fresh_copy, splatcli, write_section
-
 from splatcli.eval.curve import read_log
 from splatcli.project import Project
 

@@ -30,9 +30,9 @@ from pathlib import Path
 
 import cv2
 import torch
+
 from browser import capture, open_page, psnr_u8
 from common import REPO, SPLATCLI, ensure_processed, fresh_copy, loadavg, write_section
-
 from splatcli.gaussians import Gaussians
 from splatcli.io.model import load_model
 from splatcli.io.ply import write_ply

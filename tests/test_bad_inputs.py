@@ -31,11 +31,10 @@ import torch
 from typer.testing import CliRunner
 
 from splatcli.cli.main import app
+from splatcli.io.atomic import MAX_JSON_BYTES
 from splatcli.io.checkpoint import CHECKPOINT_SCHEMA
 from splatcli.io.ply import gaussians_to_rows, ply_header, ply_property_names
-from splatcli.io.atomic import MAX_JSON_BYTES
 from splatcli.project import LOCK_NAME, MANIFEST_NAME, SCHEMA_VERSION, Project
-
 from test_sfm import gl_c2w, jpeg_bytes, texture, with_exif_orientation
 from tiny_project import make_tiny_project, ring_cameras, tiny_gaussians
 

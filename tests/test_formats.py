@@ -28,7 +28,7 @@ from splatcli.io.sog import SogOptions, kmeans_1d, read_sog, write_sog
 from splatcli.io.spz import SpzOptions, read_spz, write_spz
 from splatcli.render import render_camera
 from splatcli.views.paths import look_at
-from tiny_project import make_tiny_project, run_cli, assert_user_error
+from tiny_project import assert_user_error, make_tiny_project, run_cli
 
 
 def scene(n: int = 600, seed: int = 0, sh_degree: int = 3) -> Gaussians:

@@ -10,23 +10,21 @@ import contextlib
 import json
 import shutil
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 import pytest
 import torch
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
+from hypothesis import HealthCheck, given, settings, strategies as st
 
 from common import data_dir
-
 from splatcli.errors import SplatError
 from splatcli.gaussians import Gaussians
 from splatcli.io.checkpoint import load_checkpoint, save_checkpoint
+from splatcli.io.transforms import read_transforms
 from splatcli.project import Project
 from splatcli.sfm.colmap_files import check_model
-from splatcli.io.transforms import read_transforms
 
 SETTINGS = settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture],
                     derandomize=True)

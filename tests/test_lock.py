@@ -16,7 +16,6 @@ from splatcli.errors import ProjectBusy
 from splatcli.io.export import ExportConfig, export_project
 from splatcli.project import writer_lock
 from splatcli.train.log import read_log
-
 from tiny_project import make_tiny_project
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

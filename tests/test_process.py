@@ -15,14 +15,13 @@ import cv2
 import numpy as np
 import pytest
 
+from align import compare_poses
+from common import make_scene
 from splatcli.camera import Camera
 from splatcli.events import Note
 from splatcli.process.run import ProcessConfig, process
 from splatcli.project import Project
 from splatcli.sfm.colmap import read_scene
-
-from align import compare_poses
-from common import make_scene
 from test_import import assert_contract, tree_digest
 from test_sfm import texture
 from tiny_project import assert_user_error, run_cli

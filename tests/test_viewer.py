@@ -19,12 +19,10 @@ import numpy as np
 import pytest
 import torch
 
+from browser import browser_problem, capture, open_page, psnr_u8, screenshot
 from splatcli.events import Progress, Snapshot
 from splatcli.io.ply import write_ply
-from splatcli.viewer import LiveSink, SceneStore, ViewerServer, open_scene
-from splatcli.viewer import server as server_mod
-
-from browser import browser_problem, capture, open_page, psnr_u8, screenshot
+from splatcli.viewer import LiveSink, SceneStore, ViewerServer, open_scene, server as server_mod
 from tiny_project import assert_user_error, make_tiny_project, run_cli, snapshot, tiny_gaussians
 
 REPO = Path(__file__).resolve().parents[1]
