@@ -117,7 +117,7 @@ def test_copies_are_drawn_from_their_source_gaussian():
     s.step_post_backward(sp, s.initial_state(401, torch.device("cpu")), 100, _info(401))
     new_s = sp.params["log_scales"][0].detach().exp()  # the source's scale after relocation, copies share it
     torch.testing.assert_close(sp.params["log_scales"][1:].detach().exp(), new_s.expand(400, 3))
-    o_eq9, s_eq9 = relocation(torch.tensor([0.9]), torch.tensor([[0.5, 0.01, 0.01]]), torch.tensor([401]), s.config.max_ratio)
+    _, s_eq9 = relocation(torch.tensor([0.9]), torch.tensor([[0.5, 0.01, 0.01]]), torch.tensor([401]), s.config.max_ratio)
     # eq. 9's scale, then shrunk; rtol: the strategy starts from sigmoid(logit(0.9)) in float32
     torch.testing.assert_close(new_s * s.config.shrink, s_eq9[0], rtol=1e-3, atol=0)
     off = sp.params["means"][1:].detach() - centre  # [400, 3]

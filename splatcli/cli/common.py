@@ -10,7 +10,6 @@ import contextlib
 import json
 import math
 import sys
-import time
 from collections.abc import Iterator
 from typing import Any
 
@@ -174,12 +173,3 @@ class Ui:
             out.print(f"[bold green]{title}[/bold green]")
         for line in lines or []:
             out.print(line)
-
-
-class Stopwatch:
-    def __init__(self) -> None:
-        self.t0 = time.perf_counter()
-
-    @property
-    def seconds(self) -> float:
-        return time.perf_counter() - self.t0

@@ -83,10 +83,6 @@ def ssim(pred: Tensor, gt: Tensor, keep: Tensor | None = None) -> Tensor:  # [H,
     return (m * w).sum() / (w.sum() * m.shape[0]).clamp_min(1)
 
 
-def psnr_from_mse(mse: float) -> float:
-    return 10.0 * math.log10(1.0 / max(mse, 1e-20))
-
-
 def color_fit(pred: Tensor, gt: Tensor, keep: Tensor | None = None) -> Tensor:  # [H, W, 3] each, keep [H, W]
     """`pred` through the affine colour transform (3x3 matrix and offset) that brings it
     closest to `gt` in least squares over the image's (kept) pixels (solved in float64),

@@ -28,12 +28,10 @@ import torch
 from ..errors import SplatError
 from ..events import EventSink, Note, Stage, StageDone, emit
 from ..project import Project, is_project, writer_lock
-from .formats import FORMATS, LOSSLESS, SUFFIXES, check_format, default_name, write_format
+from .formats import LOSSLESS, SUFFIXES, check_format, default_name, write_format
 from .model import load_model
 from .sog import SogOptions
 from .spz import SpzOptions
-
-EXPORT_FORMATS = FORMATS
 
 
 @dataclass(frozen=True)

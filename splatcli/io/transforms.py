@@ -26,7 +26,6 @@ from ..errors import SplatError
 from .atomic import read_json_file
 from .safepath import safe_join
 
-TRANSFORMS_NAMES = ("transforms.json", "transforms_train.json")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG", ".tif", ".tiff", ".bmp", ".webp")
 # A transforms file is kilobytes per frame; 256 MiB covers ~500k frames.
 MAX_TRANSFORMS_BYTES = 256 * 1024 * 1024

@@ -177,7 +177,6 @@ def match_pairs(db: Path, pairs: list[tuple[str, str]], list_file: Path, opts: M
 class DatabaseStats:
     keypoints: dict[str, int]  # image name -> keypoints
     verified_pairs: int  # pairs with a two-view geometry of enough inliers
-    matched_pairs: int
 
 
 def database_stats(db: Path, min_inliers: int = 15) -> DatabaseStats:
@@ -186,8 +185,7 @@ def database_stats(db: Path, min_inliers: int = 15) -> DatabaseStats:
         kp = {im.name: int(d.num_keypoints_for_image(im.image_id)) for im in d.read_all_images()}
         _, geoms = d.read_two_view_geometries()
         verified = sum(1 for g in geoms if len(g.inlier_matches) >= min_inliers)
-        matched = int(d.num_matched_image_pairs())
-    return DatabaseStats(keypoints=kp, verified_pairs=verified, matched_pairs=matched)
+    return DatabaseStats(keypoints=kp, verified_pairs=verified)
 
 
 # ---- mapping ----------------------------------------------------------------

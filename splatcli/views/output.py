@@ -67,7 +67,6 @@ class RenderResult:
     num_gaussians: int
     render_seconds: float  # rasterization only, device synchronised
     fps: float  # frames / render_seconds
-    wall_seconds: float  # everything, writes included
     device: str
     background: tuple[float, float, float]
     images: list[Path] = field(default_factory=list)
@@ -218,7 +217,6 @@ def render_views(
         num_gaussians=len(gaussians),
         render_seconds=render_s,
         fps=len(views) / max(render_s, 1e-9),
-        wall_seconds=time.perf_counter() - t_wall,
         device=str(device),
         background=tuple(bg_rgb),  # type: ignore[arg-type]
         images=images,
