@@ -34,8 +34,8 @@ import torch
 from browser import capture, open_page, psnr_u8
 from common import REPO, SPLATCLI, ensure_processed, fresh_copy, loadavg, write_section
 from splatcli.gaussians import Gaussians
-from splatcli.io.model import load_model
 from splatcli.io.ply import write_ply
+from splatcli.model import load_model
 from splatcli.viewer import ViewerServer, open_scene
 
 OUT = REPO / "bench" / "out" / "viewer"

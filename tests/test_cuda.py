@@ -79,7 +79,7 @@ def test_train_render_eval_on_cuda_and_the_checkpoint_loads_on_cpu(tmp_path):
     from typer.testing import CliRunner
 
     from splatcli.cli.main import app
-    from splatcli.io.model import load_model
+    from splatcli.model import load_model
     from tiny_project import make_tiny_project
 
     proj = make_tiny_project(tmp_path / "p", trained=False).root

@@ -13,7 +13,8 @@ import time
 import pytest
 
 from splatcli.errors import ProjectBusy
-from splatcli.io.export import ExportConfig, export_project
+from splatcli.io.export import ExportConfig
+from splatcli.model import export_project
 from splatcli.project import writer_lock
 from splatcli.train.log import read_log
 from tiny_project import make_tiny_project

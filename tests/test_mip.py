@@ -14,7 +14,7 @@ import torch
 
 from splatcli.gaussians import Gaussians, smooth_3d
 from splatcli.io.checkpoint import load_checkpoint, save_checkpoint
-from splatcli.io.model import load_model
+from splatcli.model import load_model
 from splatcli.render import render_camera
 from splatcli.strategy import MipFilter, Splats, ops
 from splatcli.strategy.mip import MARGIN, VARIANCE, filter_from_rate, sampling_rate

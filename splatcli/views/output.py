@@ -25,7 +25,7 @@ from ..errors import SplatError
 from ..events import EventSink, Note, Progress, Stage, StageDone, emit
 from ..gaussians import Gaussians
 from ..io.atomic import atomic_write_bytes
-from ..io.model import LoadedModel, load_model
+from ..model import LoadedModel, load_model
 from ..project import Project
 from ..render import render_camera
 from .paths import PATHS, cameras_around_points, generate_path

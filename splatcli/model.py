@@ -1,0 +1,98 @@
+"""The one model loader, and where `export` reads and writes: a project (its latest
+checkpoint) or a splat file.
+
+render, eval (`--model`), view, export and `train --init-ply` all load through
+`load_model`, so they accept the same sources and refuse bad ones the same way.
+This module sits above project.py (it opens projects) and io/ (it reads files):
+io/ reads and writes files and knows no project.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+from .errors import SplatError
+from .events import EventSink
+from .gaussians import Gaussians
+from .io.checkpoint import load_checkpoint
+from .io.compressed_ply import is_compressed_ply
+from .io.export import ExportConfig, ExportResult, check_export_config, export_gaussians, path_beside
+from .io.formats import SUFFIXES, check_format, format_of, read_format
+from .project import Project, is_project, writer_lock
+
+
+@dataclass
+class LoadedModel:
+    gaussians: Gaussians  # truncated to the active SH degree
+    kind: str  # "checkpoint", or the file's format (io/formats.py)
+    path: Path  # the checkpoint or file read
+    project: Project | None  # the project, when the source is one
+    step: int | None = None  # training step of the checkpoint
+    notes: list[str] = field(default_factory=list)  # what the reader had to do (dropped rows, ...)
+    antialiased: bool | None = None  # trained with the 2D filter (checkpoint of train --mip-filter); None: unknown
+
+    @property
+    def name(self) -> str:
+        """What was loaded, in words: "checkpoint step 7000" or the file's path."""
+        return f"checkpoint step {self.step}" if self.kind == "checkpoint" else str(self.path)
+
+
+def load_model(source: str | os.PathLike, device: torch.device) -> LoadedModel:
+    """A project directory (its latest checkpoint) or a splat file of any format
+    io/formats.py reads (.ply, .compressed.ply, .spz, .splat)."""
+    source = Path(source)
+    fmt = format_of(source) if not source.is_dir() else None
+    if source.is_dir() and source.suffix.lower() == ".ply" and not is_project(source):
+        raise SplatError(f"{source}: is a directory, not a .ply file")
+    if source.is_dir() or is_project(source):
+        project = Project.open(source)
+        ck_path = project.require_trained()
+        ck = load_checkpoint(ck_path, device)
+        return LoadedModel(gaussians=ck.model(), kind="checkpoint", path=ck_path, project=project, step=ck.step,
+                           antialiased=ck.antialiased)
+    if not source.exists():
+        if fmt is not None:
+            raise SplatError(f"{source}: no such {SUFFIXES[fmt]} file")
+        Project.open(source)  # raises: no such project, run `splatcli process` first
+    if fmt is None:
+        if not _starts_like_ply(source):
+            raise SplatError(f"{source}: neither a splatcli project directory nor a splat file "
+                             f"({', '.join(SUFFIXES.values())})")
+        fmt = "compressed-ply" if is_compressed_ply(source) else "ply"
+    r = read_format(source, device, fmt)
+    return LoadedModel(gaussians=r.gaussians, kind=fmt, path=source, project=None, notes=list(r.notes))
+
+
+def _starts_like_ply(path: Path) -> bool:
+    try:
+        with open(path, "rb") as f:
+            return f.read(5).startswith((b"ply\n", b"ply\r\n"))
+    except OSError:
+        return True  # let the .ply reader name the problem
+
+
+def export_project(root: str | os.PathLike, config: ExportConfig, *, on_event: EventSink | None = None) -> ExportResult:
+    """Write the latest checkpoint of the project at `root`, or the splat file `root`,
+    in `config.format` (io/export.py): a project's to PROJECT/exports/ under its lock
+    (shared), a file's beside it."""
+    config = ExportConfig(check_format(config.format), config.out, config.spz, config.sog)
+    check_export_config(config)
+    root = Path(root)
+    if root.is_dir() or is_project(root) or not root.exists():
+        project = Project.open(root)
+        with writer_lock(project.root, "export", shared=True):
+            out = Path(config.out) if config.out is not None else project.export_path(config.format)
+            return _export(project.root, out, config, on_event)
+    out = Path(config.out) if config.out is not None else path_beside(root, config.format)
+    if out.resolve() == root.resolve():
+        raise SplatError(f"-o {out}: is the source file itself; give another name")
+    return _export(root, out, config, on_event)
+
+
+def _export(source: Path, out: Path, config: ExportConfig, on_event: EventSink | None) -> ExportResult:
+    m = load_model(source, torch.device("cpu"))
+    return export_gaussians(m.gaussians, out, config, source=m.path, step=m.step, notes=m.notes, on_event=on_event)
