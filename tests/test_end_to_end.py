@@ -15,6 +15,8 @@ from typer.testing import CliRunner
 from common import make_scene
 from splatcli.cli.main import app
 
+pytestmark = pytest.mark.slow  # every command in turn on a rendered capture
+
 # This tiny run (16 views at 160x120, 600 steps) measured 23.4 dB held-out here
 # (23.1 dB at step 500; an earlier demo preset gave 19.1 dB); the floor leaves room
 # for SfM and thread-order noise across machines and presets while still failing a

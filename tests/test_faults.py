@@ -35,6 +35,7 @@ def _cli(*args: str) -> list[str]:
     return [sys.executable, "-m", "splatcli.cli.main", *args]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
 def test_signal_checkpoints_exits_130_and_resumes(tmp_path, sig):
     proj = _project(tmp_path)
@@ -81,6 +82,7 @@ def _wait_for_log(proc, proj, deadline_s: float = 120) -> None:
         time.sleep(0.05)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("delay", [0.0, 0.7, 1.9], ids=["at-once", "early", "later"])
 def test_kill_9_leaves_previous_checkpoint_and_manifest_intact(tmp_path, delay):
     """SIGKILL cannot be caught: only atomic writes protect the files. After a first

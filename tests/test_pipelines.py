@@ -17,6 +17,8 @@ from common import make_scene
 
 REPO = Path(__file__).resolve().parents[1]
 
+pytestmark = pytest.mark.slow  # make and snakemake run whole captures through every command
+
 
 def doc_makefile() -> str:
     text = (REPO / "docs" / "pipelines.md").read_text()
@@ -56,7 +58,6 @@ def test_pipeline_makefile_on_two_captures(tmp_path):
     assert q.returncode == 0
 
 
-@pytest.mark.slow
 @pytest.mark.skipif(shutil.which("make") is None, reason="needs GNU make")
 def test_batch_with_a_corrupt_frame_a_duplicate_job_and_a_scene_too_big(tmp_path):
     """Issue 17's batch: `make -k` builds every good capture; a corrupt photo is skipped

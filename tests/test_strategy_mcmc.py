@@ -183,6 +183,7 @@ def test_penalties_stop_at_reg_stop():
     assert sp.params["opacity_logits"].grad is None and sp.params["log_scales"].grad is None
 
 
+@pytest.mark.slow
 def test_train_with_mcmc_holds_the_budget_and_the_loop_knows_nothing_of_it(tmp_path):
     proj = make_tiny_project(tmp_path / "p", trained=False)
     r = run_cli("train", proj.root, "--strategy", "mcmc", "--max-gaussians", "500", "--iterations", "600",

@@ -243,6 +243,7 @@ def test_far_gaussians_are_size_pruned_by_angle_not_world_size():
     assert run(torch.zeros(3)) == [50.0]  # 50 away: its limit is 5 x 1.0 = 5 > 2
 
 
+@pytest.mark.slow
 def test_views_seeing_counts_frustums_and_prune_views_drops_the_rest(tmp_path):
     """views_seeing: a point counts for a view when in front of its near plane and inside its
     image; --prune-views then prunes while densifying, and the run still trains."""

@@ -78,7 +78,7 @@ def test_scene_facts_cameras_and_the_ply_is_the_exported_bytes(served, proj, tmp
 
 
 def tiny_gaussians_from(proj):
-    from splatcli.io.model import load_model
+    from splatcli.model import load_model
 
     return load_model(proj.root, torch.device("cpu")).gaussians
 
@@ -206,6 +206,7 @@ def test_view_bad_sources_are_one_line_errors(tmp_path):
     assert_user_error(run_cli("view", tmp_path), str(tmp_path))
 
 
+@pytest.mark.slow
 def test_train_with_viewer(tmp_path):
     proj = make_tiny_project(tmp_path / "t", trained=False, photos=True)
     r = run_cli("train", proj.root, "--iterations", "30", "--eval-every", "15", "--viewer", "--viewer-port", "0")
