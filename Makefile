@@ -14,7 +14,7 @@ BASELINE ?= 333d7bf
 # One torch thread per process unless you say otherwise (docs/guide.md, "Threads").
 export OMP_NUM_THREADS ?= 1
 
-.PHONY: setup test demo bench clean
+.PHONY: setup check test test-fast demo bench clean
 
 $(BIN)/splatcli: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -26,8 +26,18 @@ $(BIN)/splatcli: pyproject.toml
 
 setup: $(BIN)/splatcli
 
+# Lint and dead names (configured in pyproject.toml; CI runs this before the tests). Both run, and
+# either one's finding fails the target.
+check: setup
+	@status=0; $(BIN)/ruff check . || status=1; $(BIN)/vulture || status=1; exit $$status
+
+# The whole suite (what CI runs).
 test: setup
 	$(BIN)/python -m pytest -q $(PYTEST_ARGS)
+
+# The everyday tier: everything but the tests marked slow (soak, pipelines, data-parallel, end to end, ...).
+test-fast: setup
+	$(BIN)/python -m pytest -q -m "not slow" $(PYTEST_ARGS)
 
 demo: setup
 	rm -rf $(DEMO)

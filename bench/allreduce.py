@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -25,12 +24,11 @@ import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from _doc import write_section  # noqa: E402
-from splatcli.io.checkpoint import load_checkpoint  # noqa: E402
-from splatcli.project import Project  # noqa: E402
-from splatcli.render.projection import project as project_view  # noqa: E402
-from splatcli.train.data import load_train_data  # noqa: E402
+from common import write_section
+from splatcli.io.checkpoint import load_checkpoint
+from splatcli.project import Project
+from splatcli.render.projection import project as project_view
+from splatcli.train.data import load_train_data
 
 ROW = 59  # floats per Gaussian at SH degree 3: 3 + 4 + 3 + 1 + 48
 

@@ -13,25 +13,29 @@ fastest block of each view.
 from __future__ import annotations
 
 import argparse
+import functools
 import importlib
 import os
-import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import torch
 
-import torch  # noqa: E402
-
-from _doc import write_section  # noqa: E402  (bench/ is on sys.path when run as a script)
-from splatcli.io.checkpoint import load_checkpoint  # noqa: E402
-from splatcli.project import Project  # noqa: E402
-from splatcli.render.rasterize import rasterize  # noqa: E402
-from splatcli.train.data import load_train_data  # noqa: E402
+from common import write_section
+from splatcli.io.checkpoint import load_checkpoint
+from splatcli.project import Project
+from splatcli.render.rasterize import rasterize
+from splatcli.train.data import load_train_data
 
 R = importlib.import_module("splatcli.render.rasterize")  # the module (the package exports the function)
 NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh")
 BLOCKS = (4, 8, 16)
+
+
+def render_backward(p: list, view, background, block) -> None:
+    """One view rendered with `block` px blocks, and back-propagated."""
+    out = rasterize(*p, view.viewmat, view.K, view.camera.width, view.camera.height, background, block=block)
+    out.image.sum().backward()
 
 
 def main() -> None:
@@ -59,10 +63,7 @@ def main() -> None:
         views = data.train[:: max(1, len(data.train) // args.views)][: args.views]
         tot = {b: 0.0 for b in (*BLOCKS, "auto", "best")}
         for i, v in enumerate(views):
-            def run(block):
-                out = rasterize(*p, v.viewmat, v.K, v.camera.width, v.camera.height, data.background, block=block)
-                out.image.sum().backward()
-
+            run = functools.partial(render_backward, p, v, data.background)
             if i == 0:
                 run(8)  # warm-up
             t = {}

@@ -21,56 +21,45 @@ import argparse
 import json
 import os
 import shlex
-import subprocess
-import sys
-import time
 from pathlib import Path
 
-from _doc import write_section  # noqa: E402  (bench/ is on sys.path when run as a script)
-from train import SCENES, read_log  # noqa: E402
-from versus import TOL_DB, fresh_copy, seconds_to  # noqa: E402
+from common import (
+    FIGURES,
+    REPO,
+    SCENES,
+    TOL_DB,
+    ensure_processed,
+    figure,
+    fresh_copy,
+    plot_psnr_curves,
+    psnr_curve,
+    save_figure,
+    seconds_to,
+    splatcli,
+    write_section,
+)
 
-REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "bench" / "out" / "distributed"
-FIGURES = REPO / "docs" / "figures"
 
 
 def train_k(scene: str, k: int, args: list[str]) -> dict:
-    proj = fresh_copy(scene, OUT / scene / f"k{k}")
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    cmd = [sys.executable, "-m", "splatcli", "train", str(proj), "--device", "cpu", "--json", "-q", "--nproc", str(k),
-           *args]
-    print(f"[{scene}/K={k}] {' '.join(cmd[3:])}", flush=True)
-    load0 = os.getloadavg()
-    t0 = time.monotonic()
-    with open(OUT / scene / f"k{k}.log", "w") as err:
-        p = subprocess.run(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=err, text=True)
-    if p.returncode != 0:
-        raise SystemExit(f"{scene}/K={k} failed (exit {p.returncode}); see {OUT / scene / f'k{k}.log'}")
-    s = json.loads(p.stdout.strip().splitlines()[-1])
-    curve = [(r["elapsed_s"], r["psnr"]) for r in read_log(proj / "reports" / "train_log.jsonl") if "psnr" in r]
+    proj = fresh_copy(ensure_processed(scene), OUT / scene / f"k{k}")
+    cmd = ["train", str(proj), "--device", "cpu", "--nproc", str(k), *args]
+    print(f"[{scene}/K={k}] {' '.join(cmd)}", flush=True)
+    r = splatcli(cmd, OUT / scene / f"k{k}.log", env={**os.environ, "OMP_NUM_THREADS": "1"})
+    s = r.summary
     return {"k": k, "steps": s["steps"], "train_seconds": s["train_seconds"], "final_psnr": s["psnr"],
             "num_gaussians": s["num_gaussians"], "comm_seconds": s.get("comm_seconds"),
-            "wall_seconds": round(time.monotonic() - t0, 1), "curve": curve, "args": args,
-            "load_before": [round(x, 2) for x in load0], "load_after": [round(x, 2) for x in os.getloadavg()]}
+            "wall_seconds": round(r.wall_s, 1), "curve": psnr_curve(proj), "args": args,
+            "load_before": [r.load[0]], "load_after": [r.load[1]]}
 
 
 def plot(scene: str, runs: list[dict], path: Path) -> bool:
-    try:
-        from matplotlib.backends.backend_agg import FigureCanvasAgg
-        from matplotlib.figure import Figure
-    except ImportError:
+    made = figure(10, 4, ncols=2)
+    if made is None:
         return False
-    fig = Figure(figsize=(10, 4), dpi=100)
-    FigureCanvasAgg(fig)
-    ax, bx = fig.subplots(1, 2)
-    for r in runs:
-        ax.plot([t for t, _ in r["curve"]], [p for _, p in r["curve"]], "o-", label=f"{r['k']} process(es)")
-    ax.set_xlabel("training time (s)")
-    ax.set_ylabel("held-out PSNR (dB)")
-    ax.set_title(f"{scene}: PSNR against training time")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    fig, (ax, bx) = made
+    plot_psnr_curves(ax, {f"{r['k']} process(es)": r["curve"] for r in runs}, f"{scene}: PSNR against training time")
     ks = [r["k"] for r in runs]
     t1 = runs[0]["train_seconds"]
     bx.plot(ks, [t1 / r["train_seconds"] for r in runs], "o-", label="measured")
@@ -80,9 +69,7 @@ def plot(scene: str, runs: list[dict], path: Path) -> bool:
     bx.set_title(f"{scene}: scaling (same images seen)")
     bx.grid(alpha=0.3)
     bx.legend(fontsize=8)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, format="png")
+    save_figure(fig, path)
     return True
 
 

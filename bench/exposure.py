@@ -28,15 +28,13 @@ import argparse
 import json
 import os
 import shutil
-import sys
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from _doc import write_section  # noqa: E402
-from train import REPO, SCENES, SPLATCLI, ensure_processed, run  # noqa: E402
+from common import REPO, SCENES, ensure_processed, fresh_copy, loadavg, splatcli, write_section
+from splatcli.io.checkpoint import load_checkpoint
+from splatcli.project import Project
 
 OUT = REPO / "bench" / "out" / "exposure"
 
@@ -45,10 +43,7 @@ def gained_copy(scene: str, dest: Path, spread: float, per_channel: bool, seed: 
                 gained: bool) -> dict[str, list[float]]:
     """`dest` = the scene's processed project without training outputs, its training photos
     multiplied by seeded gains when `gained`; returns each training photo's gains."""
-    base = ensure_processed(scene)
-    if dest.exists():
-        shutil.rmtree(dest)
-    shutil.copytree(base, dest, ignore=shutil.ignore_patterns("checkpoints", "reports", "renders", "exports"))
+    fresh_copy(ensure_processed(scene), dest)
     if not gained:
         return {}
     import cv2
@@ -75,24 +70,19 @@ def train_and_eval(scene: str, src: Path, appearance: str, iterations: int | Non
         shutil.rmtree(proj)
     shutil.copytree(src, proj)
     _, _, targs, preset = SCENES[scene]
-    cmd = SPLATCLI + ["train", str(proj), "--preset", preset or "fast", "--device", "cpu", "--eval-every",
-                      "0", "--appearance", appearance, "--json", "-q", *targs]
+    cmd = ["train", str(proj), "--preset", preset or "fast", "--device", "cpu", "--eval-every", "0", "--appearance",
+           appearance, *targs]
     if iterations:
         cmd += ["--iterations", str(iterations)]
-    load0 = os.getloadavg()[0]
-    print(f"[{scene}/{appearance}] {' '.join(cmd[2:])}", flush=True)
-    rc, out, wall, peak_mb, _ = run(cmd, src.parent / f"{appearance}.train.log")
-    if rc != 0:
-        raise SystemExit(f"train {scene}/{appearance} failed (exit {rc}); see {src.parent / f'{appearance}.train.log'}")
-    t = json.loads(out)
-    rc, out, _, _, _ = run(SPLATCLI + ["eval", str(proj), "--budgets", "1", "--no-plots", "--device", "cpu", "--json",
-                                       "-q"], src.parent / f"{appearance}.eval.log")
-    if rc != 0:
-        raise SystemExit(f"eval {scene}/{appearance} failed (exit {rc}); see {src.parent / f'{appearance}.eval.log'}")
-    e = json.loads(out)
+    load0 = loadavg()
+    print(f"[{scene}/{appearance}] splatcli {' '.join(cmd)}", flush=True)
+    tr = splatcli(cmd, src.parent / f"{appearance}.train.log")
+    t, peak_mb = tr.summary, tr.peak_mb
+    e = splatcli(["eval", str(proj), "--budgets", "1", "--no-plots", "--device", "cpu"],
+                 src.parent / f"{appearance}.eval.log").summary
     r = {"scene": scene, "appearance": appearance, "steps": t["steps"], "train_seconds": t["train_seconds"],
          "num_gaussians": t["num_gaussians"], "psnr": e["psnr"], "ssim": e["ssim"], "psnr_color_fit": e["psnr_color_fit"],
-         "peak_rss_mb": peak_mb, "load": [round(load0, 2), round(os.getloadavg()[0], 2)], "project": str(proj)}
+         "peak_rss_mb": peak_mb, "load": [load0, loadavg()], "project": str(proj)}
     print(f"[{scene}/{appearance}] PSNR {r['psnr']:.2f} dB, after colour fit {r['psnr_color_fit']:.2f} dB, "
           f"{r['train_seconds']:.0f} s", flush=True)
     return r
@@ -100,10 +90,6 @@ def train_and_eval(scene: str, src: Path, appearance: str, iterations: int | Non
 
 def learnt_gains(project: Path) -> list[float]:
     """Each training photo's learnt transform as a gain: its mean row sum (what it does to grey)."""
-    sys.path.insert(0, str(REPO))
-    from splatcli.io.checkpoint import load_checkpoint
-    from splatcli.project import Project
-
     t = load_checkpoint(Project.open(project).latest_checkpoint()).appearance["transforms"]
     return t[:, :, :3].sum(2).mean(1).tolist()
 

@@ -17,14 +17,11 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _doc import write_section  # noqa: E402
+from common import REPO, run, splatcli, write_section
 
-REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "bench" / "out" / "formats"
 FORMATS = "ply,spz,sog,compressed-ply,splat"
 
@@ -51,21 +48,17 @@ def scene_table(projects: list[str], formats: str) -> list[str]:
     rows = []
     for proj in projects:
         out = OUT / Path(proj).name
-        load0 = os.getloadavg()
-        cmd = [sys.executable, "-m", "splatcli", "eval", proj, "--formats", formats, "--budgets", "1", "--no-plots",
-               "-o", str(out), "--json", "-q"]
-        print(" ".join(cmd[2:]), flush=True)
-        r = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
-        if r.returncode != 0:
-            raise SystemExit(r.stderr)
+        cmd = ["eval", proj, "--formats", formats, "--budgets", "1", "--no-plots", "-o", str(out)]
+        print("splatcli " + " ".join(cmd), flush=True)
+        r = splatcli(cmd, OUT / f"{Path(proj).name}.log", cwd=Path.cwd(), env={**os.environ, "OMP_NUM_THREADS": "1"})
         rep = json.loads((out / "eval.json").read_text())
-        load1 = os.getloadavg()
+        load0, load1 = r.load
         steps = rep.get("train_steps")
         for f in rep["formats"]:
             rows.append(f"| `{Path(proj).parent.name}/{Path(proj).name}` ({steps} steps, {rep['width']}x{rep['height']}) "
                         f"| {rep['num_gaussians']:,} | {f['format']} | {f['bytes'] / 1e6:.2f} MB | "
                         f"{f['bytes_per_gaussian']:.1f} | {f['ratio']:.1f}x | {f['psnr']:.2f} | {f['db_lost']:.2f} | "
-                        f"{f['encode_s']:.2f} + {f['decode_s']:.2f} | {load0[0]:.2f} → {load1[0]:.2f} |")
+                        f"{f['encode_s']:.2f} + {f['decode_s']:.2f} | {load0:.2f} → {load1:.2f} |")
     return rows
 
 
@@ -75,16 +68,16 @@ def million(formats: str, n: int = 1_000_000) -> list[str]:
     raw_mb = n * 59 * 4 / 1e6
     for fmt in formats.split(","):
         path = OUT / f"million.{fmt.replace('-', '.')}"
-        load0 = os.getloadavg()
-        r = subprocess.run([sys.executable, "-c", CODEC, fmt, str(path), str(n)], capture_output=True, text=True,
-                           env={**os.environ, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "2")})
+        log = OUT / f"million.{fmt}.log"
+        r = run([sys.executable, "-c", CODEC, fmt, str(path), str(n)], log,
+                env={**os.environ, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "2")})
         if r.returncode != 0:
-            raise SystemExit(r.stderr)
-        d = json.loads(r.stdout.strip().splitlines()[-1])
+            raise SystemExit(f"{fmt}: the codec run failed (exit {r.returncode}); see {log}")
+        d = r.summary
         path.unlink(missing_ok=True)
         rows.append(f"| {fmt} | {d['bytes'] / 1e6:.1f} MB | {d['encode_s']:.1f} | {d['decode_s']:.1f} | "
                     f"{d['encode_s'] + d['decode_s']:.1f} | {d['extra_mb']:.0f} MB ({d['extra_mb'] / raw_mb:.2f}x) | "
-                    f"{load0[0]:.2f} → {os.getloadavg()[0]:.2f} |")
+                    f"{r.load[0]:.2f} → {r.load[1]:.2f} |")
         print(rows[-1], flush=True)
     return rows
 

@@ -19,30 +19,13 @@ import argparse
 import json
 import os
 import shutil
-import subprocess
-import sys
 import time
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import REPO, loadavg, make_scene, splatcli, write_section
 
-from _doc import write_section  # noqa: E402
-
-REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "bench" / "out" / "masks"
-SPLATCLI = [sys.executable, "-m", "splatcli.cli.main"]
 HEADING = "## masks"
 TARGET_DB = 2.0
-
-
-def splatcli(args: list[str], log: Path, threads: int) -> dict:
-    env = {**os.environ, "OMP_NUM_THREADS": str(threads)}
-    with open(log, "w") as err:
-        p = subprocess.run(SPLATCLI + args + ["--json", "-q"], cwd=REPO, stdout=subprocess.PIPE, stderr=err,
-                           text=True, env=env)
-    if p.returncode != 0:
-        raise SystemExit(f"splatcli {args[0]} failed (exit {p.returncode}); see {log}")
-    return json.loads(p.stdout)
 
 
 def main() -> None:
@@ -56,19 +39,17 @@ def main() -> None:
     ap.add_argument("--no-write", action="store_true", help="print the section, leave docs/benchmarks.md alone")
     args = ap.parse_args()
 
-    sys.path.insert(0, str(REPO / "sample_data"))
-    from make_scene import render_scene
-
+    env = {**os.environ, "OMP_NUM_THREADS": str(args.threads)}
     OUT.mkdir(parents=True, exist_ok=True)
     scene = OUT / "scene"
     shutil.rmtree(scene, ignore_errors=True)
     t0 = time.perf_counter()
-    render_scene(scene, num_views=args.views, width=args.width, height=args.height, distractor=True)
+    make_scene().render_scene(scene, num_views=args.views, width=args.width, height=args.height, distractor=True)
     moved = json.loads((scene / "ground_truth.json").read_text())["distractor_views"]
     print(f"rendered {args.views} views ({len(moved)} with the distractor) in {time.perf_counter() - t0:.0f} s",
           flush=True)
     base = OUT / "base"
-    p = splatcli(["process", str(scene), "-o", str(base), "--overwrite"], OUT / "process.log", args.threads)
+    p = splatcli(["process", str(scene), "-o", str(base), "--overwrite"], OUT / "process.log", env=env).summary
     print(f"processed: {p['registered']}/{p['total']} registered, masks from {p['mask_source']}", flush=True)
 
     rows = []
@@ -79,12 +60,12 @@ def main() -> None:
         cmd = ["train", str(proj), "--preset", args.preset, "--device", "cpu", "--mask-mode", mode]
         if args.iterations:
             cmd += ["--iterations", str(args.iterations)]
-        load0 = os.getloadavg()[0]
+        load0 = loadavg()
         print(f"[{mode}] splatcli {' '.join(cmd)}", flush=True)
-        s = splatcli(cmd, OUT / f"{mode}.log", args.threads)
+        s = splatcli(cmd, OUT / f"{mode}.log", env=env).summary
         rows.append({"mode": mode, "psnr": s["psnr"], "ssim": s["ssim"], "steps": s["steps"],
                      "train_seconds": s["train_seconds"], "num_gaussians": s["num_gaussians"],
-                     "mask_mode": s["mask_mode"], "load": [round(load0, 2), round(os.getloadavg()[0], 2)]})
+                     "mask_mode": s["mask_mode"], "load": [load0, loadavg()]})
         print(f"[{mode}] held-out PSNR {s['psnr']:.2f} dB in {s['train_seconds']:.0f} s", flush=True)
     gain = rows[0]["psnr"] - rows[1]["psnr"]
     result = {"views": args.views, "width": args.width, "height": args.height, "distractor_views": len(moved),

@@ -13,15 +13,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import sys
 import time
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from _doc import write_section  # noqa: E402
-from train import OUT, train_variant  # noqa: E402
+from common import loadavg, write_section
+from train import OUT, train_variant
 
 
 def main() -> None:
@@ -45,10 +40,10 @@ def main() -> None:
         full = {"num_gaussians": runs[-1]["num_gaussians"] if runs else counts[scene]}
         budget = max(1, full["num_gaussians"] // 3)
         for variant, extra in (("budget", []), ("mcmc", ["--strategy", "mcmc"])):
-            load0 = os.getloadavg()[0]
+            load0 = loadavg()
             r = train_variant(scene, variant, ["--max-gaussians", str(budget), *extra], args.preset, args.iterations, 1)
-            r.update(date=time.strftime("%Y-%m-%d"), budget=budget, default_count=full["num_gaussians"], load=[round(load0, 2),
-                                                                              round(os.getloadavg()[0], 2)])
+            r.update(date=time.strftime("%Y-%m-%d"), budget=budget, default_count=full["num_gaussians"],
+                     load=[load0, loadavg()])
             rows.append(r)
     kept.write_text(json.dumps(rows, indent=1))
     lines = ["## MCMC at one budget", "",

@@ -18,22 +18,13 @@ docs/benchmarks.md.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
-import os
-import shutil
-import subprocess
-import sys
 import time
 from pathlib import Path
 
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from _doc import write_section  # noqa: E402
-from train import REPO, SPLATCLI, ensure_processed  # noqa: E402
-
-from splatcli.project import Project  # noqa: E402
+from common import REPO, ensure_processed, fresh_copy, loadavg, make_scene, splatcli, write_section
+from splatcli.eval.curve import read_log
+from splatcli.project import Project
 
 OUT = REPO / "bench" / "out" / "overfit"
 EVERY = 500
@@ -52,50 +43,36 @@ SCENES = {"object": [],
           "fox-photos": ["--max-size", "320"]}
 
 
-def make_scene_module():
-    spec = importlib.util.spec_from_file_location("make_scene", REPO / "sample_data" / "make_scene.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 def object_base() -> Path:
     """The object capture, rendered and processed once."""
     capture, base = OUT / "object" / "capture", OUT / "object" / "processed"  # not a variant's name
     if not (capture / "ground_truth.json").is_file():
-        make_scene_module().render_scene(capture, kind="object")
+        make_scene().render_scene(capture, kind="object")
     if not (base / "splatcli.json").is_file():
-        subprocess.run(SPLATCLI + ["process", str(capture), "-o", str(base), "--overwrite", "-q"], cwd=REPO, check=True)
+        splatcli(["process", str(capture), "-o", str(base), "--overwrite"], OUT / "object" / "process.log")
     return base
 
 
 def train(scene: str, variant: str, extra: list[str]) -> dict:
     base = object_base() if scene == "object" else ensure_processed(scene)
-    proj = OUT / scene / variant
-    if proj.exists():
-        shutil.rmtree(proj)
-    shutil.copytree(base, proj, ignore=shutil.ignore_patterns("checkpoints", "reports", "renders", "exports"))
-    cmd = SPLATCLI + ["train", str(proj), "--preset", "fast", "--device", "cpu", "--eval-every", str(EVERY),
-                      "--json", "-q", *SCENES[scene], *extra]
-    print(f"[{scene}/{variant}] {' '.join(cmd[3:])}", flush=True)
-    load0, t0 = os.getloadavg()[0], time.monotonic()
-    out = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
-    if out.returncode != 0:
-        raise SystemExit(f"{scene}/{variant} failed: {out.stderr[-2000:]}")
-    return result(scene, variant, extra, proj, json.loads(out.stdout), load0, t0)
+    proj = fresh_copy(base, OUT / scene / variant)
+    cmd = ["train", str(proj), "--preset", "fast", "--device", "cpu", "--eval-every", str(EVERY), *SCENES[scene], *extra]
+    print(f"[{scene}/{variant}] {' '.join(cmd)}", flush=True)
+    load0, t0 = loadavg(), time.monotonic()
+    r = splatcli(cmd, OUT / scene / f"{variant}.log")
+    return result(scene, variant, extra, proj, r.summary, load0, t0)
 
 
 def result(scene: str, variant: str, extra: list[str], proj: Path, s: dict, load0: float, t0: float) -> dict:
     """The row of a finished run of `proj` (its train summary `s`)."""
-    log = [json.loads(x) for x in (proj / "reports" / "train_log.jsonl").read_text().splitlines()]
-    ev = [r for r in log if "psnr" in r]
+    ev = [r for r in read_log(Project(proj).train_log_path) if "psnr" in r]
     best = max(ev, key=lambda r: r["psnr"])
     row = {"scene": scene, "variant": variant, "options": " ".join(SCENES[scene] + extra),
            "curve": [(r["step"], r["psnr"], r.get("train_psnr")) for r in ev],
            "best_step": best["step"], "best": best["psnr"], "final": ev[-1]["psnr"],
            "final_train": ev[-1].get("train_psnr"), "drop": round(ev[-1]["psnr"] - best["psnr"], 2),
            "num_gaussians": s["num_gaussians"], "train_seconds": s["train_seconds"],
-           "wall_s": round(time.monotonic() - t0, 1), "load": [round(load0, 2), round(os.getloadavg()[0], 2)]}
+           "wall_s": round(time.monotonic() - t0, 1), "load": [load0, loadavg()]}
     print(f"[{scene}/{variant}] best {row['best']:.2f} @ {row['best_step']}, final {row['final']:.2f} "
           f"({row['drop']:+.2f}), train {row['final_train']}", flush=True)
     return row

@@ -11,7 +11,7 @@ compiled by torch's own extension builder against the libtorch inside the pip
 torch wheel (g++ and ninja are needed; no OpenCV: the peer's image I/O is not timed).
 Where the peer cannot be built, the script says why and exits 0.
 
-Both sides render the issue-7 workloads (bench/rasterize.py) forward and backward:
+Both sides render the issue-7 workloads (bench/scenes.py, as bench/rasterize.py) forward and backward:
 the peer as its model.cpp does on CPU (project, SH degree 0 colours, rasterize);
 ours through `splatcli.render.rasterize`. They alternate, rep by rep, at each
 thread count, so both see the same machine; medians are reported with the load
@@ -32,14 +32,12 @@ import sys
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-import torch  # noqa: E402
+import torch
 
-from rasterize import workloads  # noqa: E402  (bench/ is on sys.path when run as a script)
-from _doc import write_section  # noqa: E402
-from splatcli.gaussians import SH_C0  # noqa: E402
-from splatcli.render import rasterize  # noqa: E402
+from common import REPO, write_section
+from scenes import workloads
+from splatcli.gaussians import SH_C0
+from splatcli.render import rasterize
 
 OUT = REPO / "bench" / "out" / "peers"
 SOURCES = ["project_gaussians.cpp", "rasterize_gaussians.cpp", "rasterizer/gsplat-cpu/gsplat_cpu.cpp"]

@@ -21,27 +21,21 @@ import argparse
 import json
 import os
 import platform
-import sys
 import tempfile
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-sys.path.append(str(REPO / "tests"))  # tests/align.py (pose comparison), a test helper outside the package
+import numpy as np
 
-import numpy as np  # noqa: E402
-
-from splatcli.camera import Camera  # noqa: E402
-from splatcli.process.run import ProcessConfig, ProcessResult, process  # noqa: E402
-from splatcli.project import Project  # noqa: E402
-from splatcli.sfm.colmap import read_scene  # noqa: E402
-from splatcli.io.transforms import read_transforms  # noqa: E402
-from align import PoseErrors, compare_poses  # noqa: E402  (tests/align.py)
-from _doc import write_section  # noqa: E402  (bench/ is on sys.path when run as a script)
+from align import PoseErrors, compare_poses
+from common import DOC, REPO, data_dir, make_scene, write_section
+from splatcli.camera import Camera
+from splatcli.io.transforms import read_transforms
+from splatcli.process.run import ProcessConfig, ProcessResult, process
+from splatcli.project import Project
+from splatcli.sfm.colmap import read_scene
 
 FOX_WIDTH = 400  # the baseline was measured at 400 px wide
-DOC = REPO / "docs" / "benchmarks.md"
 SECTION = "## process"
 
 
@@ -58,12 +52,7 @@ CHOICES = (
 )
 
 
-def data_dir() -> Path:
-    env = os.environ.get("SPLATCLI_DATA")
-    return Path(env) if env else REPO.parent / "shared" / "data"
-
-
-def run(src: Path, cfg: ProcessConfig, tmp: Path, label: str) -> tuple[ProcessResult, Path, float]:
+def process_timed(src: Path, cfg: ProcessConfig, tmp: Path, label: str) -> tuple[ProcessResult, Path, float]:
     out = tmp / label
     t_cpu = time.process_time()
     r = process(src, out, cfg)
@@ -125,13 +114,13 @@ def main() -> None:
             ref = fox_reference(fox)
             rows = []
             images = fox_at_width(fox / "images", tmp / "fox400")
-            r, proj, cpu = run(images, ProcessConfig(), tmp, "fox")
+            r, proj, cpu = process_timed(images, ProcessConfig(), tmp, "fox")
             e = errors_of(proj, ref)
             rows.append(stage_row("splatcli defaults", r, cpu, e))
             ratio = ""
             if args.baseline:
                 base = ProcessConfig(max_features=8192, first_octave=-1, matcher="exhaustive")
-                rb, projb, cpub = run(images, base, tmp, "fox-baseline")
+                rb, projb, cpub = process_timed(images, base, tmp, "fox-baseline")
                 rows.append(stage_row("COLMAP defaults (8192 SIFT, upsampled octave, all pairs)", rb, cpub,
                                       errors_of(projb, ref)))
                 ratio = (f"Same run, same load: the defaults take {cpub / cpu:.1f}x less CPU time and "
@@ -159,16 +148,13 @@ def main() -> None:
             complete = False
 
         if not args.no_accuracy:
-            sys.path.insert(0, str(REPO / "sample_data"))
-            from make_scene import render_scene  # type: ignore[import-not-found]
-
             scene = REPO / "sample_data" / "scene"
             if not (scene / "ground_truth.json").is_file():
-                scene = render_scene(tmp / "scene")
+                scene = make_scene().render_scene(tmp / "scene")
             gt = json.loads((scene / "ground_truth.json").read_text())
             truth = [Camera(c["name"], c["width"], c["height"], np.asarray(c["K"], float),
                             np.asarray(c["viewmat"], float)) for c in gt["cameras"]]
-            r, proj, cpu = run(scene, ProcessConfig(), tmp, "sample")
+            r, proj, cpu = process_timed(scene, ProcessConfig(), tmp, "sample")
             e = errors_of(proj, truth)
             print(f"sample: rotation error max {e.max_rotation_deg:.3f}° mean {e.mean_rotation_deg:.3f}°, "
                   f"centre error max {100 * e.max_center_error_rel:.3f}% mean {100 * e.mean_center_error_rel:.3f}% "

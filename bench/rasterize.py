@@ -29,26 +29,19 @@ import math
 import os
 import platform
 import statistics
-import sys
 import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+import torch
 
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
+from common import write_section
+from scenes import Workload, workloads
+from splatcli.render import rasterize
+from splatcli.render.projection import project
+from splatcli.render.reference import rasterize_reference
 
-from splatcli.render import rasterize  # noqa: E402
-from splatcli.render.projection import project  # noqa: E402
-from splatcli.render.reference import rasterize_reference  # noqa: E402
-from splatcli.render.sh import SH_C0  # noqa: E402
-from scenes import benchmark_scene  # noqa: E402  (bench/scenes.py)
-from _doc import write_section  # noqa: E402  (bench/ is on sys.path when run as a script)
-
-DOC = REPO / "docs" / "benchmarks.md"
 SECTION = "## Rasterizer"
 # A peer's time counts only when it ran in the same run, on the same machine: figures from
 # another day are not divided by here (issue 12). The same-run peer comparison is pending.
@@ -78,54 +71,6 @@ between runs; ratios within one run are the reliable part). fwd / fwd+bwd in ms.
 | 14 | a block also leaves the segment loop when its list has ended, not only when its pixels saturate (before, a chunk padded every block to its longest list, and short lists ran to the end on padding: at 50 px one chunk held 169 blocks padded to K = 4,365 for 89k pairs) | lego checkpoint, 36.6k Gaussians, 12 training views at 50 / 100 / 200 px, block 4, before -> after, consecutive runs | composite fwd 84 -> 34, 61 -> 28, 61 -> 43; backward (loss included) 224 -> 115, 187 -> 102, 192 -> 148; whole fwd+bwd step at 9.1k Gaussians 119 -> 62 (50 px), 122 -> 94 (200 px) | yes (issue 12) |
 | 15 | glibc keeps freed memory (`mallopt`: mmap threshold 32 MB, trim threshold 1 GB) instead of page-faulting each segment's fresh tensors in again | compositor alone, fresh process / whole `train` runs | 1.4x faster compositor in a short microbenchmark; `train --preset fast --iterations 400` on lego: 71.8 and 68.8 s default, 70.2 and 73.5 s tuned (alternating): no gain, since a long run's dynamic mmap threshold already adapts | no |
 """
-
-
-def data_dir() -> Path:
-    env = os.environ.get("SPLATCLI_DATA")
-    return Path(env) if env else REPO.parent / "shared" / "data"
-
-
-@dataclass
-class Workload:
-    name: str
-    args: list  # [means, quats, log_scales, opacity_logits, sh, viewmat, K]
-    width: int
-    height: int
-
-
-def workloads(only: list[str] | None) -> list[Workload]:
-    out = []
-    for n, w, h, d in [(10_000, 256, 256, 0), (10_000, 800, 600, 0), (100_000, 256, 256, 0),
-                       (100_000, 800, 600, 0), (100_000, 800, 600, 3)]:
-        name = f"synth-{n // 1000}k-{w if w == h else f'{w}x{h}'}" + (f"-sh{d}" if d else "")
-        if only and name not in only:
-            continue
-        out.append(Workload(name, benchmark_scene(n, w, h, d, seed=0), w, h))
-    garden = data_dir() / "garden" / "test_garden.npz"
-    if (not only or "garden-648x420" in only) and garden.is_file():
-        out.append(garden_workload(garden))
-    elif not garden.is_file():
-        print(f"garden: {garden} absent, skipped", flush=True)
-    return out
-
-
-def garden_workload(path: Path) -> Workload:
-    d = np.load(path)
-    pts = d["means3d"].astype(np.float32)
-    keep = (np.abs(pts) <= 2).all(1)
-    means = torch.from_numpy(pts[keep])
-    colors = torch.from_numpy(d["colors"][keep].astype(np.float32) / 255.0)
-    n = means.shape[0]
-    g = torch.Generator().manual_seed(0)
-    scales = torch.rand(n, 3, generator=g) * (0.02 - 1e-4) + 1e-4
-    quats = torch.randn(n, 4, generator=g)
-    quats = quats / quats.norm(dim=1, keepdim=True)
-    op = torch.rand(n, generator=g).clamp(1e-4, 1 - 1e-4)
-    sh = ((colors - 0.5) / SH_C0)[:, None, :]
-    viewmat = torch.from_numpy(d["viewmats"][0].astype(np.float32))
-    K = torch.from_numpy(d["Ks"][0].astype(np.float32))
-    w, h = int(d["width"]), int(d["height"])
-    return Workload(f"garden-{w}x{h}", [means, quats, scales.log(), torch.log(op / (1 - op)), sh, viewmat, K], w, h)
 
 
 def count_pairs(wl: Workload) -> tuple[int, int]:

@@ -11,19 +11,12 @@ from __future__ import annotations
 
 import argparse
 import os
-import subprocess
-import sys
 import tempfile
-import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "tests"))
-sys.path.insert(0, str(REPO))
-
-from _doc import write_section  # noqa: E402  (bench/ is on sys.path when run as a script)
-from splatcli.train.log import read_log  # noqa: E402
-from tiny_project import make_tiny_project  # noqa: E402  (tests/tiny_project.py: the scene the test uses)
+from common import SPLATCLI, run, write_section
+from splatcli.eval.curve import read_log
+from tiny_project import make_tiny_project  # the scene tests/test_soak.py runs
 
 
 def main() -> None:
@@ -34,12 +27,12 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as d:
         proj = make_tiny_project(Path(d) / "p", trained=False)
         proj.update_manifest(scene={**proj.manifest()["scene"], "bounds_min": [-1.0] * 3, "bounds_max": [1.0] * 3})
-        load0, t0 = os.getloadavg()[0], time.monotonic()
-        subprocess.run([sys.executable, "-m", "splatcli.cli.main", "train", str(proj.root),
-                        "--preset", "fast", "--max-gaussians", "500",
-                        "--iterations", str(args.steps), "--device", "cpu", "--quiet"], cwd=REPO, check=True,
-                       env={**os.environ, "OMP_NUM_THREADS": "1"})
-        wall, load1 = time.monotonic() - t0, os.getloadavg()[0]
+        r = run(SPLATCLI + ["train", str(proj.root), "--preset", "fast", "--max-gaussians", "500",
+                            "--iterations", str(args.steps), "--device", "cpu", "--quiet"],
+                env={**os.environ, "OMP_NUM_THREADS": "1"})
+        if r.returncode != 0:
+            raise SystemExit(f"train failed (exit {r.returncode})")
+        wall, (load0, load1) = r.wall_s, r.load
         log = read_log(proj.train_log_path)
     every = max(1, args.steps // 10 // 100) * 100
     rows = [x for x in log if x["step"] % every == 0 or x["step"] == 100]

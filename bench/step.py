@@ -21,21 +21,17 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
-import sys
 import time
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import torch
 
-import torch  # noqa: E402
-
-from _doc import write_section  # noqa: E402  (bench/ is on sys.path when run as a script)
-from splatcli.io.checkpoint import load_checkpoint  # noqa: E402
-from splatcli.project import Project  # noqa: E402
-from splatcli.render.composite import choose_block, composite, estimate_pairs, make_plan  # noqa: E402
-from splatcli.render.projection import project  # noqa: E402
-from splatcli.train.data import load_train_data  # noqa: E402
-from splatcli.train.loss import photometric_loss  # noqa: E402
+from common import write_section
+from splatcli.io.checkpoint import load_checkpoint
+from splatcli.project import Project
+from splatcli.render.composite import choose_block, composite, estimate_pairs, make_plan
+from splatcli.render.projection import project
+from splatcli.train.data import load_train_data
+from splatcli.train.loss import photometric_loss
 
 STAGES = ("project", "plan", "composite", "loss", "loss bwd", "composite bwd", "project bwd")
 NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh")

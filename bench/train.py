@@ -32,101 +32,16 @@ import json
 import os
 import platform
 import shutil
-import subprocess
-import sys
-import threading
-import time
 from pathlib import Path
-from _doc import write_section  # noqa: E402  (bench/ is on sys.path when run as a script)
 
-REPO = Path(__file__).resolve().parents[1]
-OUT = REPO / "bench" / "out" / "train"
-DOC = REPO / "docs" / "benchmarks.md"
-SPLATCLI = [sys.executable, "-m", "splatcli.cli.main"]
+from common import PROCESSED, SCENES, ensure_processed, fresh_copy, splatcli, write_section
+from splatcli.eval.curve import read_log
+from splatcli.project import Project
+
+OUT = PROCESSED  # bench/out/train: <scene>/base (processed) beside <scene>/<variant> (trained)
 MILESTONES = (1000, 3000, 7000)
 TARGET_DB = 30.0
-
-
-def data_dir() -> Path:
-    env = os.environ.get("SPLATCLI_DATA")
-    return Path(env) if env else REPO.parent / "shared" / "data"
-
-
-# scene -> (input, process args, train args, preset)
-SCENES = {
-    "lego": (lambda: data_dir() / "lego", [], ["--max-size", "200"], None),
-    "fox": (lambda: data_dir() / "fox", [], ["--max-size", "480"], None),
-    # the same 50 photos without their poses: structure from motion at 400 px (issue 12's "real capture")
-    "fox-photos": (lambda: data_dir() / "fox" / "images", ["--input-type", "images", "--max-size", "400"],
-                   ["--max-size", "480"], None),
-    "sample": (lambda: REPO / "sample_data" / "scene", [], [], "demo"),
-}
 TIME_BUDGETS = {"lego": 75, "fox": 240, "fox-photos": 240, "sample": 60}  # seconds, for the `time` variant
-
-
-class RssSampler(threading.Thread):
-    """Peak resident set size of a child, sampled from /proc (Linux)."""
-
-    def __init__(self, pid: int, period: float = 0.5) -> None:
-        super().__init__(daemon=True)
-        self.pid, self.period, self.peak_kb, self.samples = pid, period, 0, []
-        self._halt = threading.Event()
-        self.t0 = time.monotonic()
-
-    def run(self) -> None:
-        path = f"/proc/{self.pid}/status"
-        while not self._halt.is_set():
-            try:
-                with open(path) as f:
-                    for line in f:
-                        if line.startswith("VmRSS:"):
-                            kb = int(line.split()[1])
-                            self.peak_kb = max(self.peak_kb, kb)
-                            self.samples.append((round(time.monotonic() - self.t0, 1), kb // 1024))
-            except OSError:
-                pass
-            self._halt.wait(self.period)
-
-    def stop(self) -> None:
-        self._halt.set()
-        self.join()
-
-
-def run(cmd: list[str], log: Path) -> tuple[int, str, float, int, list]:
-    t0 = time.monotonic()
-    with open(log, "w") as err:
-        p = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=err, text=True)
-        s = RssSampler(p.pid)
-        s.start()
-        out, _ = p.communicate()
-        s.stop()
-    return p.returncode, out, time.monotonic() - t0, s.peak_kb // 1024, s.samples
-
-
-def ensure_processed(scene: str) -> Path:
-    src, pargs, _, _ = SCENES[scene]
-    base = OUT / scene / "base"
-    if (base / "splatcli.json").is_file() and (base / "sfm").is_dir():
-        return base
-    inp = src()
-    if not inp.exists():
-        raise SystemExit(f"{inp}: missing (scene {scene}); set SPLATCLI_DATA or skip it with --scenes")
-    base.parent.mkdir(parents=True, exist_ok=True)
-    rc, out, wall, _, _ = run(SPLATCLI + ["process", str(inp), "-o", str(base), "--overwrite", "--json", "-q", *pargs],
-                              OUT / scene / "process.log")
-    if rc != 0:
-        raise SystemExit(f"process {scene} failed; see {OUT / scene / 'process.log'}")
-    return base
-
-
-def read_log(path: Path) -> list[dict]:
-    rows = []
-    for line in path.read_text().splitlines():
-        try:
-            rows.append(json.loads(line))
-        except json.JSONDecodeError:
-            pass
-    return rows
 
 
 def train_variant(scene: str, variant: str, extra: list[str], preset: str, iterations: int | None,
@@ -138,36 +53,31 @@ def train_variant(scene: str, variant: str, extra: list[str], preset: str, itera
     proj = OUT / scene / variant
     _, _, targs, scene_preset = SCENES[scene]
     preset = scene_preset or preset
-    resuming = resume and any((proj / "checkpoints").glob("step-*.pt"))
+    resuming = resume and Project(proj).latest_checkpoint() is not None
     if resuming:
         # An interrupted benchmark run continues from its last checkpoint (bitwise what an
         # uninterrupted run gives); its training seconds still count from step 0, but its
         # wall time and peak RSS cover only the resumed part.
-        cmd = SPLATCLI + ["train", str(proj), "--resume", "--device", "cpu", "--json", "-q"]
+        args = ["train", str(proj), "--resume", "--device", "cpu"]
     elif variant == "compact":
         src = OUT / scene / "default"
-        if not (src / "checkpoints").is_dir():
+        if not Project(src).checkpoints_dir.is_dir():
             raise SystemExit(f"[{scene}/compact] needs the default run first ({src})")
         if proj.exists():
             shutil.rmtree(proj)
         shutil.copytree(src, proj)
-        cmd = SPLATCLI + ["train", str(proj), "--resume", "--compact", "--device", "cpu", "--json", "-q"]
+        args = ["train", str(proj), "--resume", "--compact", "--device", "cpu"]
     else:
-        if proj.exists():
-            shutil.rmtree(proj)
-        shutil.copytree(base, proj, ignore=shutil.ignore_patterns("checkpoints", "reports", "renders", "exports"))
-        cmd = SPLATCLI + ["train", str(proj), "--preset", preset, "--device", "cpu", "--eval-every", "1000",
-                          "--json", "-q", *targs, *extra]
+        fresh_copy(base, proj)
+        args = ["train", str(proj), "--preset", preset, "--device", "cpu", "--eval-every", "1000", *targs, *extra]
         if iterations:
-            cmd += ["--iterations", str(iterations)]
+            args += ["--iterations", str(iterations)]
     if threads:
         os.environ["OMP_NUM_THREADS"] = str(threads)
-    print(f"[{scene}/{variant}] {' '.join(cmd[2:])}", flush=True)
-    rc, out, wall, peak_mb, samples = run(cmd, OUT / scene / f"{variant}.log")
-    if rc != 0:
-        raise SystemExit(f"train {scene}/{variant} failed (exit {rc}); see {OUT / scene / f'{variant}.log'}")
-    s = json.loads(out)
-    log = read_log(proj / "reports" / "train_log.jsonl")
+    print(f"[{scene}/{variant}] splatcli {' '.join(args)}", flush=True)
+    r = splatcli(args, OUT / scene / f"{variant}.log")
+    s, peak_mb, samples = r.summary, r.peak_mb, r.rss
+    log = read_log(Project(proj).train_log_path)
     evals = {r["step"]: r for r in log if "psnr" in r}
     at = {str(m): {"psnr": evals[m]["psnr"], "ssim": evals[m]["ssim"], "seconds": evals[m]["elapsed_s"]}
           for m in MILESTONES if m in evals}
@@ -176,7 +86,7 @@ def train_variant(scene: str, variant: str, extra: list[str], preset: str, itera
     res = {
         "scene": scene, "variant": variant, "preset": preset, "args": extra, "steps": s["steps"],
         "train_seconds": s["train_seconds"], "steps_per_s": s["steps"] / max(s["train_seconds"], 1e-9),
-        "wall_seconds": round(wall, 1), "peak_rss_mb": peak_mb, "num_gaussians": s["num_gaussians"],
+        "wall_seconds": round(r.wall_s, 1), "peak_rss_mb": peak_mb, "num_gaussians": s["num_gaussians"],
         "ply_bytes": s["ply_bytes"], "sh_degree": s["sh_degree"], "final_psnr": s["psnr"], "final_ssim": s["ssim"],
         "at": at, "seconds_to_30db": hit["elapsed_s"] if hit else None, "rss_by_step": rss,
         "rss_samples": samples[:: max(1, len(samples) // 200)], "compact": s.get("compact"),
@@ -214,7 +124,7 @@ def markdown(results: list[dict], meta: dict) -> str:
               "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in results:
         a = r["at"]
-        p = lambda m, k="psnr": a.get(str(m), {}).get(k)  # noqa: E731
+        p = lambda m, k="psnr", a=a: a.get(str(m), {}).get(k)  # noqa: E731
         lines.append(
             f"| {r['scene']} | {r['variant']}{' ' + ' '.join(r['args']) if r['args'] else ''}"
             f"{' (resumed at ' + str(r['resumed_from']) + ')' if r.get('resumed_from') else ''} | {r['steps']} | "

@@ -20,18 +20,25 @@ import json
 import os
 import shlex
 import subprocess
-import sys
 from pathlib import Path
 
-from _doc import write_section  # noqa: E402  (bench/ is on sys.path when run as a script)
-import time
+from common import (
+    FIGURES,
+    REPO,
+    SCENES,
+    TOL_DB,
+    ensure_processed,
+    figure,
+    fresh_copy,
+    plot_psnr_curves,
+    psnr_curve,
+    save_figure,
+    seconds_to,
+    splatcli,
+    write_section,
+)
 
-from train import SCENES, RssSampler, ensure_processed, read_log  # noqa: E402
-
-REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "bench" / "out" / "versus"
-FIGURES = REPO / "docs" / "figures"
-TOL_DB = 0.1
 
 
 def worktree(rev: str) -> Path:
@@ -42,67 +49,27 @@ def worktree(rev: str) -> Path:
     return path
 
 
-def fresh_copy(scene: str, proj: Path) -> Path:
-    """`proj` = the scene's processed project (bench/train.py), with no training outputs."""
-    proj.parent.mkdir(parents=True, exist_ok=True)
-    base = ensure_processed(scene)
-    subprocess.run(["rm", "-rf", str(proj)], check=True)
-    subprocess.run(["cp", "-r", str(base), str(proj)], check=True)
-    for sub in ("checkpoints", "reports", "renders", "exports"):
-        subprocess.run(["rm", "-rf", str(proj / sub)], check=True)
-    return proj
-
-
 def train_once(scene: str, label: str, code: Path, args: list[str]) -> dict:
-    proj = fresh_copy(scene, OUT / scene / label.replace(" ", "_"))
+    proj = fresh_copy(ensure_processed(scene), OUT / scene / label.replace(" ", "_"))
     # Run from inside `code`: `python -m` puts the working directory first on sys.path,
     # ahead of the editable install of this checkout.
     env = {**os.environ, "PYTHONPATH": str(code), "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1")}
-    load0 = os.getloadavg()
-    cmd = [sys.executable, "-m", "splatcli.cli.main", "train", str(proj), "--device", "cpu", "--json", "-q", *args]
-    print(f"[{scene}/{label}] {' '.join(cmd[3:])}", flush=True)
-    t0 = time.monotonic()
-    with open(OUT / scene / f"{label}.log", "w") as err:
-        p = subprocess.Popen(cmd, cwd=code, env=env, stdout=subprocess.PIPE, stderr=err, text=True)
-        sampler = RssSampler(p.pid)
-        sampler.start()
-        out, _ = p.communicate()
-        sampler.stop()
-    rc, wall, peak_mb = p.returncode, time.monotonic() - t0, sampler.peak_kb // 1024
-    if rc != 0:
-        raise SystemExit(f"{scene}/{label} failed (exit {rc}); see {OUT / scene / f'{label}.log'}")
-    s = json.loads(out)
-    curve = [(r["elapsed_s"], r["psnr"]) for r in read_log(proj / "reports" / "train_log.jsonl") if "psnr" in r]
+    cmd = ["train", str(proj), "--device", "cpu", *args]
+    print(f"[{scene}/{label}] {' '.join(cmd)}", flush=True)
+    r = splatcli(cmd, OUT / scene / f"{label}.log", cwd=code, env=env)
+    s = r.summary
     return {"label": label, "steps": s["steps"], "train_seconds": s["train_seconds"], "final_psnr": s["psnr"],
-            "num_gaussians": s["num_gaussians"], "wall_seconds": round(wall, 1), "peak_rss_mb": peak_mb,
-            "curve": curve, "load_before": [round(x, 2) for x in load0],
-            "load_after": [round(x, 2) for x in os.getloadavg()]}
-
-
-def seconds_to(curve: list[tuple[float, float]], target: float) -> float | None:
-    """Training seconds of the first held-out evaluation within TOL_DB of `target`."""
-    return next((t for t, p in curve if p >= target - TOL_DB), None)
+            "num_gaussians": s["num_gaussians"], "wall_seconds": round(r.wall_s, 1), "peak_rss_mb": r.peak_mb,
+            "curve": psnr_curve(proj), "load_before": [r.load[0]], "load_after": [r.load[1]]}
 
 
 def plot(scene: str, runs: list[dict], path: Path) -> bool:
-    try:
-        from matplotlib.backends.backend_agg import FigureCanvasAgg
-        from matplotlib.figure import Figure
-    except ImportError:
+    made = figure(6, 4)
+    if made is None:
         return False
-    fig = Figure(figsize=(6, 4), dpi=100)
-    FigureCanvasAgg(fig)
-    ax = fig.subplots()
-    for r in runs:
-        ax.plot([t for t, _ in r["curve"]], [p for _, p in r["curve"]], "o-", label=r["label"])
-    ax.set_xlabel("training time (s)")
-    ax.set_ylabel("held-out PSNR (dB)")
-    ax.set_title(f"{scene}: PSNR against training time")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, format="png")
+    fig, ax = made
+    plot_psnr_curves(ax, {r["label"]: r["curve"] for r in runs}, f"{scene}: PSNR against training time")
+    save_figure(fig, path)
     return True
 
 

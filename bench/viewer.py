@@ -23,35 +23,24 @@ import json
 import os
 import re
 import subprocess
-import sys
 import threading
 import time
 import urllib.request
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "tests"))
+import cv2
+import torch
 
-import cv2  # noqa: E402
-import torch  # noqa: E402
-
-from _doc import write_section  # noqa: E402  (bench/ is on sys.path when run as a script)
-from browser import capture, open_page, psnr_u8  # noqa: E402
-from versus import fresh_copy  # noqa: E402
-
-from splatcli.gaussians import Gaussians  # noqa: E402
-from splatcli.io.model import load_model  # noqa: E402
-from splatcli.io.ply import write_ply  # noqa: E402
-from splatcli.viewer import ViewerServer, open_scene  # noqa: E402
+from browser import capture, open_page, psnr_u8
+from common import REPO, SPLATCLI, ensure_processed, fresh_copy, loadavg, write_section
+from splatcli.gaussians import Gaussians
+from splatcli.io.ply import write_ply
+from splatcli.model import load_model
+from splatcli.viewer import ViewerServer, open_scene
 
 OUT = REPO / "bench" / "out" / "viewer"
 FIGURE = REPO / "docs" / "figures" / "viewer.png"
 MODELS = REPO / "bench" / "out" / "formats" / "models"
-
-
-def load() -> list[float]:
-    return [round(x, 2) for x in os.getloadavg()]
 
 
 def resampled(g: Gaussians, n: int, seed: int = 0) -> Gaussians:
@@ -67,7 +56,7 @@ def first_frame(source: Path, size=(1280, 720), reps: int = 3) -> dict:
     store = open_scene(source)
     s = store.state()
     times, decoded = [], []
-    l0 = load()
+    l0 = loadavg()
     with ViewerServer(store, "127.0.0.1", 0) as server:
         for _ in range(reps):
             with open_page(server.url, *size) as (_, st):
@@ -75,13 +64,12 @@ def first_frame(source: Path, size=(1280, 720), reps: int = 3) -> dict:
                 decoded.append(st["marks"]["splats"] / 1000)
     return {"source": str(source.relative_to(REPO)) if source.is_relative_to(REPO) else str(source),
             "num_gaussians": s["num_gaussians"], "sh_degree": s["sh_degree"], "mb": round(s["ply_bytes"] / 1e6, 1),
-            "first_frame_s": sorted(times), "decoded_s": sorted(decoded), "load_before": l0, "load_after": load()}
+            "first_frame_s": sorted(times), "decoded_s": sorted(decoded), "load_before": [l0], "load_after": [loadavg()]}
 
 
 def pictures(project: Path) -> list[dict]:
     rend = OUT / "renders"
-    r = subprocess.run([sys.executable, "-m", "splatcli", "render", str(project), "--split", "test", "-o", str(rend),
-                        "-q"], cwd=REPO)
+    r = subprocess.run(SPLATCLI + ["render", str(project), "--split", "test", "-o", str(rend), "-q"], cwd=REPO)
     assert r.returncode == 0
     store = open_scene(project)
     rows = []
@@ -124,13 +112,13 @@ class Poller(threading.Thread):
 
 
 def train_run(scene: str, label: str, iterations: int, client: str | None) -> dict:
-    proj = fresh_copy(scene, OUT / scene / label)
-    cmd = [sys.executable, "-m", "splatcli", "train", str(proj), "--device", "cpu", "--json", "--preset", "fast",
+    proj = fresh_copy(ensure_processed(scene), OUT / scene / label)
+    cmd = SPLATCLI + ["train", str(proj), "--device", "cpu", "--json", "--preset", "fast",
            "--max-size", "200", "--iterations", str(iterations), "--eval-every", str(iterations // 4)]
     if client:
         cmd += ["--viewer", "--viewer-port", "0"]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    l0 = load()
+    l0 = loadavg()
     p = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     extra: dict = {}
     if client:
@@ -159,7 +147,7 @@ def train_run(scene: str, label: str, iterations: int, client: str | None) -> di
     assert p.returncode == 0, f"{label}: exit {p.returncode}"
     s = json.loads(out.strip().splitlines()[-1])
     return {"label": label, "client": client, "train_seconds": s["train_seconds"], "psnr": s["psnr"],
-            "steps": s["steps"], "load_before": l0, "load_after": load(), **extra}
+            "steps": s["steps"], "load_before": [l0], "load_after": [loadavg()], **extra}
 
 
 def markdown(res: dict) -> str:
@@ -209,7 +197,7 @@ def main() -> None:
         big = OUT / "fox-200k.ply"
         write_ply(big, resampled(load_model(MODELS / "fox", torch.device("cpu")).gaussians, 200_000))
         res["first_frame"] = [first_frame(big), first_frame(MODELS / "fox"), first_frame(REPO / args.project)]
-        res["first_frame_load"] = load()
+        res["first_frame_load"] = [loadavg()]
         print(json.dumps(res["first_frame"], indent=1), flush=True)
     if "picture" not in skip:
         os.chdir(REPO)  # the page shows the project as the user names it

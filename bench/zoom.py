@@ -19,28 +19,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import shutil
-import subprocess
-import sys
-import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from _doc import write_section  # noqa: E402
-from train import REPO, ensure_processed  # noqa: E402
+from common import REPO, ensure_processed, fresh_copy, loadavg, splatcli, write_section
 
 OUT = REPO / "bench" / "out" / "zoom"
-SPLATCLI = [sys.executable, "-m", "splatcli.cli.main"]
 TRAIN_SIZE = 200
-
-
-def splatcli(args: list[str], log: Path) -> dict:
-    with open(log, "a") as err:
-        p = subprocess.run(SPLATCLI + args + ["--json", "-q"], cwd=REPO, stdout=subprocess.PIPE, stderr=err, text=True)
-    if p.returncode != 0:
-        raise SystemExit(f"splatcli {args[0]} failed (exit {p.returncode}); see {log}")
-    return json.loads(p.stdout)
 
 
 def score(proj: Path, label: str, downscale: float | None, antialias: str, log: Path) -> dict:
@@ -48,7 +32,7 @@ def score(proj: Path, label: str, downscale: float | None, antialias: str, log: 
             "--out", str(proj / "reports" / label)]
     if downscale is not None:
         args += ["--downscale", str(downscale)]
-    s = splatcli(args, log)
+    s = splatcli(args, log, append=True).summary
     return {"psnr": s["psnr"], "ssim": s["ssim"], "width": s["width"], "height": s["height"]}
 
 
@@ -67,18 +51,16 @@ def main() -> None:
     for variant, extra in (("plain", []), ("mip", ["--mip-filter"])):
         proj = OUT / args.scene / variant
         log = OUT / args.scene / f"{variant}.log"
-        if proj.exists():
-            shutil.rmtree(proj)
-        shutil.copytree(base, proj, ignore=shutil.ignore_patterns("checkpoints", "reports", "renders", "exports"))
+        fresh_copy(base, proj)
         log.write_text("")
-        load0 = os.getloadavg()[0]
+        load0 = loadavg()
         cmd = ["train", str(proj), "--preset", args.preset, "--max-size", str(TRAIN_SIZE), "--device", "cpu",
                "--eval-every", "0", *extra] + (["--iterations", str(args.iterations)] if args.iterations else [])
         print(f"[{args.scene}/{variant}] {' '.join(cmd)}", flush=True)
-        t0 = time.monotonic()
-        s = splatcli(cmd, log)
+        t = splatcli(cmd, log, append=True)
+        s = t.summary
         r = {"steps": s["steps"], "train_seconds": s["train_seconds"], "num_gaussians": s["num_gaussians"],
-             "wall_s": round(time.monotonic() - t0, 1)}
+             "wall_s": round(t.wall_s, 1)}
         if variant == "plain":
             r["small"] = score(proj, "zoom-small", None, "off", log)
             r["large"] = score(proj, "zoom-large", 1.0, "off", log)
@@ -86,7 +68,7 @@ def main() -> None:
         else:
             r["small"] = score(proj, "zoom-small", None, "auto", log)
             r["large"] = score(proj, "zoom-large", 1.0, "auto", log)
-        r["load"] = [round(load0, 2), round(os.getloadavg()[0], 2)]
+        r["load"] = [load0, loadavg()]
         print(f"[{args.scene}/{variant}] {json.dumps(r)}", flush=True)
         runs[variant] = r
     (OUT / f"{args.scene}.json").write_text(json.dumps(runs, indent=1))

@@ -229,7 +229,7 @@ def _cast(o: np.ndarray, d: np.ndarray, with_background: bool = True) -> tuple[n
 _TABLE = 4096  # lattice hash period in cells: > 50 world units even for the finest noise octave
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _tables(salt: int) -> tuple[np.ndarray, np.ndarray]:
     """Permutation [T] int64 and uniform values [T, 8] for one salt. PCG64 is
     stable across numpy versions and platforms, so textures are too."""

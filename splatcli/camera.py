@@ -26,7 +26,7 @@ class Camera:
         R, t = self.viewmat[:3, :3], self.viewmat[:3, 3]
         return -R.T @ t
 
-    def scaled(self, factor: float) -> "Camera":
+    def scaled(self, factor: float) -> Camera:
         """The same camera at `factor` times the resolution (factor < 1 shrinks).
         Width and height are rounded; K is scaled by the actual size ratio so the
         image plane maps exactly (pixel-centre convention preserved)."""
@@ -34,7 +34,7 @@ class Camera:
         h = max(1, int(round(self.height * factor)))
         return self.resized(w, h)
 
-    def at_resolution(self, downscale: float = 1.0, max_size: int | None = None) -> "Camera":
+    def at_resolution(self, downscale: float = 1.0, max_size: int | None = None) -> Camera:
         """The one resolution rule of train, eval and render: divide the size by
         `downscale`, then cap the longest side at `max_size` pixels."""
         c = self.scaled(1.0 / downscale) if downscale != 1.0 else self
@@ -42,7 +42,7 @@ class Camera:
             c = c.scaled(max_size / max(c.width, c.height))
         return c
 
-    def resized(self, width: int, height: int) -> "Camera":
+    def resized(self, width: int, height: int) -> Camera:
         sx, sy = width / self.width, height / self.height
         K = self.K.copy()
         K[0, :] *= sx

@@ -6,8 +6,6 @@ import torch
 
 from .errors import SplatError
 
-DEVICE_CHOICES = ("auto", "cpu", "cuda")
-
 
 def resolve_device(name: str = "auto") -> torch.device:
     """"auto" picks CUDA when available, else CPU. "cuda" without a GPU is a user error."""

@@ -8,8 +8,9 @@ tests collect them in a list, and `--json` ignores all but the summary.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable, Union
+from typing import Any, Union
 
 
 @dataclass(frozen=True)
@@ -79,7 +80,7 @@ class Stages:
             self.warnings.append(message)
         emit(self.sink, Note(message, level))
 
-    def stage(self, name: str, total: int | None = None) -> "_Timed":
+    def stage(self, name: str, total: int | None = None) -> _Timed:
         return _Timed(self, name, total)
 
 
@@ -87,7 +88,7 @@ class _Timed:
     def __init__(self, stages: Stages, name: str, total: int | None) -> None:
         self.stages, self.name, self.total = stages, name, total
 
-    def __enter__(self) -> "_Timed":
+    def __enter__(self) -> _Timed:
         emit(self.stages.sink, Stage(self.name, self.total))
         self.t0 = time.perf_counter()
         return self

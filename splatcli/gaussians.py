@@ -51,16 +51,16 @@ class Gaussians:
     def as_dict(self) -> dict[str, Tensor]:
         return {f.name: getattr(self, f.name) for f in fields(self)}
 
-    def to(self, device: torch.device | str, dtype: torch.dtype | None = None) -> "Gaussians":
+    def to(self, device: torch.device | str, dtype: torch.dtype | None = None) -> Gaussians:
         return Gaussians(**{k: v.to(device=device, dtype=dtype) if dtype else v.to(device) for k, v in self.as_dict().items()})
 
-    def detach(self) -> "Gaussians":
+    def detach(self) -> Gaussians:
         return Gaussians(**{k: v.detach() for k, v in self.as_dict().items()})
 
-    def select(self, mask_or_index: Tensor) -> "Gaussians":
+    def select(self, mask_or_index: Tensor) -> Gaussians:
         return Gaussians(**{k: v[mask_or_index] for k, v in self.as_dict().items()})
 
-    def with_sh_degree(self, degree: int) -> "Gaussians":
+    def with_sh_degree(self, degree: int) -> Gaussians:
         """Truncate (or zero-pad) SH to `degree`."""
         k = num_sh_bases(degree)
         sh = self.sh
@@ -71,7 +71,7 @@ class Gaussians:
             sh = torch.cat([sh, pad], dim=1)
         return Gaussians(self.means, self.quats, self.log_scales, self.opacity_logits, sh.contiguous())
 
-    def smoothed(self, filter3d: Tensor) -> "Gaussians":  # filter3d [N] world units
+    def smoothed(self, filter3d: Tensor) -> Gaussians:  # filter3d [N] world units
         """The model with a 3D smoothing filter folded in (`smooth_3d`): what it renders as."""
         ls, op = smooth_3d(self.log_scales, self.opacity_logits, filter3d)
         return Gaussians(self.means, self.quats, ls, op, self.sh)
@@ -83,7 +83,7 @@ class Gaussians:
         return ok
 
     @staticmethod
-    def empty(sh_degree: int = 0, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32) -> "Gaussians":
+    def empty(sh_degree: int = 0, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32) -> Gaussians:
         z = lambda *s: torch.zeros(*s, device=device, dtype=dtype)  # noqa: E731
         return Gaussians(z(0, 3), z(0, 4), z(0, 3), z(0), z(0, num_sh_bases(sh_degree), 3))
 

@@ -22,11 +22,11 @@ import functools
 import math
 import types
 import typing
+from collections.abc import Callable
 from dataclasses import dataclass, field, fields, replace
-from typing import Any, Callable
+from typing import Any
 
 from .errors import SplatError
-
 
 # The `--help` headings, in the order `train --help` shows them.
 SCHEDULE = "Schedule"

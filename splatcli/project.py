@@ -23,9 +23,10 @@ import datetime as _dt
 import math
 import os
 import re
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 try:
     import fcntl
@@ -113,7 +114,7 @@ class Project:
 
     # ---- lifecycle ---------------------------------------------------------
     @classmethod
-    def create(cls, root: str | Path, *, source: dict[str, Any], overwrite: bool = False) -> "Project":
+    def create(cls, root: str | Path, *, source: dict[str, Any], overwrite: bool = False) -> Project:
         """Start a new project (used by `process`). Refuses to clobber a folder that
         holds something other than a project unless `overwrite`."""
         root = Path(root)
@@ -139,7 +140,7 @@ class Project:
         return proj
 
     @classmethod
-    def open(cls, root: str | Path) -> "Project":
+    def open(cls, root: str | Path) -> Project:
         """Open an existing project, checking it is one and of a schema we read."""
         root = Path(root)
         if not root.exists():

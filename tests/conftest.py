@@ -13,13 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-REPO = Path(__file__).resolve().parents[1]
-
-
-def shared_data_dir() -> Path:
-    """../shared/data beside the checkout, or $SPLATCLI_DATA. May not exist."""
-    env = os.environ.get("SPLATCLI_DATA")
-    return Path(env) if env else REPO.parent / "shared" / "data"
+from common import data_dir  # bench/common.py (pyproject's pytest pythonpath): the benchmarks' data too
 
 
 @pytest.fixture(autouse=True)
@@ -32,7 +26,7 @@ def _seed_everything():
 
 @pytest.fixture
 def shared_data() -> Path:
-    d = shared_data_dir()
+    d = data_dir()
     if not d.is_dir():
         pytest.skip("../shared/data is absent")
     return d

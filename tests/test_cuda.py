@@ -9,10 +9,9 @@ import json
 import pytest
 import torch
 
+from scenes import test_scene as make_scene
 from splatcli import rasterize
 from splatcli.render.reference import rasterize_reference
-
-from scenes import test_scene as make_scene
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 CUDA = torch.device("cuda")
@@ -77,11 +76,11 @@ def test_cuda_gradcheck_float64():
 
 def test_train_render_eval_on_cuda_and_the_checkpoint_loads_on_cpu(tmp_path):
     """The commands end to end with --device cuda; the checkpoint is portable."""
-    from tiny_project import make_tiny_project
     from typer.testing import CliRunner
 
     from splatcli.cli.main import app
-    from splatcli.io.model import load_model
+    from splatcli.model import load_model
+    from tiny_project import make_tiny_project
 
     proj = make_tiny_project(tmp_path / "p", trained=False).root
     run = CliRunner().invoke

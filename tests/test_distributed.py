@@ -53,6 +53,7 @@ def _summary(r: subprocess.CompletedProcess) -> dict:
     return json.loads(r.stdout.strip().splitlines()[-1])
 
 
+@pytest.mark.slow
 def test_two_processes_train_end_to_end_with_identical_parameters(tmp_path):
     proj = _project(tmp_path)
     s = _summary(_run("train", str(proj.root), *FAST, "--iterations", "600", "--nproc", "2", "--json"))
@@ -68,6 +69,7 @@ def test_two_processes_train_end_to_end_with_identical_parameters(tmp_path):
     assert not list(proj.root.glob("*.json.tmp*")) and not list((proj.root / "checkpoints").glob("*.tmp*"))
 
 
+@pytest.mark.slow
 def test_one_process_through_the_launcher_matches_a_plain_run(tmp_path):
     a, b = _project(tmp_path / "a"), _project(tmp_path / "b")
     _summary(_run("train", str(a.root), *FAST, "--iterations", "120", "--json"))
@@ -77,6 +79,7 @@ def test_one_process_through_the_launcher_matches_a_plain_run(tmp_path):
         assert torch.equal(getattr(ga, name), getattr(gb, name)), name
 
 
+@pytest.mark.slow
 def test_resume_with_another_number_of_processes(tmp_path):
     proj = _project(tmp_path)
     _summary(_run("train", str(proj.root), *FAST, "--iterations", "400", "--nproc", "2", "--json"))
@@ -118,6 +121,7 @@ def _start_long_run(proj) -> subprocess.Popen:
     return p
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not Path("/proc/self/environ").exists(), reason="finds the ranks through /proc")
 def test_a_killed_rank_ends_the_run_in_one_line_and_the_checkpoint_stays_whole(tmp_path):
     proj = _project(tmp_path)
@@ -152,6 +156,7 @@ def test_the_rank_that_died_is_named_not_the_ones_the_launcher_stopped(tmp_path)
     assert "rank 0 was killed by SIGTERM" in str(err)  # stopped from outside: the lowest rank
 
 
+@pytest.mark.slow
 def test_sigterm_to_the_launcher_checkpoints_once_and_exits_130(tmp_path):
     proj = _project(tmp_path)
     p = _start_long_run(proj)
@@ -169,6 +174,7 @@ def test_sigterm_to_the_launcher_checkpoints_once_and_exits_130(tmp_path):
     assert s["resumed_from"] == ck.step
 
 
+@pytest.mark.slow
 def test_a_port_in_use_and_a_bad_option_are_one_line_errors(tmp_path):
     proj = _project(tmp_path)
     with socket.socket() as s:

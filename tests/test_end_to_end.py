@@ -6,29 +6,22 @@ a floor that the run clears with margin (measured: see the comment at the floor)
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
 
+from common import make_scene
 from splatcli.cli.main import app
 
-REPO = Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.slow  # every command in turn on a rendered capture
 
 # This tiny run (16 views at 160x120, 600 steps) measured 23.4 dB held-out here
 # (23.1 dB at step 500; an earlier demo preset gave 19.1 dB); the floor leaves room
 # for SfM and thread-order noise across machines and presets while still failing a
 # broken pipeline (an untrained or misposed model scores about 10-13 dB).
 PSNR_FLOOR = 17.0
-
-
-def load_make_scene():
-    spec = importlib.util.spec_from_file_location("make_scene", REPO / "sample_data" / "make_scene.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def run(*args: str) -> dict:
@@ -41,7 +34,7 @@ def run(*args: str) -> dict:
 
 @pytest.fixture(scope="module")
 def tiny_capture(tmp_path_factory) -> Path:
-    return load_make_scene().render_scene(tmp_path_factory.mktemp("cap"), num_views=16, width=160, height=120)
+    return make_scene().render_scene(tmp_path_factory.mktemp("cap"), num_views=16, width=160, height=120)
 
 
 def test_process_train_render_export_eval(tiny_capture, tmp_path):

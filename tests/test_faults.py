@@ -20,7 +20,6 @@ import torch
 from splatcli.io.checkpoint import load_checkpoint
 from splatcli.project import Project
 from splatcli.train.log import read_log
-
 from tiny_project import make_tiny_project
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -36,6 +35,7 @@ def _cli(*args: str) -> list[str]:
     return [sys.executable, "-m", "splatcli.cli.main", *args]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
 def test_signal_checkpoints_exits_130_and_resumes(tmp_path, sig):
     proj = _project(tmp_path)
@@ -82,6 +82,7 @@ def _wait_for_log(proc, proj, deadline_s: float = 120) -> None:
         time.sleep(0.05)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("delay", [0.0, 0.7, 1.9], ids=["at-once", "early", "later"])
 def test_kill_9_leaves_previous_checkpoint_and_manifest_intact(tmp_path, delay):
     """SIGKILL cannot be caught: only atomic writes protect the files. After a first

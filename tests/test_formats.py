@@ -22,13 +22,13 @@ from splatcli.errors import SplatError
 from splatcli.gaussians import Gaussians
 from splatcli.io.compressed_ply import read_compressed_ply, write_compressed_ply
 from splatcli.io.formats import FORMATS, format_of, read_format, write_format
-from splatcli.io.model import load_model
 from splatcli.io.ply import write_ply
 from splatcli.io.sog import SogOptions, kmeans_1d, read_sog, write_sog
 from splatcli.io.spz import SpzOptions, read_spz, write_spz
+from splatcli.model import load_model
 from splatcli.render import render_camera
 from splatcli.views.paths import look_at
-from tiny_project import make_tiny_project, run_cli, assert_user_error
+from tiny_project import assert_user_error, make_tiny_project, run_cli
 
 
 def scene(n: int = 600, seed: int = 0, sh_degree: int = 3) -> Gaussians:

@@ -17,14 +17,13 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from colmap_models import synthetic_model
 from splatcli.cli.main import app
 from splatcli.errors import SplatError
 from splatcli.process.run import ProcessConfig, process
 from splatcli.project import Project
 from splatcli.sfm import colmap
 from splatcli.sfm.colmap import read_scene
-
-from colmap_models import synthetic_model
 from test_sfm import gl_c2w, orbit, texture, write_text_model
 from tiny_project import assert_user_error
 

@@ -10,21 +10,21 @@ import contextlib
 import json
 import shutil
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 import pytest
 import torch
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
+from hypothesis import HealthCheck, given, settings, strategies as st
 
+from common import data_dir
 from splatcli.errors import SplatError
 from splatcli.gaussians import Gaussians
 from splatcli.io.checkpoint import load_checkpoint, save_checkpoint
+from splatcli.io.transforms import read_transforms
 from splatcli.project import Project
 from splatcli.sfm.colmap_files import check_model
-from splatcli.io.transforms import read_transforms
 
 SETTINGS = settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture],
                     derandomize=True)
@@ -292,7 +292,7 @@ def _image_corpus() -> dict[str, bytes]:
         "grey16.png": cv2.imencode(".png", (img[..., 0].astype(np.uint16) * 257))[1].tobytes(),
         "photo.jpg": cv2.imencode(".jpg", img)[1].tobytes(),
     }
-    data = Path(__file__).resolve().parents[2] / "shared" / "data"
+    data = data_dir()
     for src in (data / "lego" / "train" / "r_0.png", data / "fox" / "images" / "0001.jpg"):
         if src.is_file():
             out[f"real{src.suffix}"] = src.read_bytes()
@@ -350,8 +350,7 @@ def test_image_with_a_lying_header_is_refused_without_allocating(w: int, h: int)
 
 # ---- real transforms files, mutated (skipped where ../shared/data is absent) -------------
 
-REAL_TRANSFORMS = [p for p in (Path(__file__).resolve().parents[2] / "shared" / "data" / "fox" / "transforms.json",
-                               Path(__file__).resolve().parents[2] / "shared" / "data" / "lego" / "transforms_train.json")
+REAL_TRANSFORMS = [p for p in (data_dir() / "fox" / "transforms.json", data_dir() / "lego" / "transforms_train.json")
                    if p.is_file()]
 
 

@@ -13,10 +13,10 @@ import time
 import pytest
 
 from splatcli.errors import ProjectBusy
-from splatcli.io.export import ExportConfig, export_project
+from splatcli.io.export import ExportConfig
+from splatcli.model import export_project
 from splatcli.project import writer_lock
 from splatcli.train.log import read_log
-
 from tiny_project import make_tiny_project
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -67,6 +67,7 @@ def test_readers_run_alongside_a_writer(tmp_path):
     assert any((tmp_path / "frames").iterdir())
 
 
+@pytest.mark.slow
 def test_two_trains_then_kill_9_holder_then_a_new_run(tmp_path):
     proj = make_tiny_project(tmp_path / "p", trained=False)
     proj.update_manifest(scene={**proj.manifest()["scene"], "bounds_min": [-1.0] * 3, "bounds_max": [1.0] * 3})

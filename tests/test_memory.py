@@ -16,7 +16,6 @@ import splatcli.train.loop as loop
 from splatcli.cli.main import app
 from splatcli.io.checkpoint import load_checkpoint
 from splatcli.train.memory import BYTES_PER_GAUSSIAN, is_out_of_memory, plan_memory
-
 from tiny_project import make_tiny_project
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

@@ -13,9 +13,11 @@ from pathlib import Path
 
 import pytest
 
-from test_end_to_end import load_make_scene
+from common import make_scene
 
 REPO = Path(__file__).resolve().parents[1]
+
+pytestmark = pytest.mark.slow  # make and snakemake run whole captures through every command
 
 
 def doc_makefile() -> str:
@@ -27,9 +29,9 @@ def doc_makefile() -> str:
 
 def _two_captures(tmp_path: Path) -> None:
     """captures/alpha and captures/beta: 12 rendered views each, 160x120."""
-    make_scene = load_make_scene()
+    scene = make_scene()
     for i, name in enumerate(["alpha", "beta"]):
-        make_scene.render_scene(tmp_path / "captures" / name, num_views=12, width=160, height=120, seed=i)
+        scene.render_scene(tmp_path / "captures" / name, num_views=12, width=160, height=120, seed=i)
 
 
 def _check_built(tmp_path: Path) -> None:
@@ -56,7 +58,6 @@ def test_pipeline_makefile_on_two_captures(tmp_path):
     assert q.returncode == 0
 
 
-@pytest.mark.slow
 @pytest.mark.skipif(shutil.which("make") is None, reason="needs GNU make")
 def test_batch_with_a_corrupt_frame_a_duplicate_job_and_a_scene_too_big(tmp_path):
     """Issue 17's batch: `make -k` builds every good capture; a corrupt photo is skipped
@@ -67,9 +68,9 @@ def test_batch_with_a_corrupt_frame_a_duplicate_job_and_a_scene_too_big(tmp_path
         doc_makefile()
         # the documented per-capture override, here asking far more memory than any machine has
         + "\n$(OUT)/huge/reports/train.json: override TRAIN_FLAGS += --max-gaussians 100000000000\n")
-    make_scene = load_make_scene()
+    scene = make_scene()
     for i, name in enumerate(["alpha", "beta", "huge"]):
-        make_scene.render_scene(tmp_path / "captures" / name, num_views=12, width=160, height=120, seed=i)
+        scene.render_scene(tmp_path / "captures" / name, num_views=12, width=160, height=120, seed=i)
     shot = tmp_path / "captures" / "beta" / "images" / "003.jpg"
     shot.write_bytes(shot.read_bytes()[:300])  # a photo cut short
     splatcli = Path(sys.executable).with_name("splatcli")

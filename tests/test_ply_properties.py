@@ -7,8 +7,7 @@ import tempfile
 from pathlib import Path
 
 import torch
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
+from hypothesis import HealthCheck, given, settings, strategies as st
 
 from splatcli.gaussians import Gaussians
 from splatcli.io.ply import PlyError, read_ply, write_ply

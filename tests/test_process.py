@@ -9,20 +9,19 @@ from __future__ import annotations
 
 import json
 import shutil
-import sys
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
+from align import compare_poses
+from common import make_scene
 from splatcli.camera import Camera
 from splatcli.events import Note
 from splatcli.process.run import ProcessConfig, process
 from splatcli.project import Project
 from splatcli.sfm.colmap import read_scene
-
-from align import compare_poses
 from test_import import assert_contract, tree_digest
 from test_sfm import texture
 from tiny_project import assert_user_error, run_cli
@@ -34,12 +33,7 @@ N_VIEWS, W, H = 16, 256, 192
 def render(out: Path, **kw) -> Path:
     if not (REPO / "sample_data" / "make_scene.py").is_file():
         pytest.skip("sample_data/make_scene.py is absent")
-    sys.path.insert(0, str(REPO / "sample_data"))
-    try:
-        from make_scene import render_scene
-    finally:
-        sys.path.pop(0)
-    return Path(render_scene(out, **kw))
+    return Path(make_scene().render_scene(out, **kw))
 
 
 def ground_truth(scene: Path) -> list[Camera]:

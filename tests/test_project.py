@@ -8,8 +8,7 @@ import os
 import pytest
 
 from splatcli.errors import NotReadyError, SplatError
-from splatcli.io.atomic import atomic_path, atomic_write_json, atomic_write_text
-from splatcli.io.atomic import read_json_file
+from splatcli.io.atomic import atomic_path, atomic_write_json, atomic_write_text, read_json_file
 from splatcli.project import SCHEMA_VERSION, Project
 
 

@@ -15,11 +15,10 @@ import pytest
 import torch
 
 import splatcli.render.projection as P
+from scenes import test_scene as make_scene
 from splatcli import rasterize
 from splatcli.render.reference import project_autograd
 from splatcli.render.sh import sh_basis, sh_basis_rows_backward
-
-from scenes import test_scene as make_scene
 
 W, H = 37, 29
 OUTS = ("means2d", "conics", "opacities", "colors", "depths")
@@ -63,7 +62,8 @@ def close(a, b, rel, name):
 @pytest.mark.parametrize("dtype, rel", [(torch.float64, 1e-10), (torch.float32, 1e-4)])
 @pytest.mark.parametrize("aa", [False, True])
 @pytest.mark.parametrize("deg", [0, 1, 2, 3])
-def test_matches_autograd_twin(no_cull, dtype, rel, aa, deg):
+@pytest.mark.usefixtures("no_cull")
+def test_matches_autograd_twin(dtype, rel, aa, deg):
     args = hard_scene(dtype)
     got, g_got = run(P.project, args, deg, aa)
     want, g_want = run(project_autograd, args, deg, aa)

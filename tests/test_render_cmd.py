@@ -205,7 +205,7 @@ def _lying_plys(d: Path) -> dict[str, tuple[Path, str]]:
 
 def test_bad_ply_files_are_refused(proj: Project, tmp_path: Path) -> None:
     before = snapshot(proj.root)
-    for key, (path, msg) in _lying_plys(tmp_path / "bad").items():
+    for path, msg in _lying_plys(tmp_path / "bad").values():
         r = run_cli("render", path, "--project", proj.root)
         assert_user_error(r, str(path), msg)
         r = run_cli("eval", "--pred", path.parent, "--gt", path.parent)  # not images either

@@ -3,13 +3,14 @@ committed scene is what the script makes, and SfM recovers the true cameras."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+
+from common import make_scene
 
 REPO = Path(__file__).resolve().parents[1]
 SCENE = REPO / "sample_data" / "scene"
@@ -18,10 +19,7 @@ SCENE = REPO / "sample_data" / "scene"
 @pytest.fixture(scope="module")
 def ms():
     """The generator, loaded by path: sample_data is not a package."""
-    spec = importlib.util.spec_from_file_location("make_scene", REPO / "sample_data" / "make_scene.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return make_scene()
 
 
 def _project(K: np.ndarray, viewmat: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, float]:

@@ -14,18 +14,16 @@ import cv2
 import numpy as np
 import pytest
 
-from splatcli.camera import Camera
-from splatcli.errors import SplatError
-from splatcli.camera import focus_point
-from splatcli.process.bounds import frustum_bounds, points_bounds
-from splatcli.sfm.colmap_files import check_model
-from splatcli.process.detect import detect_input
-from splatcli.io.images import ImageError, check_complete, exif_orientation, fit_size, read_image
-from splatcli.sfm.reconstruct import exhaustive_pairs, looks_ordered, natural_key, sequential_pairs
-from splatcli.io.transforms import read_transforms
-from splatcli.process.video import blurry_frames, choose_frames
-
 from align import compare_poses, umeyama
+from splatcli.camera import Camera, focus_point
+from splatcli.errors import SplatError
+from splatcli.io.images import ImageError, check_complete, exif_orientation, fit_size, read_image
+from splatcli.io.transforms import read_transforms
+from splatcli.process.bounds import frustum_bounds, points_bounds
+from splatcli.process.detect import detect_input
+from splatcli.process.video import blurry_frames, choose_frames
+from splatcli.sfm.colmap_files import check_model
+from splatcli.sfm.reconstruct import exhaustive_pairs, looks_ordered, natural_key, sequential_pairs
 
 
 def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:  # [4, 4] world-to-camera, OpenCV axes

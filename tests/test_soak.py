@@ -11,7 +11,6 @@ import sys
 import pytest
 
 from splatcli.train.log import read_log
-
 from tiny_project import make_tiny_project
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

@@ -10,8 +10,7 @@ import torch
 from torch import nn
 
 from splatcli.render.output import RenderOutput
-from splatcli.strategy import DefaultStrategy, DefaultStrategyConfig, Splats, StepInfo
-from splatcli.strategy import ops
+from splatcli.strategy import DefaultStrategy, DefaultStrategyConfig, Splats, StepInfo, ops
 
 
 def _params(n: int = 6, seed: int = 0):

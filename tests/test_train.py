@@ -22,10 +22,9 @@ from splatcli.events import Progress
 from splatcli.io.checkpoint import load_checkpoint, load_gaussians
 from splatcli.io.ply import ply_bytes
 from splatcli.project import Project
-from splatcli.train.loop import train
 from splatcli.train.config import make_config
 from splatcli.train.log import read_log
-
+from splatcli.train.loop import train
 from tiny_project import make_tiny_project
 
 CPU = torch.device("cpu")

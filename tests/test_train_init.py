@@ -11,20 +11,19 @@ import pytest
 import torch
 
 from splatcli.camera import Camera
-from splatcli.train.config import make_config
-from splatcli.io.images import load_rgb
-from splatcli.train.data import load_train_data
 from splatcli.errors import SplatError
 from splatcli.gaussians import SH_C0, Gaussians
+from splatcli.io.images import load_rgb
+from splatcli.io.ply import write_ply
+from splatcli.train.config import make_config
+from splatcli.train.data import load_train_data
 from splatcli.train.init import (
-    initial_gaussians,
     gaussians_from_points,
+    initial_gaussians,
     knn_rms_distance,
     random_points,
     subsample_index,
 )
-from splatcli.io.ply import write_ply
-
 from tiny_project import make_tiny_project
 
 CPU = torch.device("cpu")
@@ -244,15 +243,14 @@ def test_far_gaussians_are_size_pruned_by_angle_not_world_size():
     assert run(torch.zeros(3)) == [50.0]  # 50 away: its limit is 5 x 1.0 = 5 > 2
 
 
+@pytest.mark.slow
 def test_views_seeing_counts_frustums_and_prune_views_drops_the_rest(tmp_path):
     """views_seeing: a point counts for a view when in front of its near plane and inside its
     image; --prune-views then prunes while densifying, and the run still trains."""
     import json
 
-    from splatcli.train.data import views_seeing
+    from splatcli.train.data import TrainView, views_seeing
     from tiny_project import run_cli
-
-    from splatcli.train.data import TrainView
 
     cam = Camera("a", 64, 48, np.array([[40.0, 0, 32], [0, 40, 24], [0, 0, 1]]), np.eye(4))
     vm, K = cam.torch(CPU)

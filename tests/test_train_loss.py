@@ -6,8 +6,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from splatcli.train.loss import photometric_loss
 from splatcli.eval.metrics import ssim
+from splatcli.train.loss import photometric_loss
 
 
 def test_ssim_gradcheck():

@@ -19,12 +19,10 @@ import numpy as np
 import pytest
 import torch
 
+from browser import browser_problem, capture, open_page, psnr_u8, screenshot
 from splatcli.events import Progress, Snapshot
 from splatcli.io.ply import write_ply
-from splatcli.viewer import LiveSink, SceneStore, ViewerServer, open_scene
-from splatcli.viewer import server as server_mod
-
-from browser import browser_problem, capture, open_page, psnr_u8, screenshot
+from splatcli.viewer import LiveSink, SceneStore, ViewerServer, open_scene, server as server_mod
 from tiny_project import assert_user_error, make_tiny_project, run_cli, snapshot, tiny_gaussians
 
 REPO = Path(__file__).resolve().parents[1]
@@ -80,7 +78,7 @@ def test_scene_facts_cameras_and_the_ply_is_the_exported_bytes(served, proj, tmp
 
 
 def tiny_gaussians_from(proj):
-    from splatcli.io.model import load_model
+    from splatcli.model import load_model
 
     return load_model(proj.root, torch.device("cpu")).gaussians
 
@@ -208,6 +206,7 @@ def test_view_bad_sources_are_one_line_errors(tmp_path):
     assert_user_error(run_cli("view", tmp_path), str(tmp_path))
 
 
+@pytest.mark.slow
 def test_train_with_viewer(tmp_path):
     proj = make_tiny_project(tmp_path / "t", trained=False, photos=True)
     r = run_cli("train", proj.root, "--iterations", "30", "--eval-every", "15", "--viewer", "--viewer-port", "0")
@@ -215,7 +214,7 @@ def test_train_with_viewer(tmp_path):
     assert "live viewer at http://127.0.0.1:" in r.stderr
 
 
-# a real browser: headless Chromium on SwiftShader (tests/browser.py), against `splatcli render`
+# a real browser: headless Chromium on SwiftShader (bench/browser.py), against `splatcli render`
 
 
 @pytest.mark.skipif(browser_problem() is not None, reason=str(browser_problem()))

@@ -10,8 +10,8 @@ import contextlib
 import json
 import math
 import sys
-import time
-from typing import Any, Iterator
+from collections.abc import Iterator
+from typing import Any
 
 import typer
 from rich.console import Console
@@ -29,8 +29,8 @@ from rich.progress import (
 from rich.text import Text
 
 from ..errors import SplatError
-from ..io.atomic import json_default
 from ..events import Event, EventSink, Note, Progress, Stage, StageDone
+from ..io.atomic import json_default
 
 DeviceOpt = typer.Option("auto", "--device", help="Where to compute: auto (CUDA if available, else CPU), cpu or cuda.")
 SeedOpt = typer.Option(0, "--seed", help="Random seed; the same seed on CPU gives the same result.")
@@ -173,12 +173,3 @@ class Ui:
             out.print(f"[bold green]{title}[/bold green]")
         for line in lines or []:
             out.print(line)
-
-
-class Stopwatch:
-    def __init__(self) -> None:
-        self.t0 = time.perf_counter()
-
-    @property
-    def seconds(self) -> float:
-        return time.perf_counter() - self.t0

@@ -8,9 +8,10 @@ from typing import Optional
 import typer
 
 from ..events import Note
-from ..io.export import ExportConfig, check_export_config, export_project
+from ..io.export import ExportConfig, check_export_config
 from ..io.sog import SogOptions
 from ..io.spz import SpzOptions
+from ..model import export_project
 from .common import DebugOpt, JsonOpt, QuietOpt, Ui
 
 _D = ExportConfig()  # the defaults, written once in the config

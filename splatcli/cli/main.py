@@ -42,7 +42,7 @@ class _Group(TyperGroup):
     from typer's CliRunner (which calls `main` too)."""
 
     def main(self, args: Any = None, prog_name: Any = None, complete_var: Any = None,
-             standalone_mode: bool = True, **extra: Any) -> Any:  # noqa: D401
+             standalone_mode: bool = True, **extra: Any) -> Any:
         argv = list(sys.argv[1:] if args is None else args)
         debug = "--debug" in argv or os.environ.get("SPLATCLI_DEBUG") == "1"
         error: str | None = None  # the one line for stderr (and the --json object)

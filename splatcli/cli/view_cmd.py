@@ -6,8 +6,9 @@ import contextlib
 import signal
 import time
 import webbrowser
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator, Optional
+from typing import Optional
 
 import typer
 

@@ -7,7 +7,7 @@ the training views (render/weights.py, exact through autograd).
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 from torch import Tensor
 

@@ -34,9 +34,10 @@ import contextlib
 import math
 import tempfile
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -47,19 +48,27 @@ from ..errors import SplatError
 from ..events import EventSink, Note, Progress, Stage, StageDone, emit
 from ..gaussians import Gaussians
 from ..io.atomic import atomic_write_json, atomic_write_text
-from ..io.images import load_rgb
 from ..io.formats import check_format, default_name, read_format, write_format
-from ..io.model import load_model
+from ..io.images import load_rgb
 from ..io.ply import ply_bytes
+from ..model import load_model
 from ..project import Project, writer_lock
 from ..render import render_camera
 from ..views.sources import SPLITS, View, choose_antialias, dataset_views, zoom_factor
 from .budgets import contributions, prune_to
 from .curve import read_curve
 from .lpips import MIN_SIZE as LPIPS_MIN_SIZE, Lpips, load_lpips
+from .report import (
+    NO_PLOTS_HINT,
+    BudgetPoint,
+    EvalReport,
+    FormatPoint,
+    ImageScore,
+    model_stats,
+    write_plots,
+    write_report_md,
+)
 from .score import QUANTISATIONS, REPORTED, load_target, score_image
-from .report import (NO_PLOTS_HINT, BudgetPoint, EvalReport, FormatPoint, ImageScore, model_stats, write_plots,
-                     write_report_md)
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")
 DEFAULT_BUDGETS = (1.0, 0.5, 0.25, 0.1)

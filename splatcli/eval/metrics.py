@@ -16,8 +16,6 @@ neither score, nor its gradient, depends on a masked pixel's value.
 
 from __future__ import annotations
 
-import math
-
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -81,10 +79,6 @@ def ssim(pred: Tensor, gt: Tensor, keep: Tensor | None = None) -> Tensor:  # [H,
     r = SSIM_WINDOW // 2
     w = keep[r:-r, r:-r].to(m.dtype)  # the windows' centres
     return (m * w).sum() / (w.sum() * m.shape[0]).clamp_min(1)
-
-
-def psnr_from_mse(mse: float) -> float:
-    return 10.0 * math.log10(1.0 / max(mse, 1e-20))
 
 
 def color_fit(pred: Tensor, gt: Tensor, keep: Tensor | None = None) -> Tensor:  # [H, W, 3] each, keep [H, W]

@@ -149,7 +149,6 @@ def model_stats(g: Gaussians, bins: int = 40) -> ModelStats:
 
 
 
-PLOTS = ("speed_vs_error", "scales", "opacities", "sh_degrees")
 NO_PLOTS_HINT = "plots skipped: matplotlib is not installed (pip install 'splatcli[plots]')"
 
 

@@ -21,8 +21,8 @@ high PSNR (its own noise alone scores 58.9 dB).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 import torch

@@ -40,7 +40,7 @@ class Arrays:
         return int(self.means.shape[0])
 
     @staticmethod
-    def of(g: Gaussians) -> tuple["Arrays", int]:
+    def of(g: Gaussians) -> tuple[Arrays, int]:
         """The finite rows of `g` (quaternions normalised), and how many were dropped."""
         f32 = lambda t: t.detach().to(device="cpu", dtype=torch.float32).numpy()  # noqa: E731  (no copy when already so)
         means, quats, ls, op, sh = (f32(g.means), f32(g.quats), f32(g.log_scales), f32(g.opacity_logits), f32(g.sh))
@@ -56,7 +56,7 @@ class Arrays:
         t = lambda x: torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32)).to(device)  # noqa: E731
         return Gaussians(t(self.means), t(self.quats), t(self.log_scales), t(self.opacity_logits), t(self.sh))
 
-    def flip_yz(self, sh: bool = True) -> "Arrays":
+    def flip_yz(self, sh: bool = True) -> Arrays:
         """The same Gaussians with y and z negated (a half turn about x): OpenCV <-> SPZ.
         With `sh=False` the SH is left as it is (a caller that flips it block by block,
         with `flip_sh`, never holds a second copy)."""

@@ -1,7 +1,8 @@
 """`splatcli export`: a model as an interchange file, or one file converted to another.
 
-SOURCE is a project (its latest checkpoint) or a splat file of any format splatcli
-reads, so `export` also converts between formats. Formats (io/formats.py):
+splatcli/model.py's export_project picks the source (a project's latest checkpoint, or a
+splat file of any format splatcli reads, so `export` also converts between formats) and
+the output; this module checks the options and writes. Formats (io/formats.py):
 
 * `ply`: the original 3DGS layout, byte-compatible with its writer (io/ply.py);
   every 3DGS viewer and tool reads it. Lossless.
@@ -19,21 +20,16 @@ Rows with NaN/Inf values are dropped and counted. Every write is atomic.
 
 from __future__ import annotations
 
-import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-import torch
-
 from ..errors import SplatError
 from ..events import EventSink, Note, Stage, StageDone, emit
-from ..project import Project, is_project, writer_lock
-from .formats import FORMATS, LOSSLESS, SUFFIXES, check_format, default_name, write_format
-from .model import load_model
+from ..gaussians import Gaussians
+from .formats import LOSSLESS, SUFFIXES, check_format, default_name, write_format
 from .sog import SogOptions
 from .spz import SpzOptions
-
-EXPORT_FORMATS = FORMATS
 
 
 @dataclass(frozen=True)
@@ -70,21 +66,9 @@ def check_export_config(config: ExportConfig) -> None:
         raise SplatError(f"--sog-palette {config.sog.palette}: must be in 1-65536")
 
 
-def export_project(root: str | os.PathLike, config: ExportConfig, *, on_event: EventSink | None = None) -> ExportResult:
-    """Write the latest checkpoint of the project at `root`, or the splat file `root`,
-    in `config.format`."""
-    config = ExportConfig(check_format(config.format), config.out, config.spz, config.sog)
-    check_export_config(config)
-    root = Path(root)
-    if root.is_dir() or is_project(root) or not root.exists():
-        project = Project.open(root)
-        with writer_lock(project.root, "export", shared=True):
-            out = Path(config.out) if config.out is not None else project.export_path(config.format)
-            return _export(project.root, out, config, on_event)
-    out = Path(config.out) if config.out is not None else root.with_name(default_name(_stem(root), config.format))
-    if out.resolve() == root.resolve():
-        raise SplatError(f"-o {out}: is the source file itself; give another name")
-    return _export(root, out, config, on_event)
+def path_beside(source: Path, fmt: str) -> Path:
+    """Where a converted file goes by default: beside `source`, its name with `fmt`'s suffix."""
+    return source.with_name(default_name(_stem(source), fmt))
 
 
 def _stem(path: Path) -> str:
@@ -95,15 +79,16 @@ def _stem(path: Path) -> str:
     return path.stem
 
 
-def _export(source: Path, out: Path, config: ExportConfig, on_event: EventSink | None) -> ExportResult:
-    m = load_model(source, torch.device("cpu"))
-    g = m.gaussians
-    for n in m.notes:
+def export_gaussians(g: Gaussians, out: Path, config: ExportConfig, *, source: Path, step: int | None,
+                     notes: Sequence[str] = (), on_event: EventSink | None = None) -> ExportResult:
+    """Write `g` to `out` in `config.format`; `source` and `step` say where it was read
+    (the checkpoint or file), `notes` what its reader had to do."""
+    for n in notes:
         emit(on_event, Note(n))
     emit(on_event, Stage(f"export {config.format}"))
     r = write_format(config.format, out, g, config.spz, config.sog)
     result = ExportResult(path=out, format=config.format, num_gaussians=r.num_written, num_dropped=r.num_dropped,
-                          sh_degree=r.sh_degree, bytes=r.bytes, checkpoint=m.path, step=m.step,
+                          sh_degree=r.sh_degree, bytes=r.bytes, checkpoint=source, step=step,
                           lossy=config.format not in LOSSLESS)
     if config.format == "splat" and g.sh_degree > 0:
         emit(on_event, Note(f".splat keeps only SH degree 0: view-dependent colour (degree {g.sh_degree}) is dropped; "

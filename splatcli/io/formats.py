@@ -23,8 +23,8 @@ from ..errors import SplatError
 from ..gaussians import Gaussians
 from .compressed_ply import is_compressed_ply, read_compressed_ply, write_compressed_ply
 from .ply import read_ply, write_ply
-from .splat import read_splat, splat_gaussians, write_splat
 from .sog import SogOptions, read_sog, write_sog
+from .splat import read_splat, splat_gaussians, write_splat
 from .spz import SpzOptions, read_spz, write_spz
 
 SUFFIXES = {"ply": ".ply", "compressed-ply": ".compressed.ply", "spz": ".spz", "sog": ".sog", "splat": ".splat"}

@@ -26,8 +26,8 @@ from pathlib import Path
 MAX_PIXELS = 1 << 28  # 268 MP: 0.8 GB as 8-bit RGB, far above any photo a capture holds
 os.environ.setdefault("OPENCV_IO_MAX_IMAGE_PIXELS", str(MAX_PIXELS))
 
-import cv2  # noqa: E402
-import numpy as np  # noqa: E402
+import cv2
+import numpy as np
 
 from ..errors import SplatError
 from .atomic import atomic_path

@@ -37,8 +37,17 @@ import torch
 
 from ..gaussians import Gaussians
 from .atomic import atomic_write_bytes
-from .codec import (Arrays, blocks, check_sh_degree, flip_sh, logit, pack_smallest_three, refuse, sigmoid,
-                    unpack_smallest_three)
+from .codec import (
+    Arrays,
+    blocks,
+    check_sh_degree,
+    flip_sh,
+    logit,
+    pack_smallest_three,
+    refuse,
+    sigmoid,
+    unpack_smallest_three,
+)
 
 MAGIC = 0x5053474E
 HEADER = struct.Struct("<IIIBBBB")

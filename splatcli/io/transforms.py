@@ -23,10 +23,9 @@ from typing import Any
 import numpy as np
 
 from ..errors import SplatError
-from .safepath import safe_join
 from .atomic import read_json_file
+from .safepath import safe_join
 
-TRANSFORMS_NAMES = ("transforms.json", "transforms_train.json")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG", ".tif", ".tiff", ".bmp", ".webp")
 # A transforms file is kilobytes per frame; 256 MiB covers ~500k frames.
 MAX_TRANSFORMS_BYTES = 256 * 1024 * 1024

@@ -12,8 +12,8 @@ from ..project import Project
 from ..sfm.reconstruct import SfmOptions, run_sfm
 from .config import MIN_IMAGES, ProcessConfig
 from .dataset import Dataset, finish_model, refuse_if_strict, stage_images
-from .masks import MASKS_DIR, find_masks_dir, mask_file, stage_all
 from .detect import InputSpec
+from .masks import MASKS_DIR, find_masks_dir, mask_file, stage_all
 from .video import extract_frames
 
 

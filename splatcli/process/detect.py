@@ -14,9 +14,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..errors import SplatError
-from ..sfm.colmap_files import model_format
 from ..io.images import is_image_name
 from ..io.transforms import find_transforms
+from ..sfm.colmap_files import model_format
 from .video import is_video_name
 
 INPUT_TYPES = ("auto", "images", "video", "colmap", "transforms")

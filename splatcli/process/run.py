@@ -25,8 +25,9 @@ import shutil
 import signal
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 from ..errors import Interrupted, ProjectBusy, SplatError
 from ..events import EventSink, Stages

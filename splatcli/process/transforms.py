@@ -15,8 +15,8 @@ from ..sfm import colmap
 from ..sfm.colmap import CameraSpec
 from .config import ProcessConfig
 from .dataset import Dataset, finish_model, refuse_if_strict, stage_images
-from .masks import stage_all
 from .detect import InputSpec
+from .masks import stage_all
 
 
 def from_transforms(spec: InputSpec, stage: Path, cfg: ProcessConfig,

@@ -12,8 +12,8 @@ from ..sfm import colmap
 from ..sfm.colmap_files import check_image_name, check_model
 from .config import ProcessConfig
 from .dataset import Dataset, finish_model, refuse_if_strict, stage_images
-from .masks import find_masks_dir, mask_file, stage_all
 from .detect import InputSpec
+from .masks import find_masks_dir, mask_file, stage_all
 
 
 def from_colmap(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: tuple[float, float, float] | None,

@@ -4,7 +4,7 @@ Gaussian-budget curve (the least-contributing go first)."""
 
 from __future__ import annotations
 
-from typing import Iterable
+from collections.abc import Iterable
 
 import torch
 from torch import Tensor

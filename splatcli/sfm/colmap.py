@@ -13,9 +13,10 @@ from __future__ import annotations
 
 import hashlib
 import threading
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Any
 
 import numpy as np
 
@@ -176,7 +177,6 @@ def match_pairs(db: Path, pairs: list[tuple[str, str]], list_file: Path, opts: M
 class DatabaseStats:
     keypoints: dict[str, int]  # image name -> keypoints
     verified_pairs: int  # pairs with a two-view geometry of enough inliers
-    matched_pairs: int
 
 
 def database_stats(db: Path, min_inliers: int = 15) -> DatabaseStats:
@@ -185,8 +185,7 @@ def database_stats(db: Path, min_inliers: int = 15) -> DatabaseStats:
         kp = {im.name: int(d.num_keypoints_for_image(im.image_id)) for im in d.read_all_images()}
         _, geoms = d.read_two_view_geometries()
         verified = sum(1 for g in geoms if len(g.inlier_matches) >= min_inliers)
-        matched = int(d.num_matched_image_pairs())
-    return DatabaseStats(keypoints=kp, verified_pairs=verified, matched_pairs=matched)
+    return DatabaseStats(keypoints=kp, verified_pairs=verified)
 
 
 # ---- mapping ----------------------------------------------------------------

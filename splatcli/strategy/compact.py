@@ -14,7 +14,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-
 from ..gaussians import kept_count, sh_degree_from_bases, top_by_weight
 from ..io.ply import ply_bytes
 from ..options import MODEL, opt

@@ -13,8 +13,8 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
-from . import ops
 from ..options import MODEL, opt
+from . import ops
 from .base import RefineConfig, RefineStats, RowState, Splats, StepInfo, Strategy
 
 

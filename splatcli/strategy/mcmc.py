@@ -26,12 +26,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+
 import torch
 from torch import Tensor
 
+from ..options import opt, override
 from ..render.projection import quat_to_rotmat
 from . import ops
-from ..options import opt, override
 from .base import RefineConfig, RefineStats, RowState, Splats, StepInfo, Strategy
 from .regularize import regularize
 

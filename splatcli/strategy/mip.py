@@ -17,8 +17,9 @@ since (their `known` row is 0), before the next render and after each step.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import Callable, ClassVar, Iterable
+from typing import ClassVar
 
 import torch
 from torch import Tensor

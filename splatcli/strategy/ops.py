@@ -10,7 +10,7 @@ nothing else in splatcli touches any of them.
 
 from __future__ import annotations
 
-from typing import Callable, Iterable
+from collections.abc import Callable, Iterable
 
 import torch
 from torch import Tensor, nn

@@ -18,10 +18,16 @@ from typing import Any
 from .. import options
 from ..errors import SplatError
 from ..gaussians import Histogram
-from ..options import APPEARANCE as APPEARANCE_GROUP
-from ..options import DATA, INIT, MODEL, OUTPUT, RUN, SCHEDULE, opt, section
-from ..strategy import (CompactConfig, CompactReport, DefaultStrategyConfig, MCMCStrategyConfig, RefineConfig,
-                        ShAutoConfig, SupportConfig)
+from ..options import APPEARANCE as APPEARANCE_GROUP, DATA, INIT, MODEL, OUTPUT, RUN, SCHEDULE, opt, section
+from ..strategy import (
+    CompactConfig,
+    CompactReport,
+    DefaultStrategyConfig,
+    MCMCStrategyConfig,
+    RefineConfig,
+    ShAutoConfig,
+    SupportConfig,
+)
 from .appearance import APPEARANCE, ExposureConfig
 
 MAX_SH_DEGREE = 3
@@ -167,7 +173,7 @@ class TrainConfig:
         """Optimiser steps including the compaction fine-tune."""
         return self.iterations + (self.compact.finetune if self.compact.enabled else 0)
 
-    def with_options(self, given: dict[str, Any], *, strict: bool = True) -> "TrainConfig":
+    def with_options(self, given: dict[str, Any], *, strict: bool = True) -> TrainConfig:
         """This config with named options set (options.apply), checked."""
         cfg = options.apply(self, given, strict=strict)
         _check(cfg)
@@ -177,7 +183,7 @@ class TrainConfig:
         """The value of a named option."""
         return options.value(self, name)
 
-    def for_world(self, k: int) -> "TrainConfig":
+    def for_world(self, k: int) -> TrainConfig:
         """The schedule K data-parallel ranks run so as to see the same images as one
         process: each step averages K views' gradients, so every step count is divided
         by K, and Adam follows the square-root scaling rule for a K-times larger batch
@@ -202,7 +208,7 @@ class TrainConfig:
         return asdict(self)
 
     @staticmethod
-    def from_dict(d: dict[str, Any], where: str = "stored train config") -> "TrainConfig":
+    def from_dict(d: dict[str, Any], where: str = "stored train config") -> TrainConfig:
         """The stored form back (unknown keys ignored, missing ones the defaults; a config
         stored before the strategies had their own sections is read as it trained). A
         value of the wrong type or out of range (a damaged or hand-edited file) is a

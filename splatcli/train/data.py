@@ -41,12 +41,12 @@ class TrainView:
     K: Tensor  # [3, 3] float32
     keep: Tensor | None = None  # [H, W] bool: pixels the loss and the scores see (--mask-mode ignore); None: all
 
-    _scaled: dict[float, "TrainView"] = field(default_factory=dict, repr=False, compare=False)
+    _scaled: dict[float, TrainView] = field(default_factory=dict, repr=False, compare=False)
 
     def target(self) -> Tensor:  # [H, W, 3] float32 in [0, 1]
         return self.image.to(torch.float32) / 255.0
 
-    def at_scale(self, scale: float) -> "TrainView":
+    def at_scale(self, scale: float) -> TrainView:
         """This view at `scale` times the training resolution (area-filtered image,
         K scaled with the size). Coarse-to-fine training renders these. One coarse level
         is cached at a time, since the schedule only rises: at most 0.77x the images'

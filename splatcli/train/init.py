@@ -15,7 +15,7 @@ from torch import Tensor
 
 from ..errors import SplatError
 from ..gaussians import SH_C0, Gaussians, num_sh_bases
-from ..io.model import load_model
+from ..model import load_model
 from ..render.projection import in_frustum
 from .config import TrainConfig
 from .data import TrainData, TrainView

@@ -48,7 +48,7 @@ class TimePlan:
     history: list[dict[str, Any]] = field(default_factory=list)  # one entry per plan
 
     @staticmethod
-    def start(cfg: TrainConfig) -> "TimePlan":
+    def start(cfg: TrainConfig) -> TimePlan:
         template = {k: int(cfg.value(k)) for k in SCHEDULE if options.resolve(cfg, k) is not None}
         return TimePlan(budget_s=float(cfg.time_budget), template=template,
                         probe_s=min(5.0, 0.05 * float(cfg.time_budget)), cap=cfg.refine.max_gaussians)
@@ -104,7 +104,7 @@ class TimePlan:
                 "history": list(self.history)}
 
     @staticmethod
-    def from_record(d: dict[str, Any]) -> "TimePlan":
+    def from_record(d: dict[str, Any]) -> TimePlan:
         renamed = {"reset_every": "opacity_reset"}  # as stored before the option took its command-line name
         template = {renamed.get(k, k): int(v) for k, v in d["template"].items()}
         return TimePlan(budget_s=float(d["budget_s"]), template=template, probe_s=float(d["probe_s"]),

@@ -19,9 +19,19 @@ from torch import Tensor, nn
 
 from ..gaussians import Gaussians
 from ..io.checkpoint import Checkpoint, save_checkpoint
-from ..strategy import (CompactStep, Context, DefaultStrategy, MCMCStrategy, MipFilter, RegularizeStep, ShAutoStep, Splats,
-                        Strategy, SupportPrune,
-                        sh_degree_of)
+from ..strategy import (
+    CompactStep,
+    Context,
+    DefaultStrategy,
+    MCMCStrategy,
+    MipFilter,
+    RegularizeStep,
+    ShAutoStep,
+    Splats,
+    Strategy,
+    SupportPrune,
+    sh_degree_of,
+)
 from ..strategy.mip import GROW_GRAD2D as MIP_GROW_GRAD2D
 from .appearance import ImageModel, make_image_model
 from .config import TrainConfig

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from ..events import Event, EventSink, Progress, Snapshot
-from ..io.model import load_model
+from ..model import load_model
 from ..project import Project
 from ..views.sources import project_cameras
 from .server import CameraInfo, SceneStore, ViewerServer, is_loopback

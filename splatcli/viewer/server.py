@@ -193,10 +193,10 @@ def _handler(store: SceneStore, assets: dict[str, Asset], allowed_hosts: set[str
                 return self._send(200, store.points(), "application/octet-stream", head=head)
             return self._send(404, b"not found\n", _TYPES[""], head=head)
 
-        def do_GET(self) -> None:  # noqa: N802 (http.server's names)
+        def do_GET(self) -> None:
             self._guarded(False)
 
-        def do_HEAD(self) -> None:  # noqa: N802
+        def do_HEAD(self) -> None:
             self._guarded(True)
 
         def _guarded(self, head: bool) -> None:
@@ -245,7 +245,7 @@ class ViewerServer:
         h = f"[{self.host}]" if ":" in self.host else self.host
         return f"http://{h}:{self.port}/"
 
-    def start(self) -> "ViewerServer":
+    def start(self) -> ViewerServer:
         self._thread.start()
         return self
 
@@ -253,7 +253,7 @@ class ViewerServer:
         self._httpd.shutdown()
         self._httpd.server_close()
 
-    def __enter__(self) -> "ViewerServer":
+    def __enter__(self) -> ViewerServer:
         return self.start()
 
     def __exit__(self, *exc: Any) -> None:

@@ -12,9 +12,9 @@ from __future__ import annotations
 import math
 import os
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import torch
@@ -25,7 +25,7 @@ from ..errors import SplatError
 from ..events import EventSink, Note, Progress, Stage, StageDone, emit
 from ..gaussians import Gaussians
 from ..io.atomic import atomic_write_bytes
-from ..io.model import LoadedModel, load_model
+from ..model import LoadedModel, load_model
 from ..project import Project
 from ..render import render_camera
 from .paths import PATHS, cameras_around_points, generate_path
@@ -67,7 +67,6 @@ class RenderResult:
     num_gaussians: int
     render_seconds: float  # rasterization only, device synchronised
     fps: float  # frames / render_seconds
-    wall_seconds: float  # everything, writes included
     device: str
     background: tuple[float, float, float]
     images: list[Path] = field(default_factory=list)
@@ -218,7 +217,6 @@ def render_views(
         num_gaussians=len(gaussians),
         render_seconds=render_s,
         fps=len(views) / max(render_s, 1e-9),
-        wall_seconds=time.perf_counter() - t_wall,
         device=str(device),
         background=tuple(bg_rgb),  # type: ignore[arg-type]
         images=images,

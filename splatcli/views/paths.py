@@ -6,7 +6,7 @@ and a ring of cameras for a splat rendered without any."""
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 

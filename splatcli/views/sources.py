@@ -8,8 +8,8 @@ y down, z forward), `viewmat` world-to-camera, pixel centres at +0.5.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import Sequence
 from pathlib import Path
 
 import numpy as np

@@ -1,7 +1,10 @@
-"""The one model loader: a project (its latest checkpoint) or a splat file.
+"""The one model loader, and where `export` reads and writes: a project (its latest
+checkpoint) or a splat file.
 
-render, eval (`--model`), export and `train --init-ply` all load through
+render, eval (`--model`), view, export and `train --init-ply` all load through
 `load_model`, so they accept the same sources and refuse bad ones the same way.
+This module sits above project.py (it opens projects) and io/ (it reads files):
+io/ reads and writes files and knows no project.
 """
 
 from __future__ import annotations
@@ -12,12 +15,14 @@ from pathlib import Path
 
 import torch
 
-from ..errors import SplatError
-from ..gaussians import Gaussians
-from ..project import Project, is_project
-from .checkpoint import load_checkpoint
-from .compressed_ply import is_compressed_ply
-from .formats import SUFFIXES, format_of, read_format
+from .errors import SplatError
+from .events import EventSink
+from .gaussians import Gaussians
+from .io.checkpoint import load_checkpoint
+from .io.compressed_ply import is_compressed_ply
+from .io.export import ExportConfig, ExportResult, check_export_config, export_gaussians, path_beside
+from .io.formats import SUFFIXES, check_format, format_of, read_format
+from .project import Project, is_project, writer_lock
 
 
 @dataclass
@@ -68,3 +73,26 @@ def _starts_like_ply(path: Path) -> bool:
             return f.read(5).startswith((b"ply\n", b"ply\r\n"))
     except OSError:
         return True  # let the .ply reader name the problem
+
+
+def export_project(root: str | os.PathLike, config: ExportConfig, *, on_event: EventSink | None = None) -> ExportResult:
+    """Write the latest checkpoint of the project at `root`, or the splat file `root`,
+    in `config.format` (io/export.py): a project's to PROJECT/exports/ under its lock
+    (shared), a file's beside it."""
+    config = ExportConfig(check_format(config.format), config.out, config.spz, config.sog)
+    check_export_config(config)
+    root = Path(root)
+    if root.is_dir() or is_project(root) or not root.exists():
+        project = Project.open(root)
+        with writer_lock(project.root, "export", shared=True):
+            out = Path(config.out) if config.out is not None else project.export_path(config.format)
+            return _export(project.root, out, config, on_event)
+    out = Path(config.out) if config.out is not None else path_beside(root, config.format)
+    if out.resolve() == root.resolve():
+        raise SplatError(f"-o {out}: is the source file itself; give another name")
+    return _export(root, out, config, on_event)
+
+
+def _export(source: Path, out: Path, config: ExportConfig, on_event: EventSink | None) -> ExportResult:
+    m = load_model(source, torch.device("cpu"))
+    return export_gaussians(m.gaussians, out, config, source=m.path, step=m.step, notes=m.notes, on_event=on_event)

@@ -36,7 +36,6 @@ class PoseErrors:
     rotation_deg: np.ndarray  # [N] angle of R_est^T R_ref, degrees
     center_error: np.ndarray  # [N] camera-centre distance, reference world units
     extent: float  # the reference scene's extent (camera.scene_extent: 1.1 x max centre distance from their mean)
-    sim3: Sim3
 
     @property
     def max_rotation_deg(self) -> float:
@@ -109,5 +108,4 @@ def compare_poses(estimated: list[Camera], reference: list[Camera]) -> PoseError
         rotation_deg=np.asarray(rot_err),
         center_error=center_err,
         extent=max(extent, 1e-12),
-        sim3=sim,
     )

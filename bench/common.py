@@ -1,0 +1,225 @@
+"""What the bench scripts share: paths and the shared data, the processed scenes, running
+`splatcli` and measuring it, reading training curves, plotting them, and writing one
+section of docs/benchmarks.md.
+
+Every script runs as `python bench/NAME.py`: Python puts bench/ first on the module path,
+so the scripts import this module (and align, browser, scenes, tiny_project beside it)
+without editing it. The tests import the same modules: pyproject.toml's pytest
+`pythonpath` names bench/.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib.util
+import json
+import os
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import ModuleType
+
+from splatcli.eval.curve import read_curve
+from splatcli.project import Project
+
+REPO = Path(__file__).resolve().parents[1]
+OUT = REPO / "bench" / "out"  # every script's results, one folder each (git ignores it)
+DOC = REPO / "docs" / "benchmarks.md"
+FIGURES = REPO / "docs" / "figures"
+SPLATCLI = [sys.executable, "-m", "splatcli.cli.main"]  # also what an earlier commit has (bench/versus.py)
+TOL_DB = 0.1  # "reached" a PSNR: the first held-out evaluation within this of it
+
+
+# ---- data ---------------------------------------------------------------------------
+
+
+def data_dir() -> Path:
+    """The third-party scenes: $SPLATCLI_DATA, else ../shared/data beside the checkout. May not exist."""
+    env = os.environ.get("SPLATCLI_DATA")
+    return Path(env) if env else REPO.parent / "shared" / "data"
+
+
+def make_scene() -> ModuleType:
+    """sample_data/make_scene.py (the sample scene's renderer) as a module; it is a script, not a package."""
+    spec = importlib.util.spec_from_file_location("make_scene", REPO / "sample_data" / "make_scene.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+# scene -> (input, process args, train args, preset): the scenes bench/train.py measures; the
+# other scripts train copies of the same processed projects
+SCENES = {
+    "lego": (lambda: data_dir() / "lego", [], ["--max-size", "200"], None),
+    "fox": (lambda: data_dir() / "fox", [], ["--max-size", "480"], None),
+    # the same 50 photos without their poses: structure from motion at 400 px (issue 12's "real capture")
+    "fox-photos": (lambda: data_dir() / "fox" / "images", ["--input-type", "images", "--max-size", "400"],
+                   ["--max-size", "480"], None),
+    "sample": (lambda: REPO / "sample_data" / "scene", [], [], "demo"),
+}
+PROCESSED = OUT / "train"  # <scene>/base: each scene processed once, never written to afterwards
+
+
+def ensure_processed(scene: str) -> Path:
+    """The scene's processed project (bench/out/train/<scene>/base), made on first use."""
+    src, pargs, _, _ = SCENES[scene]
+    base = PROCESSED / scene / "base"
+    if (base / "splatcli.json").is_file() and (base / "sfm").is_dir():
+        return base
+    inp = src()
+    if not inp.exists():
+        raise SystemExit(f"{inp}: missing (scene {scene}); set SPLATCLI_DATA or skip it with --scenes")
+    base.parent.mkdir(parents=True, exist_ok=True)
+    splatcli(["process", str(inp), "-o", str(base), "--overwrite", *pargs], PROCESSED / scene / "process.log")
+    return base
+
+
+def fresh_copy(base: Path, dest: Path) -> Path:
+    """`dest` = a copy of the processed project `base` without any training outputs (checkpoints,
+    reports, renders, exports); whatever was at `dest` is replaced."""
+    p = Project(Path(base))
+    outputs = {d.name for d in (p.checkpoints_dir, p.reports_dir, p.renders_dir, p.exports_dir)}
+    if dest.exists():
+        shutil.rmtree(dest)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copytree(base, dest, ignore=lambda d, names: [n for n in names if Path(d) == Path(base) and n in outputs])
+    return dest
+
+
+# ---- running and measuring ------------------------------------------------------------
+
+
+def loadavg() -> float:
+    """The 1-minute load average, as every table reports it beside its timings."""
+    return round(os.getloadavg()[0], 2)
+
+
+class RssSampler(threading.Thread):
+    """Peak resident set size of a child, sampled from /proc (Linux)."""
+
+    def __init__(self, pid: int, period: float = 0.5) -> None:
+        super().__init__(daemon=True)
+        self.pid, self.period, self.peak_kb, self.samples = pid, period, 0, []
+        self._halt = threading.Event()
+        self.t0 = time.monotonic()
+
+    def run(self) -> None:
+        path = f"/proc/{self.pid}/status"
+        while not self._halt.is_set():
+            try:
+                with open(path) as f:
+                    for line in f:
+                        if line.startswith("VmRSS:"):
+                            kb = int(line.split()[1])
+                            self.peak_kb = max(self.peak_kb, kb)
+                            self.samples.append((round(time.monotonic() - self.t0, 1), kb // 1024))
+            except OSError:
+                pass
+            self._halt.wait(self.period)
+
+    def stop(self) -> None:
+        self._halt.set()
+        self.join()
+
+
+@dataclass
+class Run:
+    """A finished child process: its exit code and output, and what it cost."""
+
+    returncode: int
+    stdout: str
+    wall_s: float
+    peak_mb: int  # peak resident memory (sampled every 0.5 s from /proc; 0 where there is none)
+    rss: list[tuple[float, int]] = field(default_factory=list)  # (seconds, MiB) samples
+    load: tuple[float, float] = (0.0, 0.0)  # 1-minute load average before and after
+
+    @property
+    def summary(self) -> dict:
+        """The JSON object a `--json` command printed last."""
+        return json.loads(self.stdout.strip().splitlines()[-1])
+
+
+def run(cmd: list[str], log: Path | None = None, *, cwd: Path = REPO, env: dict | None = None,
+        append: bool = False) -> Run:
+    """Run `cmd` to its end, stdout captured, stderr into `log` (or inherited), timing it,
+    sampling its memory and reading the load average before and after."""
+    load0, t0 = loadavg(), time.monotonic()
+    with open(log, "a" if append else "w") if log else contextlib.nullcontext() as err:
+        p = subprocess.Popen(cmd, cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=err, text=True)
+        sampler = RssSampler(p.pid)
+        sampler.start()
+        out, _ = p.communicate()
+        sampler.stop()
+    return Run(p.returncode, out, time.monotonic() - t0, sampler.peak_kb // 1024, sampler.samples,
+               (load0, loadavg()))
+
+
+def splatcli(args: list[str], log: Path, *, cwd: Path = REPO, env: dict | None = None, append: bool = False) -> Run:
+    """`splatcli ARGS --json -q` as a measured child (`run`); a failure ends the benchmark, naming the log."""
+    r = run(SPLATCLI + [*args, "--json", "-q"], log, cwd=cwd, env=env, append=append)
+    if r.returncode != 0:
+        raise SystemExit(f"splatcli {args[0]} failed (exit {r.returncode}); see {log}")
+    return r
+
+
+# ---- curves, plots, the document ------------------------------------------------------
+
+
+def psnr_curve(project: Path) -> list[tuple[float, float]]:
+    """Held-out PSNR against training seconds, from the project's train log (splatcli.eval.curve)."""
+    return [(p.elapsed_s, p.psnr) for p in read_curve(Project(Path(project)).train_log_path)]
+
+
+def seconds_to(curve: list[tuple[float, float]], target: float) -> float | None:
+    """Training seconds of the first held-out evaluation within TOL_DB of `target`."""
+    return next((t for t, p in curve if p >= target - TOL_DB), None)
+
+
+def figure(width: float, height: float, ncols: int = 1):
+    """(figure, axes) drawn off-screen, or None where matplotlib (the `plots` extra) is absent."""
+    try:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+    except ImportError:
+        return None
+    fig = Figure(figsize=(width, height), dpi=100)
+    FigureCanvasAgg(fig)
+    return fig, fig.subplots(1, ncols)
+
+
+def plot_psnr_curves(ax, curves: dict[str, list[tuple[float, float]]], title: str) -> None:
+    """Held-out PSNR against training seconds, one line per labelled curve."""
+    for label, curve in curves.items():
+        ax.plot([t for t, _ in curve], [p for _, p in curve], "o-", label=label)
+    ax.set_xlabel("training time (s)")
+    ax.set_ylabel("held-out PSNR (dB)")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+
+
+def save_figure(fig, path: Path) -> None:
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, format="png")
+
+
+def write_section(heading: str, text: str, doc: Path = DOC) -> None:
+    """Replace the section that starts at the line `heading` (up to the next "## "
+    line) with `text`, or append it; other sections stay as they are. Atomic."""
+    old = doc.read_text(encoding="utf-8") if doc.exists() else "# Benchmarks\n"
+    lines = old.splitlines(keepends=True)
+    start = next((i for i, ln in enumerate(lines) if ln.strip() == heading), None)
+    if start is None:
+        new = old.rstrip("\n") + "\n\n" + text
+    else:
+        end = next((i for i in range(start + 1, len(lines)) if lines[i].startswith("## ")), len(lines))
+        rest = "".join(lines[end:])
+        new = "".join(lines[:start]) + text + ("\n" + rest if rest else "")
+    tmp = doc.with_suffix(".md.tmp")
+    tmp.write_text(new, encoding="utf-8")
+    os.replace(tmp, doc)
