@@ -7,6 +7,7 @@ from typing import Optional
 
 import typer
 
+from ..process.config import POSED_MAX_SIZE, SFM_MAX_SIZE
 from ..process.run import ProcessConfig, process as run_process
 from ..sfm import colmap
 from .common import DebugOpt, JsonOpt, QuietOpt, SeedOpt, Ui, parse_background
@@ -18,7 +19,8 @@ def process(
     input: Path = typer.Argument(..., help="Folder of photos, video file, COLMAP workspace, or transforms.json (or its folder)."),
     output: Path = typer.Option(..., "--output", "-o", help="The project directory to create."),
     input_type: str = typer.Option(_D.input_type, "--input-type", help="auto, images, video, colmap or transforms."),
-    max_size: int = typer.Option(_D.max_size, "--max-size", help="Longest side, pixels, of the images SIFT sees (the dataset keeps full resolution)."),
+    max_size: Optional[int] = typer.Option(_D.max_size, "--max-size", help="Longest side, pixels, of the images SIFT sees (the dataset keeps full resolution; "
+                                           f"default {SFM_MAX_SIZE} for photos and video, {POSED_MAX_SIZE} for the points of posed captures)."),
     matcher: str = typer.Option(_D.matcher, "--matcher", help="auto, exhaustive (all pairs) or sequential (ordered captures)."),
     fps: Optional[float] = typer.Option(_D.fps, "--fps", help="Video: frames to extract per second of video."),
     num_frames: int = typer.Option(_D.num_frames, "--num-frames", help="Video: frames to extract, evenly spaced (without --fps)."),
@@ -27,6 +29,9 @@ def process(
     strict: bool = typer.Option(_D.strict, "--strict", help="Fail on an unreadable, truncated or empty image or video frame (default: skip it with a warning; the manifest lists it)."),
     invert_masks: bool = typer.Option(_D.invert_masks, "--invert-masks", help="The mask files (masks/ beside the images, or transforms.json's mask_path) are white where masked out; "
                                       "flip them (the default reads black = masked out, white = keep, as COLMAP and nerfstudio do)."),
+    triangulate: bool = typer.Option(_D.triangulate, "--triangulate/--no-triangulate",
+                                     help="Posed captures (transforms.json): triangulate points from the photos with the poses held fixed, "
+                                     "for training to start from (too few: random points, as with --no-triangulate)."),
     seed: int = SeedOpt,
     quiet: bool = QuietOpt,
     json_out: bool = JsonOpt,
@@ -37,7 +42,7 @@ def process(
     colmap.set_verbose(debug)
     cfg = ProcessConfig(input_type=input_type, max_size=max_size, matcher=matcher, fps=fps, num_frames=num_frames,
                         background=parse_background(background, auto=True), overwrite=overwrite, seed=seed,
-                        strict=strict, invert_masks=invert_masks)
+                        strict=strict, invert_masks=invert_masks, triangulate=triangulate)
     with ui.progress() as sink:
         r = run_process(input, output, cfg, on_event=sink)
     lines = [f"{r.train} train / {r.test} test images, {r.points} points"

@@ -10,7 +10,7 @@ from ..events import Stages
 from ..io.images import IMAGE_EXTS, StagedImage, fit_size, list_folder
 from ..project import Project
 from ..sfm.reconstruct import SfmOptions, run_sfm
-from .config import MIN_IMAGES, ProcessConfig
+from .config import MIN_IMAGES, ProcessConfig, sift_max_size
 from .dataset import Dataset, finish_model, refuse_if_strict, stage_images
 from .masks import MASKS_DIR, find_masks_dir, mask_file, stage_all
 from .detect import InputSpec
@@ -87,12 +87,13 @@ def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
     sizes = {(s.width, s.height) for s in staged}
     if len(sizes) > 1:
         run.note(f"images come in {len(sizes)} sizes; using one camera per image")
+    max_size = sift_max_size(cfg, posed=False)
     sfm_opts = SfmOptions(
-        matcher=cfg.matcher, ordered=spec.kind == "video", max_image_size=cfg.max_size,
+        matcher=cfg.matcher, ordered=spec.kind == "video", max_image_size=max_size,
         max_features=cfg.max_features, first_octave=cfg.first_octave,
         sequential_overlap=cfg.sequential_overlap, seed=cfg.seed, num_threads=cfg.num_threads,
     )
-    sift_side = min(min(fit_size(w, h, cfg.max_size)) for w, h in sizes)  # smallest side SIFT will see
+    sift_side = min(min(fit_size(w, h, max_size)) for w, h in sizes)  # smallest side SIFT will see
     res = run_sfm(work / "input", names, work, sfm_opts, single_camera=len(sizes) == 1, min_side=sift_side,
                   where=spec.images_dir or spec.path, on_event=run.sink,
                   mask_dir=work / MASKS_DIR if mask_source else None)

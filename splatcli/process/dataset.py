@@ -40,6 +40,7 @@ class Dataset:
     model_sizes: list[int] = field(default_factory=list)
     unregistered: list[str] = field(default_factory=list)
     dropped_blurry: int = 0
+    triangulated: int | None = None  # posed captures: points triangulated with the poses fixed (kept or not)
 
 
 def refuse_if_strict(where: Path | str, skipped: list[str], strict: bool) -> None:

@@ -102,6 +102,7 @@ def publish(root: Path, stage: Path, spec: InputSpec, cfg: ProcessConfig, ds: Da
         skipped=ds.skipped,
         missing=ds.missing,
         dropped_blurry=ds.dropped_blurry,
+        triangulated=ds.triangulated,
         warnings=list(run.warnings),
     )
     config = asdict(cfg)

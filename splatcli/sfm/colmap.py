@@ -395,6 +395,51 @@ def build_model(specs: list[CameraSpec], points: np.ndarray | None = None,
     return Model(rec)
 
 
+def create_posed_database(path: Path, model: Model) -> None:
+    """A fresh database holding `model`'s cameras, rigs, frames and images under
+    their own ids, and no features yet: point triangulation pairs the database's
+    matches with the model's poses by image id. The cameras are marked as knowing
+    their focal length, so two-view verification uses it."""
+    pycolmap = _pc()
+    path = Path(path)
+    if path.exists():
+        path.unlink()
+    rec = model._rec
+    with pycolmap.Database.open(str(path)) as db:
+        for cam in rec.cameras.values():
+            cam.has_prior_focal_length = True
+            db.write_camera(cam, use_camera_id=True)
+        for rig in rec.rigs.values():
+            db.write_rig(rig, use_rig_id=True)
+        for frame in rec.frames.values():
+            db.write_frame(frame, use_frame_id=True)
+        for im in rec.images.values():
+            db.write_image(im, use_image_id=True)
+
+
+def triangulate(model: Model, db: Path, image_dir: Path, out_dir: Path, opts: MapperOptions) -> Model:
+    """Points triangulated from the database's matches with `model`'s poses and
+    intrinsics held fixed (COLMAP's point triangulator: no mapping; the points alone
+    are refined by bundle adjustment). Returns a new model; `model` is unchanged."""
+    pycolmap = _pc()
+    pycolmap.set_random_seed(opts.seed)
+    o = pycolmap.IncrementalPipelineOptions()
+    o.random_seed = opts.seed
+    o.num_threads = opts.num_threads
+    o.mapper.random_seed = opts.seed
+    o.triangulation.random_seed = opts.seed
+    o.ba_global_max_num_iterations = opts.ba_global_max_num_iterations
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    rec = pycolmap.Reconstruction(model._rec)  # a copy: the caller keeps the pose-only model
+    try:
+        out = run_cancellable(pycolmap.triangulate_points, rec, str(db), str(image_dir), str(out_dir),
+                              clear_points=True, options=o, refine_intrinsics=False)
+    except (RuntimeError, ValueError) as exc:
+        raise SplatError(f"{db}: COLMAP's point triangulation failed ({_one_line(exc)})") from None
+    return Model(out if out is not None else rec)
+
+
 def undistort(model: Model, image_dir: Path, out_dir: Path, *, jpeg_quality: int = 95,
               num_threads: int = -1) -> Path:
     """Undistort the model's registered images to PINHOLE.

@@ -18,6 +18,9 @@ import statistics
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
+from ..camera import Camera
 from ..errors import SplatError
 from ..events import EventSink, Note, Stages, emit
 from . import colmap
@@ -89,6 +92,28 @@ def sequential_pairs(names: list[str], overlap: int) -> list[tuple[str, str]]:
             out.add((i, i + step))
             step *= 2
     return [(names[i], names[j]) for i, j in sorted(out)]
+
+
+def posed_pairs(cameras: list[Camera], neighbours: int, max_angle_deg: float = 60.0) -> list[tuple[str, str]]:
+    """Pairs of posed cameras likely to see the same things: each camera with its
+    `neighbours` nearest (camera centres) among those looking within `max_angle_deg`
+    of its own direction. Known poses make exhaustive pairs unnecessary."""
+    if len(cameras) < 2:
+        return []
+    centers = np.stack([c.center for c in cameras])  # [N, 3]
+    dirs = np.stack([c.viewmat[2, :3] for c in cameras])  # [N, 3] optical axes in world
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    dist = np.linalg.norm(centers[:, None] - centers[None], axis=2)  # [N, N]
+    facing = dirs @ dirs.T >= np.cos(np.radians(max_angle_deg))
+    dist = np.where(facing, dist, np.inf)
+    np.fill_diagonal(dist, np.inf)
+    out = set()
+    for i in range(len(cameras)):
+        for j in np.argsort(dist[i], kind="stable")[:neighbours]:
+            if np.isfinite(dist[i, j]):
+                out.add((min(i, int(j)), max(i, int(j))))
+    names = [c.name for c in cameras]
+    return sorted((names[i], names[j]) for i, j in out)
 
 
 def _choose_matcher(opts: SfmOptions, names: list[str]) -> str:
@@ -171,6 +196,48 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
         keypoints_median=float(kp_median),
         seconds=clock.seconds,
     )
+
+
+@dataclass
+class TriangulationResult:
+    model: Model  # the posed model with the triangulated points
+    num_pairs: int
+    keypoints_median: float
+    seconds: dict[str, float] = field(default_factory=dict)
+
+
+def triangulate_posed(image_dir: Path, model: Model, work_dir: Path, opts: SfmOptions, *, neighbours: int,
+                      min_side: int, on_event: EventSink | None = None,
+                      mask_dir: Path | None = None) -> TriangulationResult:
+    """Points for a capture whose poses are known (transforms.json, LLFF): SIFT as for
+    photos, matching of the pairs the poses say overlap (`posed_pairs`), then
+    triangulation with every pose and intrinsic held fixed; no mapping. `model` holds
+    the posed images (in `image_dir`), with their distortion."""
+    clock = Stages(on_event)
+    work_dir.mkdir(parents=True, exist_ok=True)
+    db = work_dir / "database.db"
+    names = model.registered_names()
+    first_octave = opts.first_octave
+    if first_octave is None:
+        first_octave = -1 if min_side < 400 else 0
+    sift = SiftOptions(max_image_size=opts.max_image_size, max_num_features=opts.max_features,
+                       first_octave=first_octave, num_threads=opts.num_threads)
+    with clock.stage("extract features", len(names)) as st:
+        colmap.create_posed_database(db, model)
+        for i in range(0, len(names), opts.chunk):
+            colmap.extract_features(db, image_dir, names[i : i + opts.chunk], sift, single_camera=False,
+                                    mask_dir=mask_dir)
+            st.progress(min(i + opts.chunk, len(names)))
+    stats = colmap.database_stats(db)
+    kp_median = statistics.median(stats.keypoints.values()) if stats.keypoints else 0
+    pairs = posed_pairs(model.cameras(), neighbours)
+    _match(db, pairs, work_dir, MatchOptions(num_threads=opts.num_threads, seed=opts.seed), clock)
+    with clock.stage("triangulate", 1) as st:
+        mapper = MapperOptions(seed=opts.seed, num_threads=opts.num_threads)
+        out = colmap.triangulate(model, db, image_dir, work_dir / "triangulated", mapper)
+        st.progress(1)
+    return TriangulationResult(model=out, num_pairs=len(pairs), keypoints_median=float(kp_median),
+                               seconds=clock.seconds)
 
 
 def _match(db: Path, pairs: list[tuple[str, str]], work_dir: Path, mopts: MatchOptions, clock: Stages) -> None:
