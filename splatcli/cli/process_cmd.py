@@ -1,4 +1,4 @@
-"""`splatcli process`: photos, a video, a COLMAP workspace or a transforms.json -> a posed dataset."""
+"""`splatcli process`: photos, a video, a COLMAP workspace, a transforms.json or an LLFF capture -> a posed dataset."""
 
 from __future__ import annotations
 
@@ -16,9 +16,9 @@ _D = ProcessConfig()  # the defaults, written once in the config
 
 
 def process(
-    input: Path = typer.Argument(..., help="Folder of photos, video file, COLMAP workspace, or transforms.json (or its folder)."),
+    input: Path = typer.Argument(..., help="Folder of photos, video file, COLMAP workspace, transforms.json or LLFF poses_bounds.npy (or its folder)."),
     output: Path = typer.Option(..., "--output", "-o", help="The project directory to create."),
-    input_type: str = typer.Option(_D.input_type, "--input-type", help="auto, images, video, colmap or transforms."),
+    input_type: str = typer.Option(_D.input_type, "--input-type", help="auto, images, video, colmap, transforms or llff."),
     max_size: Optional[int] = typer.Option(_D.max_size, "--max-size", help="Longest side, pixels, of the images SIFT sees (the dataset keeps full resolution; "
                                            f"default {SFM_MAX_SIZE} for photos and video, {POSED_MAX_SIZE} for the points of posed captures)."),
     matcher: str = typer.Option(_D.matcher, "--matcher", help="auto, exhaustive (all pairs) or sequential (ordered captures)."),
@@ -30,7 +30,7 @@ def process(
     invert_masks: bool = typer.Option(_D.invert_masks, "--invert-masks", help="The mask files (masks/ beside the images, or transforms.json's mask_path) are white where masked out; "
                                       "flip them (the default reads black = masked out, white = keep, as COLMAP and nerfstudio do)."),
     triangulate: bool = typer.Option(_D.triangulate, "--triangulate/--no-triangulate",
-                                     help="Posed captures (transforms.json): triangulate points from the photos with the poses held fixed, "
+                                     help="Posed captures (transforms.json, LLFF): triangulate points from the photos with the poses held fixed, "
                                      "for training to start from (too few: random points, as with --no-triangulate)."),
     seed: int = SeedOpt,
     quiet: bool = QuietOpt,

@@ -17,7 +17,7 @@ POSED_MAX_SIZE = 1000  # and for the points of posed captures (transforms.json, 
 
 @dataclass(frozen=True)
 class ProcessConfig:
-    input_type: str = "auto"  # auto | images | video | colmap | transforms
+    input_type: str = "auto"  # auto | images | video | colmap | transforms | llff
     max_size: int | None = None  # longest side, pixels, of the image SIFT sees (the dataset keeps full resolution);
     # None: SFM_MAX_SIZE for photos and video, POSED_MAX_SIZE for posed captures
     matcher: str = "auto"  # auto | exhaustive | sequential

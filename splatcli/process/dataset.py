@@ -41,6 +41,7 @@ class Dataset:
     unregistered: list[str] = field(default_factory=list)
     dropped_blurry: int = 0
     triangulated: int | None = None  # posed captures: points triangulated with the poses fixed (kept or not)
+    bounds: tuple[np.ndarray, np.ndarray] | None = None  # the scene box the input states (LLFF's near/far), for want of points
 
 
 def refuse_if_strict(where: Path | str, skipped: list[str], strict: bool) -> None:

@@ -31,10 +31,15 @@ def split_names(names: list[str], test: list[str] | None) -> dict[str, list[str]
     return {"train": [n for i, n in enumerate(names) if i % 8 != 0], "test": names[::8]}
 
 
-def scene_facts(cameras: list[Camera], points: np.ndarray, background: tuple[float, float, float]) -> dict[str, Any]:
+def scene_facts(cameras: list[Camera], points: np.ndarray, background: tuple[float, float, float],
+                bounds: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, Any]:
+    """`bounds`: the box the input states (LLFF's near/far), used when there are no points."""
     if len(points):
         lo, hi = points_bounds(points)
         init = "sfm"
+    elif bounds is not None:
+        lo, hi = bounds
+        init = "random"
     else:
         lo, hi = frustum_bounds(cameras)
         init = "random"
@@ -58,7 +63,7 @@ def publish(root: Path, stage: Path, spec: InputSpec, cfg: ProcessConfig, ds: Da
         raise RuntimeError(f"staged model lists images that were not written: {missing_files[:3]}")
     background = ds.background if ds.background is not None else ((1.0, 1.0, 1.0) if ds.mask_source == "alpha" else (0.0, 0.0, 0.0))
     splits = split_names(names, ds.test)
-    facts = scene_facts(scene.cameras, scene.points, background)
+    facts = scene_facts(scene.cameras, scene.points, background, ds.bounds)
     facts["masks"] = ds.masks
     facts["mask_source"] = ds.mask_source
     facts["model_sha256"] = model_digest(st.sparse_dir)  # later reads of this model skip the file walk
