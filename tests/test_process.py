@@ -312,7 +312,7 @@ def test_images_left_out_by_sequential_matching_are_matched_with_every_image(sce
     monkeypatch.setattr(rec, "sequential_pairs", lambda n, k: [p for p in real(n, k) if set(p) <= first])
     notes = []
     res = rec.run_sfm(scene / "images", names, tmp_path / "work",
-                      rec.SfmOptions(exhaustive_max_images=0), single_camera=True, min_side=H,
+                      rec.SfmOptions(exhaustive_max_images=0), cameras=[names], min_side=H,
                       where=scene, on_event=notes.append)
     assert res.matcher == "sequential+exhaustive" and res.unregistered == []
     assert any("left 8 image(s) out" in n.message for n in notes if isinstance(n, Note))
@@ -379,3 +379,45 @@ def test_llff_capture_agrees_with_sfm_on_the_same_photos(processed, scene, tmp_p
     assert e.max_center_error_rel < 0.01, e.center_error / e.extent
     exact = compare_poses(llff, gt)  # the conversion itself loses nothing
     assert exact.max_rotation_deg < 1e-6 and exact.max_center_error_rel < 1e-9
+
+
+def test_photos_of_two_cameras_get_two_cameras_and_register(scene, tmp_path):
+    """Half the views re-shot 1.25x zoomed (the same poses, a longer focal length), each
+    half with its own EXIF camera: grouping by EXIF gives SfM two cameras, which recover
+    the two focal lengths, and every view registers with the right pose."""
+    from PIL import Image
+
+    from test_cameras import _EXIF_IFD, _FOCAL, _MAKE, _MODEL
+
+    zoom = 1.25
+    src = tmp_path / "two"
+    src.mkdir()
+    gt = []
+    for i, c in enumerate(ground_truth(scene)):
+        img = cv2.imread(str(scene / "images" / c.name))
+        ex = Image.Exif()
+        if i % 2:
+            # pixel centres at (i + 0.5): zoom about the image centre, which stays the principal point
+            t = (0.5 - W / 2) * zoom + W / 2 - 0.5, (0.5 - H / 2) * zoom + H / 2 - 0.5
+            img = cv2.warpAffine(img, np.array([[zoom, 0, t[0]], [0, zoom, t[1]]]), (W, H), flags=cv2.INTER_AREA)
+            ex[_MAKE], ex[_MODEL] = "Panasonic", "DMC-FZ150"
+            ex.get_ifd(_EXIF_IFD)[_FOCAL] = 62.5
+        else:
+            ex[_MAKE], ex[_MODEL] = "Canon", "Canon EOS 60D"
+            ex.get_ifd(_EXIF_IFD)[_FOCAL] = 50.0
+        Image.fromarray(img[..., ::-1]).save(src / c.name, exif=ex, quality=95)
+        gt.append(c)
+    notes = []
+    r = process(src, tmp_path / "p", on_event=notes.append)
+    assert r.camera_grouping == "exif" and len(r.cameras) == 2
+    assert sorted(g["model"] for g in r.cameras) == ["Canon EOS 60D", "DMC-FZ150"]
+    assert any("2 camera(s): 2 by their EXIF" in n.message for n in notes if isinstance(n, Note))
+    assert r.registered == N_VIEWS and r.mean_reprojection_error < 1.0
+    m = assert_contract(tmp_path / "p")
+    assert len(m["steps"]["process"]["summary"]["cameras"]) == 2  # the grouping is in the manifest
+    got = read_scene(Project(tmp_path / "p").sparse_dir).cameras
+    e = compare_poses(got, gt)
+    assert e.max_rotation_deg < 1.0 and e.max_center_error_rel < 0.01, (e.rotation_deg, e.center_error / e.extent)
+    f = {c.name: c.K[0, 0] for c in got}
+    ratio = np.median([f[c.name] for c in gt[1::2]]) / np.median([f[c.name] for c in gt[::2]])
+    assert ratio == pytest.approx(zoom, rel=0.03)

@@ -7,6 +7,8 @@ from typing import Optional
 
 import typer
 
+from ..errors import SplatError
+from ..process.cameras import CAMERA_MODELS
 from ..process.config import POSED_MAX_SIZE, SFM_MAX_SIZE
 from ..process.run import ProcessConfig, process as run_process
 from ..sfm import colmap
@@ -29,6 +31,11 @@ def process(
     strict: bool = typer.Option(_D.strict, "--strict", help="Fail on an unreadable, truncated or empty image or video frame (default: skip it with a warning; the manifest lists it)."),
     invert_masks: bool = typer.Option(_D.invert_masks, "--invert-masks", help="The mask files (masks/ beside the images, or transforms.json's mask_path) are white where masked out; "
                                       "flip them (the default reads black = masked out, white = keep, as COLMAP and nerfstudio do)."),
+    single_camera: bool = typer.Option(False, "--single-camera", help="SfM: one camera for every image (photos of one camera at one zoom; they must share a size)."),
+    per_image_cameras: bool = typer.Option(False, "--per-image-cameras", help="SfM: one camera per image (default: grouped by EXIF make, model, focal length and size; "
+                                           "same-size photos without EXIF share one)."),
+    camera_model: str = typer.Option(_D.camera_model, "--camera-model", help=f"SfM: the COLMAP camera model fitted ({', '.join(CAMERA_MODELS)}); "
+                                     "the dataset is undistorted to PINHOLE."),
     triangulate: bool = typer.Option(_D.triangulate, "--triangulate/--no-triangulate",
                                      help="Posed captures (transforms.json, LLFF): triangulate points from the photos with the poses held fixed, "
                                      "for training to start from (too few: random points, as with --no-triangulate)."),
@@ -40,14 +47,20 @@ def process(
     """Turn a capture into a posed dataset (SfM with pycolmap, or import of existing poses)."""
     ui = Ui(quiet=quiet, json_out=json_out)
     colmap.set_verbose(debug)
+    if single_camera and per_image_cameras:
+        raise SplatError("--single-camera and --per-image-cameras: choose one")
+    cameras = "single" if single_camera else "per-image" if per_image_cameras else _D.cameras
     cfg = ProcessConfig(input_type=input_type, max_size=max_size, matcher=matcher, fps=fps, num_frames=num_frames,
                         background=parse_background(background, auto=True), overwrite=overwrite, seed=seed,
-                        strict=strict, invert_masks=invert_masks, triangulate=triangulate)
+                        strict=strict, invert_masks=invert_masks, triangulate=triangulate,
+                        cameras=cameras, camera_model=camera_model.upper())
     with ui.progress() as sink:
         r = run_process(input, output, cfg, on_event=sink)
     lines = [f"{r.train} train / {r.test} test images, {r.points} points"
              + (f", reprojection error {r.mean_reprojection_error:.2f} px" if r.mean_reprojection_error else ""),
              "stages: " + ", ".join(f"{k} {v:.1f}s" for k, v in r.seconds.items())]
+    if r.cameras:
+        lines.append(f"cameras: {len(r.cameras)} ({r.camera_grouping})")
     if r.mask_source:
         src = "the images' alpha channel" if r.mask_source == "alpha" else "mask files"
         lines.append(f"masks: from {src}, in {r.project / 'masks'}")

@@ -10,6 +10,7 @@ from ..events import Stages
 from ..io.images import IMAGE_EXTS, StagedImage, fit_size, list_folder
 from ..project import Project
 from ..sfm.reconstruct import SfmOptions, run_sfm
+from .cameras import group_cameras
 from .config import MIN_IMAGES, ProcessConfig, sift_max_size
 from .dataset import Dataset, finish_model, refuse_if_strict, stage_images
 from .masks import MASKS_DIR, find_masks_dir, mask_file, stage_all
@@ -60,6 +61,7 @@ def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
             raise SplatError(f"{spec.path}: only {len(frames.names)} usable frame(s); need at least {MIN_IMAGES}")
         w, h = frames.width, frames.height
         staged = [StagedImage(n, w, h, w, h, False) for n in frames.names]
+        grouping = group_cameras(staged, None, cfg.cameras, video=True)
     else:
         assert spec.images_dir is not None
         files, others = list_folder(spec.images_dir)
@@ -75,6 +77,8 @@ def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
                 f"{spec.images_dir}: structure from motion needs at least {MIN_IMAGES} readable images, "
                 f"found {len(staged)}{why}"
             )
+        by_name = {name: src for src, name in pairs}
+        grouping = group_cameras(staged, {s.name: by_name[s.name] for s in staged}, cfg.cameras, video=False)
         if others:
             shown = ", ".join(p.name for p in others[:5]) + (", ..." if len(others) > 5 else "")
             run.note(f"skipped {len(others)} file(s) that are not images: {shown}")
@@ -85,16 +89,21 @@ def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
     mask_source = stage_all(found, staged, work, run, invert=cfg.invert_masks, where=mdir)
     names = [s.name for s in staged]
     sizes = {(s.width, s.height) for s in staged}
-    if len(sizes) > 1:
-        run.note(f"images come in {len(sizes)} sizes; using one camera per image")
+    run.note(grouping.reason)
+    for p in grouping.problems[:3]:
+        run.note(f"EXIF ignored: {p}", "warning")
+    if len(grouping.problems) > 3:
+        run.note(f"EXIF ignored in {len(grouping.problems) - 3} more image(s)", "warning")
     max_size = sift_max_size(cfg, posed=False)
     sfm_opts = SfmOptions(
         matcher=cfg.matcher, ordered=spec.kind == "video", max_image_size=max_size,
         max_features=cfg.max_features, first_octave=cfg.first_octave,
         sequential_overlap=cfg.sequential_overlap, seed=cfg.seed, num_threads=cfg.num_threads,
+        camera_model=cfg.camera_model,
     )
     sift_side = min(min(fit_size(w, h, max_size)) for w, h in sizes)  # smallest side SIFT will see
-    res = run_sfm(work / "input", names, work, sfm_opts, single_camera=len(sizes) == 1, min_side=sift_side,
+    res = run_sfm(work / "input", names, work, sfm_opts, cameras=[g.names for g in grouping.groups],
+                  min_side=sift_side,
                   where=spec.images_dir or spec.path, on_event=run.sink,
                   mask_dir=work / MASKS_DIR if mask_source else None)
     for k, v in res.seconds.items():
@@ -119,4 +128,5 @@ def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
                     background=background, mean_reprojection_error=model.mean_reprojection_error(),
                     mean_track_length=model.mean_track_length(), skipped=skipped, matcher=res.matcher,
                     pairs=res.num_pairs, keypoints_median=res.keypoints_median, model_sizes=res.model_sizes,
-                    unregistered=res.unregistered, dropped_blurry=dropped)
+                    unregistered=res.unregistered, dropped_blurry=dropped, camera_grouping=grouping.rule,
+                    cameras=[g.summary() for g in grouping.groups])

@@ -9,6 +9,7 @@ from typing import Any
 
 from ..errors import SplatError
 from ..sfm.reconstruct import MATCHERS
+from .cameras import CAMERA_MODELS, CAMERA_MODES
 
 MIN_IMAGES = 2
 SFM_MAX_SIZE = 1600  # --max-size's default for structure from motion
@@ -34,6 +35,8 @@ class ProcessConfig:
     strict: bool = False  # an unreadable image or video frame is an error instead of a skipped input
     invert_masks: bool = False  # mask files given with white = masked out (flipped to the project's 255 = keep)
     triangulate: bool = True  # posed captures: points triangulated from the photos with the poses fixed
+    cameras: str = "auto"  # SfM: auto (video; EXIF make, model, focal length, size) | single | per-image (process/cameras.py)
+    camera_model: str = "SIMPLE_RADIAL"  # SfM: the COLMAP camera model fitted (undistorted to PINHOLE after)
 
 
 @dataclass
@@ -62,6 +65,8 @@ class ProcessResult:
     missing: int = 0  # files listed by the input but absent
     dropped_blurry: int = 0
     triangulated: int | None = None  # posed captures: points triangulated with the poses fixed (kept or not)
+    camera_grouping: str | None = None  # SfM: how images were grouped into cameras (process/cameras.py)
+    cameras: list[dict[str, Any]] = field(default_factory=list)  # SfM: each camera's images and EXIF facts
     warnings: list[str] = field(default_factory=list)
 
     def summary(self) -> dict[str, Any]:
@@ -80,6 +85,10 @@ def check_config(cfg: ProcessConfig) -> None:
         raise SplatError(f"--fps {cfg.fps}: must be a positive number")
     if cfg.num_frames < MIN_IMAGES:
         raise SplatError(f"--num-frames {cfg.num_frames}: must be at least {MIN_IMAGES}")
+    if cfg.cameras not in CAMERA_MODES:
+        raise SplatError(f"cameras {cfg.cameras!r}: expected one of {', '.join(CAMERA_MODES)}")
+    if cfg.camera_model not in CAMERA_MODELS:
+        raise SplatError(f"--camera-model {cfg.camera_model!r}: expected one of {', '.join(CAMERA_MODELS)}")
     if cfg.max_features < 64:
         raise SplatError(f"max_features {cfg.max_features}: must be at least 64")
 

@@ -108,6 +108,8 @@ def publish(root: Path, stage: Path, spec: InputSpec, cfg: ProcessConfig, ds: Da
         missing=ds.missing,
         dropped_blurry=ds.dropped_blurry,
         triangulated=ds.triangulated,
+        camera_grouping=ds.camera_grouping,
+        cameras=ds.cameras,
         warnings=list(run.warnings),
     )
     config = asdict(cfg)

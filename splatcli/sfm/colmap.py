@@ -98,10 +98,11 @@ def run_cancellable(fn: Callable[..., Any], *args: Any, poll: Callable[[], None]
 # ---- database ---------------------------------------------------------------
 
 
-def create_database(path: Path, image_dir: Path, names: list[str], *, single_camera: bool,
+def create_database(path: Path, image_dir: Path, cameras: list[list[str]], *,
                     camera_model: str = "SIMPLE_RADIAL") -> None:
-    """A fresh database with one camera for all images (`single_camera`) or
-    one per image, and no features yet."""
+    """A fresh database with one camera per group of image names in `cameras`,
+    and no features yet. COLMAP reads each camera's focal length prior from the
+    EXIF of its group's first image (else 1.2 x the longest side, no prior)."""
     pycolmap = _pc()
     path = Path(path)
     if path.exists():
@@ -109,11 +110,23 @@ def create_database(path: Path, image_dir: Path, names: list[str], *, single_cam
     pycolmap.Database.open(str(path)).close()
     opts = pycolmap.ImageReaderOptions()
     opts.camera_model = camera_model
-    mode = pycolmap.CameraMode.SINGLE if single_camera else pycolmap.CameraMode.PER_IMAGE
+    singles = [g[0] for g in cameras if len(g) == 1]
+    calls = [(pycolmap.CameraMode.SINGLE, g) for g in cameras if len(g) > 1]
+    if singles:
+        calls.append((pycolmap.CameraMode.PER_IMAGE, singles))
     try:
-        pycolmap.import_images(str(path), str(image_dir), camera_mode=mode, image_names=list(names), options=opts)
+        for mode, names in calls:  # each SINGLE call makes one new camera
+            pycolmap.import_images(str(path), str(image_dir), camera_mode=mode, image_names=list(names),
+                                   options=opts)
     except (RuntimeError, ValueError) as exc:
         raise SplatError(f"{image_dir}: COLMAP could not read the images ({_one_line(exc)})") from None
+
+
+def database_cameras(db: Path) -> dict[str, int]:
+    """Image name -> camera id, as the database holds them."""
+    pycolmap = _pc()
+    with pycolmap.Database.open(str(db)) as d:
+        return {im.name: int(im.camera_id) for im in d.read_all_images()}
 
 
 @dataclass(frozen=True)
@@ -126,8 +139,8 @@ class SiftOptions:
 
 
 def extract_features(db: Path, image_dir: Path, names: list[str], opts: SiftOptions, *,
-                     single_camera: bool, mask_dir: Path | None = None) -> None:
-    """SIFT for `names` (already in the database); call in chunks for progress.
+                     mask_dir: Path | None = None) -> None:
+    """SIFT for `names` (already in the database, with their cameras); call in chunks for progress.
     `mask_dir`: COLMAP's mask folder, `<name>.png` per image; none are kept where it is 0."""
     pycolmap = _pc()
     ro = pycolmap.ImageReaderOptions()
@@ -139,7 +152,7 @@ def extract_features(db: Path, image_dir: Path, names: list[str], opts: SiftOpti
     eo.sift.max_num_features = opts.max_num_features
     eo.sift.first_octave = opts.first_octave
     eo.sift.peak_threshold = opts.peak_threshold
-    mode = pycolmap.CameraMode.SINGLE if single_camera else pycolmap.CameraMode.PER_IMAGE
+    mode = pycolmap.CameraMode.PER_IMAGE  # the images are in the database: no camera is made here
     run_cancellable(
         pycolmap.extract_features, str(db), str(image_dir), image_names=list(names), camera_mode=mode,
         reader_options=ro, extraction_options=eo, device=pycolmap.Device.cpu,

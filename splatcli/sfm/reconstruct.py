@@ -41,6 +41,7 @@ class SfmOptions:
     seed: int = 0
     num_threads: int = -1
     chunk: int = 8  # images per extraction call (progress granularity)
+    camera_model: str = "SIMPLE_RADIAL"  # the COLMAP model each camera is fitted with
 
 
 @dataclass
@@ -127,10 +128,11 @@ def _choose_matcher(opts: SfmOptions, names: list[str]) -> str:
 
 
 def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions, *,
-            single_camera: bool, min_side: int, where: Path,
+            cameras: list[list[str]], min_side: int, where: Path,
             on_event: EventSink | None = None, mask_dir: Path | None = None) -> SfmResult:
     """Extract, match and map `names` (files in `image_dir`).
 
+    `cameras` groups the names into cameras (one camera per group: process/cameras.py);
     `min_side` is the smallest image side SIFT sees (chooses the octave); `mask_dir`
     holds a mask for every image, `<name>.png` (0: no features there); `where`
     names the input in error messages. Raises SplatError (with the likely
@@ -147,10 +149,9 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
     sift = SiftOptions(max_image_size=opts.max_image_size, max_num_features=opts.max_features,
                        first_octave=first_octave, num_threads=opts.num_threads)
     with clock.stage("extract features", len(names)) as st:
-        colmap.create_database(db, image_dir, names, single_camera=single_camera)
+        colmap.create_database(db, image_dir, cameras, camera_model=opts.camera_model)
         for i in range(0, len(names), opts.chunk):
-            colmap.extract_features(db, image_dir, names[i : i + opts.chunk], sift, single_camera=single_camera,
-                                    mask_dir=mask_dir)
+            colmap.extract_features(db, image_dir, names[i : i + opts.chunk], sift, mask_dir=mask_dir)
             st.progress(min(i + opts.chunk, len(names)))
     stats = colmap.database_stats(db)
     kp_median = statistics.median(stats.keypoints.values()) if stats.keypoints else 0
@@ -225,8 +226,7 @@ def triangulate_posed(image_dir: Path, model: Model, work_dir: Path, opts: SfmOp
     with clock.stage("extract features", len(names)) as st:
         colmap.create_posed_database(db, model)
         for i in range(0, len(names), opts.chunk):
-            colmap.extract_features(db, image_dir, names[i : i + opts.chunk], sift, single_camera=False,
-                                    mask_dir=mask_dir)
+            colmap.extract_features(db, image_dir, names[i : i + opts.chunk], sift, mask_dir=mask_dir)
             st.progress(min(i + opts.chunk, len(names)))
     stats = colmap.database_stats(db)
     kp_median = statistics.median(stats.keypoints.values()) if stats.keypoints else 0
