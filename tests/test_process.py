@@ -421,3 +421,27 @@ def test_photos_of_two_cameras_get_two_cameras_and_register(scene, tmp_path):
     f = {c.name: c.K[0, 0] for c in got}
     ratio = np.median([f[c.name] for c in gt[1::2]]) / np.median([f[c.name] for c in gt[::2]])
     assert ratio == pytest.approx(zoom, rel=0.03)
+
+
+def test_a_capture_in_two_pieces_keeps_the_largest_and_names_the_rest(scene, tmp_path):
+    """10 views of the scene and 6 of a differently textured one: two models. The larger
+    is kept; one warning (and the manifest) names each image left out and the model it
+    fell into; the second pass over them was tried."""
+    other = render(tmp_path / "other", num_views=N_VIEWS, width=W, height=H, seed=7)
+    src = tmp_path / "two_pieces"
+    src.mkdir()
+    for p in sorted((scene / "images").glob("*.jpg"))[:10]:
+        shutil.copy(p, src / p.name)
+    for p in sorted((other / "images").glob("*.jpg"))[:6]:
+        shutil.copy(p, src / f"b_{p.name}")
+    notes = []
+    r = process(src, tmp_path / "p", on_event=notes.append)
+    assert r.registered == 10 and r.model_sizes[:2] == [10, 6]
+    b = sorted(f"b_{i:03d}.jpg" for i in range(6))
+    assert r.unregistered == b and r.left_out_models == {n: 2 for n in b}
+    assert any("second pass" in t for t in r.sfm_tried)
+    warned = [n.message for n in notes if isinstance(n, Note) and n.level == "warning"]
+    assert len(warned) == 1 and "6 image(s) did not register in it" in warned[0]
+    assert "b_000.jpg (model 2 (6 images))" in warned[0] and "keeping the largest" in warned[0]
+    m = assert_contract(tmp_path / "p")
+    assert m["steps"]["process"]["summary"]["left_out_models"] == {n: 2 for n in b}

@@ -36,6 +36,20 @@ def safe_names(names: list[str]) -> list[str]:
     return out
 
 
+def left_out_warning(unregistered: list[str], fell_into: dict[str, int | None], sizes: list[int],
+                     shown: int = 20) -> str:
+    """One line naming the images the kept model lacks and the model each fell into."""
+    def where(n: str) -> str:
+        k = fell_into.get(n)
+        return f"model {k} ({sizes[k - 1]} images)" if k is not None and k <= len(sizes) else "no model"
+
+    split = (f"mapping split into {len(sizes)} models of {', '.join(map(str, sizes))} images; keeping the largest; "
+             if len(sizes) > 1 else "")
+    named = ", ".join(f"{n} ({where(n)})" for n in unregistered[:shown])
+    more = f", and {len(unregistered) - shown} more (the manifest lists them all)" if len(unregistered) > shown else ""
+    return f"{split}{len(unregistered)} image(s) did not register in it: {named}{more}"
+
+
 def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: tuple[float, float, float] | None,
                   run: Stages) -> Dataset:
     work = stage / "work"
@@ -109,12 +123,8 @@ def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
     for k, v in res.seconds.items():
         run.seconds[k] = run.seconds.get(k, 0.0) + v
     model = res.model
-    if len(res.model_sizes) > 1:
-        run.note(f"mapping split into {len(res.model_sizes)} models of {', '.join(map(str, res.model_sizes))} "
-                 f"images; keeping the largest")
     if res.unregistered:
-        shown = ", ".join(res.unregistered[:10]) + (", ..." if len(res.unregistered) > 10 else "")
-        run.note(f"{len(res.unregistered)} image(s) did not register: {shown}")
+        run.note(left_out_warning(res.unregistered, res.left_out_models, res.model_sizes), "warning")
     if model.num_registered < len(names) / 2:
         run.note(f"only {model.num_registered} of {len(names)} images registered; the photos may overlap too "
                  "little or be too blurry", "warning")
@@ -128,5 +138,6 @@ def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
                     background=background, mean_reprojection_error=model.mean_reprojection_error(),
                     mean_track_length=model.mean_track_length(), skipped=skipped, matcher=res.matcher,
                     pairs=res.num_pairs, keypoints_median=res.keypoints_median, model_sizes=res.model_sizes,
-                    unregistered=res.unregistered, dropped_blurry=dropped, camera_grouping=grouping.rule,
+                    unregistered=res.unregistered, left_out_models=res.left_out_models, sfm_tried=res.tried,
+                    dropped_blurry=dropped, camera_grouping=grouping.rule,
                     cameras=[g.summary() for g in grouping.groups])

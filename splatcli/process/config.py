@@ -61,6 +61,9 @@ class ProcessResult:
     keypoints_median: float | None = None  # SIFT features per image (SfM only)
     model_sizes: list[int] = field(default_factory=list)  # images per SfM model, largest first
     unregistered: list[str] = field(default_factory=list)
+    left_out_models: dict[str, int | None] = field(default_factory=dict)  # unregistered image -> the model (numbered
+    # by size: 1 is the kept one) it registered in instead, None for none
+    sfm_tried: list[str] = field(default_factory=list)  # the mapping attempts made
     skipped: list[str] = field(default_factory=list)  # "name: reason"
     missing: int = 0  # files listed by the input but absent
     dropped_blurry: int = 0

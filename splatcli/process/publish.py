@@ -104,6 +104,8 @@ def publish(root: Path, stage: Path, spec: InputSpec, cfg: ProcessConfig, ds: Da
         keypoints_median=ds.keypoints_median,
         model_sizes=ds.model_sizes,
         unregistered=ds.unregistered,
+        left_out_models=ds.left_out_models,
+        sfm_tried=ds.sfm_tried,
         skipped=ds.skipped,
         missing=ds.missing,
         dropped_blurry=ds.dropped_blurry,

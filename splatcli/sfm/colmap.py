@@ -215,7 +215,11 @@ class MapperOptions:
     ba_global_frames_ratio: float = 1.1  # global BA when the model grew by this factor
     ba_global_points_ratio: float = 1.1
     init_min_num_inliers: int = 100
+    init_min_tri_angle: float = 16.0  # degrees
+    init_max_error: float = 4.0  # pixels
     abs_pose_min_num_inliers: int = 30
+    abs_pose_min_inlier_ratio: float = 0.25
+    max_reg_trials: int = 3
 
 
 class Model:
@@ -312,9 +316,10 @@ def _model_name(cam: Any) -> str:
 
 
 def incremental_mapping(db: Path, image_dir: Path, out_dir: Path, opts: MapperOptions,
-                        on_registered: Callable[[int], None] | None = None) -> list[Model]:
+                        on_registered: Callable[[int], None] | None = None, start: Model | None = None) -> list[Model]:
     """COLMAP's incremental mapper. Returns every model, largest first.
 
+    `start`: a model to go on from (its images stay registered; more may join).
     `on_registered(n)` is called from the calling thread with the number of
     images registered so far in the current model."""
     pycolmap = _pc()
@@ -328,10 +333,14 @@ def incremental_mapping(db: Path, image_dir: Path, out_dir: Path, opts: MapperOp
     o.ba_global_frames_ratio = opts.ba_global_frames_ratio
     o.ba_global_points_ratio = opts.ba_global_points_ratio
     o.mapper.init_min_num_inliers = opts.init_min_num_inliers
+    o.mapper.init_min_tri_angle = opts.init_min_tri_angle
+    o.mapper.init_max_error = opts.init_max_error
     o.mapper.abs_pose_min_num_inliers = opts.abs_pose_min_num_inliers
+    o.mapper.abs_pose_min_inlier_ratio = opts.abs_pose_min_inlier_ratio
+    o.mapper.max_reg_trials = opts.max_reg_trials
     o.mapper.random_seed = opts.seed
     o.triangulation.random_seed = opts.seed
-    counter = {"n": 0, "shown": -1}
+    counter = {"n": start.num_registered if start is not None else 0, "shown": -1}
 
     def on_init() -> None:
         counter["n"] = 2
@@ -345,10 +354,14 @@ def incremental_mapping(db: Path, image_dir: Path, out_dir: Path, opts: MapperOp
             on_registered(counter["n"])
 
     out_dir.mkdir(parents=True, exist_ok=True)
+    extra = {}
+    if start is not None:
+        start.write(out_dir / "_start")
+        extra["input_path"] = str(out_dir / "_start")
     try:
         recs = run_cancellable(
             pycolmap.incremental_mapping, str(db), str(image_dir), str(out_dir), options=o,
-            initial_image_pair_callback=on_init, next_image_callback=on_next, poll=poll,
+            initial_image_pair_callback=on_init, next_image_callback=on_next, poll=poll, **extra,
         )
     except (RuntimeError, ValueError) as exc:
         raise SplatError(f"{db}: COLMAP's mapper failed ({_one_line(exc)})") from None

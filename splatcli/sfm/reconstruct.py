@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import re
 import statistics
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -54,6 +54,14 @@ class SfmResult:
     num_pairs: int
     keypoints_median: float
     seconds: dict[str, float] = field(default_factory=dict)
+    left_out_models: dict[str, int | None] = field(default_factory=dict)  # unregistered -> model it fell into (2: the second largest), None: none
+    tried: list[str] = field(default_factory=list)  # the mapping attempts made
+
+
+# Thresholds of the second attempts (COLMAP's defaults: 100 inliers, 16 degrees, 4 px;
+# 30 inliers and a ratio of 0.25 for each further image, 3 trials).
+RELAXED_INIT = {"init_min_num_inliers": 50, "init_min_tri_angle": 8.0, "init_max_error": 6.0}
+RELAXED_REGISTRATION = {"abs_pose_min_num_inliers": 15, "abs_pose_min_inlier_ratio": 0.15, "max_reg_trials": 5}
 
 
 def natural_key(name: str) -> list:
@@ -183,19 +191,45 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
         matched.update(rest)
         models = _map(db, image_dir, work_dir / "models2", mapper, len(names), clock)
         used = "sequential+exhaustive"
+    tried = [f"{used} matching with COLMAP's thresholds"]
     if not models or models[0].num_registered < 2:
-        raise SplatError(f"{where}: structure from motion found no model: {_diagnose(db, len(names))}")
+        # Try harder: a starting pair with fewer inliers and less parallax than COLMAP asks for.
+        mapper = replace(mapper, **RELAXED_INIT)
+        emit(on_event, Note("no model with COLMAP's thresholds; mapping again with relaxed initial-pair thresholds"))
+        models = _map(db, image_dir, work_dir / "models_relaxed", mapper, len(names), clock)
+        tried.append(f"relaxed initial-pair thresholds ({RELAXED_INIT['init_min_num_inliers']} inliers, "
+                     f"{RELAXED_INIT['init_min_tri_angle']:g} degrees)")
+    if not models or models[0].num_registered < 2:
+        raise SplatError(f"{where}: structure from motion found no model (tried {'; '.join(tried)}): "
+                         f"{_diagnose(db, len(names))}")
+    if models[0].num_registered < len(names):
+        # A second pass over the images left out: the largest model goes on, registering
+        # with relaxed pose thresholds (what COLMAP's defaults refused may fit it now).
+        before = models[0].num_registered
+        more = _map(db, image_dir, work_dir / "models_more", replace(mapper, **RELAXED_REGISTRATION), len(names),
+                    clock, start=models[0])
+        tried.append("a second pass over the images left out, with relaxed registration thresholds")
+        if more and more[0].num_registered > before:
+            emit(on_event, Note(f"a second pass registered {more[0].num_registered - before} more image(s)"))
+            models = more
     best = models[0]
     registered = set(best.registered_names())
+    fell_into = {}
+    for k, m in enumerate(models[1:], start=2):
+        for n in m.registered_names():
+            fell_into.setdefault(n, k)
+    unregistered = [n for n in names if n not in registered]
     return SfmResult(
         model=best,
         names=names,
         model_sizes=[m.num_registered for m in models],
-        unregistered=[n for n in names if n not in registered],
+        unregistered=unregistered,
         matcher=used,
         num_pairs=len(matched),
         keypoints_median=float(kp_median),
         seconds=clock.seconds,
+        left_out_models={n: fell_into.get(n) for n in unregistered},
+        tried=tried,
     )
 
 
@@ -252,9 +286,11 @@ def _match(db: Path, pairs: list[tuple[str, str]], work_dir: Path, mopts: MatchO
             st.progress(min(i + step, len(pairs)))
 
 
-def _map(db: Path, image_dir: Path, out: Path, mapper: MapperOptions, n: int, clock: Stages) -> list[Model]:
+def _map(db: Path, image_dir: Path, out: Path, mapper: MapperOptions, n: int, clock: Stages,
+         start: Model | None = None) -> list[Model]:
+    """Every model mapping makes, largest first; `start`: a model to go on from."""
     with clock.stage("map", n) as st:
-        return colmap.incremental_mapping(db, image_dir, out, mapper,
+        return colmap.incremental_mapping(db, image_dir, out, mapper, start=start,
                                           on_registered=lambda k: st.progress(min(k, n), registered=k))
 
 
