@@ -434,6 +434,8 @@ PROCESS_OPTION_CASES = [
     (["--matcher", "magic"], ["--matcher 'magic'", "auto, exhaustive, sequential"]),
     (["--input-type", "photos"], ["--input-type 'photos'", "auto, images, video, colmap, transforms"]),
     (["--background", "teal"], ["--background 'teal'", "auto, white, black, gray or R,G,B"]),
+    (["--camera-model", "fancy_lens"], ["--camera-model 'FANCY_LENS'", "SIMPLE_RADIAL", "OPENCV"]),
+    (["--single-camera", "--per-image-cameras"], ["--single-camera and --per-image-cameras", "choose one"]),
 ]
 
 
@@ -595,6 +597,28 @@ def test_process_mixed_sizes_and_orientations_are_handled(tmp_path: Path, fake_s
     sizes = {c.name: (c.width, c.height) for c in read_scene(Project(tmp_path / "p").sparse_dir).cameras}
     assert sizes == {"a_landscape.png": (64, 48), "b_portrait.png": (48, 64), "c_small.jpg": (40, 30),
                      "d_exif.jpg": (48, 64)}
+
+
+def test_process_single_camera_refuses_mixed_sizes(tmp_path: Path, proj: Path) -> None:
+    d = image_folder(tmp_path / "photos", 3)
+    (d / "z_portrait.png").write_bytes(png_bytes(texture(64, 48, seed=5)))
+    process_error(d, proj, "--single-camera", "2 sizes (48x64, 64x48)", extra=("--single-camera",))
+
+
+def test_process_exif_that_lies_is_a_warning_and_the_photos_are_used(tmp_path: Path, fake_sfm) -> None:
+    """A focal length of 0 and a make full of control characters: dropped with one warning each;
+    the photos share a camera by what is left (make, model and size)."""
+    from test_cameras import photo
+
+    d = tmp_path / "photos"
+    for i in range(3):
+        photo(d / f"img_{i}.jpg", make="Canon\x00\x07", model="EOS 60D", focal=0.0 if i else 50.0, seed=i)
+    r = cli("process", d, "-o", tmp_path / "p", "--json")
+    assert_ok_with_note(r, "EXIF ignored: img_1.jpg: focal length 0 mm is not a focal length",
+                        "EXIF ignored: img_2.jpg: focal length 0 mm")
+    cams = json.loads(r.stdout)["cameras"]
+    assert sorted(c["names"] for c in cams) == [["img_0.jpg"], ["img_1.jpg", "img_2.jpg"]]
+    assert {c["make"] for c in cams} == {"Canon"} and sorted(str(c["focal_mm"]) for c in cams) == ["50.0", "None"]
 
 
 def write_video(path: Path, n: int = 6) -> Path:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import shutil
 import tempfile
 from pathlib import Path
@@ -235,6 +236,66 @@ def test_llff_one_value_changed(col: int, value: float) -> None:
     buf = io.BytesIO()
     np.save(buf, a)
     _read_llff(buf.getvalue())
+
+
+# ---- EXIF camera facts -----------------------------------------------------------------------
+
+
+def _exif_jpeg() -> bytes:
+    from test_cameras import photo
+
+    with tempfile.TemporaryDirectory() as d:
+        return photo(Path(d) / "a.jpg", size=(32, 24), make="Panasonic", model="DMC-FZ150", focal=108.0,
+                     focal_35=600).read_bytes()
+
+
+EXIF_JPEG = _exif_jpeg()
+
+
+def _read_exif(data: bytes) -> None:
+    from splatcli.io.exif import MAX_FOCAL_MM, MAX_NAME, MIN_FOCAL_MM, read_exif_camera
+
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / "a.jpg"
+        p.write_bytes(data)
+        t0 = time.monotonic()
+        e = read_exif_camera(p)  # never raises
+        assert time.monotonic() - t0 < 10.0
+        for name in (e.make, e.model):
+            assert name is None or (0 < len(name) <= MAX_NAME and name.isprintable() and name == name.strip())
+        for f in (e.focal_mm, e.focal_35mm):
+            assert f is None or (math.isfinite(f) and MIN_FOCAL_MM <= f <= MAX_FOCAL_MM)
+        if data == EXIF_JPEG:
+            assert (e.make, e.model, e.focal_mm, e.focal_35mm) == ("Panasonic", "DMC-FZ150", 108.0, 600.0)
+
+
+@SETTINGS
+@given(muts=st.lists(st.tuples(st.floats(0, 0.3, exclude_max=True), st.integers(0, 255)), min_size=0, max_size=8),
+       cut=st.floats(0, 1))
+def test_exif_byte_mutations_and_truncations(muts: list[tuple[float, int]], cut: float) -> None:
+    """Mutations land in the first 30% of the file: the EXIF block, not the pixels."""
+    data = bytearray(EXIF_JPEG)
+    for pos, val in muts:
+        data[int(pos * len(data))] = val
+    _read_exif(bytes(data[: int(len(data) * cut) if cut < 0.98 else len(data)]))
+
+
+@SETTINGS
+@given(make=st.text(max_size=80), focal=st.floats(allow_nan=True, allow_infinity=True))
+def test_exif_lying_values(make: str, focal: float) -> None:
+    from PIL import Image
+
+    import io
+
+    ex = Image.Exif()
+    ex[0x010F] = make
+    ex.get_ifd(0x8769)[0x920A] = focal
+    buf = io.BytesIO()
+    try:
+        Image.new("RGB", (8, 8)).save(buf, "JPEG", exif=ex)
+    except (ValueError, UnicodeEncodeError, OverflowError, ZeroDivisionError):
+        return  # Pillow cannot write it: no such file to read
+    _read_exif(buf.getvalue())
 
 
 # ---- transforms.json and manifests --------------------------------------------------------

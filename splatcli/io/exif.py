@@ -18,7 +18,7 @@ from typing import Any
 _EXIF_IFD = 0x8769
 _MAKE, _MODEL = 0x010F, 0x0110
 _FOCAL, _FOCAL_35 = 0x920A, 0xA405
-MAX_FOCAL_MM = 5000.0  # longer than any lens a capture is shot with
+MIN_FOCAL_MM, MAX_FOCAL_MM = 0.5, 5000.0  # shorter or longer than any lens a capture is shot with
 MAX_NAME = 64  # characters kept of make and model
 
 
@@ -61,7 +61,7 @@ def _focal(v: Any, what: str, problems: list[str]) -> float | None:
     except (TypeError, ValueError, ZeroDivisionError, OverflowError):
         problems.append(f"{what} {v!r} is not a number")
         return None
-    if not math.isfinite(f) or f <= 0 or f > MAX_FOCAL_MM:
+    if not (math.isfinite(f) and MIN_FOCAL_MM <= f <= MAX_FOCAL_MM):
         problems.append(f"{what} {f:g} mm is not a focal length")
         return None
     return round(f, 2)
