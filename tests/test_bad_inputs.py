@@ -469,7 +469,8 @@ def fake_sfm(monkeypatch):
 
     calls = []
 
-    def run_sfm(image_dir, names, work, opts, *, cameras, min_side, where, on_event=None, mask_dir=None):
+    def run_sfm(image_dir, names, work, opts, *, cameras, min_side, where, split_cameras=None, on_event=None,
+                mask_dir=None):
         calls.append(list(names))
         cams = ring_cameras(len(names))
         specs = []

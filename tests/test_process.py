@@ -445,3 +445,26 @@ def test_a_capture_in_two_pieces_keeps_the_largest_and_names_the_rest(scene, tmp
     assert "b_000.jpg (model 2 (6 images))" in warned[0] and "keeping the largest" in warned[0]
     m = assert_contract(tmp_path / "p")
     assert m["steps"]["process"]["summary"]["left_out_models"] == {n: 2 for n in b}
+
+
+def test_photos_without_exif_from_two_cameras_get_a_camera_each_when_they_fail_together(scene, tmp_path):
+    """The two-camera capture above stripped of its EXIF (as photo-sharing sites do): same size, so
+    one shared camera first; under half register with it, so SfM maps again with a camera each."""
+    zoom = 1.25
+    src = tmp_path / "stripped"
+    src.mkdir()
+    gt = ground_truth(scene)
+    for i, c in enumerate(gt):
+        img = cv2.imread(str(scene / "images" / c.name))
+        if i % 2:
+            t = (0.5 - W / 2) * zoom + W / 2 - 0.5, (0.5 - H / 2) * zoom + H / 2 - 0.5
+            img = cv2.warpAffine(img, np.array([[zoom, 0, t[0]], [0, zoom, t[1]]]), (W, H), flags=cv2.INTER_AREA)
+        cv2.imwrite(str(src / c.name), img, [cv2.IMWRITE_JPEG_QUALITY, 95])
+    notes = []
+    r = process(src, tmp_path / "p", on_event=notes.append)
+    said = [n.message for n in notes if isinstance(n, Note)]
+    assert any("mapping again with 16" in m for m in said), said
+    assert any("cameras instead of 1" in t for t in r.sfm_tried)
+    assert len(r.cameras) == N_VIEWS and r.registered >= N_VIEWS - 2
+    e = compare_poses(read_scene(Project(tmp_path / "p").sparse_dir).cameras, gt)
+    assert e.max_rotation_deg < 1.0 and e.max_center_error_rel < 0.01

@@ -8,7 +8,9 @@ then finds no model. The rule (`--single-camera` and `--per-image-cameras` overr
   * photos whose EXIF names a camera share one when make, model, focal length and
     image size (as oriented) agree: one camera per group;
   * photos without such EXIF share one camera when all of them have the same size
-    (one folder of one capture), else each gets its own.
+    (one folder of one capture), else each gets its own. When under half of them
+    register sharing it, SfM maps again with one camera each (`Grouping.split`):
+    photos stripped of their EXIF may still come from several cameras.
 
 The grouping goes into the process summary (the manifest's `steps.process.summary.cameras`).
 """
@@ -51,6 +53,16 @@ class Grouping:
     rule: str  # how they were made: "video", "exif", "single", "per-image"
     reason: str  # one sentence for the notes and the summary
     problems: list[str]  # EXIF fields dropped: "name: why"
+
+    def split(self) -> "Grouping | None":
+        """The same with the photos that share a camera for want of EXIF apart (one camera
+        each), for SfM to try when they register badly together; None when there are none."""
+        if not any(g.source == "size" and len(g.names) > 1 for g in self.groups):
+            return None
+        groups = [h for g in self.groups for h in ([CameraGroup([n], g.width, g.height, "image") for n in g.names]
+                                                    if g.source == "size" else [g])]
+        return Grouping(groups, self.rule, f"{len(groups)} camera(s): the photos without EXIF camera data one each, "
+                        "as they registered badly sharing one", self.problems)
 
 
 def group_cameras(staged: list[StagedImage], sources: dict[str, Path] | None, mode: str, *,

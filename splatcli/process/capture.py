@@ -116,12 +116,16 @@ def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
         camera_model=cfg.camera_model,
     )
     sift_side = min(min(fit_size(w, h, max_size)) for w, h in sizes)  # smallest side SIFT will see
+    split = grouping.split() if cfg.cameras == "auto" else None
     res = run_sfm(work / "input", names, work, sfm_opts, cameras=[g.names for g in grouping.groups],
-                  min_side=sift_side,
+                  split_cameras=[g.names for g in split.groups] if split else None, min_side=sift_side,
                   where=spec.images_dir or spec.path, on_event=run.sink,
                   mask_dir=work / MASKS_DIR if mask_source else None)
     for k, v in res.seconds.items():
         run.seconds[k] = run.seconds.get(k, 0.0) + v
+    if split is not None and res.cameras == [g.names for g in split.groups]:
+        grouping = split
+        run.note(grouping.reason)
     model = res.model
     if res.unregistered:
         run.note(left_out_warning(res.unregistered, res.left_out_models, res.model_sizes), "warning")

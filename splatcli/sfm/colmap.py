@@ -122,6 +122,30 @@ def create_database(path: Path, image_dir: Path, cameras: list[list[str]], *,
         raise SplatError(f"{image_dir}: COLMAP could not read the images ({_one_line(exc)})") from None
 
 
+def regroup_database(src: Path, dst: Path, image_dir: Path, cameras: list[list[str]], *,
+                     camera_model: str = "SIMPLE_RADIAL") -> None:
+    """A new database `dst` whose images are grouped into `cameras` afresh, with
+    `src`'s features, matches and verified geometries copied (no SIFT or matching
+    again; the geometries stay valid, as they do not depend on the grouping)."""
+    pycolmap = _pc()
+    create_database(dst, image_dir, cameras, camera_model=camera_model)
+    with pycolmap.Database.open(str(src)) as a, pycolmap.Database.open(str(dst)) as b:
+        old = {im.image_id: im.name for im in a.read_all_images()}
+        new = {im.name: im.image_id for im in b.read_all_images()}
+        ids = {i: new[n] for i, n in old.items()}
+        for i in old:
+            if a.exists_keypoints(i):
+                b.write_keypoints(ids[i], a.read_keypoints(i))
+            if a.exists_descriptors(i):
+                b.write_descriptors(ids[i], a.read_descriptors(i))
+        for pair, matches in zip(*a.read_all_matches()):
+            i, j = pycolmap.pair_id_to_image_pair(pair)
+            b.write_matches(ids[i], ids[j], matches)  # the database orders each pair itself
+        for pair, geom in zip(*a.read_two_view_geometries()):
+            i, j = pycolmap.pair_id_to_image_pair(pair)
+            b.write_two_view_geometry(ids[i], ids[j], geom)
+
+
 def database_cameras(db: Path) -> dict[str, int]:
     """Image name -> camera id, as the database holds them."""
     pycolmap = _pc()

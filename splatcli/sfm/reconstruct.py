@@ -56,6 +56,7 @@ class SfmResult:
     seconds: dict[str, float] = field(default_factory=dict)
     left_out_models: dict[str, int | None] = field(default_factory=dict)  # unregistered -> model it fell into (2: the second largest), None: none
     tried: list[str] = field(default_factory=list)  # the mapping attempts made
+    cameras: list[list[str]] = field(default_factory=list)  # the grouping of the kept model's database
 
 
 # Thresholds of the second attempts (COLMAP's defaults: 100 inliers, 16 degrees, 4 px;
@@ -136,11 +137,13 @@ def _choose_matcher(opts: SfmOptions, names: list[str]) -> str:
 
 
 def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions, *,
-            cameras: list[list[str]], min_side: int, where: Path,
+            cameras: list[list[str]], min_side: int, where: Path, split_cameras: list[list[str]] | None = None,
             on_event: EventSink | None = None, mask_dir: Path | None = None) -> SfmResult:
     """Extract, match and map `names` (files in `image_dir`).
 
     `cameras` groups the names into cameras (one camera per group: process/cameras.py);
+    `split_cameras`, a finer grouping to map with when under half the images register
+    (photos that share a camera only for want of EXIF may come from several);
     `min_side` is the smallest image side SIFT sees (chooses the octave); `mask_dir`
     holds a mask for every image, `<name>.png` (0: no features there); `where`
     names the input in error messages. Raises SplatError (with the likely
@@ -199,6 +202,17 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
         models = _map(db, image_dir, work_dir / "models_relaxed", mapper, len(names), clock)
         tried.append(f"relaxed initial-pair thresholds ({RELAXED_INIT['init_min_num_inliers']} inliers, "
                      f"{RELAXED_INIT['init_min_tri_angle']:g} degrees)")
+    if split_cameras is not None and (not models or models[0].num_registered < len(names) / 2):
+        # Photos grouped by size alone may come from several cameras: one camera each.
+        emit(on_event, Note(f"{models[0].num_registered if models else 0} of {len(names)} images registered with "
+                            f"{len(cameras)} camera(s); mapping again with {len(split_cameras)}"))
+        split_db = work_dir / "database_split.db"
+        colmap.regroup_database(db, split_db, image_dir, split_cameras, camera_model=opts.camera_model)
+        split = _map(split_db, image_dir, work_dir / "models_split", mapper, len(names), clock)
+        tried.append(f"{len(split_cameras)} cameras instead of {len(cameras)} (the photos without EXIF apart)")
+        if split and (not models or split[0].num_registered > models[0].num_registered):
+            models, cameras = split, split_cameras
+            split_db.replace(db)
     if not models or models[0].num_registered < 2:
         raise SplatError(f"{where}: structure from motion found no model (tried {'; '.join(tried)}): "
                          f"{_diagnose(db, len(names))}")
@@ -230,6 +244,7 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
         seconds=clock.seconds,
         left_out_models={n: fell_into.get(n) for n in unregistered},
         tried=tried,
+        cameras=cameras,
     )
 
 
