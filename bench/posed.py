@@ -106,17 +106,19 @@ def fox_llff(fox: Path, posed: Path, out: Path) -> Path:
     return out
 
 
-def two_camera_scene(out: Path, zoom: float = 1.25) -> tuple[Path, list[Camera]]:
-    """The sample scene (16 views, 256x192) with every other view zoomed `zoom` x, EXIF per half."""
+def two_camera_scene(out: Path, zoom: float = 1.25, exif: bool = True) -> tuple[Path, list[Camera]]:
+    """The sample scene (16 views, 256x192) with every other view zoomed `zoom` x, EXIF per half (or none)."""
     import cv2
     from PIL import Image
 
     sys.path.insert(0, str(REPO / "sample_data"))
     from make_scene import render_scene  # type: ignore[import-not-found]
 
-    scene = Path(render_scene(out / "scene", num_views=16, width=256, height=192))
+    scene = out / "scene"
+    if not scene.is_dir():
+        render_scene(scene, num_views=16, width=256, height=192)
     gt = json.loads((scene / "ground_truth.json").read_text())["cameras"]
-    src = out / "two"
+    src = out / ("two" if exif else "two-stripped")
     src.mkdir()
     cams = []
     for i, c in enumerate(gt):
@@ -131,7 +133,7 @@ def two_camera_scene(out: Path, zoom: float = 1.25) -> tuple[Path, list[Camera]]
         else:
             ex[0x010F], ex[0x0110] = "Canon", "Canon EOS 60D"
             ex.get_ifd(0x8769)[0x920A] = 50.0
-        Image.fromarray(img[..., ::-1]).save(src / c["name"], exif=ex, quality=95)
+        Image.fromarray(img[..., ::-1]).save(src / c["name"], exif=ex if exif else Image.Exif(), quality=95)
         cams.append(Camera(c["name"], w, h, np.asarray(c["K"], float), np.asarray(c["viewmat"], float)))
     return src, cams
 
@@ -214,15 +216,19 @@ def main() -> None:
                 "",
             ]
         src, gt = two_camera_scene(tmp / "two")
+        stripped, _ = two_camera_scene(tmp / "two", exif=False)
         rows = []
-        for label, cfg in (("EXIF grouping (default)", ProcessConfig()),
-                           ("`--single-camera`", ProcessConfig(cameras="single"))):
+        for label, photos, cfg in (("EXIF grouping (default)", src, ProcessConfig()),
+                                   ("`--single-camera`", src, ProcessConfig(cameras="single")),
+                                   ("EXIF stripped (default: one shared camera, then one each)", stripped,
+                                    ProcessConfig())):
+            proj = tmp / f"two-{photos.name}-{cfg.cameras}"
             try:
-                r, lr = run(src, tmp / f"two-{cfg.cameras}", cfg)
+                r, lr = run(photos, proj, cfg)
             except Exception as exc:  # a failure is a result here
                 rows.append(f"| {label} | failed: {exc} | | | | |")
                 continue
-            e2 = compare_poses(read_scene(Project(tmp / f"two-{cfg.cameras}").sparse_dir).cameras, gt)
+            e2 = compare_poses(read_scene(Project(proj).sparse_dir).cameras, gt)
             rows.append(f"| {label} | {len(r.cameras)} | {r.registered}/{r.total} | "
                         f"{r.mean_reprojection_error:.3f} | {e2.max_rotation_deg:.2f}° / "
                         f"{100 * e2.max_center_error_rel:.2f}% | {r.seconds['total']:.1f} | {lr} |")
