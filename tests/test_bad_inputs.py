@@ -433,6 +433,8 @@ PROCESS_OPTION_CASES = [
     (["--matcher", "magic"], ["--matcher 'magic'", "auto, exhaustive, sequential"]),
     (["--input-type", "photos"], ["--input-type 'photos'", "auto, images, video, colmap, transforms"]),
     (["--background", "teal"], ["--background 'teal'", "auto, white, black, gray or R,G,B"]),
+    (["--camera-model", "fancy_lens"], ["--camera-model 'FANCY_LENS'", "SIMPLE_RADIAL", "OPENCV"]),
+    (["--single-camera", "--per-image-cameras"], ["--single-camera and --per-image-cameras", "choose one"]),
 ]
 
 
@@ -466,7 +468,8 @@ def fake_sfm(monkeypatch):
 
     calls = []
 
-    def run_sfm(image_dir, names, work, opts, *, single_camera, min_side, where, on_event=None, mask_dir=None):
+    def run_sfm(image_dir, names, work, opts, *, cameras, min_side, where, split_cameras=None, on_event=None,
+                mask_dir=None):
         calls.append(list(names))
         cams = ring_cameras(len(names))
         specs = []
@@ -596,6 +599,28 @@ def test_process_mixed_sizes_and_orientations_are_handled(tmp_path: Path, fake_s
                      "d_exif.jpg": (48, 64)}
 
 
+def test_process_single_camera_refuses_mixed_sizes(tmp_path: Path, proj: Path) -> None:
+    d = image_folder(tmp_path / "photos", 3)
+    (d / "z_portrait.png").write_bytes(png_bytes(texture(64, 48, seed=5)))
+    process_error(d, proj, "--single-camera", "2 sizes (48x64, 64x48)", extra=("--single-camera",))
+
+
+def test_process_exif_that_lies_is_a_warning_and_the_photos_are_used(tmp_path: Path, fake_sfm) -> None:
+    """A focal length of 0 and a make full of control characters: dropped with one warning each;
+    the photos share a camera by what is left (make, model and size)."""
+    from test_cameras import photo
+
+    d = tmp_path / "photos"
+    for i in range(3):
+        photo(d / f"img_{i}.jpg", make="Canon\x00\x07", model="EOS 60D", focal=0.0 if i else 50.0, seed=i)
+    r = cli("process", d, "-o", tmp_path / "p", "--json")
+    assert_ok_with_note(r, "EXIF ignored: img_1.jpg: focal length 0 mm is not a focal length",
+                        "EXIF ignored: img_2.jpg: focal length 0 mm")
+    cams = json.loads(r.stdout)["cameras"]
+    assert sorted(c["names"] for c in cams) == [["img_0.jpg"], ["img_1.jpg", "img_2.jpg"]]
+    assert {c["make"] for c in cams} == {"Canon"} and sorted(str(c["focal_mm"]) for c in cams) == ["50.0", "None"]
+
+
 def write_video(path: Path, n: int = 6) -> Path:
     vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (64, 48))
     if not vw.isOpened():
@@ -705,6 +730,83 @@ def test_transforms_with_some_files_missing_or_truncated_imports_the_rest(tmp_pa
     r = cli("process", tf, "-o", tmp_path / "p", "--json")
     assert_ok_with_note(r, "1 image(s) listed in transforms.json do not exist", "f5.jpg: truncated JPEG")
     assert json.loads(r.stdout)["registered"] == 5
+
+
+# ---- LLFF poses_bounds.npy ----------------------------------------------------------------
+
+
+def llff_input(root: Path, case: str) -> tuple[Path, list[str]]:
+    """An LLFF capture broken in one way: (the file at fault, message fragments)."""
+    from splatcli.io.llff import to_poses_bounds
+
+    (root / "images").mkdir(parents=True)
+    cams = ring_cameras(3)
+    for i, c in enumerate(cams):
+        (root / "images" / c.name).write_bytes(png_bytes(texture(c.height, c.width, seed=i)))
+    rows = to_poses_bounds([c.viewmat for c in cams], [(c.height, c.width, c.K[0, 0]) for c in cams],
+                           [(1.0, 6.0)] * 3)
+    pb = root / "poses_bounds.npy"
+    frag: list[str]
+    if case == "wrong_shape":
+        rows, frag = rows[:, :15], ["shape (3, 15)", "expected (N, 17)"]
+    elif case == "one_dimensional":
+        rows, frag = rows.reshape(-1), ["shape (51,)", "expected (N, 17)"]
+    elif case == "nan":
+        rows[1, 5], frag = np.nan, ["row 1", "NaN"]
+    elif case == "infinite_bound":
+        rows[2, 16], frag = np.inf, ["row 2", "NaN or infinity"]
+    elif case == "count_disagrees":
+        rows, frag = rows[:2], ["2 poses but 3 images", "counts must agree"]
+    elif case == "zero_focal":
+        rows[0, 14], frag = 0.0, ["row 0", "focal length 0 must be positive"]
+    elif case == "near_beyond_far":
+        rows[1, 15], frag = 9.0, ["row 1", "near 9 and far 6"]
+    elif case == "not_a_rotation":
+        rows[0, 0:3] *= 3.0
+        frag = ["row 0", "not a rotation"]
+    elif case == "size_mismatch":
+        rows[:, 4], frag = 100.0, ["not a uniform rescale"]  # h: 100, the images are 48 high
+    elif case == "strings":
+        rows, frag = np.array([["a"] * 17] * 3), ["expected numbers"]
+    elif case == "pickled_objects":
+        rows, frag = np.array([[{"x": 1}] * 17] * 3, dtype=object), ["not a readable .npy array"]
+    elif case == "not_npy":
+        pb.write_bytes(b"LLFF poses, trust me" * 10)
+        return pb, ["not a readable .npy array"]
+    elif case == "truncated":
+        np.save(pb, rows)
+        pb.write_bytes(pb.read_bytes()[:200])
+        return pb, ["not a readable .npy array"]
+    elif case == "no_images":
+        np.save(pb, rows)
+        for q in (root / "images").iterdir():
+            q.unlink()
+        (root / "images").rmdir()
+        return pb, ["no images/ (or images_N/) folder"]
+    else:
+        raise AssertionError(case)
+    np.save(pb, rows, allow_pickle=case == "pickled_objects")
+    return pb, frag
+
+
+LLFF_CASES = ["wrong_shape", "one_dimensional", "nan", "infinite_bound", "count_disagrees", "zero_focal",
+              "near_beyond_far", "not_a_rotation", "size_mismatch", "strings", "pickled_objects", "not_npy",
+              "truncated", "no_images"]
+
+
+@pytest.mark.parametrize("case", LLFF_CASES)
+def test_process_bad_llff(case: str, tmp_path: Path, proj: Path) -> None:
+    pb, fragments = llff_input(tmp_path / "in", case)
+    process_error(tmp_path / "in", proj, str(pb if case != "size_mismatch" else tmp_path / "in"), *fragments,
+                  extra=("--input-type", "llff"))
+
+
+def test_process_huge_llff_file_is_refused_by_its_size(tmp_path: Path, proj: Path) -> None:
+    from splatcli.io.llff import MAX_POSES_BYTES
+
+    pb, _ = llff_input(tmp_path / "in", "not_npy")
+    os.truncate(pb, MAX_POSES_BYTES + 1)
+    process_error(tmp_path / "in", proj, str(pb), f"more than the {MAX_POSES_BYTES} allowed")
 
 
 # ---- COLMAP models ---------------------------------------------------------------------

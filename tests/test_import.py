@@ -235,10 +235,13 @@ def test_lego_imports_when_the_data_is_present(shared_data, tmp_path):
     if not (lego / "transforms_train.json").is_file():
         pytest.skip("lego absent")
     r = process(lego, tmp_path / "p")
-    assert r.registered == 100 and r.test == 13 and r.masks and r.init == "random"
+    assert r.registered == 100 and r.test == 13 and r.masks
+    assert r.init == "sfm" and r.points == r.triangulated > 1000  # the object has texture enough (the alpha masks the rest)
+    assert r.mean_reprojection_error < 1.5
     m = assert_contract(tmp_path / "p")
     lo, hi = np.array(m["scene"]["bounds_min"]), np.array(m["scene"]["bounds_max"])
-    assert (lo > -2.5).all() and (hi < 2.5).all() and (lo < -0.5).all() and (hi > 0.5).all()
+    # the box of the points: the model itself (about 1.3 x 2.3 x 1.3 around the origin), not the empty space
+    assert (lo > -2.5).all() and (hi < 2.5).all() and (lo < 0).all() and (hi > 0).all() and (hi - lo).min() > 1.0
 
 
 # ---- failures: exit 2, one line naming the file, nothing changed ----------------------
@@ -370,3 +373,48 @@ def test_a_model_we_wrote_is_not_walked_again(tmp_path, monkeypatch):
     assert [c.name for c in sfm_colmap.read_project_scene(proj).cameras] == [c.name for c in cams]
     assert walked == [proj.sparse_dir]
 
+
+
+# ---- LLFF poses_bounds.npy ---------------------------------------------------------
+
+
+def llff_capture(root: Path, *, n: int = 5, factor: int = 1, size: tuple[int, int] = (64, 48),
+                 bounds: tuple[float, float] = (2.0, 6.0)) -> list:
+    """root/images[_factor]/NNN.png (random textures) + poses_bounds.npy written from an
+    orbit's cameras, its (h, w, f) at `factor` x the images' size as LLFF stores them."""
+    from splatcli.io.llff import to_poses_bounds
+
+    cams = orbit(n, w=size[0], h=size[1])
+    folder = root / ("images" if factor == 1 else f"images_{factor}")
+    folder.mkdir(parents=True)
+    for i, c in enumerate(cams):
+        cv2.imwrite(str(folder / c.name), texture(size[1], size[0], seed=i))
+    rows = to_poses_bounds([c.viewmat for c in cams],
+                           [(c.height * factor, c.width * factor, c.K[0, 0] * factor) for c in cams], [bounds] * n)
+    np.save(root / "poses_bounds.npy", rows)
+    return cams
+
+
+def test_llff_poses_convert_exactly_and_images_n_scale_the_focal_length(tmp_path):
+    cams = llff_capture(tmp_path / "fern", factor=4)
+    notes = []
+    r = process(tmp_path / "fern", tmp_path / "p", ProcessConfig(triangulate=False), on_event=notes.append)
+    assert r.input_kind == "llff" and r.registered == 5 and r.init == "random" and not r.undistorted
+    assert any("images read from images_4/" in getattr(n, "message", "") for n in notes)
+    m = assert_contract(tmp_path / "p")
+    got = read_scene(Project(tmp_path / "p").sparse_dir).cameras
+    for a, b in zip(got, cams):
+        assert a.name == b.name
+        np.testing.assert_allclose(a.viewmat, b.viewmat, atol=1e-9)
+        np.testing.assert_allclose(a.K, b.K, atol=1e-9)  # f / 4 for images_4, principal point at the centre
+    # The scene box comes from the near/far bounds: around the orbit's centre, between 2 and 6 deep.
+    lo, hi = np.array(m["scene"]["bounds_min"]), np.array(m["scene"]["bounds_max"])
+    assert (lo < 0).all() and (hi > 0).all() and (hi - lo).max() < 12
+
+
+def test_llff_file_itself_and_forced_type(tmp_path):
+    llff_capture(tmp_path / "c")
+    r = process(tmp_path / "c" / "poses_bounds.npy", tmp_path / "p", ProcessConfig(triangulate=False))
+    assert r.input_kind == "llff" and r.registered == 5
+    with pytest.raises(SplatError, match="no poses_bounds.npy here"):
+        process(tmp_path / "c" / "images", tmp_path / "q", ProcessConfig(input_type="llff"))

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import shutil
 import tempfile
 from collections.abc import Iterator
@@ -149,6 +150,152 @@ def test_colmap_bin_lying_counts(colmap_models, stem: str, count: int) -> None:
     files = dict(colmap_models["bin"])
     files[stem] = count.to_bytes(8, "little") + files[stem][8:]
     _check(files, "bin")
+
+
+# ---- LLFF poses_bounds.npy ------------------------------------------------------------------
+
+
+def _llff_bytes() -> bytes:
+    """A valid poses_bounds.npy of 3 cameras (the ring of tests/tiny_project.py)."""
+    import io
+
+    from splatcli.io.llff import to_poses_bounds
+    from tiny_project import ring_cameras
+
+    cams = ring_cameras(3)
+    buf = io.BytesIO()
+    np.save(buf, to_poses_bounds([c.viewmat for c in cams], [(c.height, c.width, c.K[0, 0]) for c in cams],
+                                 [(1.0, 6.0)] * 3))
+    return buf.getvalue()
+
+
+LLFF = _llff_bytes()
+
+
+def _read_llff(data: bytes) -> None:
+    from splatcli.io.llff import read_llff
+
+    with tempfile.TemporaryDirectory() as d:
+        root = Path(d)
+        (root / "images").mkdir()
+        for i in range(3):
+            (root / "images" / f"{i}.png").write_bytes(b"\x89PNG\r\n\x1a\n")  # content is staging's business
+        pb = root / "poses_bounds.npy"
+        pb.write_bytes(data)
+        try:
+            scene = read_llff(pb)
+        except SplatError as e:
+            _one_line_error(e, pb)
+            return
+        # accepted: 3 frames with proper poses and positive, ordered numbers
+        assert len(scene.frames) == 3
+        for f in scene.frames:
+            R = f.viewmat[:3, :3]
+            assert np.allclose(R @ R.T, np.eye(3), atol=1e-9) and np.linalg.det(R) > 0
+            assert f.focal > 0 and f.width >= 1 and f.height >= 1 and 0 < f.near < f.far
+            assert np.isfinite(f.viewmat).all()
+
+
+@SETTINGS
+@given(st.binary(max_size=512))
+def test_llff_random_bytes(data: bytes) -> None:
+    _read_llff(data)
+
+
+@SETTINGS
+@given(muts=st.lists(st.tuples(st.floats(0, 1, exclude_max=True), st.integers(0, 255)), min_size=1, max_size=8),
+       cut=st.floats(0, 1))
+def test_llff_byte_mutations_and_truncations(muts: list[tuple[float, int]], cut: float) -> None:
+    data = bytearray(LLFF)
+    for pos, val in muts:
+        data[int(pos * len(data))] = val
+    _read_llff(bytes(data[: int(len(data) * cut) if cut < 0.98 else len(data)]))
+
+
+@SETTINGS
+@given(rows=st.integers(0, 5), cols=st.sampled_from([14, 15, 17, 18]),
+       values=st.lists(st.floats(allow_nan=True, allow_infinity=True, width=64)
+                       | st.sampled_from([0.0, -1.0, 1.0, 1e-300, 1e300]), min_size=90, max_size=90))
+def test_llff_random_arrays(rows: int, cols: int, values: list[float]) -> None:
+    import io
+
+    a = np.asarray(values[: rows * cols] + [0.0] * max(0, rows * cols - 90), np.float64).reshape(rows, cols)
+    buf = io.BytesIO()
+    np.save(buf, a)
+    _read_llff(buf.getvalue())
+
+
+@SETTINGS
+@given(col=st.integers(0, 16), value=st.floats(allow_nan=True, allow_infinity=True) | st.sampled_from([0.0, -1.0]))
+def test_llff_one_value_changed(col: int, value: float) -> None:
+    """A valid file with one number changed: the checks catch what matters (focal, bounds, size, rotation)."""
+    import io
+
+    a = np.load(io.BytesIO(LLFF))
+    a[1, col] = value
+    buf = io.BytesIO()
+    np.save(buf, a)
+    _read_llff(buf.getvalue())
+
+
+# ---- EXIF camera facts -----------------------------------------------------------------------
+
+
+def _exif_jpeg() -> bytes:
+    from test_cameras import photo
+
+    with tempfile.TemporaryDirectory() as d:
+        return photo(Path(d) / "a.jpg", size=(32, 24), make="Panasonic", model="DMC-FZ150", focal=108.0,
+                     focal_35=600).read_bytes()
+
+
+EXIF_JPEG = _exif_jpeg()
+
+
+def _read_exif(data: bytes) -> None:
+    from splatcli.io.exif import MAX_FOCAL_MM, MAX_NAME, MIN_FOCAL_MM, read_exif_camera
+
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / "a.jpg"
+        p.write_bytes(data)
+        t0 = time.monotonic()
+        e = read_exif_camera(p)  # never raises
+        assert time.monotonic() - t0 < 10.0
+        for name in (e.make, e.model):
+            assert name is None or (0 < len(name) <= MAX_NAME and name.isprintable() and name == name.strip())
+        for f in (e.focal_mm, e.focal_35mm):
+            assert f is None or (math.isfinite(f) and MIN_FOCAL_MM <= f <= MAX_FOCAL_MM)
+        if data == EXIF_JPEG:
+            assert (e.make, e.model, e.focal_mm, e.focal_35mm) == ("Panasonic", "DMC-FZ150", 108.0, 600.0)
+
+
+@SETTINGS
+@given(muts=st.lists(st.tuples(st.floats(0, 0.3, exclude_max=True), st.integers(0, 255)), min_size=0, max_size=8),
+       cut=st.floats(0, 1))
+def test_exif_byte_mutations_and_truncations(muts: list[tuple[float, int]], cut: float) -> None:
+    """Mutations land in the first 30% of the file: the EXIF block, not the pixels."""
+    data = bytearray(EXIF_JPEG)
+    for pos, val in muts:
+        data[int(pos * len(data))] = val
+    _read_exif(bytes(data[: int(len(data) * cut) if cut < 0.98 else len(data)]))
+
+
+@SETTINGS
+@given(make=st.text(max_size=80), focal=st.floats(allow_nan=True, allow_infinity=True))
+def test_exif_lying_values(make: str, focal: float) -> None:
+    import io
+
+    from PIL import Image
+
+    ex = Image.Exif()
+    ex[0x010F] = make
+    ex.get_ifd(0x8769)[0x920A] = focal
+    buf = io.BytesIO()
+    try:
+        Image.new("RGB", (8, 8)).save(buf, "JPEG", exif=ex)
+    except (ValueError, UnicodeEncodeError, OverflowError, ZeroDivisionError):
+        return  # Pillow cannot write it: no such file to read
+    _read_exif(buf.getvalue())
 
 
 # ---- transforms.json and manifests --------------------------------------------------------

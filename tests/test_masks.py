@@ -92,10 +92,10 @@ def test_pycolmap_receives_the_mask_folder(tmp_path, monkeypatch):
 
     seen = {}
     monkeypatch.setattr(pycolmap, "extract_features", lambda *a, **k: seen.update(k))
-    colmap.extract_features(tmp_path / "db", tmp_path, ["a.jpg"], colmap.SiftOptions(), single_camera=True,
+    colmap.extract_features(tmp_path / "db", tmp_path, ["a.jpg"], colmap.SiftOptions(),
                             mask_dir=tmp_path / "masks")
     assert str(seen["reader_options"].mask_path) == str(tmp_path / "masks")
-    colmap.extract_features(tmp_path / "db", tmp_path, ["a.jpg"], colmap.SiftOptions(), single_camera=True)
+    colmap.extract_features(tmp_path / "db", tmp_path, ["a.jpg"], colmap.SiftOptions())
     assert str(seen["reader_options"].mask_path) in ("", ".")  # pycolmap's default: no masks
 
 

@@ -52,3 +52,4 @@ _.sh_auto_psnr
 _.comm_seconds
 _.rank_checks
 _.scale_hist  # train/config.py TrainReport: reports/train.json
+_.has_prior_focal_length  # sfm/colmap.py: a pycolmap camera's flag, read by COLMAP's two-view verification

@@ -50,3 +50,21 @@ def frustum_bounds(cameras: list[Camera], *, min_fraction: float = 0.9, grid: in
         return focus - radius, focus + radius
     step = g[1] - g[0]
     return keep.min(0) - step / 2, keep.max(0) + step / 2
+
+
+def depth_bounds(cameras: list[Camera], near: np.ndarray, far: np.ndarray, grid: int = 5,
+                 lo: float = 2.0, hi: float = 98.0) -> tuple[np.ndarray, np.ndarray]:
+    """The box around what the cameras see between each one's near and far depths
+    (near, far: [N] world units, LLFF's bounds): per-axis percentiles of points spread
+    over every frustum slice, so one camera's distant far plane does not inflate it."""
+    pts = []
+    uv = (np.arange(grid) + 0.5) / grid
+    for c, n, f in zip(cameras, near, far):
+        u, v = np.meshgrid(uv * c.width, uv * c.height, indexing="ij")
+        rays = np.stack([(u.ravel() - c.K[0, 2]) / c.K[0, 0], (v.ravel() - c.K[1, 2]) / c.K[1, 1],
+                         np.ones(u.size)], 1)  # [G^2, 3] camera space at depth 1
+        for d in np.geomspace(n, f, grid):
+            cam = rays * d
+            pts.append((cam - c.viewmat[:3, 3]) @ c.viewmat[:3, :3])  # world = R^T (x - t)
+    allp = np.concatenate(pts)
+    return np.percentile(allp, lo, axis=0), np.percentile(allp, hi, axis=0)

@@ -10,7 +10,8 @@ from ..events import Stages
 from ..io.images import IMAGE_EXTS, StagedImage, fit_size, list_folder
 from ..project import Project
 from ..sfm.reconstruct import SfmOptions, run_sfm
-from .config import MIN_IMAGES, ProcessConfig
+from .cameras import group_cameras
+from .config import MIN_IMAGES, ProcessConfig, sift_max_size
 from .dataset import Dataset, finish_model, refuse_if_strict, stage_images
 from .detect import InputSpec
 from .masks import MASKS_DIR, find_masks_dir, mask_file, stage_all
@@ -33,6 +34,20 @@ def safe_names(names: list[str]) -> list[str]:
             taken.add(safe)
         out.append(safe)
     return out
+
+
+def left_out_warning(unregistered: list[str], fell_into: dict[str, int | None], sizes: list[int],
+                     shown: int = 20) -> str:
+    """One line naming the images the kept model lacks and the model each fell into."""
+    def where(n: str) -> str:
+        k = fell_into.get(n)
+        return f"model {k} ({sizes[k - 1]} images)" if k is not None and k <= len(sizes) else "no model"
+
+    split = (f"mapping split into {len(sizes)} models of {', '.join(map(str, sizes))} images; keeping the largest; "
+             if len(sizes) > 1 else "")
+    named = ", ".join(f"{n} ({where(n)})" for n in unregistered[:shown])
+    more = f", and {len(unregistered) - shown} more (the manifest lists them all)" if len(unregistered) > shown else ""
+    return f"{split}{len(unregistered)} image(s) did not register in it: {named}{more}"
 
 
 def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: tuple[float, float, float] | None,
@@ -60,6 +75,7 @@ def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
             raise SplatError(f"{spec.path}: only {len(frames.names)} usable frame(s); need at least {MIN_IMAGES}")
         w, h = frames.width, frames.height
         staged = [StagedImage(n, w, h, w, h, False) for n in frames.names]
+        grouping = group_cameras(staged, None, cfg.cameras, video=True)
     else:
         assert spec.images_dir is not None
         files, others = list_folder(spec.images_dir)
@@ -75,6 +91,8 @@ def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
                 f"{spec.images_dir}: structure from motion needs at least {MIN_IMAGES} readable images, "
                 f"found {len(staged)}{why}"
             )
+        by_name = {name: src for src, name in pairs}
+        grouping = group_cameras(staged, {s.name: by_name[s.name] for s in staged}, cfg.cameras, video=False)
         if others:
             shown = ", ".join(p.name for p in others[:5]) + (", ..." if len(others) > 5 else "")
             run.note(f"skipped {len(others)} file(s) that are not images: {shown}")
@@ -85,26 +103,32 @@ def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
     mask_source = stage_all(found, staged, work, run, invert=cfg.invert_masks, where=mdir)
     names = [s.name for s in staged]
     sizes = {(s.width, s.height) for s in staged}
-    if len(sizes) > 1:
-        run.note(f"images come in {len(sizes)} sizes; using one camera per image")
+    run.note(grouping.reason)
+    for p in grouping.problems[:3]:
+        run.note(f"EXIF ignored: {p}", "warning")
+    if len(grouping.problems) > 3:
+        run.note(f"EXIF ignored in {len(grouping.problems) - 3} more image(s)", "warning")
+    max_size = sift_max_size(cfg, posed=False)
     sfm_opts = SfmOptions(
-        matcher=cfg.matcher, ordered=spec.kind == "video", max_image_size=cfg.max_size,
+        matcher=cfg.matcher, ordered=spec.kind == "video", max_image_size=max_size,
         max_features=cfg.max_features, first_octave=cfg.first_octave,
         sequential_overlap=cfg.sequential_overlap, seed=cfg.seed, num_threads=cfg.num_threads,
+        camera_model=cfg.camera_model,
     )
-    sift_side = min(min(fit_size(w, h, cfg.max_size)) for w, h in sizes)  # smallest side SIFT will see
-    res = run_sfm(work / "input", names, work, sfm_opts, single_camera=len(sizes) == 1, min_side=sift_side,
+    sift_side = min(min(fit_size(w, h, max_size)) for w, h in sizes)  # smallest side SIFT will see
+    split = grouping.split() if cfg.cameras == "auto" else None
+    res = run_sfm(work / "input", names, work, sfm_opts, cameras=[g.names for g in grouping.groups],
+                  split_cameras=[g.names for g in split.groups] if split else None, min_side=sift_side,
                   where=spec.images_dir or spec.path, on_event=run.sink,
                   mask_dir=work / MASKS_DIR if mask_source else None)
     for k, v in res.seconds.items():
         run.seconds[k] = run.seconds.get(k, 0.0) + v
+    if split is not None and res.cameras == [g.names for g in split.groups]:
+        grouping = split
+        run.note(grouping.reason)
     model = res.model
-    if len(res.model_sizes) > 1:
-        run.note(f"mapping split into {len(res.model_sizes)} models of {', '.join(map(str, res.model_sizes))} "
-                 f"images; keeping the largest")
     if res.unregistered:
-        shown = ", ".join(res.unregistered[:10]) + (", ..." if len(res.unregistered) > 10 else "")
-        run.note(f"{len(res.unregistered)} image(s) did not register: {shown}")
+        run.note(left_out_warning(res.unregistered, res.left_out_models, res.model_sizes), "warning")
     if model.num_registered < len(names) / 2:
         run.note(f"only {model.num_registered} of {len(names)} images registered; the photos may overlap too "
                  "little or be too blurry", "warning")
@@ -118,4 +142,6 @@ def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
                     background=background, mean_reprojection_error=model.mean_reprojection_error(),
                     mean_track_length=model.mean_track_length(), skipped=skipped, matcher=res.matcher,
                     pairs=res.num_pairs, keypoints_median=res.keypoints_median, model_sizes=res.model_sizes,
-                    unregistered=res.unregistered, dropped_blurry=dropped)
+                    unregistered=res.unregistered, left_out_models=res.left_out_models, sfm_tried=res.tried,
+                    dropped_blurry=dropped, camera_grouping=grouping.rule,
+                    cameras=[g.summary() for g in grouping.groups])

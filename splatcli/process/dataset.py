@@ -40,6 +40,12 @@ class Dataset:
     model_sizes: list[int] = field(default_factory=list)
     unregistered: list[str] = field(default_factory=list)
     dropped_blurry: int = 0
+    triangulated: int | None = None  # posed captures: points triangulated with the poses fixed (kept or not)
+    left_out_models: dict[str, int | None] = field(default_factory=dict)  # SfM: unregistered -> model it fell into
+    sfm_tried: list[str] = field(default_factory=list)  # SfM: the mapping attempts made
+    camera_grouping: str | None = None  # SfM: process/cameras.py's rule
+    cameras: list[dict] = field(default_factory=list)  # SfM: each camera's images and EXIF facts
+    bounds: tuple[np.ndarray, np.ndarray] | None = None  # the scene box the input states (LLFF's near/far), for want of points
 
 
 def refuse_if_strict(where: Path | str, skipped: list[str], strict: bool) -> None:

@@ -6,6 +6,7 @@
                           or the model folder itself
     transforms.json       nerfstudio, instant-ngp; transforms_train.json (+ _test,
                           _val) for NeRF Blender scenes; the file or its folder
+    LLFF                  poses_bounds.npy beside images/ (or images_N/); the file or its folder
 """
 
 from __future__ import annotations
@@ -15,21 +16,23 @@ from pathlib import Path
 
 from ..errors import SplatError
 from ..io.images import is_image_name
+from ..io.llff import POSES_NAME, find_poses
 from ..io.transforms import find_transforms
 from ..sfm.colmap_files import model_format
 from .video import is_video_name
 
-INPUT_TYPES = ("auto", "images", "video", "colmap", "transforms")
+INPUT_TYPES = ("auto", "images", "video", "colmap", "transforms", "llff")
 
 
 @dataclass(frozen=True)
 class InputSpec:
-    kind: str  # "images" | "video" | "colmap" | "transforms"
+    kind: str  # "images" | "video" | "colmap" | "transforms" | "llff"
     path: Path  # the input as given
     root: Path  # the folder file paths inside the input may not leave
     images_dir: Path | None = None  # images, colmap
     model_dir: Path | None = None  # colmap
     transforms: Path | None = None  # transforms
+    poses: Path | None = None  # llff: the poses_bounds.npy
 
 
 def find_colmap_model(path: Path) -> tuple[Path, Path] | None:
@@ -66,6 +69,11 @@ def detect_input(path: Path, input_type: str = "auto") -> InputSpec:
         if tf is None or not tf.is_file():
             raise SplatError(f"{path}: no transforms.json or transforms_train.json here")
         return InputSpec("transforms", path, tf.parent, transforms=tf)
+    if input_type == "llff":
+        pb = find_poses(path)
+        if pb is None:
+            raise SplatError(f"{path}: no {POSES_NAME} here")
+        return InputSpec("llff", path, pb.parent, poses=pb)
     if input_type == "colmap":
         found = find_colmap_model(path) if path.is_dir() else None
         if found is None:
@@ -92,6 +100,8 @@ def _guess(path: Path) -> str:
     if path.is_file():
         if path.suffix.lower() == ".json":
             return "transforms"
+        if path.name == POSES_NAME:
+            return "llff"
         if is_video_name(path):
             return "video"
         return "images"  # refused with a clear message in detect_input
@@ -99,6 +109,8 @@ def _guess(path: Path) -> str:
         return "colmap"
     if find_transforms(path) is not None:
         return "transforms"
+    if find_poses(path) is not None:
+        return "llff"
     return "images"
 
 

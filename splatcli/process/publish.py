@@ -23,10 +23,15 @@ from .dataset import Dataset
 from .detect import InputSpec
 
 
-def scene_facts(cameras: list[Camera], points: np.ndarray, background: tuple[float, float, float]) -> dict[str, Any]:
+def scene_facts(cameras: list[Camera], points: np.ndarray, background: tuple[float, float, float],
+                bounds: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, Any]:
+    """`bounds`: the box the input states (LLFF's near/far), used when there are no points."""
     if len(points):
         lo, hi = points_bounds(points)
         init = "sfm"
+    elif bounds is not None:
+        lo, hi = bounds
+        init = "random"
     else:
         lo, hi = frustum_bounds(cameras)
         init = "random"
@@ -50,7 +55,7 @@ def publish(root: Path, stage: Path, spec: InputSpec, cfg: ProcessConfig, ds: Da
         raise RuntimeError(f"staged model lists images that were not written: {missing_files[:3]}")
     background = ds.background if ds.background is not None else ((1.0, 1.0, 1.0) if ds.mask_source == "alpha" else (0.0, 0.0, 0.0))
     splits = holdout_split(names, ds.test)
-    facts = scene_facts(scene.cameras, scene.points, background)
+    facts = scene_facts(scene.cameras, scene.points, background, ds.bounds)
     facts["masks"] = ds.masks
     facts["mask_source"] = ds.mask_source
     facts["model_sha256"] = model_digest(st.sparse_dir)  # later reads of this model skip the file walk
@@ -91,9 +96,14 @@ def publish(root: Path, stage: Path, spec: InputSpec, cfg: ProcessConfig, ds: Da
         keypoints_median=ds.keypoints_median,
         model_sizes=ds.model_sizes,
         unregistered=ds.unregistered,
+        left_out_models=ds.left_out_models,
+        sfm_tried=ds.sfm_tried,
         skipped=ds.skipped,
         missing=ds.missing,
         dropped_blurry=ds.dropped_blurry,
+        triangulated=ds.triangulated,
+        camera_grouping=ds.camera_grouping,
+        cameras=ds.cameras,
         warnings=list(run.warnings),
     )
     config = asdict(cfg)

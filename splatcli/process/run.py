@@ -1,8 +1,9 @@
 """`process`: from what the user has to a posed dataset `train` can use.
 
-Inputs (see splatcli/sfm/detect.py): a folder of photos or a video (structure
-from motion with pycolmap), a COLMAP workspace or a transforms.json (imported
-as they are). Every path ends the same way:
+Inputs (see process/detect.py): a folder of photos or a video (structure
+from motion with pycolmap), a COLMAP workspace, or a transforms.json or an LLFF
+poses_bounds.npy (poses imported as they are, points triangulated from the photos
+with them: posed.py). Every path ends the same way:
 
     PROJECT/images/<name>           RGB images, exactly those of the model
     PROJECT/masks/<name>.png        masks (255 = keep): the input's alpha or its mask files (masks.py)
@@ -36,6 +37,7 @@ from ..sfm import colmap
 from .capture import from_capture
 from .config import ProcessConfig, ProcessResult, check_config
 from .detect import InputSpec, detect_input
+from .llff import from_llff
 from .publish import publish
 from .transforms import from_transforms
 from .workspace import from_colmap
@@ -134,6 +136,8 @@ def _stage_and_publish(spec: InputSpec, root: Path, stage: Path, cfg: ProcessCon
             ds = from_capture(spec, stage, cfg, background, run)
         elif spec.kind == "colmap":
             ds = from_colmap(spec, stage, cfg, background, run)
+        elif spec.kind == "llff":
+            ds = from_llff(spec, stage, cfg, background, run)
         else:
             ds = from_transforms(spec, stage, cfg, background, run)
         result = publish(root, stage, spec, cfg, ds, run, t_start)

@@ -17,6 +17,7 @@ from .config import ProcessConfig
 from .dataset import Dataset, finish_model, refuse_if_strict, stage_images
 from .detect import InputSpec
 from .masks import stage_all
+from .posed import add_points, posed_facts
 
 
 def from_transforms(spec: InputSpec, stage: Path, cfg: ProcessConfig,
@@ -51,6 +52,9 @@ def from_transforms(spec: InputSpec, stage: Path, cfg: ProcessConfig,
     found = {f.name: f.mask for f in scene.frames if f.mask is not None}
     mask_source = stage_all(found, staged, work, run, invert=cfg.invert_masks, where=None)
     has_masks = mask_source is not None
+    tri = None
+    if cfg.triangulate and not model.num_points and len(staged) >= 2:
+        model, tri = add_points(model, staged, work, st, cfg, run, mask_source=mask_source)
     undistorted = finish_model(model, st, work, cfg, run, masks=mask_source)
     kept = {s.name for s in staged}
     test = sorted(f.name for f in scene.frames if f.split == "test" and f.name in kept) if scene.has_test_split else None
@@ -58,7 +62,8 @@ def from_transforms(spec: InputSpec, stage: Path, cfg: ProcessConfig,
     if bg is None and mask_source == "alpha":
         bg = (1.0, 1.0, 1.0)
     return Dataset(registered=len(staged), total=len(scene.frames) + len(scene.missing), undistorted=undistorted,
-                    masks=has_masks, mask_source=mask_source, test=test or None, background=bg, skipped=bad, missing=len(scene.missing))
+                    masks=has_masks, mask_source=mask_source, test=test or None, background=bg, skipped=bad,
+                    missing=len(scene.missing), **posed_facts(tri))
 
 
 def _read_ply_points(path: Path, run: Stages) -> tuple[np.ndarray | None, np.ndarray | None]:

@@ -99,10 +99,11 @@ def run_cancellable(fn: Callable[..., Any], *args: Any, poll: Callable[[], None]
 # ---- database ---------------------------------------------------------------
 
 
-def create_database(path: Path, image_dir: Path, names: list[str], *, single_camera: bool,
+def create_database(path: Path, image_dir: Path, cameras: list[list[str]], *,
                     camera_model: str = "SIMPLE_RADIAL") -> None:
-    """A fresh database with one camera for all images (`single_camera`) or
-    one per image, and no features yet."""
+    """A fresh database with one camera per group of image names in `cameras`,
+    and no features yet. COLMAP reads each camera's focal length prior from the
+    EXIF of its group's first image (else 1.2 x the longest side, no prior)."""
     pycolmap = _pc()
     path = Path(path)
     if path.exists():
@@ -110,11 +111,40 @@ def create_database(path: Path, image_dir: Path, names: list[str], *, single_cam
     pycolmap.Database.open(str(path)).close()
     opts = pycolmap.ImageReaderOptions()
     opts.camera_model = camera_model
-    mode = pycolmap.CameraMode.SINGLE if single_camera else pycolmap.CameraMode.PER_IMAGE
+    singles = [g[0] for g in cameras if len(g) == 1]
+    calls = [(pycolmap.CameraMode.SINGLE, g) for g in cameras if len(g) > 1]
+    if singles:
+        calls.append((pycolmap.CameraMode.PER_IMAGE, singles))
     try:
-        pycolmap.import_images(str(path), str(image_dir), camera_mode=mode, image_names=list(names), options=opts)
+        for mode, names in calls:  # each SINGLE call makes one new camera
+            pycolmap.import_images(str(path), str(image_dir), camera_mode=mode, image_names=list(names),
+                                   options=opts)
     except (RuntimeError, ValueError) as exc:
         raise SplatError(f"{image_dir}: COLMAP could not read the images ({_one_line(exc)})") from None
+
+
+def regroup_database(src: Path, dst: Path, image_dir: Path, cameras: list[list[str]], *,
+                     camera_model: str = "SIMPLE_RADIAL") -> None:
+    """A new database `dst` whose images are grouped into `cameras` afresh, with
+    `src`'s features, matches and verified geometries copied (no SIFT or matching
+    again; the geometries stay valid, as they do not depend on the grouping)."""
+    pycolmap = _pc()
+    create_database(dst, image_dir, cameras, camera_model=camera_model)
+    with pycolmap.Database.open(str(src)) as a, pycolmap.Database.open(str(dst)) as b:
+        old = {im.image_id: im.name for im in a.read_all_images()}
+        new = {im.name: im.image_id for im in b.read_all_images()}
+        ids = {i: new[n] for i, n in old.items()}
+        for i in old:
+            if a.exists_keypoints(i):
+                b.write_keypoints(ids[i], a.read_keypoints(i))
+            if a.exists_descriptors(i):
+                b.write_descriptors(ids[i], a.read_descriptors(i))
+        for pair, matches in zip(*a.read_all_matches()):
+            i, j = pycolmap.pair_id_to_image_pair(pair)
+            b.write_matches(ids[i], ids[j], matches)  # the database orders each pair itself
+        for pair, geom in zip(*a.read_two_view_geometries()):
+            i, j = pycolmap.pair_id_to_image_pair(pair)
+            b.write_two_view_geometry(ids[i], ids[j], geom)
 
 
 @dataclass(frozen=True)
@@ -127,8 +157,8 @@ class SiftOptions:
 
 
 def extract_features(db: Path, image_dir: Path, names: list[str], opts: SiftOptions, *,
-                     single_camera: bool, mask_dir: Path | None = None) -> None:
-    """SIFT for `names` (already in the database); call in chunks for progress.
+                     mask_dir: Path | None = None) -> None:
+    """SIFT for `names` (already in the database, with their cameras); call in chunks for progress.
     `mask_dir`: COLMAP's mask folder, `<name>.png` per image; none are kept where it is 0."""
     pycolmap = _pc()
     ro = pycolmap.ImageReaderOptions()
@@ -140,7 +170,7 @@ def extract_features(db: Path, image_dir: Path, names: list[str], opts: SiftOpti
     eo.sift.max_num_features = opts.max_num_features
     eo.sift.first_octave = opts.first_octave
     eo.sift.peak_threshold = opts.peak_threshold
-    mode = pycolmap.CameraMode.SINGLE if single_camera else pycolmap.CameraMode.PER_IMAGE
+    mode = pycolmap.CameraMode.PER_IMAGE  # the images are in the database: no camera is made here
     run_cancellable(
         pycolmap.extract_features, str(db), str(image_dir), image_names=list(names), camera_mode=mode,
         reader_options=ro, extraction_options=eo, device=pycolmap.Device.cpu,
@@ -201,7 +231,11 @@ class MapperOptions:
     ba_global_frames_ratio: float = 1.1  # global BA when the model grew by this factor
     ba_global_points_ratio: float = 1.1
     init_min_num_inliers: int = 100
+    init_min_tri_angle: float = 16.0  # degrees
+    init_max_error: float = 4.0  # pixels
     abs_pose_min_num_inliers: int = 30
+    abs_pose_min_inlier_ratio: float = 0.25
+    max_reg_trials: int = 3
 
 
 class Model:
@@ -298,9 +332,10 @@ def _model_name(cam: Any) -> str:
 
 
 def incremental_mapping(db: Path, image_dir: Path, out_dir: Path, opts: MapperOptions,
-                        on_registered: Callable[[int], None] | None = None) -> list[Model]:
+                        on_registered: Callable[[int], None] | None = None, start: Model | None = None) -> list[Model]:
     """COLMAP's incremental mapper. Returns every model, largest first.
 
+    `start`: a model to go on from (its images stay registered; more may join).
     `on_registered(n)` is called from the calling thread with the number of
     images registered so far in the current model."""
     pycolmap = _pc()
@@ -314,10 +349,14 @@ def incremental_mapping(db: Path, image_dir: Path, out_dir: Path, opts: MapperOp
     o.ba_global_frames_ratio = opts.ba_global_frames_ratio
     o.ba_global_points_ratio = opts.ba_global_points_ratio
     o.mapper.init_min_num_inliers = opts.init_min_num_inliers
+    o.mapper.init_min_tri_angle = opts.init_min_tri_angle
+    o.mapper.init_max_error = opts.init_max_error
     o.mapper.abs_pose_min_num_inliers = opts.abs_pose_min_num_inliers
+    o.mapper.abs_pose_min_inlier_ratio = opts.abs_pose_min_inlier_ratio
+    o.mapper.max_reg_trials = opts.max_reg_trials
     o.mapper.random_seed = opts.seed
     o.triangulation.random_seed = opts.seed
-    counter = {"n": 0, "shown": -1}
+    counter = {"n": start.num_registered if start is not None else 0, "shown": -1}
 
     def on_init() -> None:
         counter["n"] = 2
@@ -331,10 +370,14 @@ def incremental_mapping(db: Path, image_dir: Path, out_dir: Path, opts: MapperOp
             on_registered(counter["n"])
 
     out_dir.mkdir(parents=True, exist_ok=True)
+    extra = {}
+    if start is not None:
+        start.write(out_dir / "_start")
+        extra["input_path"] = str(out_dir / "_start")
     try:
         recs = run_cancellable(
             pycolmap.incremental_mapping, str(db), str(image_dir), str(out_dir), options=o,
-            initial_image_pair_callback=on_init, next_image_callback=on_next, poll=poll,
+            initial_image_pair_callback=on_init, next_image_callback=on_next, poll=poll, **extra,
         )
     except (RuntimeError, ValueError) as exc:
         raise SplatError(f"{db}: COLMAP's mapper failed ({_one_line(exc)})") from None
@@ -392,6 +435,51 @@ def build_model(specs: list[CameraSpec], points: np.ndarray | None = None,
         for xyz, rgb in zip(np.asarray(points, np.float64), np.asarray(cols, np.uint8)):
             rec.add_point3D(xyz, pycolmap.Track(), rgb)
     return Model(rec)
+
+
+def create_posed_database(path: Path, model: Model) -> None:
+    """A fresh database holding `model`'s cameras, rigs, frames and images under
+    their own ids, and no features yet: point triangulation pairs the database's
+    matches with the model's poses by image id. The cameras are marked as knowing
+    their focal length, so two-view verification uses it."""
+    pycolmap = _pc()
+    path = Path(path)
+    if path.exists():
+        path.unlink()
+    rec = model._rec
+    with pycolmap.Database.open(str(path)) as db:
+        for cam in rec.cameras.values():
+            cam.has_prior_focal_length = True
+            db.write_camera(cam, use_camera_id=True)
+        for rig in rec.rigs.values():
+            db.write_rig(rig, use_rig_id=True)
+        for frame in rec.frames.values():
+            db.write_frame(frame, use_frame_id=True)
+        for im in rec.images.values():
+            db.write_image(im, use_image_id=True)
+
+
+def triangulate(model: Model, db: Path, image_dir: Path, out_dir: Path, opts: MapperOptions) -> Model:
+    """Points triangulated from the database's matches with `model`'s poses and
+    intrinsics held fixed (COLMAP's point triangulator: no mapping; the points alone
+    are refined by bundle adjustment). Returns a new model; `model` is unchanged."""
+    pycolmap = _pc()
+    pycolmap.set_random_seed(opts.seed)
+    o = pycolmap.IncrementalPipelineOptions()
+    o.random_seed = opts.seed
+    o.num_threads = opts.num_threads
+    o.mapper.random_seed = opts.seed
+    o.triangulation.random_seed = opts.seed
+    o.ba_global_max_num_iterations = opts.ba_global_max_num_iterations
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    rec = pycolmap.Reconstruction(model._rec)  # a copy: the caller keeps the pose-only model
+    try:
+        out = run_cancellable(pycolmap.triangulate_points, rec, str(db), str(image_dir), str(out_dir),
+                              clear_points=True, options=o, refine_intrinsics=False)
+    except (RuntimeError, ValueError) as exc:
+        raise SplatError(f"{db}: COLMAP's point triangulation failed ({_one_line(exc)})") from None
+    return Model(out if out is not None else rec)
 
 
 def undistort(model: Model, image_dir: Path, out_dir: Path, *, jpeg_quality: int = 95,

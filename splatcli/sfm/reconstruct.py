@@ -15,9 +15,12 @@ from __future__ import annotations
 
 import re
 import statistics
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+import numpy as np
+
+from ..camera import Camera
 from ..errors import SplatError
 from ..events import EventSink, Note, Stages, emit
 from . import colmap
@@ -38,6 +41,7 @@ class SfmOptions:
     seed: int = 0
     num_threads: int = -1
     chunk: int = 8  # images per extraction call (progress granularity)
+    camera_model: str = "SIMPLE_RADIAL"  # the COLMAP model each camera is fitted with
 
 
 @dataclass
@@ -50,6 +54,15 @@ class SfmResult:
     num_pairs: int
     keypoints_median: float
     seconds: dict[str, float] = field(default_factory=dict)
+    left_out_models: dict[str, int | None] = field(default_factory=dict)  # unregistered -> model it fell into (2: the second largest), None: none
+    tried: list[str] = field(default_factory=list)  # the mapping attempts made
+    cameras: list[list[str]] = field(default_factory=list)  # the grouping of the kept model's database
+
+
+# Thresholds of the second attempts (COLMAP's defaults: 100 inliers, 16 degrees, 4 px;
+# 30 inliers and a ratio of 0.25 for each further image, 3 trials).
+RELAXED_INIT = {"init_min_num_inliers": 50, "init_min_tri_angle": 8.0, "init_max_error": 6.0}
+RELAXED_REGISTRATION = {"abs_pose_min_num_inliers": 15, "abs_pose_min_inlier_ratio": 0.15, "max_reg_trials": 5}
 
 
 def natural_key(name: str) -> list:
@@ -91,6 +104,28 @@ def sequential_pairs(names: list[str], overlap: int) -> list[tuple[str, str]]:
     return [(names[i], names[j]) for i, j in sorted(out)]
 
 
+def posed_pairs(cameras: list[Camera], neighbours: int, max_angle_deg: float = 60.0) -> list[tuple[str, str]]:
+    """Pairs of posed cameras likely to see the same things: each camera with its
+    `neighbours` nearest (camera centres) among those looking within `max_angle_deg`
+    of its own direction. Known poses make exhaustive pairs unnecessary."""
+    if len(cameras) < 2:
+        return []
+    centers = np.stack([c.center for c in cameras])  # [N, 3]
+    dirs = np.stack([c.viewmat[2, :3] for c in cameras])  # [N, 3] optical axes in world
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    dist = np.linalg.norm(centers[:, None] - centers[None], axis=2)  # [N, N]
+    facing = dirs @ dirs.T >= np.cos(np.radians(max_angle_deg))
+    dist = np.where(facing, dist, np.inf)
+    np.fill_diagonal(dist, np.inf)
+    out = set()
+    for i in range(len(cameras)):
+        for j in np.argsort(dist[i], kind="stable")[:neighbours]:
+            if np.isfinite(dist[i, j]):
+                out.add((min(i, int(j)), max(i, int(j))))
+    names = [c.name for c in cameras]
+    return sorted((names[i], names[j]) for i, j in out)
+
+
 def _choose_matcher(opts: SfmOptions, names: list[str]) -> str:
     if opts.matcher != "auto":
         return opts.matcher
@@ -102,10 +137,13 @@ def _choose_matcher(opts: SfmOptions, names: list[str]) -> str:
 
 
 def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions, *,
-            single_camera: bool, min_side: int, where: Path,
+            cameras: list[list[str]], min_side: int, where: Path, split_cameras: list[list[str]] | None = None,
             on_event: EventSink | None = None, mask_dir: Path | None = None) -> SfmResult:
     """Extract, match and map `names` (files in `image_dir`).
 
+    `cameras` groups the names into cameras (one camera per group: process/cameras.py);
+    `split_cameras`, a finer grouping to map with when under half the images register
+    (photos that share a camera only for want of EXIF may come from several);
     `min_side` is the smallest image side SIFT sees (chooses the octave); `mask_dir`
     holds a mask for every image, `<name>.png` (0: no features there); `where`
     names the input in error messages. Raises SplatError (with the likely
@@ -122,10 +160,9 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
     sift = SiftOptions(max_image_size=opts.max_image_size, max_num_features=opts.max_features,
                        first_octave=first_octave, num_threads=opts.num_threads)
     with clock.stage("extract features", len(names)) as st:
-        colmap.create_database(db, image_dir, names, single_camera=single_camera)
+        colmap.create_database(db, image_dir, cameras, camera_model=opts.camera_model)
         for i in range(0, len(names), opts.chunk):
-            colmap.extract_features(db, image_dir, names[i : i + opts.chunk], sift, single_camera=single_camera,
-                                    mask_dir=mask_dir)
+            colmap.extract_features(db, image_dir, names[i : i + opts.chunk], sift, mask_dir=mask_dir)
             st.progress(min(i + opts.chunk, len(names)))
     stats = colmap.database_stats(db)
     kp_median = statistics.median(stats.keypoints.values()) if stats.keypoints else 0
@@ -157,20 +194,99 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
         matched.update(rest)
         models = _map(db, image_dir, work_dir / "models2", mapper, len(names), clock)
         used = "sequential+exhaustive"
+    tried = [f"{used} matching with COLMAP's thresholds"]
     if not models or models[0].num_registered < 2:
-        raise SplatError(f"{where}: structure from motion found no model: {_diagnose(db, len(names))}")
+        # Try harder: a starting pair with fewer inliers and less parallax than COLMAP asks for.
+        mapper = replace(mapper, **RELAXED_INIT)
+        emit(on_event, Note("no model with COLMAP's thresholds; mapping again with relaxed initial-pair thresholds"))
+        models = _map(db, image_dir, work_dir / "models_relaxed", mapper, len(names), clock)
+        tried.append(f"relaxed initial-pair thresholds ({RELAXED_INIT['init_min_num_inliers']} inliers, "
+                     f"{RELAXED_INIT['init_min_tri_angle']:g} degrees)")
+    if split_cameras is not None and (not models or models[0].num_registered < len(names) / 2):
+        # Photos grouped by size alone may come from several cameras: one camera each.
+        emit(on_event, Note(f"{models[0].num_registered if models else 0} of {len(names)} images registered with "
+                            f"{len(cameras)} camera(s); mapping again with {len(split_cameras)}"))
+        split_db = work_dir / "database_split.db"
+        colmap.regroup_database(db, split_db, image_dir, split_cameras, camera_model=opts.camera_model)
+        split = _map(split_db, image_dir, work_dir / "models_split", mapper, len(names), clock)
+        tried.append(f"{len(split_cameras)} cameras instead of {len(cameras)} (the photos without EXIF apart)")
+        if split and (not models or split[0].num_registered > models[0].num_registered):
+            models, cameras = split, split_cameras
+            split_db.replace(db)
+    if not models or models[0].num_registered < 2:
+        raise SplatError(f"{where}: structure from motion found no model (tried {'; '.join(tried)}): "
+                         f"{_diagnose(db, len(names))}")
+    if models[0].num_registered < len(names):
+        # A second pass over the images left out: the largest model goes on, registering
+        # with relaxed pose thresholds (what COLMAP's defaults refused may fit it now).
+        before = models[0].num_registered
+        more = _map(db, image_dir, work_dir / "models_more", replace(mapper, **RELAXED_REGISTRATION), len(names),
+                    clock, start=models[0])
+        tried.append("a second pass over the images left out, with relaxed registration thresholds")
+        if more and more[0].num_registered > before:
+            emit(on_event, Note(f"a second pass registered {more[0].num_registered - before} more image(s)"))
+            models = more
     best = models[0]
     registered = set(best.registered_names())
+    fell_into = {}
+    for k, m in enumerate(models[1:], start=2):
+        for n in m.registered_names():
+            fell_into.setdefault(n, k)
+    unregistered = [n for n in names if n not in registered]
     return SfmResult(
         model=best,
         names=names,
         model_sizes=[m.num_registered for m in models],
-        unregistered=[n for n in names if n not in registered],
+        unregistered=unregistered,
         matcher=used,
         num_pairs=len(matched),
         keypoints_median=float(kp_median),
         seconds=clock.seconds,
+        left_out_models={n: fell_into.get(n) for n in unregistered},
+        tried=tried,
+        cameras=cameras,
     )
+
+
+@dataclass
+class TriangulationResult:
+    model: Model  # the posed model with the triangulated points
+    num_pairs: int
+    keypoints_median: float
+    seconds: dict[str, float] = field(default_factory=dict)
+
+
+def triangulate_posed(image_dir: Path, model: Model, work_dir: Path, opts: SfmOptions, *, neighbours: int,
+                      min_side: int, on_event: EventSink | None = None,
+                      mask_dir: Path | None = None) -> TriangulationResult:
+    """Points for a capture whose poses are known (transforms.json, LLFF): SIFT as for
+    photos, matching of the pairs the poses say overlap (`posed_pairs`), then
+    triangulation with every pose and intrinsic held fixed; no mapping. `model` holds
+    the posed images (in `image_dir`), with their distortion."""
+    clock = Stages(on_event)
+    work_dir.mkdir(parents=True, exist_ok=True)
+    db = work_dir / "database.db"
+    names = model.registered_names()
+    first_octave = opts.first_octave
+    if first_octave is None:
+        first_octave = -1 if min_side < 400 else 0
+    sift = SiftOptions(max_image_size=opts.max_image_size, max_num_features=opts.max_features,
+                       first_octave=first_octave, num_threads=opts.num_threads)
+    with clock.stage("extract features", len(names)) as st:
+        colmap.create_posed_database(db, model)
+        for i in range(0, len(names), opts.chunk):
+            colmap.extract_features(db, image_dir, names[i : i + opts.chunk], sift, mask_dir=mask_dir)
+            st.progress(min(i + opts.chunk, len(names)))
+    stats = colmap.database_stats(db)
+    kp_median = statistics.median(stats.keypoints.values()) if stats.keypoints else 0
+    pairs = posed_pairs(model.cameras(), neighbours)
+    _match(db, pairs, work_dir, MatchOptions(num_threads=opts.num_threads, seed=opts.seed), clock)
+    with clock.stage("triangulate", 1) as st:
+        mapper = MapperOptions(seed=opts.seed, num_threads=opts.num_threads)
+        out = colmap.triangulate(model, db, image_dir, work_dir / "triangulated", mapper)
+        st.progress(1)
+    return TriangulationResult(model=out, num_pairs=len(pairs), keypoints_median=float(kp_median),
+                               seconds=clock.seconds)
 
 
 def _match(db: Path, pairs: list[tuple[str, str]], work_dir: Path, mopts: MatchOptions, clock: Stages) -> None:
@@ -185,9 +301,11 @@ def _match(db: Path, pairs: list[tuple[str, str]], work_dir: Path, mopts: MatchO
             st.progress(min(i + step, len(pairs)))
 
 
-def _map(db: Path, image_dir: Path, out: Path, mapper: MapperOptions, n: int, clock: Stages) -> list[Model]:
+def _map(db: Path, image_dir: Path, out: Path, mapper: MapperOptions, n: int, clock: Stages,
+         start: Model | None = None) -> list[Model]:
+    """Every model mapping makes, largest first; `start`: a model to go on from."""
     with clock.stage("map", n) as st:
-        return colmap.incremental_mapping(db, image_dir, out, mapper,
+        return colmap.incremental_mapping(db, image_dir, out, mapper, start=start,
                                           on_registered=lambda k: st.progress(min(k, n), registered=k))
 
 

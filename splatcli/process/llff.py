@@ -1,0 +1,62 @@
+"""An LLFF capture (poses_bounds.npy beside images/): poses imported through the one
+reader io/llff.py, points triangulated from the photos (posed.py), the scene box
+from the near and far bounds when no points come out."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..camera import Camera
+from ..errors import SplatError
+from ..events import Stages
+from ..io.llff import read_llff, scaled_focal
+from ..project import Project
+from ..sfm import colmap
+from ..sfm.colmap import CameraSpec
+from .bounds import depth_bounds
+from .config import ProcessConfig
+from .dataset import Dataset, finish_model, refuse_if_strict, stage_images
+from .detect import InputSpec
+from .masks import find_masks_dir, mask_file, stage_all
+from .posed import add_points, posed_facts
+
+
+def from_llff(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: tuple[float, float, float] | None,
+              run: Stages) -> Dataset:
+    assert spec.poses is not None
+    work = stage / "work"
+    st = Project(stage)
+    scene = read_llff(spec.poses)
+    frames = {f.name: f for f in scene.frames}
+    staged, bad = stage_images([(f.source, f.name) for f in scene.frames], work, run, background=background,
+                               orient=False)
+    refuse_if_strict(scene.images_dir, bad, cfg.strict)
+    if not staged:
+        raise SplatError(f"{scene.images_dir}: none of the capture's images could be read ({bad[0]})")
+    specs, cams = [], []
+    for s in staged:
+        f = frames[s.name]
+        focal = scaled_focal(f, s.width, s.height, f"{spec.poses}: {s.name}")
+        params = [focal, focal, s.width / 2.0, s.height / 2.0]
+        specs.append(CameraSpec(s.name, s.width, s.height, "PINHOLE", params, f.viewmat))
+        K = np.array([[focal, 0.0, s.width / 2.0], [0.0, focal, s.height / 2.0], [0.0, 0.0, 1.0]])
+        cams.append(Camera(s.name, s.width, s.height, K, f.viewmat))
+    for n in scene.notes:
+        run.note(n)
+    for b in bad:
+        run.note(f"skipped {b}", "warning")
+    model = colmap.build_model(specs)
+    mdir = find_masks_dir(scene.images_dir)
+    found = {s.name: mask_file(mdir, s.name) for s in staged} if mdir is not None else {}
+    mask_source = stage_all(found, staged, work, run, invert=cfg.invert_masks, where=mdir)
+    tri = None
+    if cfg.triangulate and len(staged) >= 2:
+        model, tri = add_points(model, staged, work, st, cfg, run, mask_source=mask_source)
+    undistorted = finish_model(model, st, work, cfg, run, masks=mask_source)
+    near = np.array([frames[s.name].near for s in staged])
+    far = np.array([frames[s.name].far for s in staged])
+    return Dataset(registered=len(staged), total=len(scene.frames), undistorted=undistorted,
+                   masks=mask_source is not None, mask_source=mask_source, background=background, skipped=bad,
+                   bounds=depth_bounds(cams, near, far), **posed_facts(tri))

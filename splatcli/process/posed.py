@@ -1,0 +1,77 @@
+"""Posed captures (transforms.json, LLFF): real points from their photos.
+
+The poses and intrinsics are known, so no mapping runs: SIFT as for photos, the
+pairs the poses say overlap are matched, and COLMAP's point triangulator makes
+points with every camera held fixed (sfm/reconstruct.triangulate_posed). Training
+then starts from those points, as it does after structure from motion. When too
+few points come out (a featureless synthetic object, photos that do not match the
+poses), the model keeps none and training starts from random points, with a note.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..events import Stages
+from ..io.images import StagedImage, fit_size
+from ..project import Project
+from ..sfm.colmap import Model
+from ..sfm.reconstruct import SfmOptions, triangulate_posed
+from .config import ProcessConfig, sift_max_size
+from .masks import MASKS_DIR
+
+MIN_POINTS = 1000  # fewer triangulated points than this: random points serve training better
+NEIGHBOURS = 10  # images each image is matched with (nearest centres among those facing its way)
+
+
+@dataclass
+class PosedPoints:
+    """What triangulation gave, for the process summary."""
+
+    points: int  # triangulated points (kept or not)
+    kept: bool  # the model carries them (else random initialisation)
+    pairs: int
+    keypoints_median: float
+    mean_reprojection_error: float | None  # pixels
+    mean_track_length: float | None
+
+
+def add_points(model: Model, staged: list[StagedImage], work: Path, st: Project, cfg: ProcessConfig, run: Stages,
+               *, mask_source: str | None) -> tuple[Model, PosedPoints]:
+    """`model` (the posed images in work/input) with triangulated points, or unchanged
+    when too few triangulate. The SfM database ends in the stage project's sfm/."""
+    max_size = sift_max_size(cfg, posed=True)
+    sift_side = min(min(fit_size(s.width, s.height, max_size)) for s in staged)
+    opts = SfmOptions(max_image_size=max_size, max_features=cfg.max_features, first_octave=cfg.first_octave,
+                      seed=cfg.seed, num_threads=cfg.num_threads)
+    res = triangulate_posed(work / "input", model, work, opts, neighbours=NEIGHBOURS, min_side=sift_side,
+                            on_event=run.sink, mask_dir=work / MASKS_DIR if mask_source else None)
+    for k, v in res.seconds.items():
+        run.seconds[k] = run.seconds.get(k, 0.0) + v
+    st.sfm_dir.mkdir(parents=True, exist_ok=True)
+    os.replace(work / "database.db", st.database_path)
+    out = res.model
+    n = out.num_points
+    kept = n >= MIN_POINTS
+    info = PosedPoints(points=n, kept=kept, pairs=res.num_pairs, keypoints_median=res.keypoints_median,
+                       mean_reprojection_error=out.mean_reprojection_error() if kept else None,
+                       mean_track_length=out.mean_track_length() if kept else None)
+    if not kept:
+        run.note(f"only {n} point(s) triangulated from the photos with the given poses (fewer than {MIN_POINTS}: "
+                 "too little texture, or photos that disagree with the poses); training starts from random points")
+        return model, info
+    run.note(f"triangulated {n} points from {res.num_pairs} image pairs with the given poses held fixed "
+             f"(reprojection error {info.mean_reprojection_error:.2f} px, track length "
+             f"{info.mean_track_length:.1f}); training starts from them")
+    return out, info
+
+
+def posed_facts(info: PosedPoints | None) -> dict:
+    """The Dataset fields triangulation fills (none without it)."""
+    if info is None:
+        return {}
+    return {"matcher": "posed", "pairs": info.pairs, "keypoints_median": info.keypoints_median,
+            "mean_reprojection_error": info.mean_reprojection_error, "mean_track_length": info.mean_track_length,
+            "triangulated": info.points}
