@@ -81,13 +81,15 @@ def test_free_cores_become_processes_and_words_for_them(proj, monkeypatch):
 
 
 def test_free_cores_leave_busy_cores_alone(monkeypatch):
+    assert 0 <= auto._idle_share(0.05) <= 1  # this machine's, a share
     monkeypatch.setattr(auto.os, "sched_getaffinity", lambda pid: {0, 1, 2, 3})
+    monkeypatch.setattr(auto.os, "cpu_count", lambda: 4)
+    for idle, free in ((0.35, 1), (0.0, 1), (0.98, 4), (0.5, 2)):  # never fewer than one
+        monkeypatch.setattr(auto, "_idle_share", lambda w, idle=idle: idle)
+        assert auto.free_cores() == free, idle
+    monkeypatch.setattr(auto, "_idle_share", lambda w: None)  # no /proc/stat: the load average
     monkeypatch.setattr(auto.os, "getloadavg", lambda: (2.6, 0.0, 0.0))
     assert auto.free_cores() == 1
-    monkeypatch.setattr(auto.os, "getloadavg", lambda: (9.0, 0.0, 0.0))
-    assert auto.free_cores() == 1  # never fewer than one
-    monkeypatch.setattr(auto.os, "getloadavg", lambda: (0.1, 0.0, 0.0))
-    assert auto.free_cores() == 4
 
 
 def test_train_with_no_options_says_what_it_chose_and_records_it(proj, monkeypatch):

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import os
+import time
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -66,18 +67,39 @@ def inherited(given: dict[str, Any]) -> Chosen:
     return Chosen(dict(given), None, choices)
 
 
-def free_cores() -> int:
-    """Cores this process may use that are not busy now (never fewer than 1): the
-    affinity mask's size less the one-minute load average, rounded."""
+def free_cores(window_s: float = 0.5) -> int:
+    """Cores this process may use that are idle now (never fewer than 1): the affinity
+    mask's size times the idle share of the CPUs over `window_s` (/proc/stat; the load
+    average lags by minutes, both after a job ends and after one starts), or less the
+    one-minute load average where /proc/stat is not there."""
     try:
         cores = len(os.sched_getaffinity(0))
     except (AttributeError, OSError):
         cores = os.cpu_count() or 1
+    idle = _idle_share(window_s)
+    if idle is None:
+        try:
+            busy = os.getloadavg()[0]
+        except OSError:
+            busy = 0.0
+    else:
+        busy = (1.0 - idle) * (os.cpu_count() or cores)
+    return max(1, min(cores, cores - int(round(busy))))
+
+
+def _idle_share(window_s: float) -> float | None:
+    def sample() -> tuple[int, int]:
+        with open("/proc/stat") as f:
+            v = [int(x) for x in f.readline().split()[1:]]
+        return v[3] + (v[4] if len(v) > 4 else 0), sum(v[:8])  # idle + iowait, all but guest time
+
     try:
-        load = os.getloadavg()[0]
-    except OSError:
-        load = 0.0
-    return max(1, min(cores, cores - int(round(load))))
+        i0, t0 = sample()
+        time.sleep(window_s)
+        i1, t1 = sample()
+    except (OSError, ValueError, IndexError):
+        return None
+    return (i1 - i0) / (t1 - t0) if t1 > t0 else None
 
 
 def choose(project: Project, given: dict[str, Any], nproc: int | None, device: torch.device,
