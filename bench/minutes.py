@@ -63,7 +63,7 @@ def markdown(rows: list[dict]) -> str:
                    f"{r['target'] or '–'} | {r['train_s']:.0f} | {r['budget'] or r['plan'] or '–'} | {r['wall_s']:.0f} | "
                    f"{r['steps']} | {r['gaussians']:,} | {r['nproc']} | {r['max_size']} px | {r['eta'] or '–'} | "
                    f"{r['load'][0]} → {r['load'][1]} |")
-    chosen = next((r["chosen"] for r in rows if r["chosen"]), None)
+    chosen = next((r["chosen"] for r in rows if r["args"] == "(none)" and r["chosen"]), None)
     if chosen:
         out += ["", "What a run with no options chose (`summary.chosen`):", ""]
         out += [f"- `{c['option']}` {c['value']}: {c['why']}" for c in chosen]
@@ -74,7 +74,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--runs", default=",".join(RUNS))
     ap.add_argument("--no-write", action="store_true")
+    ap.add_argument("--rewrite", action="store_true", help="only write the section again from the last results")
     args = ap.parse_args()
+    if args.rewrite:
+        write_section(SECTION, markdown(json.loads((OUT / "minutes" / "results.json").read_text())))
+        return
     rows = []
     for label in args.runs.split(","):
         print(f"[{label}] load {loadavg()}", flush=True)

@@ -1,12 +1,14 @@
 """Time to quality, side by side: this version against an earlier commit, in one run.
 
     .venv/bin/python bench/versus.py --against 333d7bf [--scenes lego,fox] [--train-args "--preset fast"]
-                                     [--new-args ""] [--eval-every 250] [--no-write]
+                                     [--new-args ""] [--new-train-args "--time-budget 120"]
+                                     [--eval-every 250] [--no-write]
 
 For each scene (processed once, as bench/train.py does) it trains the earlier commit
 (a git worktree under bench/out/versus/, run with PYTHONPATH pointing at it) and then
 this version, one after the other on the same machine, with the same arguments
-(`--new-args` go to this version only). It plots held-out PSNR against training
+(`--new-args` go to this version only; `--new-train-args` replace them for this version,
+e.g. to run its planned default against the earlier version's best fixed schedule). It plots held-out PSNR against training
 seconds for both in one figure (docs/figures/versus_<scene>.png) and reports the
 training seconds each takes to reach the earlier version's final PSNR (within 0.1 dB).
 Results go to bench/out/versus/results.json and the "## time to quality" section of
@@ -76,7 +78,8 @@ def plot(scene: str, runs: list[dict], path: Path) -> bool:
 def markdown(results: dict) -> str:
     lines = ["## time to quality", "",
              "Measured by `python bench/versus.py`: the earlier commit and this version train the same processed "
-             "scene one after the other in one run (same machine, 2 cores, one torch thread). Seconds are training "
+             "scene one after the other in one run (same machine, 2 cores, one torch thread per process; a planned "
+             "run of this version takes one process per free core). Seconds are training "
              "seconds (held-out evaluation excluded); *to base* is the first held-out evaluation within "
              f"{TOL_DB} dB of the earlier version's final PSNR.", "",
              "| scene | version | arguments | steps | train s | final PSNR | s to base | speed-up | Gaussians | "
@@ -103,6 +106,8 @@ def main() -> None:
     ap.add_argument("--scenes", default="lego")
     ap.add_argument("--train-args", default="--preset fast", help="arguments for both versions")
     ap.add_argument("--new-args", default="", help="extra arguments for this version only")
+    ap.add_argument("--new-train-args", default=None,
+                    help="this version's arguments instead of --train-args (e.g. its planned run: --time-budget 120)")
     ap.add_argument("--eval-every", type=int, default=250)
     ap.add_argument("--no-write", action="store_true")
     args = ap.parse_args()
@@ -114,8 +119,10 @@ def main() -> None:
         common = shlex.split(args.train_args) + [*SCENES[scene][2], "--eval-every", str(args.eval_every)]
         old = train_once(scene, args.against, old_code, common)
         old["args"] = common
-        new = train_once(scene, "this version", REPO, common + shlex.split(args.new_args))
-        new["args"] = common + shlex.split(args.new_args)
+        mine = common if args.new_train_args is None else (
+            shlex.split(args.new_train_args) + [*SCENES[scene][2], "--eval-every", str(args.eval_every)])
+        new = train_once(scene, "this version", REPO, mine + shlex.split(args.new_args))
+        new["args"] = mine + shlex.split(args.new_args)
         fig = FIGURES / f"versus_{scene}.png"
         results[scene] = {"runs": [old, new], "figure": str(fig) if plot(scene, [old, new], fig) else None}
         path.write_text(json.dumps(results, indent=1))
