@@ -77,6 +77,17 @@ def test_grows_by_the_fraction_up_to_the_cap_and_never_past_it():
         assert sp.optimizers[k].state[v]["exp_avg"].shape == v.shape
 
 
+def test_a_cap_raised_after_the_growth_target_is_reached_by_the_windows_end():
+    """--time-budget raises the cap on its curve; one raised after grow_until's target step is
+    reached by the end of the refinement window, not at the 5% floor (fox from its photos,
+    180 s: 17.0k Gaussians and 29.25 dB before, 30.0k and 29.80 dB after, in one run)."""
+    s = MCMCStrategy(MCMCStrategyConfig(max_gaussians=4000, refine_start=0, refine_stop=1000, refine_every=100))
+    assert s.growth_rate(1000, 300) == pytest.approx(4.0 ** (1 / 2) - 1)  # before the target (step 400): 300 and 400
+    rate = s.growth_rate(1000, 600)  # past the target: the refinements at 600, 700, 800, 900 remain
+    assert rate == pytest.approx(4.0 ** (1 / 4) - 1) and rate > s.config.growth
+    assert s.growth_rate(4000, 600) == s.config.growth  # at the cap: nothing to reach
+
+
 def test_dead_gaussians_move_onto_live_ones_with_fresh_moments():
     op = torch.full((50,), 0.6)
     op[:10] = 0.001  # dead

@@ -157,6 +157,8 @@ class MCMCStrategy(Strategy):
         paper's 5% per 100 steps fills 30k-step budgets; short CPU schedules need more)."""
         target = self.refine_start + self.config.grow_until * (self.refine_stop - self.refine_start)
         left = math.floor((target - step) / self.refine_every) + 1  # refinements until the target, this one included
+        if left <= 0:  # a cap raised after the target (--time-budget's curve): reach it by the window's end
+            left = math.floor((self.refine_stop - 1 - step) / self.refine_every) + 1
         if n <= 0 or n >= self.cap or left <= 0:
             return self.config.growth
         return max(self.config.growth, (self.cap / n) ** (1.0 / left) - 1.0)

@@ -153,6 +153,6 @@ def summary_line(chosen: Chosen, budget_s: float | None) -> str:
     what = ", ".join(f"{c.option.replace('_', '-')} {c.value}" for c in chosen.choices)
     if budget_s is None:
         return f"chose {what}"
-    eta = f"trains for {budget_s / 60:.0f} min" if budget_s >= 90 else f"trains for {budget_s:.0f} s"
+    eta = f"trains for {budget_s / 60:.0f} min" if budget_s >= 180 else f"trains for {budget_s:.0f} s"
     return (f"{eta} ({what}); more quality: --time-budget {int(budget_s * 3)}, sooner: --time-budget "
             f"{int(max(30, budget_s / 4))}; every choice yields to its option (train --help)")
