@@ -305,6 +305,25 @@ def test_time_budget_plans_a_compressed_schedule(tmp_path):
     assert cfg["sh_degree_interval"] == max(1, round(600 * ratio))
 
 
+def test_a_plan_prices_each_step_by_its_resolution():
+    """The speed measured on cheap coarse steps is not promised for the whole run: each
+    remaining step costs OVERHEAD + its scale^2 (plan.step_costs), and the plan is the longest
+    run whose remaining cost fits the budget. Without coarse steps it is the measured rate
+    times the time left, as before."""
+    from splatcli.train.plan import TimePlan, step_costs
+
+    cfg = make_config("fast", time_budget=600.0)
+    plan = TimePlan.start(cfg)
+    start = plan.scaled(cfg, 7000)
+    n = plan.replan(start, 170, 5.0).iterations  # 34 views/s, all at 1/4 size
+    unit = 5.0 / step_costs(start, 7000, 0, 170).sum()
+    assert step_costs(cfg, n, 170, n).sum() * unit <= 595.0 < step_costs(cfg, n + 1, 170, n + 1).sum() * unit
+    assert n < 0.4 * 170 / 5.0 * 600  # extrapolating the coarse speed would plan 20k steps
+    flat = make_config("fast", time_budget=600.0, coarse_scale=1.0)
+    plan = TimePlan.start(flat)
+    assert abs(plan.replan(plan.scaled(flat, 7000), 170, 5.0).iterations - (170 + 170 / 5.0 * 595.0)) <= 1
+
+
 def test_plan_keeps_a_switched_off_reset_off():
     from splatcli.train.plan import TimePlan
 

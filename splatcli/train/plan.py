@@ -4,7 +4,13 @@ machine it runs on (issue 35).
 The run measures its own speed over its first seconds (`probe_s`) and plans how many
 views it can train in the rest of the budget; it plans again every `replan_every` of the
 budget, since steps slow down as the model grows and a shared machine changes speed.
-Once the budget is spent the main schedule ends at that step. What a plan sets:
+Once the budget is spent the main schedule ends at that step. A step's cost is taken as
+OVERHEAD + scale^2 (its pixels; the Gaussian curve below follows the same area): the
+seconds per unit come from the steps since the last plan, and the plan is the longest run
+whose remaining steps, at their own resolutions, fit the budget. Extrapolating the
+coarse steps' speed instead planned fox at 480 px for 20k steps at its first plans and
+5.5k at its last, and the refinement window closed before the count reached its cap.
+What a plan sets:
 
 * the preset's schedule in proportion (refinement window, SH growth, fine-tune), with
   refinement at least every MIN_REFINE_EVERY steps;
@@ -28,6 +34,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+
 from .. import options
 from .config import TrainConfig
 
@@ -36,6 +44,22 @@ SCHEDULE = options.steps_options(TrainConfig, "schedule")
 MIN_ITERATIONS = 30  # a plan never shrinks the run below this
 MIN_REFINE_EVERY = 25  # steps between refinements, at least (or the template's, when smaller)
 LR_HOLD = 0.6  # the fraction of a planned run the means' learning rate stays at its initial value
+# A step's cost that does not grow with its pixels, as a share of a full-size step's: fox at
+# 480 px, 2 processes, trained 31.6 steps/s at 1/4 of the size and 4.0 at full ((a + 1) / (a + 1/16) = 7.9).
+OVERHEAD = 0.07
+
+
+def step_costs(cfg: TrainConfig, iterations: int, start: int, stop: int) -> np.ndarray:
+    """The relative cost (OVERHEAD + scale^2) of steps [start, stop) of `cfg` run for
+    `iterations` steps: the coarse-to-fine resolution as `TrainConfig.train_scale` has it."""
+    steps = np.arange(start, stop, dtype=np.float64)
+    end = cfg.coarse_until * iterations
+    if cfg.coarse_scale >= 1.0 or end <= 0:
+        scale = np.ones_like(steps)
+    else:
+        scale = np.minimum(1.0, np.ceil((cfg.coarse_scale + (1.0 - cfg.coarse_scale) * steps / end) * 8) / 8)
+        scale[steps >= end] = 1.0
+    return OVERHEAD + scale**2
 
 
 @dataclass
@@ -84,15 +108,28 @@ class TimePlan:
         if views >= cfg.iterations:
             return None
         last = self.history[-1] if self.history else {"step": 0, "elapsed_s": 0.0}
-        rate = (views - last["step"]) / max(elapsed - last["elapsed_s"], 1e-9)  # views per training second, recently
+        spent = max(elapsed - last["elapsed_s"], 1e-9)
+        rate = (views - last["step"]) / spent  # views per training second, recently
+        # Seconds per unit of cost, from the steps since the last plan as they ran.
+        unit = spent / max(float(step_costs(cfg, cfg.iterations, last["step"], views).sum()), 1e-9)
         # The compaction fine-tune (if any) runs after the main steps at about the same speed.
         share = self.template["iterations"] / (self.template["iterations"] + (
             self.template.get("compact_finetune", 0) if cfg.compact.enabled else 0))
-        # At least one more step: this step's post-processing hooks have run already.
-        iterations = views + max(1, int(rate * (self.budget_s - elapsed) * share))
-        iterations = max(iterations, min(MIN_ITERATIONS, self.template["iterations"]))
-        # The budget until the next plan: where the run will be then, at this speed.
-        ahead = min(iterations, views + int(rate * self.replan_every * self.budget_s))
+        left = max(self.budget_s - elapsed, 0.0) * share / unit  # cost units the budget still holds
+        # The longest run whose remaining steps fit (the total grows with the run's length);
+        # at least one more step: this step's post-processing hooks have run already.
+        lo, hi = views + 1, views + 1 + int(left / (OVERHEAD + min(cfg.coarse_scale, 1.0) ** 2))
+        while lo < hi:
+            mid = (lo + hi + 1) // 2
+            if step_costs(cfg, mid, views, mid).sum() <= left:
+                lo = mid
+            else:
+                hi = mid - 1
+        iterations = max(lo, min(MIN_ITERATIONS, self.template["iterations"]))
+        # The budget until the next plan: where the run will be then, at the planned speeds.
+        until_next = self.replan_every * self.budget_s / unit
+        ahead = views + int(np.searchsorted(np.cumsum(step_costs(cfg, iterations, views, iterations)), until_next))
+        ahead = min(iterations, ahead)
         planned = self.scaled(cfg, iterations, ahead)
         self.history.append({"step": views, "elapsed_s": round(elapsed, 3), "steps_per_s": round(rate, 3),
                              "iterations": iterations,
