@@ -21,7 +21,7 @@ from pathlib import Path
 
 import torch
 
-from common import write_section
+from common import publish
 from splatcli.io.checkpoint import load_checkpoint
 from splatcli.project import Project
 from splatcli.render.rasterize import rasterize
@@ -95,10 +95,7 @@ def main() -> None:
     for name, size, nv, n, tot in rows:
         out.append(f"| {name} | {size} | {nv} | {n:,} | " + " | ".join(f"{tot[b]:,.0f}" for b in BLOCKS)
                    + f" | {tot['auto']:,.0f} | {100 * (tot['auto'] / tot['best'] - 1):.1f}% |")
-    text = "\n".join(out) + "\n"
-    if not args.no_write:
-        write_section("## Block size", text)
-    print(text)
+    publish("## Block size", "\n".join(out) + "\n", write=not args.no_write)
 
 
 if __name__ == "__main__":

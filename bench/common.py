@@ -10,18 +10,22 @@ without editing it. The tests import the same modules: pyproject.toml's pytest
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import importlib.util
 import json
 import os
+import shlex
 import shutil
 import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import ModuleType
+from typing import Any
 
 from splatcli.eval.curve import read_curve
 from splatcli.project import Project
@@ -142,6 +146,15 @@ class Run:
         """The JSON object a `--json` command printed last."""
         return json.loads(self.stdout.strip().splitlines()[-1])
 
+    def train_record(self, proj: Path, **extra) -> dict:
+        """What a benchmark keeps of a `train --json` run of `proj` (with `extra`): steps, training
+        and wall seconds, final PSNR, Gaussians, peak memory, the held-out curve, the load."""
+        s = self.summary
+        return {**extra, "steps": s["steps"], "train_seconds": s["train_seconds"], "final_psnr": s["psnr"],
+                "num_gaussians": s["num_gaussians"], "comm_seconds": s.get("comm_seconds"),
+                "wall_seconds": round(self.wall_s, 1), "peak_rss_mb": self.peak_mb,
+                "curve": psnr_curve(proj), "load_before": [self.load[0]], "load_after": [self.load[1]]}
+
 
 def run(cmd: list[str], log: Path | None = None, *, cwd: Path = REPO, env: dict | None = None,
         append: bool = False) -> Run:
@@ -169,6 +182,17 @@ def splatcli(args: list[str], log: Path, *, cwd: Path = REPO, env: dict | None =
 # ---- curves, plots, the document ------------------------------------------------------
 
 
+def train_fresh(scene: str, dest: Path, args: list[str], *, cwd: Path = REPO, env: dict | None = None,
+                **extra) -> dict:
+    """`splatcli train --device cpu ARGS` on a fresh copy (`dest`) of the processed `scene`, its
+    log beside it (dest.log): what a benchmark keeps of it (`Run.train_record`, with `extra`)."""
+    proj = fresh_copy(ensure_processed(scene), dest)
+    cmd = ["train", str(proj), "--device", "cpu", *args]
+    print(f"[{scene}/{dest.name}] {' '.join(cmd)}", flush=True)
+    r = splatcli(cmd, dest.parent / f"{dest.name}.log", cwd=cwd, env=env)
+    return r.train_record(proj, **extra)
+
+
 def psnr_curve(project: Path) -> list[tuple[float, float]]:
     """Held-out PSNR against training seconds, from the project's train log (splatcli.eval.curve)."""
     return [(p.elapsed_s, p.psnr) for p in read_curve(Project(Path(project)).train_log_path)]
@@ -179,33 +203,79 @@ def seconds_to(curve: list[tuple[float, float]], target: float) -> float | None:
     return next((t for t, p in curve if p >= target - TOL_DB), None)
 
 
-def figure(width: float, height: float, ncols: int = 1):
-    """(figure, axes) drawn off-screen, or None where matplotlib (the `plots` extra) is absent."""
+def psnr_figure(path: Path, scene: str, curves: dict[str, list[tuple[float, float]]],
+                side: Callable[[Any], None] | None = None) -> bool:
+    """Held-out PSNR against training seconds, one line per labelled curve, drawn off-screen
+    into the PNG `path` (with `side` drawing on a second axis beside it); False where
+    matplotlib (the `plots` extra) is absent."""
     try:
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
     except ImportError:
-        return None
-    fig = Figure(figsize=(width, height), dpi=100)
+        return False
+    fig = Figure(figsize=(6 if side is None else 10, 4), dpi=100)
     FigureCanvasAgg(fig)
-    return fig, fig.subplots(1, ncols)
-
-
-def plot_psnr_curves(ax, curves: dict[str, list[tuple[float, float]]], title: str) -> None:
-    """Held-out PSNR against training seconds, one line per labelled curve."""
+    axes = fig.subplots(1, 1 if side is None else 2)
+    ax = axes if side is None else axes[0]
     for label, curve in curves.items():
         ax.plot([t for t, _ in curve], [p for _, p in curve], "o-", label=label)
     ax.set_xlabel("training time (s)")
     ax.set_ylabel("held-out PSNR (dB)")
-    ax.set_title(title)
+    ax.set_title(f"{scene}: PSNR against training time")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
-
-
-def save_figure(fig, path: Path) -> None:
+    if side is not None:
+        side(axes[1])
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, format="png")
+    return True
+
+
+def scene_parser(doc: str, scenes: str, train_args: str) -> argparse.ArgumentParser:
+    """The options of a benchmark that trains scenes (`train_scenes`); the script adds its own."""
+    ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scenes", default=scenes, help="comma-separated (bench/common.py SCENES)")
+    ap.add_argument("--train-args", default=train_args, help="train's arguments (each scene adds its own)")
+    ap.add_argument("--eval-every", type=int, default=250)
+    ap.add_argument("--no-write", action="store_true", help="leave docs/benchmarks.md as it is")
+    return ap
+
+
+def train_scenes(out: Path, scenes: str, train_args: str, eval_every: int, name: str,
+                 runs: Callable[[str, list[str]], list[dict]],
+                 plot: Callable[[str, list[dict], Path], bool]) -> dict:
+    """For each scene of `scenes` (comma-separated): `runs(scene, args)`, args being `train_args`,
+    the scene's own and --eval-every; their figure by `plot` (docs/figures/<name>_<scene>.png).
+    Kept in out/results.json beside the scenes of earlier runs, which it returns."""
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "results.json"
+    results = json.loads(path.read_text()) if path.exists() else {}
+    for scene in [s for s in scenes.split(",") if s]:
+        done = runs(scene, shlex.split(train_args) + [*SCENES[scene][2], "--eval-every", str(eval_every)])
+        fig = FIGURES / f"{name}_{scene}.png"
+        results[scene] = {"runs": done, "figure": str(fig) if plot(scene, done, fig) else None}
+        path.write_text(json.dumps(results, indent=1))
+    return results
+
+
+def scene_tables(head: list[str], results: dict, rows: Callable[[str, list[dict]], list[str]]) -> str:
+    """Markdown for `train_scenes`' results: `head` (heading, text, table header), then each
+    scene's table rows (`rows(scene, runs)`) and its figure, where one was drawn."""
+    lines = list(head)
+    for scene, r in results.items():
+        lines += rows(scene, r["runs"])
+        if r.get("figure"):
+            lines += ["", f"![{scene}](figures/{Path(r['figure']).name})", ""]
+    return "\n".join(lines) + "\n"
+
+
+def publish(heading: str, text: str, *, write: bool) -> None:
+    """A benchmark's section: printed, and written into docs/benchmarks.md (`write_section`)
+    unless the run said --no-write."""
+    print(text)
+    if write:
+        write_section(heading, text)
 
 
 def write_section(heading: str, text: str, doc: Path = DOC) -> None:

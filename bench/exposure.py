@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common import REPO, SCENES, ensure_processed, fresh_copy, loadavg, splatcli, write_section
+from common import REPO, SCENES, ensure_processed, fresh_copy, loadavg, publish, splatcli
 from splatcli.io.checkpoint import load_checkpoint
 from splatcli.project import Project
 
@@ -149,10 +149,7 @@ def main() -> None:
         lines.append(f"| {r['scene']} | {r['photos']} | {r['appearance']} | {r['steps']} | {r['train_seconds']:.0f} | "
                      f"{r['psnr']:.2f} / {r['ssim']:.4f} | {r['psnr_color_fit']:.2f} | {d} | {fit} | "
                      f"{r['load'][0]} → {r['load'][1]} |")
-    text = "\n".join(lines) + "\n"
-    print(text)
-    if not args.no_write:
-        write_section("## exposure", text)
+    publish("## exposure", "\n".join(lines) + "\n", write=not args.no_write)
 
 
 if __name__ == "__main__":

@@ -21,7 +21,7 @@ import os
 import shutil
 import time
 
-from common import REPO, loadavg, make_scene, splatcli, write_section
+from common import REPO, loadavg, make_scene, publish, splatcli
 
 OUT = REPO / "bench" / "out" / "masks"
 HEADING = "## masks"
@@ -90,10 +90,7 @@ def main() -> None:
     verdict = "met" if gain >= TARGET_DB else "not met"
     lines += ["", f"Gain of `--mask-mode ignore`: **{gain:+.2f} dB** held-out PSNR (issue 15's target, at least "
               f"+{TARGET_DB:.0f} dB: {verdict}).", ""]
-    text = "\n".join(lines)
-    print(text)
-    if not args.no_write:
-        write_section(HEADING, text)
+    publish(HEADING, "\n".join(lines), write=not args.no_write)
 
 
 if __name__ == "__main__":

@@ -15,7 +15,7 @@ import argparse
 import json
 import time
 
-from common import loadavg, write_section
+from common import loadavg, publish
 from train import OUT, train_variant
 
 
@@ -57,10 +57,7 @@ def main() -> None:
                      f"({r['default_count']:,}) | {r['steps']} | {r['train_seconds']:.0f} | "
                      f"{r['final_psnr']:.2f} / {r['final_ssim']:.4f} | {r['num_gaussians']:,} | "
                      f"{r['load'][0]} → {r['load'][1]} |")
-    text = "\n".join(lines) + "\n"
-    print(text)
-    if not args.no_write:
-        write_section("## MCMC at one budget", text)
+    publish("## MCMC at one budget", "\n".join(lines) + "\n", write=not args.no_write)
 
 
 if __name__ == "__main__":

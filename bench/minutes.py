@@ -18,7 +18,7 @@ import re
 
 import torch
 
-from common import OUT, SPLATCLI, ensure_processed, fresh_copy, loadavg, run, write_section
+from common import OUT, SPLATCLI, ensure_processed, fresh_copy, loadavg, publish, run, write_section
 
 # label -> (scene, train arguments, target PSNR, budget seconds or None)
 RUNS = {
@@ -86,10 +86,7 @@ def main() -> None:
         print(json.dumps(rows[-1]), flush=True)
     (OUT / "minutes").mkdir(parents=True, exist_ok=True)
     (OUT / "minutes" / "results.json").write_text(json.dumps(rows, indent=1))
-    text = markdown(rows)
-    print(text)
-    if not args.no_write:
-        write_section(SECTION, text)
+    publish(SECTION, markdown(rows), write=not args.no_write)
 
 
 if __name__ == "__main__":

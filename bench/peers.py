@@ -34,7 +34,7 @@ from pathlib import Path
 
 import torch
 
-from common import REPO, write_section
+from common import REPO, publish
 from scenes import workloads
 from splatcli.gaussians import SH_C0
 from splatcli.render import rasterize
@@ -198,10 +198,7 @@ def main() -> None:
             out += ["", f"Goals at {nt} thread(s), worst {worst[0]:.2f}x ({worst[1]}): issue 35's at least 2x on "
                         f"every workload {'met' if worst[0] >= 2 else 'NOT met'}; issue 12's 3x "
                         f"{'met' if worst[0] >= 3 else 'NOT met'}."]
-    text = "\n".join(out) + "\n"
-    print(text)
-    if not args.no_write and rows:
-        write_section("## Rasterizer against OpenSplat (same run)", text)
+    publish("## Rasterizer against OpenSplat (same run)", "\n".join(out) + "\n", write=not args.no_write and bool(rows))
 
 
 if __name__ == "__main__":

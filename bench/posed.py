@@ -31,20 +31,16 @@ import tempfile
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-sys.path.append(str(REPO / "tests"))  # tests/align.py (pose comparison), a test helper outside the package
+import numpy as np
 
-import numpy as np  # noqa: E402
-from _doc import write_section  # noqa: E402  (bench/ is on sys.path when run as a script)
-
-from align import compare_poses  # noqa: E402  (tests/align.py)
-from splatcli.camera import Camera  # noqa: E402
-from splatcli.io.llff import to_poses_bounds  # noqa: E402
-from splatcli.io.transforms import read_transforms  # noqa: E402
-from splatcli.process.run import ProcessConfig, ProcessResult, process  # noqa: E402
-from splatcli.project import Project  # noqa: E402
-from splatcli.sfm.colmap import read_scene  # noqa: E402
+from align import compare_poses
+from common import REPO, make_scene, publish
+from splatcli.camera import Camera
+from splatcli.io.llff import to_poses_bounds
+from splatcli.io.transforms import read_transforms
+from splatcli.process.run import ProcessConfig, ProcessResult, process
+from splatcli.project import Project
+from splatcli.sfm.colmap import read_scene
 
 SECTION = "## process: photo collections and posed captures (issue 38)"
 TRAIN = ["--preset", "fast", "--iterations", "1000", "--max-size", "480", "--eval-every", "250"]
@@ -111,8 +107,7 @@ def two_camera_scene(out: Path, zoom: float = 1.25, exif: bool = True) -> tuple[
     import cv2
     from PIL import Image
 
-    sys.path.insert(0, str(REPO / "sample_data"))
-    from make_scene import render_scene  # type: ignore[import-not-found]
+    render_scene = make_scene().render_scene
 
     scene = out / "scene"
     if not scene.is_dir():
@@ -255,11 +250,7 @@ def main() -> None:
             "pycolmap's largest model) could not be measured.",
             "",
         ]
-    text = "\n".join(out)
-    print(text)
-    if not args.no_write:
-        write_section(SECTION, text)
-        print(f"wrote {SECTION!r} in docs/benchmarks.md")
+    publish(SECTION, "\n".join(out), write=not args.no_write)
 
 
 if __name__ == "__main__":

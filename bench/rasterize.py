@@ -36,7 +36,7 @@ from pathlib import Path
 
 import torch
 
-from common import write_section
+from common import publish
 from scenes import Workload, workloads
 from splatcli.render import rasterize
 from splatcli.render.projection import project
@@ -335,10 +335,7 @@ def main() -> None:
     out += [ALTERNATIVES]
     if args.extra:
         out += [Path(args.extra).read_text(encoding="utf-8").rstrip("\n"), ""]
-    text = "\n".join(out)
-    print(text)
-    if not args.no_write:
-        write_section(SECTION, text)
+    publish(SECTION, "\n".join(out), write=not args.no_write)
 
 
 if __name__ == "__main__":

@@ -14,7 +14,7 @@ import os
 import tempfile
 from pathlib import Path
 
-from common import SPLATCLI, run, write_section
+from common import SPLATCLI, publish, run
 from splatcli.eval.curve import read_log
 from tiny_project import make_tiny_project  # the scene tests/test_soak.py runs
 
@@ -48,10 +48,7 @@ def main() -> None:
         rss = [x["rss_mb"] for x in late]
         out += ["", f"From step 5,000 to {args.steps:,}: RSS {min(rss)}-{max(rss)} MiB "
                 f"({max(rss) - min(rss)} MiB spread), open descriptors {sorted({x['open_fds'] for x in late})}."]
-    text = "\n".join(out) + "\n"
-    if not args.no_write:
-        write_section("## soak", text)
-    print(text)
+    publish("## soak", "\n".join(out) + "\n", write=not args.no_write)
 
 
 if __name__ == "__main__":

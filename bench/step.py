@@ -25,7 +25,7 @@ import time
 
 import torch
 
-from common import write_section
+from common import publish
 from splatcli.io.checkpoint import load_checkpoint
 from splatcli.project import Project
 from splatcli.render.composite import choose_block, composite, estimate_pairs, make_plan
@@ -114,10 +114,7 @@ def main() -> None:
     for n, size, m, med in rows:
         out.append(f"| {n:,} | {size} | {m:,.0f} | " + " | ".join(f"{med[k]:.1f}" for k in STAGES)
                    + f" | {sum(med.values()):.1f} |")
-    text = "\n".join(out) + "\n"
-    if not args.no_write:
-        write_section("## Where a training step goes", text)
-    print(text)
+    publish("## Where a training step goes", "\n".join(out) + "\n", write=not args.no_write)
 
 
 if __name__ == "__main__":

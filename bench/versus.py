@@ -17,27 +17,22 @@ docs/benchmarks.md, with the load average before and after each run.
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import shlex
 import subprocess
 from pathlib import Path
 
 from common import (
-    FIGURES,
     REPO,
     SCENES,
     TOL_DB,
-    ensure_processed,
-    figure,
-    fresh_copy,
-    plot_psnr_curves,
-    psnr_curve,
-    save_figure,
+    psnr_figure,
+    publish,
+    scene_parser,
+    scene_tables,
     seconds_to,
-    splatcli,
-    write_section,
+    train_fresh,
+    train_scenes,
 )
 
 OUT = REPO / "bench" / "out" / "versus"
@@ -52,27 +47,14 @@ def worktree(rev: str) -> Path:
 
 
 def train_once(scene: str, label: str, code: Path, args: list[str]) -> dict:
-    proj = fresh_copy(ensure_processed(scene), OUT / scene / label.replace(" ", "_"))
     # Run from inside `code`: `python -m` puts the working directory first on sys.path,
     # ahead of the editable install of this checkout.
     env = {**os.environ, "PYTHONPATH": str(code), "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1")}
-    cmd = ["train", str(proj), "--device", "cpu", *args]
-    print(f"[{scene}/{label}] {' '.join(cmd)}", flush=True)
-    r = splatcli(cmd, OUT / scene / f"{label}.log", cwd=code, env=env)
-    s = r.summary
-    return {"label": label, "steps": s["steps"], "train_seconds": s["train_seconds"], "final_psnr": s["psnr"],
-            "num_gaussians": s["num_gaussians"], "wall_seconds": round(r.wall_s, 1), "peak_rss_mb": r.peak_mb,
-            "curve": psnr_curve(proj), "load_before": [r.load[0]], "load_after": [r.load[1]]}
+    return train_fresh(scene, OUT / scene / label.replace(" ", "_"), args, cwd=code, env=env, label=label)
 
 
 def plot(scene: str, runs: list[dict], path: Path) -> bool:
-    made = figure(6, 4)
-    if made is None:
-        return False
-    fig, ax = made
-    plot_psnr_curves(ax, {r["label"]: r["curve"] for r in runs}, f"{scene}: PSNR against training time")
-    save_figure(fig, path)
-    return True
+    return psnr_figure(path, scene, {r["label"]: r["curve"] for r in runs})
 
 
 def markdown(results: dict) -> str:
@@ -85,51 +67,41 @@ def markdown(results: dict) -> str:
              "| scene | version | arguments | steps | train s | final PSNR | s to base | speed-up | Gaussians | "
              "peak RSS MB | load before → after |",
              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
-    for scene, r in results.items():
-        old, new = r["runs"]
-        target = old["final_psnr"]
-        t_old, t_new = seconds_to(old["curve"], target), seconds_to(new["curve"], target)
-        for run_, t in ((old, t_old), (new, t_new)):
-            sp = f"{t_old / t:.2f}x" if t and t_old and run_ is new else ("1x" if run_ is old else "–")
-            lines.append(f"| {scene} | {run_['label']} | `{' '.join(run_['args'])}` | {run_['steps']} | "
-                         f"{run_['train_seconds']:.0f} | {run_['final_psnr']:.2f} | "
-                         f"{'–' if t is None else f'{t:.0f}'} | {sp} | {run_['num_gaussians']} | "
-                         f"{run_['peak_rss_mb']} | {run_['load_before'][0]} → {run_['load_after'][0]} |")
-        if r.get("figure"):
-            lines += ["", f"![{scene}](figures/{Path(r['figure']).name})", ""]
-    return "\n".join(lines) + "\n"
+    return scene_tables(lines, results, rows)
+
+
+def rows(scene: str, runs: list[dict]) -> list[str]:
+    old, new = runs
+    target = old["final_psnr"]
+    t_old, t_new = seconds_to(old["curve"], target), seconds_to(new["curve"], target)
+    out = []
+    for run_, t in ((old, t_old), (new, t_new)):
+        sp = f"{t_old / t:.2f}x" if t and t_old and run_ is new else ("1x" if run_ is old else "–")
+        out.append(f"| {scene} | {run_['label']} | `{' '.join(run_['args'])}` | {run_['steps']} | "
+                   f"{run_['train_seconds']:.0f} | {run_['final_psnr']:.2f} | "
+                   f"{'–' if t is None else f'{t:.0f}'} | {sp} | {run_['num_gaussians']} | "
+                   f"{run_['peak_rss_mb']} | {run_['load_before'][0]} → {run_['load_after'][0]} |")
+    return out
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = scene_parser(__doc__, "lego", "--preset fast")
     ap.add_argument("--against", required=True, help="the earlier commit")
-    ap.add_argument("--scenes", default="lego")
-    ap.add_argument("--train-args", default="--preset fast", help="arguments for both versions")
     ap.add_argument("--new-args", default="", help="extra arguments for this version only")
     ap.add_argument("--new-train-args", default=None,
                     help="this version's arguments instead of --train-args (e.g. its planned run: --time-budget 120)")
-    ap.add_argument("--eval-every", type=int, default=250)
-    ap.add_argument("--no-write", action="store_true")
     args = ap.parse_args()
-    OUT.mkdir(parents=True, exist_ok=True)
     old_code = worktree(args.against)
-    path = OUT / "results.json"
-    results = json.loads(path.read_text()) if path.exists() else {}
-    for scene in [s for s in args.scenes.split(",") if s]:
-        common = shlex.split(args.train_args) + [*SCENES[scene][2], "--eval-every", str(args.eval_every)]
+
+    def both(scene: str, common: list[str]) -> list[dict]:
         old = train_once(scene, args.against, old_code, common)
-        old["args"] = common
         mine = common if args.new_train_args is None else (
             shlex.split(args.new_train_args) + [*SCENES[scene][2], "--eval-every", str(args.eval_every)])
-        new = train_once(scene, "this version", REPO, mine + shlex.split(args.new_args))
-        new["args"] = mine + shlex.split(args.new_args)
-        fig = FIGURES / f"versus_{scene}.png"
-        results[scene] = {"runs": [old, new], "figure": str(fig) if plot(scene, [old, new], fig) else None}
-        path.write_text(json.dumps(results, indent=1))
-    text = markdown(results)
-    if not args.no_write:
-        write_section("## time to quality", text)
-    print(text)
+        mine += shlex.split(args.new_args)
+        return [{**old, "args": common}, {**train_once(scene, "this version", REPO, mine), "args": mine}]
+
+    results = train_scenes(OUT, args.scenes, args.train_args, args.eval_every, "versus", both, plot)
+    publish("## time to quality", markdown(results), write=not args.no_write)
 
 
 if __name__ == "__main__":

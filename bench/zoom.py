@@ -21,7 +21,7 @@ import json
 import os
 from pathlib import Path
 
-from common import REPO, ensure_processed, fresh_copy, loadavg, splatcli, write_section
+from common import REPO, ensure_processed, fresh_copy, loadavg, publish, splatcli
 
 OUT = REPO / "bench" / "out" / "zoom"
 TRAIN_SIZE = 200
@@ -72,10 +72,7 @@ def main() -> None:
         print(f"[{args.scene}/{variant}] {json.dumps(r)}", flush=True)
         runs[variant] = r
     (OUT / f"{args.scene}.json").write_text(json.dumps(runs, indent=1))
-    text = section(args, runs)
-    print(text)
-    if not args.no_write:
-        write_section("## zoom", text)
+    publish("## zoom", section(args, runs), write=not args.no_write)
 
 
 def section(args: argparse.Namespace, runs: dict) -> str:

@@ -79,6 +79,19 @@ def stage_images(files: list[tuple[Path, str]], work: Path, run: Stages, *,
     return out, bad
 
 
+def stage_posed(files: list[tuple[Path, str]], work: Path, run: Stages, cfg: ProcessConfig, *, where: Path,
+                what: str, background: tuple[float, float, float] | None,
+                expect: dict[str, tuple[int, int]] | None = None) -> tuple[list[StagedImage], list[str]]:
+    """stage_images for an input that brings its poses (a COLMAP model, transforms.json, LLFF),
+    images as they are stored: --strict refuses any unreadable one, and none readable is an
+    error naming `where` (`what`: the images as the message calls them, "the model's images")."""
+    staged, bad = stage_images(files, work, run, background=background, orient=False, expect=expect)
+    refuse_if_strict(where, bad, cfg.strict)
+    if not staged:  # before any note: a failed run says one line
+        raise SplatError(f"{where}: none of {what} could be read ({bad[0]})")
+    return staged, bad
+
+
 def finish_model(model: Model, st: Project, work: Path, cfg: ProcessConfig, run: Stages, *,
                  masks: str | None) -> bool:
     """Write images/, masks/ and sfm/sparse/0 (PINHOLE) into the stage folder; `masks`

@@ -9,7 +9,6 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import Camera
-from ..errors import SplatError
 from ..events import Stages
 from ..io.llff import read_llff, scaled_focal
 from ..project import Project
@@ -17,10 +16,10 @@ from ..sfm import colmap
 from ..sfm.colmap import CameraSpec
 from .bounds import depth_bounds
 from .config import ProcessConfig
-from .dataset import Dataset, finish_model, refuse_if_strict, stage_images
+from .dataset import Dataset, stage_posed
 from .detect import InputSpec
 from .masks import find_masks_dir, mask_file, stage_all
-from .posed import add_points, posed_facts
+from .posed import finish_posed
 
 
 def from_llff(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: tuple[float, float, float] | None,
@@ -30,11 +29,8 @@ def from_llff(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: tupl
     st = Project(stage)
     scene = read_llff(spec.poses)
     frames = {f.name: f for f in scene.frames}
-    staged, bad = stage_images([(f.source, f.name) for f in scene.frames], work, run, background=background,
-                               orient=False)
-    refuse_if_strict(scene.images_dir, bad, cfg.strict)
-    if not staged:
-        raise SplatError(f"{scene.images_dir}: none of the capture's images could be read ({bad[0]})")
+    staged, bad = stage_posed([(f.source, f.name) for f in scene.frames], work, run, cfg, where=scene.images_dir,
+                              what="the capture's images", background=background)
     specs, cams = [], []
     for s in staged:
         f = frames[s.name]
@@ -51,12 +47,9 @@ def from_llff(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: tupl
     mdir = find_masks_dir(scene.images_dir)
     found = {s.name: mask_file(mdir, s.name) for s in staged} if mdir is not None else {}
     mask_source = stage_all(found, staged, work, run, invert=cfg.invert_masks, where=mdir)
-    tri = None
-    if cfg.triangulate and len(staged) >= 2:
-        model, tri = add_points(model, staged, work, st, cfg, run, mask_source=mask_source)
-    undistorted = finish_model(model, st, work, cfg, run, masks=mask_source)
+    undistorted, facts = finish_posed(model, staged, work, st, cfg, run, mask_source=mask_source)
     near = np.array([frames[s.name].near for s in staged])
     far = np.array([frames[s.name].far for s in staged])
     return Dataset(registered=len(staged), total=len(scene.frames), undistorted=undistorted,
                    masks=mask_source is not None, mask_source=mask_source, background=background, skipped=bad,
-                   bounds=depth_bounds(cams, near, far), **posed_facts(tri))
+                   bounds=depth_bounds(cams, near, far), **facts)

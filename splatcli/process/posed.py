@@ -20,6 +20,7 @@ from ..project import Project
 from ..sfm.colmap import Model
 from ..sfm.reconstruct import SfmOptions, triangulate_posed
 from .config import ProcessConfig, sift_max_size
+from .dataset import finish_model
 from .masks import MASKS_DIR
 
 MIN_POINTS = 1000  # fewer triangulated points than this: random points serve training better
@@ -66,6 +67,17 @@ def add_points(model: Model, staged: list[StagedImage], work: Path, st: Project,
              f"(reprojection error {info.mean_reprojection_error:.2f} px, track length "
              f"{info.mean_track_length:.1f}); training starts from them")
     return out, info
+
+
+def finish_posed(model: Model, staged: list[StagedImage], work: Path, st: Project, cfg: ProcessConfig, run: Stages,
+                 *, mask_source: str | None) -> tuple[bool, dict]:
+    """Points triangulated from the photos (`add_points`; not when the input brought its own,
+    with --no-triangulate, or under two images), then the model written (dataset.finish_model):
+    whether it was undistorted, and the Dataset fields triangulation fills (`posed_facts`)."""
+    tri = None
+    if cfg.triangulate and not model.num_points and len(staged) >= 2:
+        model, tri = add_points(model, staged, work, st, cfg, run, mask_source=mask_source)
+    return finish_model(model, st, work, cfg, run, masks=mask_source), posed_facts(tri)
 
 
 def posed_facts(info: PosedPoints | None) -> dict:

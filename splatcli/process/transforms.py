@@ -7,17 +7,16 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import SplatError
 from ..events import Stages
 from ..io.transforms import read_transforms
 from ..project import Project
 from ..sfm import colmap
 from ..sfm.colmap import CameraSpec
 from .config import ProcessConfig
-from .dataset import Dataset, finish_model, refuse_if_strict, stage_images
+from .dataset import Dataset, stage_posed
 from .detect import InputSpec
 from .masks import stage_all
-from .posed import add_points, posed_facts
+from .posed import finish_posed
 
 
 def from_transforms(spec: InputSpec, stage: Path, cfg: ProcessConfig,
@@ -27,11 +26,8 @@ def from_transforms(spec: InputSpec, stage: Path, cfg: ProcessConfig,
     st = Project(stage)
     scene = read_transforms(spec.transforms)
     frames = {f.name: f for f in scene.frames}
-    staged, bad = stage_images([(f.source, f.name) for f in scene.frames], work, run, background=background,
-                                orient=False)
-    refuse_if_strict(spec.transforms, bad, cfg.strict)
-    if not staged:
-        raise SplatError(f"{spec.transforms}: none of the listed images could be read ({bad[0]})")
+    staged, bad = stage_posed([(f.source, f.name) for f in scene.frames], work, run, cfg, where=spec.transforms,
+                              what="the listed images", background=background)
     specs = []
     for s in staged:
         f = frames[s.name]
@@ -52,10 +48,7 @@ def from_transforms(spec: InputSpec, stage: Path, cfg: ProcessConfig,
     found = {f.name: f.mask for f in scene.frames if f.mask is not None}
     mask_source = stage_all(found, staged, work, run, invert=cfg.invert_masks, where=None)
     has_masks = mask_source is not None
-    tri = None
-    if cfg.triangulate and not model.num_points and len(staged) >= 2:
-        model, tri = add_points(model, staged, work, st, cfg, run, mask_source=mask_source)
-    undistorted = finish_model(model, st, work, cfg, run, masks=mask_source)
+    undistorted, facts = finish_posed(model, staged, work, st, cfg, run, mask_source=mask_source)
     kept = {s.name for s in staged}
     test = sorted(f.name for f in scene.frames if f.split == "test" and f.name in kept) if scene.has_test_split else None
     bg = background
@@ -63,7 +56,7 @@ def from_transforms(spec: InputSpec, stage: Path, cfg: ProcessConfig,
         bg = (1.0, 1.0, 1.0)
     return Dataset(registered=len(staged), total=len(scene.frames) + len(scene.missing), undistorted=undistorted,
                     masks=has_masks, mask_source=mask_source, test=test or None, background=bg, skipped=bad,
-                    missing=len(scene.missing), **posed_facts(tri))
+                    missing=len(scene.missing), **facts)
 
 
 def _read_ply_points(path: Path, run: Stages) -> tuple[np.ndarray | None, np.ndarray | None]:

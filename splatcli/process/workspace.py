@@ -11,7 +11,7 @@ from ..project import Project
 from ..sfm import colmap
 from ..sfm.colmap_files import check_image_name, check_model
 from .config import ProcessConfig
-from .dataset import Dataset, finish_model, refuse_if_strict, stage_images
+from .dataset import Dataset, finish_model, stage_posed
 from .detect import InputSpec
 from .masks import find_masks_dir, mask_file, stage_all
 
@@ -41,11 +41,8 @@ def from_colmap(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: tu
         raise SplatError(f"{spec.images_dir}: none of the model's {len(names)} images exists here "
                          f"(first: {names[0]})")
     sizes = model.camera_sizes()
-    staged, bad = stage_images([(spec.images_dir / n, n) for n in present], work, run, background=background,
-                                orient=False, expect=sizes)
-    refuse_if_strict(spec.images_dir, bad, cfg.strict)
-    if not staged:  # before the warnings: a failed run says one line
-        raise SplatError(f"{spec.images_dir}: none of the model's images could be read ({bad[0]})")
+    staged, bad = stage_posed([(spec.images_dir / n, n) for n in present], work, run, cfg, where=spec.images_dir,
+                              what="the model's images", background=background, expect=sizes)
     if missing:
         run.note(f"{len(missing)} image(s) of the model are missing from {spec.images_dir} and were skipped "
                  f"(first: {missing[0]})", "warning")

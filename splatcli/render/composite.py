@@ -329,6 +329,18 @@ def _terminate(act: Tensor | None, Tc: Tensor, more: Tensor, *carry: Tensor):
     return act, Tc[alive], tuple(x[alive] for x in carry)
 
 
+def _segment(plan: Plan, gs: _Gauss, featsT: Tensor, c: _Consts, gid: Tensor, centre: Tensor, bl: Tensor,
+             act: Tensor | None, Tc: Tensor | None, k0: int, K: int):
+    """The segment of a chunk's slots from k0 (to k1, `_seg_end`) in the blocks still active
+    (`act`, None: all of `bl`), entered with transmittance `Tc`: its slots, alphas, 1 - alphas
+    and transmittances, as forward blends them and backward computes them again."""
+    k1 = _seg_end(plan, k0, K, len(bl) if act is None else len(act))
+    sl = _Slots(gs, _rowsel(gid, act)[:, k0:k1], _rowsel(centre, act))
+    a = _alpha(sl.coef2, featsT, c)
+    om, U = _transmittance(a, Tc, c)
+    return k1, sl, a, om, U
+
+
 class _Composite(torch.autograd.Function):
     @staticmethod
     def forward(ctx, planner, means2d, conics, opacities, colors, depths, background):
@@ -350,10 +362,7 @@ class _Composite(torch.autograd.Function):
             act, Tc = None, None
             k0 = 0
             while k0 < K:
-                k1 = _seg_end(plan, k0, K, len(bl) if act is None else len(act))
-                sl = _Slots(gs, _rowsel(gid, act)[:, k0:k1], _rowsel(centre, act))
-                a = _alpha(sl.coef2, featsT, c)
-                om, U = _transmittance(a, Tc, c)
+                k1, sl, a, om, U = _segment(plan, gs, featsT, c, gid, centre, bl, act, Tc, k0, K)
                 w = a.div_(om).mul_(U)  # alpha T_before; 0 where not blended
                 czg = gs.cz.index_select(0, sl.gid.reshape(-1)).view(*sl.gid.shape, 5)
                 o = torch.bmm(czg.transpose(1, 2), w.transpose(1, 2))  # [na, 5, P]
@@ -399,10 +408,7 @@ class _Composite(torch.autograd.Function):
             act, Tc, pc = None, None, None
             k0 = 0
             while k0 < K:
-                k1 = _seg_end(plan, k0, K, len(bl) if act is None else len(act))
-                sl = _Slots(gs, _rowsel(gid, act)[:, k0:k1], _rowsel(centre, act))
-                a = _alpha(sl.coef2, featsT, c)
-                om, U = _transmittance(a, Tc, c)
+                k1, sl, a, om, U = _segment(plan, gs, featsT, c, gid, centre, bl, act, Tc, k0, K)
                 r = a / om
                 w = r * U
                 czt = gs.cz.index_select(0, sl.gid.reshape(-1)).view(*sl.gid.shape, 5)[..., :4].transpose(1, 2)  # [na, 4, k]

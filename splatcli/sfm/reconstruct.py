@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import re
 import statistics
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -154,18 +155,8 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
     db = work_dir / "database.db"
 
     # -- features
-    first_octave = opts.first_octave
-    if first_octave is None:
-        first_octave = -1 if min_side < 400 else 0
-    sift = SiftOptions(max_image_size=opts.max_image_size, max_num_features=opts.max_features,
-                       first_octave=first_octave, num_threads=opts.num_threads)
-    with clock.stage("extract features", len(names)) as st:
-        colmap.create_database(db, image_dir, cameras, camera_model=opts.camera_model)
-        for i in range(0, len(names), opts.chunk):
-            colmap.extract_features(db, image_dir, names[i : i + opts.chunk], sift, mask_dir=mask_dir)
-            st.progress(min(i + opts.chunk, len(names)))
-    stats = colmap.database_stats(db)
-    kp_median = statistics.median(stats.keypoints.values()) if stats.keypoints else 0
+    kp_median = _extract(db, image_dir, names, opts, min_side, clock, mask_dir,
+                         lambda: colmap.create_database(db, image_dir, cameras, camera_model=opts.camera_model))
 
     # -- matching
     matcher = _choose_matcher(opts, names)
@@ -240,7 +231,7 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
         unregistered=unregistered,
         matcher=used,
         num_pairs=len(matched),
-        keypoints_median=float(kp_median),
+        keypoints_median=kp_median,
         seconds=clock.seconds,
         left_out_models={n: fell_into.get(n) for n in unregistered},
         tried=tried,
@@ -267,26 +258,35 @@ def triangulate_posed(image_dir: Path, model: Model, work_dir: Path, opts: SfmOp
     work_dir.mkdir(parents=True, exist_ok=True)
     db = work_dir / "database.db"
     names = model.registered_names()
-    first_octave = opts.first_octave
-    if first_octave is None:
-        first_octave = -1 if min_side < 400 else 0
-    sift = SiftOptions(max_image_size=opts.max_image_size, max_num_features=opts.max_features,
-                       first_octave=first_octave, num_threads=opts.num_threads)
-    with clock.stage("extract features", len(names)) as st:
-        colmap.create_posed_database(db, model)
-        for i in range(0, len(names), opts.chunk):
-            colmap.extract_features(db, image_dir, names[i : i + opts.chunk], sift, mask_dir=mask_dir)
-            st.progress(min(i + opts.chunk, len(names)))
-    stats = colmap.database_stats(db)
-    kp_median = statistics.median(stats.keypoints.values()) if stats.keypoints else 0
+    kp_median = _extract(db, image_dir, names, opts, min_side, clock, mask_dir,
+                         lambda: colmap.create_posed_database(db, model))
     pairs = posed_pairs(model.cameras(), neighbours)
     _match(db, pairs, work_dir, MatchOptions(num_threads=opts.num_threads, seed=opts.seed), clock)
     with clock.stage("triangulate", 1) as st:
         mapper = MapperOptions(seed=opts.seed, num_threads=opts.num_threads)
         out = colmap.triangulate(model, db, image_dir, work_dir / "triangulated", mapper)
         st.progress(1)
-    return TriangulationResult(model=out, num_pairs=len(pairs), keypoints_median=float(kp_median),
+    return TriangulationResult(model=out, num_pairs=len(pairs), keypoints_median=kp_median,
                                seconds=clock.seconds)
+
+
+def _extract(db: Path, image_dir: Path, names: list[str], opts: SfmOptions, min_side: int, clock: Stages,
+             mask_dir: Path | None, create: Callable[[], None]) -> float:
+    """SIFT on `names` (files in `image_dir`) into the database `create` makes, within the
+    "extract features" stage; the median keypoint count per image. `min_side`, the smallest
+    image side SIFT sees, chooses the octave when `opts` leaves it open."""
+    first_octave = opts.first_octave
+    if first_octave is None:
+        first_octave = -1 if min_side < 400 else 0
+    sift = SiftOptions(max_image_size=opts.max_image_size, max_num_features=opts.max_features,
+                       first_octave=first_octave, num_threads=opts.num_threads)
+    with clock.stage("extract features", len(names)) as st:
+        create()
+        for i in range(0, len(names), opts.chunk):
+            colmap.extract_features(db, image_dir, names[i : i + opts.chunk], sift, mask_dir=mask_dir)
+            st.progress(min(i + opts.chunk, len(names)))
+    stats = colmap.database_stats(db)
+    return float(statistics.median(stats.keypoints.values())) if stats.keypoints else 0.0
 
 
 def _match(db: Path, pairs: list[tuple[str, str]], work_dir: Path, mopts: MatchOptions, clock: Stages) -> None:
