@@ -15,6 +15,8 @@ import math
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
+import numpy as np
+
 from .. import options
 from ..errors import SplatError
 from ..gaussians import Histogram
@@ -162,11 +164,17 @@ class TrainConfig:
 
     def train_scale(self, step: int) -> float:
         """The resolution (a fraction of the training resolution) step `step` renders at."""
-        end = self.coarse_until * self.iterations
-        if self.coarse_scale >= 1.0 or step >= end:
-            return 1.0
-        s = self.coarse_scale + (1.0 - self.coarse_scale) * step / end
-        return min(1.0, math.ceil(s * 8) / 8)
+        return float(self.train_scales(np.array([step]))[0])
+
+    def train_scales(self, steps: np.ndarray, iterations: int | None = None) -> np.ndarray:
+        """`train_scale` of each of `steps`, in a run of `iterations` steps (default: this
+        config's; the time plan prices runs of other lengths): the coarse-to-fine rule, once."""
+        end = self.coarse_until * (self.iterations if iterations is None else iterations)
+        steps = np.asarray(steps, dtype=np.float64)
+        if self.coarse_scale >= 1.0 or end <= 0:
+            return np.ones_like(steps)
+        s = np.minimum(1.0, np.ceil((self.coarse_scale + (1.0 - self.coarse_scale) * steps / end) * 8) / 8)
+        return np.where(steps >= end, 1.0, s)
 
     @property
     def total_steps(self) -> int:

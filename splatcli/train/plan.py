@@ -51,15 +51,8 @@ OVERHEAD = 0.07
 
 def step_costs(cfg: TrainConfig, iterations: int, start: int, stop: int) -> np.ndarray:
     """The relative cost (OVERHEAD + scale^2) of steps [start, stop) of `cfg` run for
-    `iterations` steps: the coarse-to-fine resolution as `TrainConfig.train_scale` has it."""
-    steps = np.arange(start, stop, dtype=np.float64)
-    end = cfg.coarse_until * iterations
-    if cfg.coarse_scale >= 1.0 or end <= 0:
-        scale = np.ones_like(steps)
-    else:
-        scale = np.minimum(1.0, np.ceil((cfg.coarse_scale + (1.0 - cfg.coarse_scale) * steps / end) * 8) / 8)
-        scale[steps >= end] = 1.0
-    return OVERHEAD + scale**2
+    `iterations` steps, at their coarse-to-fine resolutions (`TrainConfig.train_scales`)."""
+    return OVERHEAD + cfg.train_scales(np.arange(start, stop), iterations) ** 2
 
 
 @dataclass
