@@ -388,6 +388,7 @@ OPTION_CASES = [
     ("train", ["--preset", "turbo"], ["--preset 'turbo'", "default"]),
     ("train", ["--device", "tpu"], ["--device 'tpu'", "auto, cpu, cuda"]),
     ("train", ["--device", "cuda"], ["--device cuda", "no CUDA GPU", "auto, cpu, cuda"]),
+    ("train", ["--renderer", "gsplat"], ["--renderer gsplat needs a CUDA device", "--renderer torch"]),
     ("train", ["--iterations", "many"], ["'--iterations'", "Invalid value"]),  # typer versions word the rest differently
     ("render", ["--width", "0"], ["--width 0", "between 1 and 16384"]),
     ("render", ["--height", "-4"], ["--height -4", "between 1 and 16384"]),
@@ -400,6 +401,8 @@ OPTION_CASES = [
     ("render", ["--video", "a.gif"], ["--video a.gif", ".mp4"]),
     ("render", ["--device", "tpu"], ["--device 'tpu'", "auto, cpu, cuda"]),
     ("render", ["--device", "cuda"], ["--device cuda", "no CUDA GPU", "auto, cpu, cuda"]),
+    ("render", ["--renderer", "gsplat"], ["--renderer gsplat needs a CUDA device"]),
+    ("render", ["--renderer", "opengl"], ["--renderer 'opengl'", "auto, torch, gsplat"]),
     ("eval", ["--downscale", "0"], ["--downscale 0"]),
     ("eval", ["--downscale", "-1"], ["--downscale -1"]),
     ("eval", ["--split", "val"], ["--split 'val'", "test, train, all"]),
@@ -409,6 +412,7 @@ OPTION_CASES = [
     ("eval", ["--background", "teal"], ["--background 'teal'", "white, black, gray"]),
     ("eval", ["--device", "tpu"], ["--device 'tpu'", "auto, cpu, cuda"]),
     ("eval", ["--device", "cuda"], ["--device cuda", "no CUDA GPU", "auto, cpu, cuda"]),
+    ("eval", ["--renderer", "gsplat"], ["--renderer gsplat needs a CUDA device"]),
     ("export", ["--format", "obj"], ["--format 'obj'", "ply, compressed-ply, spz, sog, splat"]),
     ("export", ["-o", "."], ["-o .", "is a directory", "scene.ply"]),
 ]
@@ -417,8 +421,8 @@ OPTION_CASES = [
 @pytest.mark.parametrize("cmd, opts, fragments", OPTION_CASES,
                          ids=[f"{c}{''.join(o)}" for c, o, _ in OPTION_CASES])
 def test_option_out_of_range(cmd: str, opts: list[str], fragments: list[str], proj: Path) -> None:
-    if "cuda" in opts and not NO_GPU:
-        pytest.skip("a CUDA GPU is available: --device cuda is valid here")
+    if ("cuda" in opts or "gsplat" in opts) and not NO_GPU:
+        pytest.skip("a CUDA GPU is available: --device cuda (and --renderer gsplat) is valid here")
     before = snapshot(proj)
     assert_error(cli(cmd, proj, *opts), *fragments)
     assert snapshot(proj) == before

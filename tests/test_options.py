@@ -92,11 +92,11 @@ def test_a_config_stored_by_dced6d2_loads_as_it_trained(run):
 
 
 def test_every_field_has_its_option():
-    """A field without `opt` metadata would be a value no option names (device is the one
-    record-only field)."""
+    """A field without `opt` metadata would be a value no option names (device and renderer,
+    resolved from options every command shares, are the record-only fields)."""
     names = {o.path for alts in table(TrainConfig).values() for o in alts}
     for f in fields(TrainConfig):
-        if "section" not in f.metadata and f.name != "device":
+        if "section" not in f.metadata and f.name not in ("device", "renderer"):
             assert (f.name,) in names, f.name
     for preset in PRESETS.values():
         assert set(preset) <= set(table(TrainConfig))

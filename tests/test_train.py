@@ -22,6 +22,7 @@ from splatcli.events import Progress
 from splatcli.io.checkpoint import load_checkpoint, load_gaussians
 from splatcli.io.ply import ply_bytes
 from splatcli.project import Project
+from splatcli.render import rasterize
 from splatcli.train.config import make_config
 from splatcli.train.log import read_log
 from splatcli.train.loop import train
@@ -123,7 +124,7 @@ def test_interrupt_and_resume_is_bitwise_identical(tmp_path, stop, uninterrupted
 
 
 def _nan_on(steps: set[int] | None):
-    real = train_mod.rasterize
+    real = rasterize
     calls = {"n": 0}
 
     def fake(*args, **kw):
@@ -138,7 +139,7 @@ def _nan_on(steps: set[int] | None):
 
 def test_non_finite_steps_are_skipped_and_counted(tmp_path, monkeypatch):
     proj = tiny(tmp_path)
-    monkeypatch.setattr(train_mod, "rasterize", _nan_on({3, 4, 11}))
+    monkeypatch.setattr(train_mod, "rasterizer", lambda name, f=_nan_on({3, 4, 11}): f)
     s = train(proj.root, make_config(**{**SMALL, "iterations": 12}), CPU)
     assert s.bad_steps == 3 and s.steps == 12
     assert read_log(proj.train_log_path)[-1]["bad_steps"] == 3
@@ -147,7 +148,7 @@ def test_non_finite_steps_are_skipped_and_counted(tmp_path, monkeypatch):
 
 def test_divergence_stops_with_a_usable_checkpoint(tmp_path, monkeypatch):
     proj = tiny(tmp_path)
-    monkeypatch.setattr(train_mod, "rasterize", _nan_on(None))
+    monkeypatch.setattr(train_mod, "rasterizer", lambda name, f=_nan_on(None): f)
     with pytest.raises(TrainingDiverged) as ei:
         train(proj.root, make_config(**{**SMALL, "max_bad_steps": 4}), CPU)
     msg = str(ei.value)

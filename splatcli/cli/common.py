@@ -13,6 +13,7 @@ import sys
 from collections.abc import Iterator
 from typing import Any
 
+import torch
 import typer
 from rich.console import Console
 from rich.markup import escape
@@ -28,15 +29,29 @@ from rich.progress import (
 )
 from rich.text import Text
 
+from ..device import resolve_device
 from ..errors import SplatError
 from ..events import Event, EventSink, Note, Progress, Stage, StageDone
 from ..io.atomic import json_default
+from ..render import Renderer, resolve_renderer
+from ..render.backends import gsplat_will_compile
 
 DeviceOpt = typer.Option("auto", "--device", help="Where to compute: auto (CUDA if available, else CPU), cpu or cuda.")
+RendererOpt = typer.Option("auto", "--renderer", help="What draws: auto (gsplat's CUDA kernels on a GPU when installed, "
+                           "pip install 'splatcli[cuda]'; else torch), torch (the PyTorch rasterizer, any device) or gsplat.")
 SeedOpt = typer.Option(0, "--seed", help="Random seed; the same seed on CPU gives the same result.")
 QuietOpt = typer.Option(False, "--quiet", "-q", help="Print nothing but errors (and the --json object).")
 JsonOpt = typer.Option(False, "--json", help="Print one JSON summary object on stdout, for scripts and Makefiles.")
 DebugOpt = typer.Option(False, "--debug", help="Show full tracebacks on errors.")
+
+
+def resolve(device: str, renderer: str, quiet: bool = False) -> tuple[torch.device, Renderer]:
+    """--device and --renderer, resolved together (the renderer depends on the device)."""
+    dev = resolve_device(device)
+    if dev.type == "cuda" and renderer.strip().lower() != "torch" and not quiet and gsplat_will_compile():
+        Console(stderr=True).print("[dim]note:[/dim] gsplat compiles its CUDA kernels on first use "
+                                   "(a few minutes, once); the PyTorch path draws if that fails")
+    return dev, resolve_renderer(renderer, dev)
 
 
 BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0), "gray": (0.5, 0.5, 0.5), "grey": (0.5, 0.5, 0.5)}

@@ -10,7 +10,7 @@ import typer
 from ..device import resolve_device
 from ..errors import SplatError
 from ..eval.evaluate import EvalConfig, compare_folders, plan_eval, run_eval
-from .common import DebugOpt, DeviceOpt, JsonOpt, QuietOpt, Ui, parse_background
+from .common import DebugOpt, DeviceOpt, JsonOpt, QuietOpt, RendererOpt, Ui, parse_background, resolve
 
 _D = EvalConfig()  # the defaults, written once in the config
 
@@ -45,6 +45,7 @@ def evaluate(
     pred: Optional[Path] = typer.Option(None, "--pred", help="Compare this folder of images ..."),
     gt: Optional[Path] = typer.Option(None, "--gt", help="... with this one, by file name (no project needed)."),
     device: str = DeviceOpt,
+    renderer: str = RendererOpt,
     quiet: bool = QuietOpt,
     json_out: bool = JsonOpt,
     debug: bool = DebugOpt,
@@ -65,14 +66,14 @@ def evaluate(
         raise SplatError("give a PROJECT, or --pred DIR --gt DIR")
     cfg = EvalConfig(split=split, background=bg, downscale=downscale, budgets=_budgets(budgets), plots=plots,
                      model=model, out=out, formats=tuple(f.strip().lower() for f in formats.split(",") if f.strip()),
-                     lpips_weights=lpips_weights, antialias=antialias.strip().lower())
-    plan = plan_eval(project, cfg, resolve_device(device))  # input errors surface before any output
+                     lpips_weights=lpips_weights, antialias=antialias.strip().lower(), renderer=renderer)
+    plan = plan_eval(project, cfg, resolve(device, renderer, quiet)[0])  # input errors surface before any output
     with ui.progress() as sink:
         r = run_eval(plan, on_event=sink)
     ui.summary(r.summary(), title=f"{r.split} split: PSNR {r.psnr:.2f} dB, SSIM {r.ssim:.4f}{_lpips(r.lpips)} over {len(r.per_image)} views",
                lines=[f"PSNR after a per-view colour fit (exposure and white balance removed): {r.psnr_color_fit:.2f} dB",
                       f"{r.num_gaussians:,} Gaussians (SH {r.sh_degree}, {r.ply_bytes / 1e6:.2f} MB): "
-                      f"{r.render_fps:.2f} frames/s at {r.width}x{r.height} on {r.device}"]
+                      f"{r.render_fps:.2f} frames/s at {r.width}x{r.height} on {r.device} ({r.renderer})"]
                + ([f"masks: scored on {r.masks}"] if r.masks else [])
                + [f"  {b.fraction:>4.0%}: {b.num_gaussians:>9,} Gaussians  {b.psnr:6.2f} dB  {b.ms_per_frame:8.1f} ms/frame"
                   for b in r.budgets]

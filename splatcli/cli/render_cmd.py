@@ -7,9 +7,8 @@ from typing import Optional
 
 import typer
 
-from ..device import resolve_device
 from ..views.output import RenderConfig, plan_render, run_render
-from .common import DebugOpt, DeviceOpt, JsonOpt, QuietOpt, Ui, parse_background
+from .common import DebugOpt, DeviceOpt, JsonOpt, QuietOpt, RendererOpt, Ui, parse_background, resolve
 
 _D = RenderConfig()  # the defaults, written once in the config
 
@@ -34,6 +33,7 @@ def render(
     video: Optional[Path] = typer.Option(None, "--video", help="Also encode the frames into this video (.mp4, .avi)."),
     fps: float = typer.Option(_D.video_fps, "--fps", help="Frame rate of the --video."),
     device: str = DeviceOpt,
+    renderer: str = RendererOpt,
     quiet: bool = QuietOpt,
     json_out: bool = JsonOpt,
     debug: bool = DebugOpt,
@@ -50,16 +50,16 @@ def render(
     cfg = RenderConfig(
         split=split, cameras=cameras, path=path, frames=frames, project=project, width=width, height=height,
         downscale=downscale, out=out, background=parse_background(background),
-        depth=depth, alpha=alpha, video=video, video_fps=fps, antialias=antialias.strip().lower(),
+        depth=depth, alpha=alpha, video=video, video_fps=fps, antialias=antialias.strip().lower(), renderer=renderer,
     )
-    plan = plan_render(source, cfg, resolve_device(device))  # input errors surface before any output
+    plan = plan_render(source, cfg, resolve(device, renderer, quiet)[0])  # input errors surface before any output
     with ui.progress() as sink:
         r = run_render(plan, on_event=sink)
     ui.summary(
         {"out_dir": r.out_dir, "frames": r.num_frames, "width": r.width, "height": r.height, "fps": r.fps,
-         "render_seconds": r.render_seconds, "num_gaussians": r.num_gaussians, "device": r.device_name,
+         "render_seconds": r.render_seconds, "num_gaussians": r.num_gaussians, "device": r.device_name, "renderer": r.renderer,
          "video": r.video, "source": r.source, "cameras": r.cameras, "antialiased": r.antialiased},
         title=f"rendered {r.num_frames} frames ({r.cameras}) of {r.source}",
-        lines=[f"{r.width}x{r.height}, {r.num_gaussians} Gaussians: {r.fps:.2f} frames/s on {r.device_name}",
+        lines=[f"{r.width}x{r.height}, {r.num_gaussians} Gaussians: {r.fps:.2f} frames/s on {r.device_name} ({r.renderer})",
                f"images: {r.out_dir}/"] + ([f"video: {r.video}"] if r.video else []),
     )

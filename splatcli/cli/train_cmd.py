@@ -8,7 +8,6 @@ from typing import Any, Optional
 
 import typer
 
-from ..device import resolve_device
 from ..options import RUN
 from ..project import Project
 from ..train.auto import choose, inherited, summary_line
@@ -16,7 +15,7 @@ from ..train.config import PRESETS, TrainConfig, make_config
 from ..train.distributed import in_worker, join
 from ..train.launch import launch
 from ..train.loop import train as run_train
-from .common import DebugOpt, DeviceOpt, JsonOpt, QuietOpt, Ui
+from .common import DebugOpt, DeviceOpt, JsonOpt, QuietOpt, RendererOpt, Ui, resolve
 from .options import GIVEN, config_options
 from .view_cmd import live_viewer
 
@@ -31,20 +30,21 @@ def train(
     viewer_host: str = typer.Option("127.0.0.1", "--viewer-host", rich_help_panel=RUN, help="With --viewer: the address to serve on."),
     viewer_port: Optional[int] = typer.Option(None, "--viewer-port", rich_help_panel=RUN, help="With --viewer: the port (default 7007, or the next free one)."),
     device: str = DeviceOpt,
+    renderer: str = RendererOpt,
     quiet: bool = QuietOpt,
     json_out: bool = JsonOpt,
     debug: bool = DebugOpt,
     given: dict[str, Any] = GIVEN,
 ) -> None:
-    """Fit 3D Gaussians to the training views; checkpoints go to PROJECT/checkpoints, the
-    speed/error log to PROJECT/reports/train_log.jsonl. Ctrl-C saves a checkpoint (exit 130)."""
-    dev = resolve_device(device)
+    """Fit 3D Gaussians to the training views; checkpoints go to PROJECT/checkpoints, the speed/error log to PROJECT/reports/train_log.jsonl. Ctrl-C saves a checkpoint (exit 130)."""
+    dev, drawer = resolve(device, renderer, quiet)
     (proj := Project.open(project)).require_processed()  # input errors before the progress display starts
     chosen = inherited(given) if in_worker() else choose(proj, given, nproc, dev, resume)  # train/auto.py
-    cfg = make_config(**chosen.options, device=str(dev))
+    cfg = make_config(**chosen.options, device=str(dev), renderer=drawer.name)
     overrides = {k: cfg.value(k) for k in chosen.options if k not in ("preset", "seed")}  # what a --resume changes
-    if chosen.choices and not in_worker():
-        Ui(quiet=quiet).note(summary_line(chosen, cfg.time_budget))
+    for line, level in ((drawer.note, "warning"), (chosen.choices and summary_line(chosen, cfg.time_budget), "note")):
+        if line and not in_worker():
+            Ui(quiet=quiet).note(line, level)
     if chosen.nproc is not None and not in_worker():  # K copies of this command, the choices as words; rank 0 reports
         return launch(sys.argv[1:] + chosen.words(), chosen.nproc, port, project, dev, chosen.env())
     comm = join(dev)  # under torchrun: this process's rank (else a single process)

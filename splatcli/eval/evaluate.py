@@ -53,7 +53,7 @@ from ..io.images import load_rgb
 from ..io.ply import ply_bytes
 from ..model import load_model
 from ..project import Project, writer_lock
-from ..render import render_camera
+from ..render import Renderer, render_camera, resolve_renderer
 from ..views.sources import SPLITS, View, choose_antialias, dataset_views, zoom_factor
 from .budgets import contributions, prune_to
 from .curve import read_curve
@@ -88,6 +88,7 @@ class EvalConfig:
     formats: tuple[str, ...] = ()  # file formats to encode, decode and score (size against error)
     lpips_weights: Path | None = None  # torchvision's AlexNet weights for LPIPS (None: the torch hub cache)
     antialias: str = "auto"  # auto | on | off: the 2D filter (views/sources.choose_antialias)
+    renderer: str = "auto"  # auto | torch | gsplat (render/backends.resolve_renderer)
     quantisation: str = REPORTED  # renders as scored: "8-bit" (as PNG, training's held-out log too) | "none"
 
 
@@ -146,7 +147,7 @@ def _ground_truth(project: Project, views: Sequence[View], bg_rgb: tuple[float, 
 
 def _score_views(g: Gaussians, views: Sequence[View], gts: Sequence[Tensor], keeps: Sequence[Tensor | None],
                  bg: Tensor, lp: Lpips | None, on_event: EventSink | None, stage: str,
-                 antialiased: bool, quantisation: str) -> tuple[list[ImageScore], float]:
+                 antialiased: bool, quantisation: str, renderer: Renderer) -> tuple[list[ImageScore], float]:
     """Render and score every view (quantised: score.py); returns scores and the median
     render seconds per frame (the median: other processes sharing the CPU make
     single frames slow, and the first call of a process pays one-off set-up, so
@@ -154,11 +155,11 @@ def _score_views(g: Gaussians, views: Sequence[View], gts: Sequence[Tensor], kee
     scores, times = [], []
     emit(on_event, Stage(stage, total=len(views)))
     t_all = time.perf_counter()
-    render_camera(g, views[0].camera, bg, antialiased=antialiased)  # warm-up, untimed
+    render_camera(g, views[0].camera, bg, antialiased=antialiased, draw=renderer.draw)  # warm-up, untimed
     for i, (v, gt, keep) in enumerate(zip(views, gts, keeps)):
         synchronize(g.device)
         t0 = time.perf_counter()
-        out = render_camera(g, v.camera, bg, antialiased=antialiased)
+        out = render_camera(g, v.camera, bg, antialiased=antialiased, draw=renderer.draw)
         synchronize(g.device)
         times.append(time.perf_counter() - t0)
         scores.append(score(v.camera.name, out.image, gt, lp, keep, quantisation))
@@ -169,7 +170,8 @@ def _score_views(g: Gaussians, views: Sequence[View], gts: Sequence[Tensor], kee
 
 def _score_formats(g: Gaussians, formats: Sequence[str], views: Sequence[View], gts: Sequence[Tensor],
                    keeps: Sequence[Tensor | None], bg: Tensor, lp: Lpips | None, full_psnr: float,
-                   on_event: EventSink | None, antialiased: bool, quantisation: str) -> list[FormatPoint]:
+                   on_event: EventSink | None, antialiased: bool, quantisation: str,
+                   renderer: Renderer) -> list[FormatPoint]:
     """Each format: write the model, read it back through our reader, score the views."""
     out = []
     ply_size = ply_bytes(len(g), g.sh_degree)
@@ -182,7 +184,7 @@ def _score_formats(g: Gaussians, formats: Sequence[str], views: Sequence[View], 
             back = read_format(path, g.device, fmt).gaussians
             t2 = time.perf_counter()
             sc, _ = _score_views(back, views, gts, keeps, bg, lp, on_event, f"format {fmt}", antialiased,
-                                 quantisation)
+                                 quantisation, renderer)
             p = _mean_psnr(sc)
             out.append(FormatPoint(format=fmt, bytes=w.bytes, bytes_per_gaussian=w.bytes / max(len(g), 1),
                                    ratio=ply_size / max(w.bytes, 1), psnr=p, ssim=float(np.mean([x.ssim for x in sc])),
@@ -247,12 +249,14 @@ class EvalPlan:
     notes: list[str]
     lpips: Lpips | None  # None: LPIPS unavailable (the reason is in notes)
     antialiased: bool = False  # draw with the 2D filter
+    renderer: Renderer = Renderer("torch")
 
 
 def plan_eval(root: str | Path, config: EvalConfig, device: torch.device) -> EvalPlan:
     """Check options, open the project, load the model (latest checkpoint or
     `config.model`) and choose the views at the resolution trained."""
     check_eval_config(config)
+    renderer = resolve_renderer(config.renderer, device)
     project = Project.open(root)
     if config.model is not None:
         project.require_processed()
@@ -287,9 +291,11 @@ def plan_eval(root: str | Path, config: EvalConfig, device: torch.device) -> Eva
     if lp is not None and min(c.width, c.height) < LPIPS_MIN_SIZE:
         lp, why_not = None, f"LPIPS skipped: {c.width}x{c.height} views are smaller than AlexNet's {LPIPS_MIN_SIZE} pixels"
     notes += [why_not] if why_not else []
+    notes += [renderer.note] if renderer.note else []
     return EvalPlan(project=project, config=config, gaussians=g, step=step, model_name=model_name, views=views,
                     background=tuple(bg_rgb), downscale=downscale,  # type: ignore[arg-type]
-                    max_size=max_size, train_summary=tsum, notes=notes, lpips=lp, antialiased=antialiased)
+                    max_size=max_size, train_summary=tsum, notes=notes, lpips=lp, antialiased=antialiased,
+                    renderer=renderer)
 
 
 
@@ -317,8 +323,8 @@ def _run_eval(plan: EvalPlan, on_event: EventSink | None) -> EvalReport:
         masks = MASKED_SCORING[mode] if project.mask_source() == "files" or mode == "ignore" else \
             "whole images, composited over the background (the masks are the images' alpha)"
 
-    lp, aa, q = plan.lpips, plan.antialiased, config.quantisation
-    per_image, secs = _score_views(g, views, gts, keeps, bg, lp, on_event, "eval", aa, q)
+    lp, aa, q, r = plan.lpips, plan.antialiased, config.quantisation, plan.renderer
+    per_image, secs = _score_views(g, views, gts, keeps, bg, lp, on_event, "eval", aa, q, r)
     fps = 1.0 / max(secs, 1e-9)
     mean_psnr = _mean_psnr(per_image)
     mean_ssim = float(np.mean([s.ssim for s in per_image]))
@@ -338,14 +344,14 @@ def _run_eval(plan: EvalPlan, on_event: EventSink | None) -> EvalReport:
         emit(on_event, StageDone("rank Gaussians", time.perf_counter() - t0))
         for f in fractions:
             gp = prune_to(g, weight, f)
-            sc, s = _score_views(gp, views, gts, keeps, bg, lp, on_event, f"budget {f:.0%}", aa, q)
+            sc, s = _score_views(gp, views, gts, keeps, bg, lp, on_event, f"budget {f:.0%}", aa, q, r)
             budgets.append(BudgetPoint(fraction=f, num_gaussians=len(gp), ply_bytes=ply_bytes(len(gp), gp.sh_degree),
                                        psnr=_mean_psnr(sc), ssim=float(np.mean([x.ssim for x in sc])),
                                        render_fps=1.0 / max(s, 1e-9), ms_per_frame=1000 * s, lpips=_mean_lpips(sc)))
     if 1.0 not in config.budgets:
         budgets = budgets[1:]
 
-    formats = _score_formats(g, config.formats, views, gts, keeps, bg, lp, mean_psnr, on_event, aa, q)
+    formats = _score_formats(g, config.formats, views, gts, keeps, bg, lp, mean_psnr, on_event, aa, q, r)
     curve = read_curve(project.train_log_path) if config.model is None else []
     # the log's scores: 8-bit since train recorded its quantisation, unquantised before
     curve_q = str(tsum.get("quantisation", "none")) if curve else None
@@ -361,6 +367,7 @@ def _run_eval(plan: EvalPlan, on_event: EventSink | None) -> EvalReport:
         train_steps=int(tsum["steps"]) if isinstance(tsum.get("steps"), int) else step,
         render_fps=fps,
         device=describe_device(device),
+        renderer=r.name,
         split=config.split,
         width=views[0].camera.width,
         height=views[0].camera.height,

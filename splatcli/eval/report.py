@@ -96,6 +96,7 @@ class EvalReport:
     lpips: float | None = None  # mean over the split; None when LPIPS is unavailable (a note says why)
     masks: str | None = None  # how the project's masks entered the scores (None: no masks)
     quantisation: str = REPORTED  # renders as scored (eval/score.py): "8-bit" as saved to PNG, or "none"
+    renderer: str = "torch"  # what drew the renders: torch (the PyTorch path) or gsplat
     curve_quantisation: str | None = None  # the same for training_curve (train.json's summary; None: no curve)
     psnr_color_fit: float | None = None  # mean over views of the PSNR after each view's colour fit (metrics.color_fit)
     budgets: list[BudgetPoint] = field(default_factory=list)
@@ -112,7 +113,7 @@ class EvalReport:
     def summary(self) -> dict[str, Any]:
         """The headline numbers (what `--json` prints)."""
         return {k: getattr(self, k) for k in ("psnr", "ssim", "lpips", "num_gaussians", "sh_degree", "ply_bytes",
-                                              "train_seconds", "train_steps", "render_fps", "device", "split",
+                                              "train_seconds", "train_steps", "render_fps", "device", "renderer", "split",
                                               "width", "height", "step", "model", "masks", "quantisation",
                                               "psnr_color_fit")} | {"num_images": len(self.per_image)}
 
@@ -268,7 +269,7 @@ def write_report_md(report: EvalReport, project: Project) -> str:
         f"# Evaluation of `{project.root.name}`",
         "",
         f"Model: {r.model}. {r.split[0].upper() + r.split[1:]} split ({len(r.per_image)} views at {r.width}x{r.height}), "
-        f"rendered on {r.device}.",
+        f"rendered on {r.device} by the {r.renderer} renderer.",
         "",
         f"Scores: {QUANTISATION_WORDS.get(r.quantisation, r.quantisation)}.",
         "",

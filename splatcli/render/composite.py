@@ -18,7 +18,8 @@ contiguous memory):
                   ones sums the weights, so T_final = 1 - sum w
 
 Lists are cut into segments (`SEGMENT` long, longer when few blocks remain); after
-each, blocks whose every pixel has stopped blending are dropped: early termination.
+each (every few on CUDA), blocks whose every pixel has stopped blending are dropped:
+early termination.
 Per-slot work (coefficients, gradient scatter) happens per segment for active blocks
 only, so pairs behind saturated pixels cost only their planning.
 
@@ -50,6 +51,12 @@ CHUNK_ELEMS = 1 << 18  # [blocks, pixels, K] elements per chunk: bounds memory, 
 _DEAD = -1e4  # log-opacity of the padding row: exp() is exactly 0
 _LOG2E = 1.4426950408889634  # exp(x) = exp2(x log2 e); exp2 is the faster vectorised kernel
 SEGMENT = 64  # Gaussians per block processed between early-termination checks
+# On CUDA every early-termination test is a host sync (and every op a kernel launch): chunks 16x
+# larger, segments 4x longer, and the test after every 4th segment only (skipping it is exact: a
+# terminated or finished block only adds zeros). Not tuned on a GPU yet (docs/benchmarks.md).
+CUDA_CHUNK_ELEMS = 1 << 22
+CUDA_SEGMENT = 256
+CUDA_TERMINATE_EVERY = 4
 
 
 @dataclass
@@ -68,6 +75,7 @@ class Plan:
     n_pairs: int  # M
     seg: int = SEGMENT  # K-segment length between early-termination checks
     chunk_elems: int = CHUNK_ELEMS  # dense elements per segment (segments grow as blocks terminate)
+    terminate_every: int = 1  # segments between early-termination tests (each a host sync on CUDA)
 
 
 def _feats(block: int, dtype: torch.dtype, device: torch.device) -> Tensor:  # [6, P]
@@ -184,9 +192,17 @@ def make_plan(
         pair_gid = torch.repeat_interleave(fp.gid.index_select(0, rg), ncol, output_size=M).index_select(0, perm)
         count = torch.bincount(bid, minlength=nblocks)
         start = torch.cumsum(count, 0) - count
-        seg = seg or SEGMENT
-        chunks = _schedule(count, block * block, chunk_elems or CHUNK_ELEMS, seg)
-    return Plan(width, height, block, nbx, nby, pair_gid, start, count, chunks, M, seg, chunk_elems or CHUNK_ELEMS)
+        dseg, dchunk, every = device_settings(dev)
+        seg, chunk_elems = seg or dseg, chunk_elems or dchunk
+        chunks = _schedule(count, block * block, chunk_elems, seg)
+    return Plan(width, height, block, nbx, nby, pair_gid, start, count, chunks, M, seg, chunk_elems, every)
+
+
+def device_settings(device: torch.device) -> tuple[int, int, int]:
+    """(segment length, chunk elements, segments between early-termination tests) on `device`."""
+    if device.type == "cuda":
+        return CUDA_SEGMENT, CUDA_CHUNK_ELEMS, CUDA_TERMINATE_EVERY
+    return SEGMENT, CHUNK_ELEMS, 1
 
 
 def _schedule(count: Tensor, P: int, chunk_elems: int, seg: int) -> list[tuple[Tensor, int]]:
@@ -360,7 +376,7 @@ class _Composite(torch.autograd.Function):
             cnt = plan.block_count.index_select(0, bl)  # [nb] list lengths
             out = None
             act, Tc = None, None
-            k0 = 0
+            k0 = nseg = 0
             while k0 < K:
                 k1, sl, a, om, U = _segment(plan, gs, featsT, c, gid, centre, bl, act, Tc, k0, K)
                 w = a.div_(om).mul_(U)  # alpha T_before; 0 where not blended
@@ -372,8 +388,9 @@ class _Composite(torch.autograd.Function):
                     out += o
                 else:
                     out.index_add_(0, act, o)
-                if k1 < K:
-                    act, Tc, _ = _terminate(act, U[:, :, -1], _rowsel(cnt, act) > k1)
+                Tc, nseg = U[:, :, -1], nseg + 1
+                if k1 < K and nseg % plan.terminate_every == 0:
+                    act, Tc, _ = _terminate(act, Tc, _rowsel(cnt, act) > k1)
                     if act is not None and act.numel() == 0:
                         break
                 k0 = k1
@@ -406,7 +423,7 @@ class _Composite(torch.autograd.Function):
             base = base_all.index_select(0, bl)  # [nb, P]
             cnt = plan.block_count.index_select(0, bl)  # [nb] list lengths
             act, Tc, pc = None, None, None
-            k0 = 0
+            k0 = nseg = 0
             while k0 < K:
                 k1, sl, a, om, U = _segment(plan, gs, featsT, c, gid, centre, bl, act, Tc, k0, K)
                 r = a / om
@@ -427,8 +444,9 @@ class _Composite(torch.autograd.Function):
                 Rs = torch.matmul(feats, dpow)  # [na, 6, k]: sums of dpow * pixel features
                 ds = torch.bmm(_rowsel(g4b, act), w)  # [na, 4, k]
                 dg.index_add_(0, sl.gid.reshape(-1), sl.grads(Rs, ds).reshape(-1, 10))
-                if k1 < K:
-                    act, Tc, (pc,) = _terminate(act, Tlast, _rowsel(cnt, act) > k1, pc)
+                Tc, nseg = Tlast, nseg + 1
+                if k1 < K and nseg % plan.terminate_every == 0:
+                    act, Tc, (pc,) = _terminate(act, Tc, _rowsel(cnt, act) > k1, pc)
                     if act is not None and act.numel() == 0:
                         break
                 k0 = k1

@@ -14,8 +14,6 @@ import math
 import torch
 from torch import Tensor
 
-from ..camera import Camera
-from ..gaussians import Gaussians
 from .composite import choose_block, composite, estimate_pairs, make_plan
 from .output import RenderOutput
 from .projection import TILE, project
@@ -39,6 +37,44 @@ def _check(name: str, x: Tensor, shape: tuple, dtype: torch.dtype | None, device
         raise ValueError(f"rasterize: {name} is on {x.device}, expected {device} like means")
     if values and not bool(torch.isfinite(x.detach()).all()):  # a host sync
         raise ValueError(f"rasterize: {name} contains non-finite values (NaN or inf)")
+
+
+def validate(means: Tensor, quats: Tensor, log_scales: Tensor, opacity_logits: Tensor, sh: Tensor, viewmat: Tensor,
+             K: Tensor, width: int, height: int, background: Tensor | None, sh_degree: int | None, near: float,
+             check: bool) -> tuple[int, int, Tensor, int]:
+    """rasterize's argument checks (every renderer's): width, height, the background
+    (black when None) and the SH degree to draw, or ValueError naming the parameter."""
+    if not isinstance(means, Tensor) or means.dim() != 2 or means.shape[1] != 3:
+        raise ValueError(f"rasterize: means must be a [N, 3] tensor, got {getattr(means, 'shape', type(means))}")
+    if not means.is_floating_point():
+        raise ValueError(f"rasterize: means must be floating point, got {means.dtype}")
+    dt, dev, N = means.dtype, means.device, means.shape[0]
+    if int(width) != width or int(height) != height or width < 1 or height < 1:
+        raise ValueError(f"rasterize: width and height must be positive integers, got {width} x {height}")
+    width, height = int(width), int(height)
+    if not (isinstance(near, (int, float)) and math.isfinite(near) and near > 0):
+        raise ValueError(f"rasterize: near must be a positive finite number, got {near}")
+    _check("means", means, (N, 3), dt, dev, check)
+    _check("quats", quats, (N, 4), dt, dev, check)
+    _check("log_scales", log_scales, (N, 3), dt, dev, check)
+    _check("opacity_logits", opacity_logits, (N,), dt, dev, check)
+    _check("sh", sh, (N, None, 3), dt, dev, check)
+    _check("viewmat", viewmat, (4, 4), dt, dev, check)
+    _check("K", K, (3, 3), dt, dev, check)
+    if background is None:
+        background = torch.zeros(3, dtype=dt, device=dev)
+    _check("background", background, (3,), dt, dev, check)
+    nb = sh.shape[1]
+    d_have = int(round(math.sqrt(nb))) - 1
+    if (d_have + 1) ** 2 != nb or d_have > 3:
+        raise ValueError(f"rasterize: sh has {nb} coefficients per channel; expected (d+1)^2 for d in 0..3")
+    if sh_degree is None:
+        sh_degree = d_have
+    if not 0 <= sh_degree <= d_have:
+        raise ValueError(f"rasterize: sh_degree {sh_degree} is outside 0..{d_have} (what sh holds)")
+    if check and not (float(K[0, 0].detach()) > 0 and float(K[1, 1].detach()) > 0):
+        raise ValueError("rasterize: K must have positive focal lengths K[0,0], K[1,1]")
+    return width, height, background, sh_degree
 
 
 def rasterize(
@@ -70,36 +106,8 @@ def rasterize(
     check=False: shapes, dtypes and devices are still checked, but not the values (finite
     inputs, positive focal lengths), which costs a host sync per tensor.
     """
-    if not isinstance(means, Tensor) or means.dim() != 2 or means.shape[1] != 3:
-        raise ValueError(f"rasterize: means must be a [N, 3] tensor, got {getattr(means, 'shape', type(means))}")
-    if not means.is_floating_point():
-        raise ValueError(f"rasterize: means must be floating point, got {means.dtype}")
-    dt, dev, N = means.dtype, means.device, means.shape[0]
-    if int(width) != width or int(height) != height or width < 1 or height < 1:
-        raise ValueError(f"rasterize: width and height must be positive integers, got {width} x {height}")
-    width, height = int(width), int(height)
-    if not (isinstance(near, (int, float)) and math.isfinite(near) and near > 0):
-        raise ValueError(f"rasterize: near must be a positive finite number, got {near}")
-    _check("means", means, (N, 3), dt, dev, check)
-    _check("quats", quats, (N, 4), dt, dev, check)
-    _check("log_scales", log_scales, (N, 3), dt, dev, check)
-    _check("opacity_logits", opacity_logits, (N,), dt, dev, check)
-    _check("sh", sh, (N, None, 3), dt, dev, check)
-    _check("viewmat", viewmat, (4, 4), dt, dev, check)
-    _check("K", K, (3, 3), dt, dev, check)
-    if background is None:
-        background = torch.zeros(3, dtype=dt, device=dev)
-    _check("background", background, (3,), dt, dev, check)
-    nb = sh.shape[1]
-    d_have = int(round(math.sqrt(nb))) - 1
-    if (d_have + 1) ** 2 != nb or d_have > 3:
-        raise ValueError(f"rasterize: sh has {nb} coefficients per channel; expected (d+1)^2 for d in 0..3")
-    if sh_degree is None:
-        sh_degree = d_have
-    if not 0 <= sh_degree <= d_have:
-        raise ValueError(f"rasterize: sh_degree {sh_degree} is outside 0..{d_have} (what sh holds)")
-    if check and not (float(K[0, 0].detach()) > 0 and float(K[1, 1].detach()) > 0):
-        raise ValueError("rasterize: K must have positive focal lengths K[0,0], K[1,1]")
+    width, height, background, sh_degree = validate(means, quats, log_scales, opacity_logits, sh, viewmat, K,
+                                                    width, height, background, sh_degree, near, check)
     if block not in (4, 8, 16, "auto"):
         raise ValueError(f"rasterize: block must be 4, 8, 16 or 'auto', got {block!r}")
 
@@ -133,13 +141,3 @@ def _banded(pr, width, height, block, background, nbands):
 
         outs.append(composite(planner, pr.means2d - shift, pr.conics, pr.opacities, pr.colors, pr.depths, background))
     return tuple(torch.cat([o[i] for o in outs], 0) for i in range(3))
-
-
-def render_camera(g: Gaussians, camera: Camera, background: Tensor, *, sh_degree: int | None = None,
-                  antialiased: bool = False) -> RenderOutput:
-    """A model seen from a camera, without gradients (render, eval). background: [3]
-    on the model's device."""
-    vm, K = camera.torch(g.device, g.means.dtype)
-    with torch.no_grad():
-        return rasterize(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh, vm, K,
-                         camera.width, camera.height, background, sh_degree=sh_degree, antialiased=antialiased)

@@ -103,7 +103,7 @@ class DefaultStrategy(Strategy):
     @torch.no_grad()
     def _accumulate(self, state: DefaultStrategyState, info: StepInfo) -> None:
         r = info.render
-        g = r.means2d.grad
+        g = r.screen_grad()
         if g is None:
             return
         # Pixels -> NDC (x_ndc spans 2 over W pixels): the 2e-4 threshold is in NDC.

@@ -151,6 +151,7 @@ class TrainConfig:
     max_bad_steps: int = opt(20, "Consecutive non-finite steps before the run stops (TrainingDiverged).", at_least=0)
     seed: int = opt(0, "Random seed; the same seed on CPU gives the same result.", group=RUN)
     device: str = "cpu"  # the resolved device, for the record (the command line's --device is shared by commands)
+    renderer: str = "torch"  # the resolved renderer (torch | gsplat), likewise from the shared --renderer
 
     @property
     def refine(self) -> RefineConfig:
@@ -286,16 +287,16 @@ PRESETS: dict[str, dict[str, Any]] = {
 assert tuple(PRESETS) == PRESET_NAMES
 
 
-def make_config(preset: str = "default", *, device: str = "cpu", **given: Any) -> TrainConfig:
+def make_config(preset: str = "default", *, device: str = "cpu", renderer: str = "torch", **given: Any) -> TrainConfig:
     """The preset, then every option given that is not None (text is parsed as on the
-    command line), for `device`. Checks types and ranges; an option of a strategy not
+    command line), for `device` and `renderer` (resolved). Checks types and ranges; an option of a strategy not
     chosen is an error."""
     given = {k: v for k, v in given.items() if v is not None}
     preset = options.apply(TrainConfig(), {"preset": preset}).preset
     if preset not in PRESETS:
         raise SplatError(f"--preset {preset!r} is not known; choose one of {', '.join(PRESETS)}")
     choice = {k: given[k] for k in ("strategy",) if k in given}  # the preset's options go to the chosen strategy
-    cfg = options.apply(TrainConfig(preset=preset, device=device), choice)
+    cfg = options.apply(TrainConfig(preset=preset, device=device, renderer=renderer), choice)
     cfg = options.apply(cfg, PRESETS[preset], strict=False)
     return cfg.with_options(given)
 
@@ -321,6 +322,7 @@ class TrainSummary:
     ply_bytes: int  # size of the .ply `export` writes for this model
     device: str
     final_loss: float
+    renderer: str = "torch"  # what drew while training: torch (the PyTorch path) or gsplat
     psnr: float | None = None  # last held-out PSNR (None without held-out views)
     ssim: float | None = None
     bad_steps: int = 0

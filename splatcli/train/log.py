@@ -199,6 +199,7 @@ def finish(project: Project, cfg: TrainConfig, state: TrainState, resumed_from: 
         sh_degree=deg,
         ply_bytes=ply_bytes(len(g), deg),
         device=cfg.device,
+        renderer=cfg.renderer,
         final_loss=float(log[-1]["loss"]) if log else math.nan,
         psnr=psnr,
         ssim=last_eval.get("ssim") if last_eval else None,

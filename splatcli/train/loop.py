@@ -26,7 +26,8 @@ from ..eval.score import REPORTED, score_image
 from ..events import EventSink, Note, Progress, Snapshot, Stage, StageDone, emit
 from ..io.checkpoint import load_checkpoint
 from ..project import Project, writer_lock
-from ..render import RenderOutput, rasterize
+from ..render import RenderOutput
+from ..render.backends import rasterizer
 from ..render.weights import blending_weights
 from ..sfm.colmap import read_project_scene
 from ..strategy import Context, StepInfo
@@ -83,7 +84,7 @@ def _train(project: Project, cfg: TrainConfig, device: torch.device, resume: boo
                 # --compact added on resume brings its own settings (this version's),
                 # not the ones stored unused with the run.
                 new = replace(new, compact=replace(cfg.compact, enabled=True))
-            cfg = replace(new, device=str(device))
+            cfg = replace(new, device=str(device), renderer=cfg.renderer)  # either renderer resumes either's run
             resumed_from = ck.step
     run = cfg.for_world(comm.world)  # the schedule K ranks follow (config.py)
     # Reading the scene imports pycolmap, whose glog installs its own SIGTERM handler:
@@ -111,6 +112,7 @@ def _train(project: Project, cfg: TrainConfig, device: torch.device, resume: boo
             state.plan = time_plan(cfg)
             if comm.main:
                 log.start_fresh(project, on_event)
+        state.draw = rasterizer(cfg.renderer)
         comm.broadcast_params(state.trainable())  # identical from the first step, whatever each rank computed
         box.append(state)
         cfg = _loop(project, cfg, run, data, state, ctx, stop, on_event, comm)
@@ -120,9 +122,9 @@ def _train(project: Project, cfg: TrainConfig, device: torch.device, resume: boo
 def render_view(state: TrainState, view: TrainView, bg: Tensor, sh_degree: int) -> RenderOutput:  # bg [3]
     """The current Gaussians seen from `view` at the training resolution."""
     g = state.drawn()
-    return rasterize(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh, view.viewmat, view.K,
-                     view.camera.width, view.camera.height, bg, sh_degree=sh_degree, antialiased=state.antialiased,
-                     check=False)  # the loop checks every gradient for non-finite values
+    return state.draw(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh, view.viewmat, view.K,
+                      view.camera.width, view.camera.height, bg, sh_degree=sh_degree, antialiased=state.antialiased,
+                      check=False)  # the loop checks every gradient for non-finite values
 
 
 def _loop(project: Project, base: TrainConfig, cfg: TrainConfig, data: TrainData, state: TrainState, ctx: Context,

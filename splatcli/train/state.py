@@ -19,6 +19,8 @@ from torch import Tensor, nn
 
 from ..gaussians import Gaussians
 from ..io.checkpoint import Checkpoint, save_checkpoint
+from ..render import rasterize
+from ..render.backends import Rasterizer
 from ..strategy import (
     CompactStep,
     Context,
@@ -54,6 +56,7 @@ class TrainState:
     refine_acc: dict[str, int] = field(default_factory=dict)  # cloned / split / pruned since the last log line
     plan: TimePlan | None = None  # --time-budget
     image_model: ImageModel = field(default_factory=ImageModel)  # --appearance: between a render and its photo
+    draw: Rasterizer = rasterize  # the renderer (render/backends.py): rasterize's signature and result
 
     @property
     def params(self) -> dict[str, nn.Parameter]:

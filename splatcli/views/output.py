@@ -27,7 +27,7 @@ from ..gaussians import Gaussians
 from ..io.atomic import atomic_write_bytes
 from ..model import LoadedModel, load_model
 from ..project import Project
-from ..render import render_camera
+from ..render import Renderer, render_camera, resolve_renderer
 from .paths import PATHS, cameras_around_points, generate_path
 from .sources import SPLITS, View, choose_antialias, dataset_views, resize_views, transforms_views, zoom_factor
 
@@ -56,6 +56,7 @@ class RenderConfig:
     write_images: bool = True  # False: only time the rendering (and the video)
     sh_degree: int | None = None  # None: every band the model holds
     antialias: str = "auto"  # auto | on | off: the 2D filter (views/sources.choose_antialias)
+    renderer: str = "auto"  # auto | torch | gsplat (render/backends.resolve_renderer)
 
 
 @dataclass
@@ -75,6 +76,7 @@ class RenderResult:
     source: str = ""  # what was rendered: "checkpoint step 7000", "scene.ply"
     cameras: str = ""  # where the views came from: "test split", "orbit path", ...
     antialiased: bool = False  # drawn with the 2D filter
+    renderer: str = "torch"  # what drew: torch or gsplat
 
 
 def to_uint8(img: Tensor) -> np.ndarray:  # [H, W, C] in [0, 1] -> [H, W, C] uint8
@@ -154,10 +156,11 @@ def render_views(
     *,
     on_event: EventSink | None = None,
     antialiased: bool = False,
+    renderer: Renderer = Renderer("torch"),
 ) -> RenderResult:
     """Render `views` into `out_dir` (PNG per view; depth/ and alpha/ sub-folders
     when asked) and optionally a video, with the 2D filter when `antialiased`.
-    Nothing is written when `out_dir` is None and no video is asked for."""
+    `renderer` draws. Nothing is written when `out_dir` is None and no video is asked for."""
     if not views:
         raise SplatError("no views to render")
     device = gaussians.device
@@ -177,13 +180,15 @@ def render_views(
     near_far: tuple[float, float] | None = None
     t_wall = time.perf_counter()
     emit(on_event, Stage("render", total=len(views)))
-    render_camera(gaussians, views[0].camera, bg, sh_degree=config.sh_degree, antialiased=antialiased)  # warm-up: first calls pay one-off set-up
+    render_camera(gaussians, views[0].camera, bg, sh_degree=config.sh_degree, antialiased=antialiased,
+                  draw=renderer.draw)  # warm-up: first calls pay one-off set-up
     ok = False
     try:
         for i, view in enumerate(views):
             synchronize(device)
             t0 = time.perf_counter()
-            out = render_camera(gaussians, view.camera, bg, sh_degree=config.sh_degree, antialiased=antialiased)
+            out = render_camera(gaussians, view.camera, bg, sh_degree=config.sh_degree, antialiased=antialiased,
+                                draw=renderer.draw)
             synchronize(device)
             render_s += time.perf_counter() - t0
             rgb = to_uint8(out.image)
@@ -222,6 +227,7 @@ def render_views(
         images=images,
         video=Path(config.video) if config.video is not None else None,
         antialiased=antialiased,
+        renderer=renderer.name,
     )
 
 
@@ -309,11 +315,13 @@ class RenderPlan:
     cameras: str  # where the views came from, in words
     notes: list[str] = field(default_factory=list)
     antialiased: bool = False  # draw with the 2D filter
+    renderer: Renderer = Renderer("torch")
 
 
 def plan_render(source: str | os.PathLike, config: RenderConfig, device: torch.device) -> RenderPlan:
     """Check options, load the model, choose the views and the output folder."""
     check_config(config)
+    renderer = resolve_renderer(config.renderer, device)
     model = load_model(source, device)
     notes = list(model.notes)
     views, name, project = select_views(model, config, notes)
@@ -334,8 +342,9 @@ def plan_render(source: str | os.PathLike, config: RenderConfig, device: torch.d
         what = f"{name} split"
     antialiased, why = choose_antialias(config.antialias, model.antialiased, _zoom(project, config, views))
     notes += [why] if why else []
+    notes += [renderer.note] if renderer.note else []
     return RenderPlan(model=model, views=views, out_dir=out_dir, config=replace(config, background=background),
-                      cameras=what, notes=notes, antialiased=antialiased)
+                      cameras=what, notes=notes, antialiased=antialiased, renderer=renderer)
 
 
 def run_render(plan: RenderPlan, *, on_event: EventSink | None = None) -> RenderResult:
@@ -343,7 +352,7 @@ def run_render(plan: RenderPlan, *, on_event: EventSink | None = None) -> Render
     for n in plan.notes:
         emit(on_event, Note(n))
     result = render_views(plan.model.gaussians, plan.views, plan.config, plan.out_dir, on_event=on_event,
-                          antialiased=plan.antialiased)
+                          antialiased=plan.antialiased, renderer=plan.renderer)
     m = plan.model
     result.source = m.name
     result.cameras = plan.cameras
