@@ -38,7 +38,7 @@ from ..render.backends import gsplat_will_compile
 
 DeviceOpt = typer.Option("auto", "--device", help="Where to compute: auto (CUDA if available, else CPU), cpu or cuda.")
 RendererOpt = typer.Option("auto", "--renderer", help="What draws: auto (gsplat's CUDA kernels on a GPU when installed, "
-                           "pip install 'splatcli[cuda]'; else torch), torch (the PyTorch rasterizer, any device) or gsplat.")
+                           "pip install 'splatcli\\[cuda]'; else torch), torch (the PyTorch rasterizer, any device) or gsplat.")
 SeedOpt = typer.Option(0, "--seed", help="Random seed; the same seed on CPU gives the same result.")
 QuietOpt = typer.Option(False, "--quiet", "-q", help="Print nothing but errors (and the --json object).")
 JsonOpt = typer.Option(False, "--json", help="Print one JSON summary object on stdout, for scripts and Makefiles.")
@@ -107,10 +107,8 @@ class Ui:
             self.err.width = 140
 
     def note(self, message: str, level: str = "note") -> None:
-        if level == "warning":
-            self.err.print(f"[yellow]warning:[/yellow] {message}")
-        else:
-            self.err.print(f"[dim]note:[/dim] {message}")
+        head = "[yellow]warning:[/yellow]" if level == "warning" else "[dim]note:[/dim]"
+        self.err.print(f"{head} {escape(message)}")  # a message's [brackets] are text, not markup
 
     @contextlib.contextmanager
     def progress(self) -> Iterator[EventSink]:
