@@ -11,10 +11,12 @@ from ..events import Note
 from ..io.export import ExportConfig, check_export_config
 from ..io.sog import SogOptions
 from ..io.spz import SpzOptions
+from ..mesh.fuse import MeshConfig, export_mesh
 from ..model import export_project
 from .common import DebugOpt, JsonOpt, QuietOpt, Ui
 
 _D = ExportConfig()  # the defaults, written once in the config
+_M = MeshConfig()
 
 
 def export(
@@ -25,19 +27,35 @@ def export(
     fmt: str = typer.Option(_D.format, "--format", "-f",
                             help="ply: 3DGS layout, lossless. spz: Niantic SPZ (~10x smaller). sog: PlayCanvas SOG (~15-20x smaller). compressed-ply: "
                                  "SuperSplat/PlayCanvas chunks (~4x smaller). splat: 32-byte web-viewer rows, SH degree 0 "
-                                 "only. docs/guide.md says which viewer reads which."),
+                                 "only. mesh: triangles (PROJECT/exports/mesh.ply and .obj, vertex colours) fused from the "
+                                 "training views' depth. docs/guide.md says which viewer reads which."),
     spz_sh_bits: str = typer.Option(f"{_D.spz.sh1_bits},{_D.spz.sh_rest_bits}", "--spz-sh-bits",
                                     help="SPZ: bits per SH coefficient of degree 1, and of degrees 2-3 (fewer: smaller, "
                                          "less view-dependent colour)."),
     sog_palette: Optional[int] = typer.Option(None, "--sog-palette", help="SOG: entries of the SH palette (k-means of the "
                                               "Gaussians' SH; default a power of two near N/16, 256 to 4096; more: larger, "
                                               "closer view-dependent colour)."),
+    voxel_size: Optional[float] = typer.Option(_M.voxel_size, "--voxel-size", help="mesh: voxel size in world units "
+                                               "(default: 1/256 of the scene's longest side)."),
+    depth_trunc: Optional[float] = typer.Option(_M.depth_trunc, "--depth-trunc", help="mesh: fuse no depth beyond "
+                                                "this (world units; default: all), e.g. to leave out a far background."),
+    views: str = typer.Option(_M.views, "--views", help="mesh: the views fused: train, test, all, or image names "
+                              "separated by commas."),
     quiet: bool = QuietOpt,
     json_out: bool = JsonOpt,
     debug: bool = DebugOpt,
 ) -> None:
     """Write Gaussians in a format other tools read (also: convert one splat file into another)."""
     ui = Ui(quiet=quiet, json_out=json_out)
+    if fmt.strip().lower() == "mesh":
+        with ui.progress() as sink:
+            m = export_mesh(source, MeshConfig(voxel_size, depth_trunc, views.strip()), out, on_event=sink)
+        return ui.summary({"path": m.path, "obj": m.obj, "format": "mesh", "vertices": m.num_vertices,
+                           "faces": m.num_faces, "voxel_size": m.voxel_size, "grid": m.grid, "views": m.views,
+                           "seconds": m.seconds, "step": m.step},
+                          title=f"exported a mesh of {m.num_faces:,} triangles to {m.path}",
+                          lines=[f"also {m.obj}; {m.views} views fused into a {'x'.join(map(str, m.grid))} volume "
+                                 f"(voxel {m.voxel_size:.4g}) in {m.seconds:.1f} s"])
     cfg = ExportConfig(format=fmt.strip().lower(), out=out, spz=SpzOptions(*_bits(spz_sh_bits)),
                        sog=SogOptions(palette=sog_palette))
     check_export_config(cfg)

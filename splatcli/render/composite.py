@@ -357,44 +357,62 @@ def _segment(plan: Plan, gs: _Gauss, featsT: Tensor, c: _Consts, gid: Tensor, ce
     return k1, sl, a, om, U
 
 
+def _weight(a: Tensor, om: Tensor, U: Tensor) -> Tensor:  # [na, P, k] each
+    return a.div_(om).mul_(U)  # alpha T_before; 0 where not blended
+
+
+def _median_weight(a: Tensor, om: Tensor, U: Tensor) -> Tensor:  # [na, P, k] each
+    """1 at the slot where transmittance crosses 0.5 (T_before > 0.5 >= T_after), else 0."""
+    return ((U > 0.5 * om) & (U <= 0.5)).to(a.dtype)
+
+
+def _blend(plan: Plan, means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor, depths: Tensor,
+           weight) -> Tensor:  # [nblocks, 5, P]: sums of weight times (r, g, b, z, 1) per pixel
+    """The forward pass over the plan's chunks and segments, each slot weighted by
+    `weight(alpha, 1 - alpha, T_after)`: blending weights for the picture, the 0.5
+    crossing for the median depth."""
+    dt, dev = means2d.dtype, means2d.device
+    N = means2d.shape[0]
+    P = plan.block * plan.block
+    c = _Consts(dt)
+    gs = _Gauss(means2d, conics, opacities, colors, depths)
+    featsT = _feats(plan.block, dt, dev).T.contiguous()  # [P, 6]
+    acc = torch.zeros(plan.nbx * plan.nby, 5, P, dtype=dt, device=dev)  # (r, g, b, depth, sum w)
+    for bl, K in plan.chunks:
+        gid, centre = _chunk_ids(plan, bl, K, N)
+        centre = centre.to(dt)
+        cnt = plan.block_count.index_select(0, bl)  # [nb] list lengths
+        out = None
+        act, Tc = None, None
+        k0 = nseg = 0
+        while k0 < K:
+            k1, sl, a, om, U = _segment(plan, gs, featsT, c, gid, centre, bl, act, Tc, k0, K)
+            w = weight(a, om, U)
+            czg = gs.cz.index_select(0, sl.gid.reshape(-1)).view(*sl.gid.shape, 5)
+            o = torch.bmm(czg.transpose(1, 2), w.transpose(1, 2))  # [na, 5, P]
+            if out is None:
+                out = o
+            elif act is None:
+                out += o
+            else:
+                out.index_add_(0, act, o)
+            Tc, nseg = U[:, :, -1], nseg + 1
+            if k1 < K and nseg % plan.terminate_every == 0:
+                act, Tc, _ = _terminate(act, Tc, _rowsel(cnt, act) > k1)
+                if act is not None and act.numel() == 0:
+                    break
+            k0 = k1
+        acc[bl] = out
+    return acc
+
+
 class _Composite(torch.autograd.Function):
     @staticmethod
     def forward(ctx, planner, means2d, conics, opacities, colors, depths, background):
         # planner: a Plan, or a function that builds one. A function is called again in
         # backward instead of keeping the plan alive (memory-bounded banded renders).
         plan = planner() if callable(planner) else planner
-        dt, dev = means2d.dtype, means2d.device
-        N = means2d.shape[0]
-        P = plan.block * plan.block
-        c = _Consts(dt)
-        gs = _Gauss(means2d, conics, opacities, colors, depths)
-        featsT = _feats(plan.block, dt, dev).T.contiguous()  # [P, 6]
-        acc = torch.zeros(plan.nbx * plan.nby, 5, P, dtype=dt, device=dev)  # (r, g, b, depth, sum w)
-        for bl, K in plan.chunks:
-            gid, centre = _chunk_ids(plan, bl, K, N)
-            centre = centre.to(dt)
-            cnt = plan.block_count.index_select(0, bl)  # [nb] list lengths
-            out = None
-            act, Tc = None, None
-            k0 = nseg = 0
-            while k0 < K:
-                k1, sl, a, om, U = _segment(plan, gs, featsT, c, gid, centre, bl, act, Tc, k0, K)
-                w = a.div_(om).mul_(U)  # alpha T_before; 0 where not blended
-                czg = gs.cz.index_select(0, sl.gid.reshape(-1)).view(*sl.gid.shape, 5)
-                o = torch.bmm(czg.transpose(1, 2), w.transpose(1, 2))  # [na, 5, P]
-                if out is None:
-                    out = o
-                elif act is None:
-                    out += o
-                else:
-                    out.index_add_(0, act, o)
-                Tc, nseg = U[:, :, -1], nseg + 1
-                if k1 < K and nseg % plan.terminate_every == 0:
-                    act, Tc, _ = _terminate(act, Tc, _rowsel(cnt, act) > k1)
-                    if act is not None and act.numel() == 0:
-                        break
-                k0 = k1
-            acc[bl] = out
+        acc = _blend(plan, means2d, conics, opacities, colors, depths, _weight)
         ctx.planner = planner
         ctx.save_for_backward(means2d, conics, opacities, colors, depths, background, acc)
         return _unblock(plan, acc, background)
@@ -515,3 +533,11 @@ def composite(
     background: Tensor,  # [3]
 ) -> tuple[Tensor, Tensor, Tensor]:  # image [H, W, 3], alpha [H, W], depth [H, W]
     return _Composite.apply(plan, means2d, conics, opacities, colors, depths, background)
+
+
+@torch.no_grad()
+def median_depth(plan: Plan, means2d: Tensor, conics: Tensor, opacities: Tensor, depths: Tensor) -> Tensor:  # [H, W]
+    """Per pixel, the depth of the Gaussian at which transmittance falls through 0.5 (0 where
+    it never does): a surface depth more stable than the blended mean (2DGS; meshing)."""
+    zeros = depths.new_zeros(depths.shape[0], 3)
+    return _to_image(plan, _blend(plan, means2d, conics, opacities, zeros, depths, _median_weight))[..., 3]

@@ -14,9 +14,9 @@ import math
 import torch
 from torch import Tensor
 
-from .composite import choose_block, composite, estimate_pairs, make_plan
+from .composite import choose_block, composite, estimate_pairs, make_plan, median_depth
 from .output import RenderOutput
-from .projection import TILE, project
+from .projection import NEAR, TILE, project
 
 # Above this many (Gaussian, block) pairs the image is rendered in bands of tile rows,
 # each planned on its own and re-planned in backward, so memory stays bounded
@@ -141,3 +141,32 @@ def _banded(pr, width, height, block, background, nbands):
 
         outs.append(composite(planner, pr.means2d - shift, pr.conics, pr.opacities, pr.colors, pr.depths, background))
     return tuple(torch.cat([o[i] for o in outs], 0) for i in range(3))
+
+
+@torch.no_grad()
+def render_median_depth(
+    means: Tensor,  # [N, 3] world
+    quats: Tensor,  # [N, 4]
+    log_scales: Tensor,  # [N, 3]
+    opacity_logits: Tensor,  # [N]
+    viewmat: Tensor,  # [4, 4] world -> camera
+    K: Tensor,  # [3, 3] px
+    width: int,
+    height: int,
+    *,
+    antialiased: bool = False,
+) -> Tensor:  # [H, W] view depth where transmittance crosses 0.5; 0 where it never does
+    """The median depth of N Gaussians from one camera (composite.median_depth), the
+    surface that meshing fuses; in bands of tile rows when the plan would be large."""
+    sh = means.new_zeros(means.shape[0], 1, 3)
+    pr = project(means, quats, log_scales, opacity_logits, sh, viewmat, K, width, height, 0, NEAR, antialiased)
+    fp = pr.footprint
+    block = choose_block(fp.cov2d, fp.opacities, width, height)
+    est = estimate_pairs(fp.cov2d, fp.opacities, block)
+    band = height if est <= PAIR_BUDGET else TILE * math.ceil(height / TILE / math.ceil(est / PAIR_BUDGET))
+    rows = []
+    for y0 in range(0, height, band):
+        shift = torch.tensor([0.0, float(y0)], dtype=pr.means2d.dtype, device=pr.means2d.device)
+        plan = make_plan(fp, width, height, block, (y0, min(height, y0 + band)))
+        rows.append(median_depth(plan, pr.means2d - shift, pr.conics, pr.opacities, pr.depths))
+    return torch.cat(rows, 0)

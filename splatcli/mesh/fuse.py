@@ -1,0 +1,254 @@
+"""`splatcli export PROJ --format mesh`: a triangle mesh of the trained scene.
+
+Each chosen view's median depth (`render_median_depth`: where transmittance crosses 0.5,
+steadier on surfaces than the blended mean) and colour are fused into a truncated signed
+distance volume (Curless and Levoy's running average, the fusion 2DGS and gsplat's examples
+use), and marching cubes (scikit-image, the `mesh` extra) extracts its zero level set, with
+vertex colours from the fused colours. Pixels a mask leaves out are not fused.
+
+The volume covers the opaque Gaussians (their 0.5-99.5% quantiles per axis, grown by 5%) and
+is dense: DISTANCE + WEIGHT + COLOUR = 20 bytes a voxel, fused in chunks of voxels; a voxel
+size that would need more than half the free memory is refused with one that fits.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..camera import Camera, focus_point
+from ..errors import SplatError
+from ..eval.score import load_target
+from ..events import EventSink, Progress, Stage, StageDone, emit
+from ..gaussians import Gaussians
+from ..project import Project
+from ..render import rasterize
+from ..render.rasterize import render_median_depth
+from ..train.memory import free_memory
+from ..views.sources import View, dataset_views
+
+RESOLUTION = 256  # voxels along the box's longest side, by default
+TRUNC_VOXELS = 4  # the signed distance is truncated at this many voxels
+BYTES_PER_VOXEL = 20  # float32 distance, weight and colour (3)
+CHUNK = 1 << 21  # voxels fused at a time
+FOCUS_REACH = 0.6  # the volume's half side at most, in median camera distances from the focus point
+
+
+@dataclass(frozen=True)
+class MeshConfig:
+    voxel_size: float | None = None  # world units; None: the box's longest side / RESOLUTION
+    depth_trunc: float | None = None  # depths beyond this (world units) are not fused; None: all
+    views: str = "train"  # train | test | all, or image names separated by commas
+
+
+@dataclass
+class Mesh:
+    verts: np.ndarray  # [V, 3] float32 world
+    faces: np.ndarray  # [F, 3] int32
+    colors: np.ndarray  # [V, 3] uint8
+
+
+def choose_views(project: Project, spec: str) -> list[View]:
+    """The views to fuse: a split, or the named images (one-line error when none match)."""
+    if spec in ("train", "test", "all"):
+        return dataset_views(project, spec)
+    names = [n.strip() for n in spec.split(",") if n.strip()]
+    every = dataset_views(project, "all")
+    chosen = [v for v in every if v.camera.name in names]
+    if not chosen:
+        raise SplatError(f"--views {spec!r} matches none of the project's {len(every)} images "
+                         f"(e.g. {every[0].camera.name if every else '...'}); or use train, test, all")
+    return chosen
+
+
+def scene_box(g: Gaussians, cameras: list[Camera]) -> tuple[np.ndarray, np.ndarray]:  # lo [3], hi [3]
+    """Where the opaque Gaussians are (their 0.5-99.5% quantiles per axis, grown by 5%), within
+    FOCUS_REACH times the cameras' median distance of the point they look at (when they do):
+    what a capture is of, without the far background."""
+    m = g.means[torch.sigmoid(g.opacity_logits) > 0.5].detach().double()
+    if len(m) < 2:
+        m = g.means.detach().double()
+    q = torch.quantile(m[:: max(1, len(m) // 100_000)], torch.tensor([0.005, 0.995], dtype=m.dtype), dim=0).numpy()
+    pad = 0.05 * (q[1] - q[0]).max()
+    lo, hi = q[0] - pad, q[1] + pad
+    f = focus_point(cameras)
+    if f is not None:
+        r = FOCUS_REACH * float(np.median([np.linalg.norm(c.center - f) for c in cameras]))
+        lo, hi = np.maximum(lo, f - r), np.minimum(hi, f + r)
+    return lo, hi
+
+
+def grid_for(lo: np.ndarray, hi: np.ndarray, voxel: float | None) -> tuple[float, tuple[int, int, int]]:
+    """The voxel size and the grid's shape, refused when it would not fit in memory."""
+    voxel = float(voxel) if voxel is not None else float((hi - lo).max()) / RESOLUTION
+    if not (math.isfinite(voxel) and voxel > 0):
+        raise SplatError(f"--voxel-size {voxel}: must be a positive number")
+    shape = tuple(int(math.ceil(s / voxel)) + 1 for s in hi - lo)
+    need = math.prod(shape) * BYTES_PER_VOXEL * 2  # the volume, and marching cubes' copies
+    free, what = free_memory()
+    if free is not None and need > free / 2 or math.prod(shape) > 2**31:
+        fits = voxel * (need / max(free or 1, 1) * 2.5) ** (1 / 3)
+        raise SplatError(f"--voxel-size {voxel:.4g}: a {shape[0]}x{shape[1]}x{shape[2]} volume needs about "
+                         f"{need / 1e9:.1f} GB, more than half of {what} ({(free or 0) / 1e9:.1f} GB free); "
+                         f"try --voxel-size {fits:.3g}")
+    return voxel, shape  # type: ignore[return-value]
+
+
+def fuse(g: Gaussians, views: list[View], project: Project, lo: np.ndarray, voxel: float, shape: tuple[int, int, int],
+         depth_trunc: float | None, antialiased: bool, on_event: EventSink | None) -> tuple[Tensor, Tensor, Tensor]:
+    """The fused volume: signed distance in truncation units [X, Y, Z], weight [X, Y, Z]
+    (views that saw the voxel) and colour [X, Y, Z, 3], float32 on the model's device."""
+    dev = g.device
+    dist = torch.ones(shape, device=dev)
+    weight = torch.zeros(shape, device=dev)
+    color = torch.zeros(*shape, 3, device=dev)
+    trunc = TRUNC_VOXELS * voxel
+    ijk = lambda i: torch.stack(torch.unravel_index(i, shape), 1)  # noqa: E731  flat -> [n, 3]
+    origin = torch.as_tensor(lo, dtype=torch.float32, device=dev)
+    mode = project.mask_mode("auto")
+    emit(on_event, Stage("fuse", total=len(views)))
+    for n, v in enumerate(views):
+        cam = v.camera
+        vm, K = cam.torch(dev, torch.float32)
+        with torch.no_grad():
+            depth = render_median_depth(g.means, g.quats, g.log_scales, g.opacity_logits, vm, K, cam.width, cam.height,
+                                        antialiased=antialiased)
+            out = rasterize(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh, vm, K, cam.width, cam.height,
+                            antialiased=antialiased)
+        rgb = (out.image / out.alpha.clamp_min(1e-3)[..., None]).clamp(0, 1)  # colour of the surface alone
+        ok = depth > 0
+        if depth_trunc is not None:
+            ok &= depth <= depth_trunc
+        if mode != "off" and v.image is not None:
+            keep = load_target(project, cam.name, (cam.width, cam.height), (0.0, 0.0, 0.0), "ignore")[1]
+            if keep is not None:
+                ok &= torch.from_numpy(keep).to(dev)
+        depth = torch.where(ok, depth.float(), torch.zeros_like(depth, dtype=torch.float32))
+        total = math.prod(shape)
+        for s in range(0, total, CHUNK):
+            idx = torch.arange(s, min(total, s + CHUNK), device=dev)
+            p = origin + ijk(idx).float() * voxel  # [n, 3] voxel centres
+            c = p @ vm[:3, :3].T + vm[:3, 3]
+            z = c[:, 2].clamp_min(1e-6)
+            u = torch.floor(c[:, 0] / z * K[0, 0] + K[0, 2]).long()
+            w = torch.floor(c[:, 1] / z * K[1, 1] + K[1, 2]).long()
+            inside = (c[:, 2] > 1e-6) & (u >= 0) & (u < cam.width) & (w >= 0) & (w < cam.height)
+            pix = (w.clamp(0, cam.height - 1) * cam.width + u.clamp(0, cam.width - 1))
+            d = depth.reshape(-1)[pix]
+            sdf = d - c[:, 2]
+            use = inside & (d > 0) & (sdf > -trunc)
+            sel = idx[use]
+            if sel.numel() == 0:
+                continue
+            new = (sdf[use] / trunc).clamp(max=1.0)
+            wt = weight.view(-1)[sel]
+            dist.view(-1)[sel] = (dist.view(-1)[sel] * wt + new) / (wt + 1)
+            color.view(-1, 3)[sel] = (color.view(-1, 3)[sel] * wt[:, None] + rgb.reshape(-1, 3)[pix[use]]) / (wt + 1)[:, None]
+            weight.view(-1)[sel] = wt + 1
+        emit(on_event, Progress("fuse", n + 1, len(views)))
+    emit(on_event, StageDone("fuse", 0.0))
+    return dist, weight, color
+
+
+def extract(dist: Tensor, weight: Tensor, color: Tensor, lo: np.ndarray, voxel: float, level: float = 0.0) -> Mesh:
+    """Marching cubes on the seen voxels' zero level set; colours from the nearest voxel."""
+    try:
+        from skimage.measure import marching_cubes
+    except ImportError:
+        raise SplatError("meshing needs scikit-image: pip install 'splatcli[mesh]'") from None
+    vol = dist.cpu().numpy()
+    seen = (weight > 0).cpu().numpy()
+    if not seen.any() or vol[seen].min() > level or vol[seen].max() < level:
+        raise SplatError("no surface found: the fused views saw no depth inside the volume "
+                         "(check --views and --depth-trunc)")
+    verts, faces, _, _ = marching_cubes(vol, level=level, mask=seen)
+    near = np.clip(np.rint(verts).astype(np.int64), 0, np.array(vol.shape) - 1)
+    rgb = color.cpu().numpy()[near[:, 0], near[:, 1], near[:, 2]]
+    return Mesh((lo + verts * voxel).astype(np.float32), faces.astype(np.int32),
+                np.clip(np.rint(rgb * 255), 0, 255).astype(np.uint8))
+
+
+def centres_mesh(g: Gaussians, lo: np.ndarray, voxel: float, shape: tuple[int, int, int]) -> Mesh:
+    """The naive mesh: the voxels holding an opaque Gaussian centre, grown by one voxel,
+    as a surface (what the fusion is measured against: the centres are not a surface)."""
+    m = g.means[torch.sigmoid(g.opacity_logits) > 0.5].detach().cpu().double().numpy()
+    idx = np.floor((m - lo) / voxel + 0.5).astype(np.int64)
+    idx = idx[((idx >= 0) & (idx < np.array(shape))).all(1)]
+    occ = torch.zeros(shape)
+    occ[tuple(torch.from_numpy(idx).T)] = 1.0
+    occ = torch.nn.functional.max_pool3d(occ[None, None], 3, 1, 1)[0, 0]
+    col = torch.full((*shape, 3), 0.5)
+    return extract(0.5 - occ, torch.ones(shape), col, lo, voxel)
+
+
+def write_mesh(path: Path, mesh: Mesh) -> list[Path]:
+    """`path` (.ply: binary triangles with vertex colours) and the same mesh as .obj beside it."""
+    from plyfile import PlyData, PlyElement
+
+    from ..io.atomic import atomic_write_bytes
+
+    v = np.empty(len(mesh.verts), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"),
+                                         ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    for i, k in enumerate("xyz"):
+        v[k] = mesh.verts[:, i]
+    for i, k in enumerate(("red", "green", "blue")):
+        v[k] = mesh.colors[:, i]
+    f = np.empty(len(mesh.faces), dtype=[("vertex_indices", "i4", (3,))])
+    f["vertex_indices"] = mesh.faces
+    import io
+
+    buf = io.BytesIO()
+    PlyData([PlyElement.describe(v, "vertex"), PlyElement.describe(f, "face")]).write(buf)
+    atomic_write_bytes(path, buf.getvalue())
+    obj = path.with_suffix(".obj")
+    col = mesh.colors / 255.0
+    lines = [f"v {x:.6g} {y:.6g} {z:.6g} {r:.4g} {g:.4g} {b:.4g}" for (x, y, z), (r, g, b) in zip(mesh.verts, col)]
+    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in mesh.faces]
+    atomic_write_bytes(obj, ("\n".join(lines) + "\n").encode())
+    return [path, obj]
+
+
+@dataclass
+class MeshResult:
+    path: Path  # the .ply
+    obj: Path
+    num_vertices: int
+    num_faces: int
+    voxel_size: float
+    grid: tuple[int, int, int]
+    views: int
+    seconds: float
+    step: int | None  # of the checkpoint
+
+
+def export_mesh(root: str | Path, config: MeshConfig, out: Path | None = None, *,
+                on_event: EventSink | None = None) -> MeshResult:
+    """Fuse the latest checkpoint of the project at `root` into a mesh: PROJECT/exports/mesh.ply
+    (or `out`) and the .obj beside it, under the project's shared export lock."""
+    import time
+
+    from ..model import load_model
+    from ..project import writer_lock
+
+    t0 = time.perf_counter()
+    project = Project.open(root)
+    with writer_lock(project.root, "export", shared=True):
+        m = load_model(project.root, torch.device("cpu"))
+        if config.depth_trunc is not None and not config.depth_trunc > 0:
+            raise SplatError(f"--depth-trunc {config.depth_trunc}: must be a positive depth (world units)")
+        downscale, max_size = project.trained_resolution()
+        views = [View(camera=v.camera.at_resolution(downscale, max_size), out_name=v.out_name, image=v.image)
+                 for v in choose_views(project, config.views)]
+        lo, hi = scene_box(m.gaussians, [v.camera for v in views])
+        voxel, shape = grid_for(lo, hi, config.voxel_size)
+        vol = fuse(m.gaussians, views, project, lo, voxel, shape, config.depth_trunc, bool(m.antialiased), on_event)
+        mesh = extract(*vol, lo, voxel)
+        path = Path(out) if out is not None else project.exports_dir / "mesh.ply"
+        ply, obj = write_mesh(path, mesh)
+    return MeshResult(ply, obj, len(mesh.verts), len(mesh.faces), voxel, shape, len(views),
+                      time.perf_counter() - t0, m.step)
