@@ -20,7 +20,7 @@ from .events import EventSink
 from .gaussians import Gaussians
 from .io.checkpoint import load_checkpoint
 from .io.compressed_ply import is_compressed_ply
-from .io.export import ExportConfig, ExportResult, check_export_config, export_gaussians, path_beside
+from .io.export import EXPORT_FORMATS, ExportConfig, ExportResult, check_export_config, export_gaussians, path_beside
 from .io.formats import SUFFIXES, check_format, format_of, read_format
 from .project import Project, is_project, writer_lock
 
@@ -79,7 +79,7 @@ def export_project(root: str | os.PathLike, config: ExportConfig, *, on_event: E
     """Write the latest checkpoint of the project at `root`, or the splat file `root`,
     in `config.format` (io/export.py): a project's to PROJECT/exports/ under its lock
     (shared), a file's beside it."""
-    config = ExportConfig(check_format(config.format), config.out, config.spz, config.sog)
+    config = ExportConfig(check_format(config.format, allowed=EXPORT_FORMATS), config.out, config.spz, config.sog)
     check_export_config(config)
     root = Path(root)
     if root.is_dir() or is_project(root) or not root.exists():
@@ -95,4 +95,8 @@ def export_project(root: str | os.PathLike, config: ExportConfig, *, on_event: E
 
 def _export(source: Path, out: Path, config: ExportConfig, on_event: EventSink | None) -> ExportResult:
     m = load_model(source, torch.device("cpu"))
+    if config.format == "web":  # a folder: the viewer's page and the scene as .sog
+        from .viewer.site import export_site
+
+        return export_site(m, out, config, on_event)
     return export_gaussians(m.gaussians, out, config, source=m.path, step=m.step, notes=m.notes, on_event=on_event)

@@ -1,4 +1,5 @@
-"""`splatcli export`: a project's model, or any splat file, as .ply, .spz, .sog, .compressed.ply or .splat."""
+"""`splatcli export`: a project's model, or any splat file, as .ply, .spz, .sog, .compressed.ply or .splat,
+or as a folder a static web server serves (web)."""
 
 from __future__ import annotations
 
@@ -21,11 +22,13 @@ def export(
     source: Path = typer.Argument(..., help="A project directory (its latest checkpoint), or a splat file to convert "
                                   "(.ply, .compressed.ply, .spz, .sog, .splat)."),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Output file (default PROJECT/exports/scene.<suffix>, "
-                                       "or the source file's name with the new suffix)."),
+                                       "or the source file's name with the new suffix); for web a folder "
+                                       "(default PROJECT/exports/web/)."),
     fmt: str = typer.Option(_D.format, "--format", "-f",
                             help="ply: 3DGS layout, lossless. spz: Niantic SPZ (~10x smaller). sog: PlayCanvas SOG (~15-20x smaller). compressed-ply: "
                                  "SuperSplat/PlayCanvas chunks (~4x smaller). splat: 32-byte web-viewer rows, SH degree 0 "
-                                 "only. docs/guide.md says which viewer reads which."),
+                                 "only. web: a folder with the viewer's page and the scene as .sog, to share: any static web "
+                                 "server shows it, offline too. docs/guide.md says which viewer reads which."),
     spz_sh_bits: str = typer.Option(f"{_D.spz.sh1_bits},{_D.spz.sh_rest_bits}", "--spz-sh-bits",
                                     help="SPZ: bits per SH coefficient of degree 1, and of degrees 2-3 (fewer: smaller, "
                                          "less view-dependent colour)."),
