@@ -13,6 +13,7 @@ from ..io.export import ExportConfig, check_export_config
 from ..io.sog import SogOptions
 from ..io.spz import SpzOptions
 from ..model import export_project
+from ..viewer.site import export_site
 from .common import DebugOpt, JsonOpt, QuietOpt, Ui
 
 _D = ExportConfig()  # the defaults, written once in the config
@@ -46,7 +47,7 @@ def export(
     check_export_config(cfg)
     # notes only: an export takes seconds, and errors must stay the only line
     sink = lambda ev: ui.note(ev.message, ev.level) if isinstance(ev, Note) else None  # noqa: E731
-    r = export_project(source, cfg, on_event=sink)
+    r = export_project(source, cfg, on_event=sink, write=export_site if cfg.format == "web" else None)
     origin = f"checkpoint step {r.step}" if r.step is not None else str(r.checkpoint)
     ui.summary(
         {"path": r.path, "format": r.format, "num_gaussians": r.num_gaussians, "num_dropped": r.num_dropped,
