@@ -15,7 +15,7 @@ the output; this module checks the options and writes. Formats (io/formats.py):
 * `splat`: the 32-byte-per-Gaussian web-viewer format (io/splat.py). SH bands above
   degree 0 are dropped and colour, opacity and rotation are 8-bit.
 * `web`: a folder, not a file: `view`'s page with the scene as .sog, for any static web
-  server (viewer/site.py; model.py sends it there).
+  server (viewer/site.py, passed to model.export_project as its writer by the CLI).
 
 Rows with NaN/Inf values are dropped and counted. Every write is atomic.
 """
