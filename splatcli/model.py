@@ -10,6 +10,7 @@ io/ reads and writes files and knows no project.
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -20,7 +21,7 @@ from .events import EventSink
 from .gaussians import Gaussians
 from .io.checkpoint import load_checkpoint
 from .io.compressed_ply import is_compressed_ply
-from .io.export import ExportConfig, ExportResult, check_export_config, export_gaussians, path_beside
+from .io.export import EXPORT_FORMATS, ExportConfig, ExportResult, check_export_config, export_gaussians, path_beside
 from .io.formats import SUFFIXES, check_format, format_of, read_format
 from .project import Project, is_project, writer_lock
 
@@ -75,24 +76,32 @@ def _starts_like_ply(path: Path) -> bool:
         return True  # let the .ply reader name the problem
 
 
-def export_project(root: str | os.PathLike, config: ExportConfig, *, on_event: EventSink | None = None) -> ExportResult:
+Writer = Callable[[LoadedModel, Path, ExportConfig, EventSink | None], ExportResult]
+
+
+def export_project(root: str | os.PathLike, config: ExportConfig, *, on_event: EventSink | None = None,
+                   write: Writer | None = None) -> ExportResult:
     """Write the latest checkpoint of the project at `root`, or the splat file `root`,
     in `config.format` (io/export.py): a project's to PROJECT/exports/ under its lock
-    (shared), a file's beside it."""
-    config = ExportConfig(check_format(config.format), config.out, config.spz, config.sog)
+    (shared), a file's beside it. `write`: what writes the loaded model instead of
+    io/export.py (--format web: viewer/site.py's export_site, a layer above this one)."""
+    config = ExportConfig(check_format(config.format, allowed=EXPORT_FORMATS), config.out, config.spz, config.sog)
     check_export_config(config)
     root = Path(root)
     if root.is_dir() or is_project(root) or not root.exists():
         project = Project.open(root)
         with writer_lock(project.root, "export", shared=True):
             out = Path(config.out) if config.out is not None else project.export_path(config.format)
-            return _export(project.root, out, config, on_event)
+            return _export(project.root, out, config, on_event, write)
     out = Path(config.out) if config.out is not None else path_beside(root, config.format)
     if out.resolve() == root.resolve():
         raise SplatError(f"-o {out}: is the source file itself; give another name")
-    return _export(root, out, config, on_event)
+    return _export(root, out, config, on_event, write)
 
 
-def _export(source: Path, out: Path, config: ExportConfig, on_event: EventSink | None) -> ExportResult:
+def _export(source: Path, out: Path, config: ExportConfig, on_event: EventSink | None,
+            write: Writer | None) -> ExportResult:
     m = load_model(source, torch.device("cpu"))
+    if write is not None:
+        return write(m, out, config, on_event)
     return export_gaussians(m.gaussians, out, config, source=m.path, step=m.step, notes=m.notes, on_event=on_event)

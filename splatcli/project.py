@@ -91,7 +91,9 @@ class Project:
         return self.renders_dir / name
 
     def export_path(self, fmt: str = "ply") -> Path:
-        """exports/scene.<format's suffix> (compressed-ply: scene.compressed.ply)."""
+        """exports/scene.<format's suffix> (compressed-ply: scene.compressed.ply; web: the folder exports/web)."""
+        if fmt == "web":
+            return self.exports_dir / "web"
         return self.exports_dir / f"scene.{fmt.replace('-', '.')}"
 
     def checkpoint_path(self, step: int) -> Path:

@@ -1,4 +1,5 @@
-"""`splatcli export`: a project's model, or any splat file, as .ply, .spz, .sog, .compressed.ply or .splat."""
+"""`splatcli export`: a project's model, or any splat file, as .ply, .spz, .sog, .compressed.ply or .splat,
+or as a folder a static web server serves (web)."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from ..io.sog import SogOptions
 from ..io.spz import SpzOptions
 from ..mesh.fuse import MeshConfig, export_mesh
 from ..model import export_project
+from ..viewer.site import export_site
 from .common import DebugOpt, JsonOpt, QuietOpt, Ui
 
 _D = ExportConfig()  # the defaults, written once in the config
@@ -23,12 +25,14 @@ def export(
     source: Path = typer.Argument(..., help="A project directory (its latest checkpoint), or a splat file to convert "
                                   "(.ply, .compressed.ply, .spz, .sog, .splat)."),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Output file (default PROJECT/exports/scene.<suffix>, "
-                                       "or the source file's name with the new suffix)."),
+                                       "or the source file's name with the new suffix); for web a folder "
+                                       "(default PROJECT/exports/web/)."),
     fmt: str = typer.Option(_D.format, "--format", "-f",
                             help="ply: 3DGS layout, lossless. spz: Niantic SPZ (~10x smaller). sog: PlayCanvas SOG (~15-20x smaller). compressed-ply: "
                                  "SuperSplat/PlayCanvas chunks (~4x smaller). splat: 32-byte web-viewer rows, SH degree 0 "
-                                 "only. mesh: triangles (PROJECT/exports/mesh.ply and .obj, vertex colours) fused from the "
-                                 "training views' depth. docs/guide.md says which viewer reads which."),
+                                 "only. web: a folder with the viewer's page and the scene as .sog, to share: any static web "
+                                 "server shows it, offline too. mesh: triangles (PROJECT/exports/mesh.ply and .obj, vertex "
+                                 "colours) fused from the training views' depth. docs/guide.md says which viewer reads which."),
     spz_sh_bits: str = typer.Option(f"{_D.spz.sh1_bits},{_D.spz.sh_rest_bits}", "--spz-sh-bits",
                                     help="SPZ: bits per SH coefficient of degree 1, and of degrees 2-3 (fewer: smaller, "
                                          "less view-dependent colour)."),
@@ -61,7 +65,7 @@ def export(
     check_export_config(cfg)
     # notes only: an export takes seconds, and errors must stay the only line
     sink = lambda ev: ui.note(ev.message, ev.level) if isinstance(ev, Note) else None  # noqa: E731
-    r = export_project(source, cfg, on_event=sink)
+    r = export_project(source, cfg, on_event=sink, write=export_site if cfg.format == "web" else None)
     origin = f"checkpoint step {r.step}" if r.step is not None else str(r.checkpoint)
     ui.summary(
         {"path": r.path, "format": r.format, "num_gaussians": r.num_gaussians, "num_dropped": r.num_dropped,

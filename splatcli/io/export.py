@@ -14,6 +14,8 @@ the output; this module checks the options and writes. Formats (io/formats.py):
   and k-means codebooks, the SH as a palette of SH vectors (io/sog.py).
 * `splat`: the 32-byte-per-Gaussian web-viewer format (io/splat.py). SH bands above
   degree 0 are dropped and colour, opacity and rotation are 8-bit.
+* `web`: a folder, not a file: `view`'s page with the scene as .sog, for any static web
+  server (viewer/site.py, passed to model.export_project as its writer by the CLI).
 
 Rows with NaN/Inf values are dropped and counted. Every write is atomic.
 """
@@ -27,15 +29,17 @@ from pathlib import Path
 from ..errors import SplatError
 from ..events import EventSink, Note, Stage, StageDone, emit
 from ..gaussians import Gaussians
-from .formats import LOSSLESS, SUFFIXES, check_format, default_name, write_format
+from .formats import FORMATS, LOSSLESS, SUFFIXES, check_format, default_name, write_format
 from .sog import SogOptions
 from .spz import SpzOptions
+
+EXPORT_FORMATS = (*FORMATS, "web", "mesh")  # mesh: cli/export_cmd hands it to mesh/fuse.py
 
 
 @dataclass(frozen=True)
 class ExportConfig:
-    format: str = "ply"  # ply | spz | compressed-ply | splat
-    out: Path | None = None  # default PROJECT/exports/scene.<suffix>, or beside a source file
+    format: str = "ply"  # ply | spz | sog | compressed-ply | splat | web
+    out: Path | None = None  # default PROJECT/exports/scene.<suffix> (web: exports/web/), or beside a source file
     spz: SpzOptions = SpzOptions()  # SH bits of .spz
     sog: SogOptions = SogOptions()  # SH palette size of .sog
 
@@ -54,8 +58,10 @@ class ExportResult:
 
 
 def check_export_config(config: ExportConfig) -> None:
-    check_format(config.format)
-    if config.out is not None:
+    check_format(config.format, allowed=EXPORT_FORMATS)
+    if config.out is not None and config.format == "web":
+        check_web_folder(Path(config.out))
+    elif config.out is not None:
         out = Path(config.out)
         if out.is_dir():
             raise SplatError(f"-o {out}: is a directory; give a file name such as {out / default_name('scene', config.format)}")
@@ -66,8 +72,20 @@ def check_export_config(config: ExportConfig) -> None:
         raise SplatError(f"--sog-palette {config.sog.palette}: must be in 1-65536")
 
 
+def check_web_folder(out: Path) -> None:
+    """`--format web` writes a folder: a new one, an empty one, or a previous web export (replaced)."""
+    if out.exists() and not out.is_dir():
+        raise SplatError(f"-o {out}: is a file; --format web writes a folder, give a folder name such as {out.parent / 'web'}")
+    if out.is_dir() and any(out.iterdir()) and not (out / "api" / "scene").is_file():
+        raise SplatError(f"-o {out}: is a folder with other files in it; give a new or empty folder "
+                         "(a previous web export is replaced)")
+
+
 def path_beside(source: Path, fmt: str) -> Path:
-    """Where a converted file goes by default: beside `source`, its name with `fmt`'s suffix."""
+    """Where a converted file goes by default: beside `source`, its name with `fmt`'s suffix
+    (web: the folder STEM-web)."""
+    if fmt == "web":
+        return source.with_name(f"{_stem(source)}-web")
     return source.with_name(default_name(_stem(source), fmt))
 
 

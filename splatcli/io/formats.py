@@ -47,10 +47,10 @@ class ReadResult:
     notes: list[str]
 
 
-def check_format(fmt: str, option: str = "--format") -> str:
+def check_format(fmt: str, option: str = "--format", allowed: tuple[str, ...] = FORMATS) -> str:
     f = fmt.strip().lower()
-    if f not in SUFFIXES:
-        raise SplatError(f"{option} {fmt!r} is not known; allowed values: {', '.join(FORMATS)}")
+    if f not in allowed:
+        raise SplatError(f"{option} {fmt!r} is not known; allowed values: {', '.join(allowed)}")
     return f
 
 

@@ -1,5 +1,7 @@
 // splatcli's web viewer: Spark (vendor/) draws the Gaussians; this file places the camera,
-// lists the project's cameras and follows a training run. Served by splatcli/viewer/server.py.
+// lists the project's cameras and follows a training run. Served by splatcli/viewer/server.py, or
+// as files by any static server (`export --format web`, viewer/site.py): there api/scene is a file
+// with "static": true and "splats" (the scene as .sog); the page then neither polls nor shows points.
 // URL options: ?camera=NAME starts at that project camera; &hud=0 hides the panel.
 import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
@@ -25,7 +27,7 @@ function requestRender() {
 scene.add(new SparkRenderer({ renderer, onDirty: requestRender }));
 const camera = new THREE.PerspectiveCamera(50, innerWidth / innerHeight, 0.01, 1e4);
 let controls = null;
-let state = null; // /api/scene
+let state = null; // api/scene
 let current = null; // the project camera in use, or null for a free view
 let mesh = null, points = null, mode = "color";
 
@@ -127,7 +129,8 @@ function showFacts() {
 }
 
 async function loadSplats(version) {
-  const m = new SplatMesh({ url: `/api/scene.ply?v=${version}`, fileName: "scene.ply" });
+  const url = state.splats || "api/scene.ply";
+  const m = new SplatMesh({ url: `${url}?v=${version}`, fileName: url.split("/").pop() });
   await m.initialized;
   window.splatcli.marks.splats = window.splatcli.marks.splats || performance.now();
   scene.add(m);
@@ -140,7 +143,7 @@ async function loadSplats(version) {
 function srgbToLinear(x) { return x <= 0.04045 ? x / 12.92 : Math.pow((x + 0.055) / 1.055, 2.4); }
 
 async function loadPoints() {
-  const buf = await (await fetch(`/api/points.bin?v=${window.splatcli.version}`)).arrayBuffer();
+  const buf = await (await fetch(`api/points.bin?v=${window.splatcli.version}`)).arrayBuffer();
   const n = new DataView(buf).getUint32(0, true);
   const xyz = new Float32Array(buf, 4, 3 * n);
   const rgba = new Uint8Array(buf, 4 + 12 * n, 4 * n);
@@ -183,7 +186,7 @@ function sceneDrawn() {
 async function poll() {
   let wait = 2000;
   try {
-    const s = await (await fetch("/api/scene", { cache: "no-store" })).json();
+    const s = await (await fetch("api/scene", { cache: "no-store" })).json();
     if (s.version !== window.splatcli.version && s.num_gaussians > 0) {
       state.live = s.live; state.num_gaussians = s.num_gaussians; state.sh_degree = s.sh_degree;
       state.ply_bytes = s.ply_bytes;
@@ -214,7 +217,7 @@ function drawFrame() {
 }
 
 async function main() {
-  state = await (await fetch("/api/scene", { cache: "no-store" })).json();
+  state = await (await fetch("api/scene", { cache: "no-store" })).json();
   window.splatcli.marks.facts = performance.now();
   window.splatcli.version = state.version;
   scene.background = new THREE.Color().setRGB(...state.background, THREE.SRGBColorSpace);
@@ -229,9 +232,10 @@ async function main() {
   if (c) { useCamera(c); $("cams").value = c.name; } else resetView();
   $("reset").onclick = resetView;
   $("mode").onchange = (e) => setMode(e.target.value);
+  $("show").hidden = !!state.static;
   addEventListener("resize", () => { renderer.setSize(innerWidth, innerHeight); setProjection(); });
   if (state.num_gaussians > 0) await loadSplats(state.version); // else training has not stepped yet: poll
-  setTimeout(poll, 2000);
+  if (!state.static) setTimeout(poll, 2000);
 }
 
 main().catch(fail);
