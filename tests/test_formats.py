@@ -20,8 +20,8 @@ import torch
 from splatcli.camera import Camera
 from splatcli.errors import SplatError
 from splatcli.gaussians import Gaussians
-from splatcli.io.compressed_ply import read_compressed_ply, write_compressed_ply
 from splatcli.io.codec import Arrays
+from splatcli.io.compressed_ply import read_compressed_ply, write_compressed_ply
 from splatcli.io.formats import FORMATS, format_of, read_format, write_format
 from splatcli.io.ply import write_ply
 from splatcli.io.sog import SogOptions, kmeans_1d, read_sog, write_sog
