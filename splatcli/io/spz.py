@@ -31,10 +31,12 @@ both ways, as splatcli did). So version 4 is written in RDF, splatcli's frame, a
 so with the SPZ_ADOBE_coordinate_system extension (0xADBE0003, CoordinateSystem RDF = 6):
 raw readers and readers of the extension both get it right. Read: that extension's frame
 where a file has it (the axis-sign frames, 1-8; the z-up ones are refused), else RDF for
-version 4 (what its writers store) and RUB for versions 2 and 3 (the specification's
-frame, which Scaniverse, splat-transform 2.x and splatcli's earlier versions wrote;
-splat-transform 3.x's version-3 files, raw RDF, read upside down). Version 3 is written
-in RUB, for the readers of that era (Spark 2.2 reads no version 4).
+version 4 (what its writers store, and how splat-transform 3.x and Niantic's tools read
+it) and RUB for versions 2 and 3 (the specification's frame, which Scaniverse,
+splat-transform 2.x and splatcli's earlier versions wrote). Files that break the rule
+read upside down, here as in splat-transform 3.x: splat-transform 3.x's version 3 (raw
+RDF) and 2.x's version 4 (RUB, no extension; May-July 2026). Version 3 is written in
+RUB, for the readers of that era (Spark 2.2 reads no version 4).
 """
 
 from __future__ import annotations
