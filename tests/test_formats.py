@@ -20,6 +20,7 @@ import torch
 from splatcli.camera import Camera
 from splatcli.errors import SplatError
 from splatcli.gaussians import Gaussians
+from splatcli.io.codec import Arrays
 from splatcli.io.compressed_ply import read_compressed_ply, write_compressed_ply
 from splatcli.io.formats import FORMATS, format_of, read_format, write_format
 from splatcli.io.ply import write_ply
@@ -61,11 +62,18 @@ def _errors(a: Gaussians, b: Gaussians) -> dict[str, float]:
     }
 
 
-def test_spz_round_trip_within_its_quantisation_step(tmp_path):
+@pytest.mark.parametrize("version", [4, 3])
+def test_spz_round_trip_within_its_quantisation_step(tmp_path, version):
     g = scene()
     path = tmp_path / "m.spz"
-    written, dropped, size = write_spz(path, g)
+    written, dropped, size = write_spz(path, g, SpzOptions(version=version))
     assert (written, dropped) == (len(g), 0) and size == path.stat().st_size
+    raw = path.read_bytes()
+    if version == 4:  # the NGSP header, 6 streams, and the frame declared: RDF (6) in SPZ_ADOBE_coordinate_system
+        assert raw[:4] == b"NGSP" and struct.unpack_from("<IBBBBI", raw, 4)[0] == 4 and raw[14:16] == b"\x02\x06"
+        assert struct.unpack_from("<III", raw, 32) == (0xADBE0003, 4, 6)
+    else:
+        assert raw[:2] == b"\x1f\x8b" and gzip.decompress(raw)[4] == 3
     e = _errors(g, read_spz(path))
     # Steps: positions 2^-fb (fb = 16 here: |x| < 128); log scale 1/16 (half a step when
     # rounding); alpha, colour 1/255 of their ranges; SH 8/128 (degree 1, 5 bits) and 16/128
@@ -78,8 +86,36 @@ def test_spz_round_trip_within_its_quantisation_step(tmp_path):
     assert e["rotation"] < 2e-5  # 9 bits per smallest component
     # fewer SH bits: a smaller file, a coarser SH
     small = tmp_path / "s.spz"
-    write_spz(small, g, SpzOptions(sh1_bits=3, sh_rest_bits=2))
+    write_spz(small, g, SpzOptions(sh1_bits=3, sh_rest_bits=2, version=version))
     assert small.stat().st_size < size
+
+
+@pytest.mark.parametrize("system, signs", [(4, (1, -1, -1)), (0, (1, -1, -1)), (7, (-1, -1, 1)), (2, (1, 1, -1)),
+                                           (None, (1, 1, 1))])
+def test_spz_coordinate_extension_is_honoured(tmp_path, system, signs):
+    """Values stored in another frame, declared by SPZ_ADOBE_coordinate_system (RUB, 0
+    = unspecified, which Niantic takes as RUB, LUF, and RDB, a mirror), read back in
+    ours; a version 4 file without the extension is the .ply's frame, unchanged."""
+    g = scene(300)
+    s = tuple(float(x) for x in signs)
+    stored = Arrays.of(g)[0].flip(s).gaussians()
+    path = tmp_path / "m.spz"
+    write_spz(path, stored)
+    raw = bytearray(path.read_bytes())
+    if system is None:
+        raw[14] = 0  # no extension flag: the records are skipped, the frame is the .ply's
+    else:
+        struct.pack_into("<I", raw, 40, system)
+    path.write_bytes(bytes(raw))
+    e = _errors(g, read_spz(path))
+    assert e["means"] <= 2 ** -16 and e["rotation"] < 2e-5 and e["sh"] <= 9 / 128 and e["dc"] < 0.02, e
+    # and a v3 file may carry it too, after its arrays (Niantic's library): the default there is RUB
+    v3 = tmp_path / "v3.spz"
+    write_spz(v3, Arrays.of(g)[0].flip().gaussians(), SpzOptions(version=3))  # RUB of flipped: g's values raw
+    body = bytearray(gzip.decompress(v3.read_bytes()))
+    body[14] = 2
+    v3.write_bytes(gzip.compress(bytes(body) + struct.pack("<III", 0xADBE0003, 4, 6), mtime=0))
+    assert _errors(g, read_spz(v3))["means"] <= 2 ** -16
 
 
 def test_compressed_ply_round_trip_within_its_quantisation_step(tmp_path):
@@ -95,24 +131,29 @@ def test_compressed_ply_round_trip_within_its_quantisation_step(tmp_path):
     assert e["dc"] < 0.03 and e["sh"] <= 8 / 256 + 1e-6 and e["rotation"] < 5e-6
 
 
+def _psnr(a: Gaussians, b: Gaussians) -> float:
+    """The worst PSNR (dB) between renders of `a` and `b` by our rasterizer, from three views around the scene."""
+    K = np.array([[60.0, 0, 40], [0, 60.0, 30], [0, 0, 1]])
+    worst = math.inf
+    for i, t in enumerate((0.3, 2.0, 4.1)):
+        c = Camera(name=f"c{i}", width=80, height=60, K=K, viewmat=look_at(
+            np.array([3 * math.cos(t), -1.0, 3 * math.sin(t)]), np.zeros(3), np.array([0.0, -1.0, 0.0])))
+        mse = float(((render_camera(a, c, torch.zeros(3)).image - render_camera(b, c, torch.zeros(3)).image) ** 2).mean())
+        worst = min(worst, -10 * math.log10(max(mse, 1e-12)))
+    return worst
+
+
 def test_every_format_renders_like_the_original_in_our_frame(tmp_path):
     """A frame or SH-sign mistake (y/z flips of SPZ) would move or recolour the picture."""
     g = scene(sh_degree=3)
-    K = np.array([[60.0, 0, 40], [0, 60.0, 30], [0, 0, 1]])
-    cams = [Camera(name=f"c{i}", width=80, height=60, K=K,
-                   viewmat=look_at(np.array([3 * math.cos(a), -1.0, 3 * math.sin(a)]), np.zeros(3),
-                                   np.array([0.0, -1.0, 0.0]))) for i, a in enumerate((0.3, 2.0, 4.1))]
-    bg = torch.zeros(3)
-    ref = [render_camera(g, c, bg).image for c in cams]
     # splat drops view-dependent colour; sog's SH palette of random (unclustered) SH is coarse
     floor = {"ply": 80, "spz": 30, "compressed-ply": 30, "sog": 22, "splat": 15}
     for fmt in FORMATS:
         path = tmp_path / f"m.{fmt}"
         write_format(fmt, path, g)
-        back = read_format(path, fmt=fmt).gaussians
-        for c, r in zip(cams, ref):
-            mse = float(((render_camera(back, c, bg).image - r) ** 2).mean())
-            assert -10 * math.log10(max(mse, 1e-12)) > floor[fmt], fmt
+        assert _psnr(read_format(path, fmt=fmt).gaussians, g) > floor[fmt], fmt
+    write_spz(tmp_path / "v3.spz", g, SpzOptions(version=3))  # and SPZ's other version, in its other frame
+    assert _psnr(read_spz(tmp_path / "v3.spz"), g) > floor["spz"]
 
 
 def test_sog_round_trip_within_its_codebooks(tmp_path):
@@ -190,7 +231,7 @@ def _spz_bytes(version=3, n=2, deg=0, payload: bytes | None = None) -> bytes:
     (gzip.compress(b"\x00" * 8, mtime=0), "truncated SPZ header"),
     (gzip.compress(struct.pack("<IIIBBBB", 0x12345678, 3, 1, 0, 12, 0, 0), mtime=0), "magic"),
     (_spz_bytes(version=7), "version 7"),
-    (b"NGSP" + bytes(60), "version 4"),
+    (b"NGSP" + bytes(60), "version 0"),
     (_spz_bytes(deg=5), "SH degree 5"),
     (_spz_bytes(n=3, payload=bytes(20)), "truncated"),
     (_spz_bytes(n=4_000_000_000, payload=b""), "more than its"),  # a lying count: refused, nothing allocated
@@ -201,6 +242,46 @@ def test_bad_spz_files_are_refused_in_one_line(tmp_path, data, words):
     with pytest.raises(SplatError, match=words) as info:
         read_spz(path)
     assert "\n" not in str(info.value) and str(path) in str(info.value)
+
+
+def test_bad_spz4_files_are_refused_in_one_line(tmp_path):
+    import zstandard
+
+    good = tmp_path / "g.spz"
+    write_spz(good, scene(50, sh_degree=1))
+    raw = good.read_bytes()
+    toc = 44  # after the header and the one extension record
+
+    def patch(at: int, fmt: str, *values) -> bytes:
+        b = bytearray(raw)
+        struct.pack_into(fmt, b, at, *values)
+        return bytes(b)
+
+    first = toc + 6 * 16
+    size0 = struct.unpack_from("<Q", raw, toc)[0]
+    liar = zstandard.ZstdCompressor().compress(bytes(450 + 100))  # a frame holding more than its table says
+    cases = {
+        "truncated SPZ header": raw[:20],
+        "version 5": patch(4, "<I", 5),
+        "SH degree 5": patch(12, "<B", 5),
+        "5 attribute streams, not the 6": patch(15, "<B", 5),
+        "table of contents": patch(16, "<I", 10 ** 6),
+        "at byte 8 ": patch(16, "<I", 8),
+        "do not fit 51 Gaussians": patch(8, "<I", 51),
+        "more than its": patch(8, "<I", 4_000_000_000),
+        "truncated: its streams claim": raw[:-10],
+        "damaged SPZ stream": raw[:first] + bytes(size0) + raw[first + size0:],
+        "where its table says 450": raw[:toc] + struct.pack("<Q", len(liar)) + raw[toc + 8:first] + liar
+        + raw[first + size0:],
+        "damaged extension records": patch(36, "<I", 99),
+        "coordinate system 9": patch(40, "<I", 9),
+    }
+    for words, data in cases.items():
+        bad = tmp_path / "bad.spz"
+        bad.write_bytes(data)
+        with pytest.raises(SplatError, match=words) as info:
+            read_spz(bad)
+        assert "\n" not in str(info.value) and str(bad) in str(info.value), words
 
 
 def test_bad_compressed_ply_files_are_refused_in_one_line(tmp_path):
@@ -253,6 +334,9 @@ def test_export_converts_between_formats_and_loaders_read_them(tmp_path):
     assert r.exit_code == 0, r.output  # and training starts from any format
     assert_user_error(run_cli("export", spz, "--format", "spz", "-o", spz), "source file itself")
     assert_user_error(run_cli("export", proj.root, "--format", "spz", "--spz-sh-bits", "9,4"), "--spz-sh-bits")
+    assert_user_error(run_cli("export", proj.root, "--format", "spz", "--spz-version", "2"), "--spz-version 2")
+    r = run_cli("export", proj.root, "--format", "spz", "--spz-version", "3", "-o", tmp_path / "v3.spz")
+    assert r.exit_code == 0 and (tmp_path / "v3.spz").read_bytes()[:2] == b"\x1f\x8b" and spz.read_bytes()[:4] == b"NGSP"
 
 
 def test_eval_formats_reports_size_against_error(tmp_path):
@@ -299,7 +383,7 @@ def _csv(path: Path) -> Gaussians:
         sh[:, 1:] = col(*[f"f_rest_{i}" for i in range(3 * (k - 1))]).reshape(n, 3, k - 1).transpose(0, 2, 1)
     t = lambda x: torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32))  # noqa: E731
     return Gaussians(t(col("x", "y", "z")), t(col("rot_0", "rot_1", "rot_2", "rot_3")),
-                     t(col("scale_0", "scale_1", "scale_2")), t(d["opacity"]), t(sh))
+                     t(col("scale_0", "scale_1", "scale_2")), t(d["opacity"]).clamp(-40, 40), t(sh))  # +-inf: 0, 1
 
 
 def _agree(ours: Gaussians, theirs: Gaussians) -> None:
@@ -318,7 +402,13 @@ def test_splat_transform_decodes_our_files_as_we_do(tmp_path, fmt):
     ours = tmp_path / f"m{ {'spz': '.spz', 'sog': '.sog'}.get(fmt, '.compressed.ply')}"
     write_format(fmt, ours, g)
     _st(str(ours), str(tmp_path / "theirs.csv"))
-    _agree(read_format(ours, fmt=fmt).gaussians, _csv(tmp_path / "theirs.csv"))
+    mine, theirs = read_format(ours, fmt=fmt).gaussians, _csv(tmp_path / "theirs.csv")
+    _agree(mine, theirs)
+    assert _psnr(theirs, g) > _psnr(mine, g) - 1 and _psnr(theirs, mine) > 40  # renders: the same picture
+    if fmt == "spz":  # version 3 is right-up-back, which splat-transform 3 no longer converts: upside down there
+        write_spz(ours, g, SpzOptions(version=3))
+        _st(str(ours), str(tmp_path / "theirs3.csv"))
+        _agree(Arrays.of(read_spz(ours))[0].flip().gaussians(), _csv(tmp_path / "theirs3.csv"))
 
 
 @needs_st
@@ -327,11 +417,14 @@ def test_we_read_what_splat_transform_writes_from_our_ply(tmp_path, fmt, suffix)
     g = scene(700)
     write_ply(tmp_path / "m.ply", g)
     theirs = tmp_path / f"theirs{suffix}"
-    extra = {"spz": ["--spz-version", "3"], "sog": ["-g", "cpu", "-i", "3"]}.get(fmt, [])  # SOG's SH k-means on the CPU
+    extra = {"sog": ["-g", "cpu", "-i", "3"]}.get(fmt, [])  # SOG's SH k-means on the CPU
     _st(str(tmp_path / "m.ply"), *extra, str(theirs))
     _st(str(theirs), str(tmp_path / "theirs.csv"))
-    ours = read_format(theirs, fmt=fmt).gaussians
-    _agree(ours, _csv(tmp_path / "theirs.csv"))
+    ours, decoded = read_format(theirs, fmt=fmt).gaussians, _csv(tmp_path / "theirs.csv")
+    _agree(ours, decoded)
+    assert _psnr(ours, decoded) >= 40
     # and both are our .ply within the format's step (positions: SPZ's 12 fractional bits)
     e = _errors(g, _matched(g, ours))
     assert e["means"] < {"spz": 2 ** -12, "sog": 1e-3}.get(fmt, 0.01) and e["alpha"] <= 1 / 255 + 1e-6
+    if fmt == "spz":  # version 4 by default: zstd streams, no coordinate extension (raw, the .ply's frame)
+        assert theirs.read_bytes()[:5] == b"NGSP\x04" and theirs.read_bytes()[14] & 2 == 0

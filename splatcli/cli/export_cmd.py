@@ -36,6 +36,9 @@ def export(
     spz_sh_bits: str = typer.Option(f"{_D.spz.sh1_bits},{_D.spz.sh_rest_bits}", "--spz-sh-bits",
                                     help="SPZ: bits per SH coefficient of degree 1, and of degrees 2-3 (fewer: smaller, "
                                          "less view-dependent colour)."),
+    spz_version: int = typer.Option(_D.spz.version, "--spz-version", help="SPZ: 4 (zstd; Niantic's library, "
+                                    "PlayCanvas/SuperSplat, splat-transform 3) or 3 (gzip, right-up-back; Spark 2.2 and "
+                                    "other readers of v3 only)."),
     sog_palette: Optional[int] = typer.Option(None, "--sog-palette", help="SOG: entries of the SH palette (k-means of the "
                                               "Gaussians' SH; default a power of two near N/16, 256 to 4096; more: larger, "
                                               "closer view-dependent colour)."),
@@ -60,7 +63,7 @@ def export(
                           title=f"exported a mesh of {m.num_faces:,} triangles to {m.path}",
                           lines=[f"also {m.obj}; {m.views} views fused into a {'x'.join(map(str, m.grid))} volume "
                                  f"(voxel {m.voxel_size:.4g}) in {m.seconds:.1f} s"])
-    cfg = ExportConfig(format=fmt.strip().lower(), out=out, spz=SpzOptions(*_bits(spz_sh_bits)),
+    cfg = ExportConfig(format=fmt.strip().lower(), out=out, spz=SpzOptions(*_bits(spz_sh_bits), version=spz_version),
                        sog=SogOptions(palette=sog_palette))
     check_export_config(cfg)
     # notes only: an export takes seconds, and errors must stay the only line

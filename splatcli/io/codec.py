@@ -14,11 +14,16 @@ import torch
 from ..errors import SplatError
 from ..gaussians import Gaussians, num_sh_bases, sh_degree_from_bases
 
-# Sign of each SH basis function (degrees 1-3, 3DGS order) under (x, y, z) -> (x, -y, -z):
-# the change between OpenCV's right-down-front frame and the right-up-back frame of SPZ.
-# degree 1: y, z, x; degree 2: xy, yz, 3z^2-1, xz, x^2-y^2; degree 3: y(3x^2-y^2), xyz,
-# y(5z^2-1), z(5z^2-3), x(5z^2-1), z(x^2-y^2), x(x^2-3y^2).
-SH_FLIP_YZ = np.array([-1, -1, 1, -1, 1, 1, -1, 1, -1, 1, -1, -1, 1, -1, 1], dtype=np.float64)
+# Signs of (x, y, z) between OpenCV's right-down-front frame and the right-up-back frame of SPZ.
+YZ = (1.0, -1.0, -1.0)
+
+
+def sh_signs(s: tuple[float, float, float]) -> np.ndarray:
+    """Sign of each SH basis function (degrees 1-3, 3DGS order) under (x, y, z) -> s * (x, y, z):
+    degree 1: y, z, x; degree 2: xy, yz, 3z^2-1, xz, x^2-y^2; degree 3: y(3x^2-y^2), xyz,
+    y(5z^2-1), z(5z^2-3), x(5z^2-1), z(x^2-y^2), x(x^2-3y^2)."""
+    x, y, z = s
+    return np.array([y, z, x, x * y, y * z, 1, x * z, 1, y, x * y * z, y, z, x, z, x], dtype=np.float64)
 
 
 @dataclass
@@ -56,19 +61,21 @@ class Arrays:
         t = lambda x: torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32)).to(device)  # noqa: E731
         return Gaussians(t(self.means), t(self.quats), t(self.log_scales), t(self.opacity_logits), t(self.sh))
 
-    def flip_yz(self, sh: bool = True) -> Arrays:
-        """The same Gaussians with y and z negated (a half turn about x): OpenCV <-> SPZ.
-        With `sh=False` the SH is left as it is (a caller that flips it block by block,
-        with `flip_sh`, never holds a second copy)."""
-        q = self.quats * np.array([1.0, 1.0, -1.0, -1.0], self.quats.dtype)
-        return Arrays(self.means * np.array([1.0, -1.0, -1.0], self.means.dtype), q, self.log_scales,
-                      self.opacity_logits, flip_sh(self.sh.copy()) if sh else self.sh)
+    def flip(self, s: tuple[float, float, float] = YZ, sh: bool = True) -> Arrays:
+        """The same Gaussians with axes negated where `s` (x, y, z signs) is -1; the default
+        YZ is a half turn about x, OpenCV <-> right-up-back. With `sh=False` the SH is left
+        as it is (a caller that flips it block by block, with `flip_sh`, never holds a
+        second copy)."""
+        x, y, z = s
+        q = self.quats * np.array([1.0, y * z, x * z, x * y], self.quats.dtype)  # w never changes
+        return Arrays(self.means * np.array(s, self.means.dtype), q, self.log_scales,
+                      self.opacity_logits, flip_sh(self.sh.copy(), s) if sh else self.sh)
 
 
-def flip_sh(sh: np.ndarray) -> np.ndarray:  # [M, K, 3], flipped in place and returned
-    """SH coefficients under (x, y, z) -> (x, -y, -z) (SH_FLIP_YZ; DC unchanged)."""
+def flip_sh(sh: np.ndarray, s: tuple[float, float, float] = YZ) -> np.ndarray:  # [M, K, 3], in place, returned
+    """SH coefficients under (x, y, z) -> s * (x, y, z) (sh_signs; DC unchanged)."""
     k = sh.shape[1] - 1
-    sh[:, 1:] *= SH_FLIP_YZ[:k, None].astype(sh.dtype)
+    sh[:, 1:] *= sh_signs(s)[:k, None].astype(sh.dtype)
     return sh
 
 

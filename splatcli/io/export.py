@@ -7,7 +7,8 @@ the output; this module checks the options and writes. Formats (io/formats.py):
 * `ply`: the original 3DGS layout, byte-compatible with its writer (io/ply.py);
   every 3DGS viewer and tool reads it. Lossless.
 * `spz`: Niantic's SPZ, about 10x smaller: positions in 24-bit fixed point,
-  colour, opacity and scale in 8 bits, rotations in 32, SH in 6/5 bits (io/spz.py).
+  colour, opacity and scale in 8 bits, rotations in 32, SH in 6/5 bits; version 4
+  (zstd) or 3 (gzip) (io/spz.py).
 * `compressed-ply`: SuperSplat's chunked layout for the PlayCanvas viewers, about
   4x smaller (io/compressed_ply.py).
 * `sog`: PlayCanvas's SOG, 15-20x smaller: lossless WebP images of 8-16-bit values
@@ -38,9 +39,9 @@ EXPORT_FORMATS = (*FORMATS, "web", "mesh")  # mesh: cli/export_cmd hands it to m
 
 @dataclass(frozen=True)
 class ExportConfig:
-    format: str = "ply"  # ply | spz | sog | compressed-ply | splat | web
+    format: str = "ply"  # ply | spz | sog | compressed-ply | splat | web (mesh: mesh/fuse.py)
     out: Path | None = None  # default PROJECT/exports/scene.<suffix> (web: exports/web/), or beside a source file
-    spz: SpzOptions = SpzOptions()  # SH bits of .spz
+    spz: SpzOptions = SpzOptions()  # SH bits and version of .spz
     sog: SogOptions = SogOptions()  # SH palette size of .sog
 
 
@@ -68,6 +69,8 @@ def check_export_config(config: ExportConfig) -> None:
     for name, bits in (("--spz-sh-bits", config.spz.sh1_bits), ("--spz-sh-bits", config.spz.sh_rest_bits)):
         if not 1 <= bits <= 8:
             raise SplatError(f"{name}: {bits} bits is not in 1-8")
+    if config.spz.version not in (3, 4):
+        raise SplatError(f"--spz-version {config.spz.version}: SPZ versions 3 and 4 are written")
     if config.sog.palette is not None and not 1 <= config.sog.palette <= 65536:
         raise SplatError(f"--sog-palette {config.sog.palette}: must be in 1-65536")
 

@@ -2,7 +2,7 @@
 
     ply             the original 3DGS layout, lossless (io/ply.py)
     compressed-ply  SuperSplat's chunked 8-11-bit layout, PlayCanvas viewers (io/compressed_ply.py)
-    spz             Niantic's gzip-packed fixed-point layout (io/spz.py)
+    spz             Niantic's fixed-point layout, zstd (v4) or gzip (v3) packed (io/spz.py)
     sog             PlayCanvas's WebP images with codebooks, zipped (io/sog.py)
     splat           the 32-byte rows of the antimatter15 web viewers, SH degree 0 (io/splat.py)
 
