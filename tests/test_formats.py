@@ -62,18 +62,27 @@ def _errors(a: Gaussians, b: Gaussians) -> dict[str, float]:
     }
 
 
-@pytest.mark.parametrize("version", [4, 3])
+@pytest.mark.parametrize("version", [None, 4, 3])
 def test_spz_round_trip_within_its_quantisation_step(tmp_path, version):
     g = scene()
     path = tmp_path / "m.spz"
-    written, dropped, size = write_spz(path, g, SpzOptions(version=version))
+    written, dropped, size = write_spz(path, g, *([] if version is None else [SpzOptions(version=version)]))
     assert (written, dropped) == (len(g), 0) and size == path.stat().st_size
     raw = path.read_bytes()
-    if version == 4:  # the NGSP header, 6 streams, and the frame declared: RDF (6) in SPZ_ADOBE_coordinate_system
+    # the frame declared in both: RDF (6) in SPZ_ADOBE_coordinate_system (0xADBE0003), flag 2
+    if version == 4:  # the NGSP header, 6 streams, the record before the table of contents
         assert raw[:4] == b"NGSP" and struct.unpack_from("<IBBBBI", raw, 4)[0] == 4 and raw[14:16] == b"\x02\x06"
         assert struct.unpack_from("<III", raw, 32) == (0xADBE0003, 4, 6)
-    else:
-        assert raw[:2] == b"\x1f\x8b" and gzip.decompress(raw)[4] == 3
+    else:  # version 3, the default: one gzip stream, the record after the arrays (Niantic's legacy layout)
+        body = gzip.decompress(raw)
+        assert raw[:2] == b"\x1f\x8b" and struct.unpack_from("<IIIBBBB", body) == (0x5053474E, 3, len(g), 3, 16, 2, 0)
+        assert len(body) == 16 + len(g) * (9 + 1 + 3 + 3 + 4 + 45) + 12
+        assert struct.unpack_from("<III", body, len(body) - 12) == (0xADBE0003, 4, 6)
+        # and its values are the .ply's, unchanged (not right-up-back): the first position, raw
+        first = np.frombuffer(body, np.uint8, 9, 16).reshape(3, 3).astype(np.int64)
+        fixed = first[:, 0] | first[:, 1] << 8 | first[:, 2] << 16
+        fixed = np.where(fixed & 0x800000, fixed - (1 << 24), fixed)
+        assert np.abs(fixed / 2.0 ** 16 - g.means[0].double().numpy()).max() <= 2 ** -16
     e = _errors(g, read_spz(path))
     # Steps: positions 2^-fb (fb = 16 here: |x| < 128); log scale 1/16 (half a step when
     # rounding); alpha, colour 1/255 of their ranges; SH 8/128 (degree 1, 5 bits) and 16/128
@@ -90,32 +99,39 @@ def test_spz_round_trip_within_its_quantisation_step(tmp_path, version):
     assert small.stat().st_size < size
 
 
+@pytest.mark.parametrize("version", [3, 4])
 @pytest.mark.parametrize("system, signs", [(4, (1, -1, -1)), (0, (1, -1, -1)), (7, (-1, -1, 1)), (2, (1, 1, -1)),
-                                           (None, (1, 1, 1))])
-def test_spz_coordinate_extension_is_honoured(tmp_path, system, signs):
+                                           (None, None)])
+def test_spz_coordinate_extension_is_honoured(tmp_path, version, system, signs):
     """Values stored in another frame, declared by SPZ_ADOBE_coordinate_system (RUB, 0
     = unspecified, which Niantic takes as RUB, LUF, and RDB, a mirror), read back in
-    ours; a version 4 file without the extension is the .ply's frame, unchanged."""
+    ours. Without the extension a version 4 file is the .ply's frame, unchanged, and a
+    version 3 file right-up-back (the specification's, and splatcli's before 0xADBE0003)."""
     g = scene(300)
+    if signs is None:
+        signs = (1, 1, 1) if version == 4 else (1, -1, -1)
     s = tuple(float(x) for x in signs)
     stored = Arrays.of(g)[0].flip(s).gaussians()
     path = tmp_path / "m.spz"
-    write_spz(path, stored)
-    raw = bytearray(path.read_bytes())
-    if system is None:
-        raw[14] = 0  # no extension flag: the records are skipped, the frame is the .ply's
-    else:
-        struct.pack_into("<I", raw, 40, system)
-    path.write_bytes(bytes(raw))
+    write_spz(path, stored, SpzOptions(version=version))
+    if version == 4:
+        raw = bytearray(path.read_bytes())
+        if system is None:
+            raw[14] = 0  # no extension flag: the records are skipped, the frame is the .ply's
+        else:
+            struct.pack_into("<I", raw, 40, system)
+        path.write_bytes(bytes(raw))
+    else:  # the record ends the gzip stream
+        body = bytearray(gzip.decompress(path.read_bytes()))
+        assert struct.unpack_from("<III", body, len(body) - 12) == (0xADBE0003, 4, 6)
+        if system is None:  # an old file: no flag, no record
+            body[14] = 0
+            del body[-12:]
+        else:
+            struct.pack_into("<I", body, len(body) - 4, system)
+        path.write_bytes(gzip.compress(bytes(body), mtime=0))
     e = _errors(g, read_spz(path))
     assert e["means"] <= 2 ** -16 and e["rotation"] < 2e-5 and e["sh"] <= 9 / 128 and e["dc"] < 0.02, e
-    # and a v3 file may carry it too, after its arrays (Niantic's library): the default there is RUB
-    v3 = tmp_path / "v3.spz"
-    write_spz(v3, Arrays.of(g)[0].flip().gaussians(), SpzOptions(version=3))  # RUB of flipped: g's values raw
-    body = bytearray(gzip.decompress(v3.read_bytes()))
-    body[14] = 2
-    v3.write_bytes(gzip.compress(bytes(body) + struct.pack("<III", 0xADBE0003, 4, 6), mtime=0))
-    assert _errors(g, read_spz(v3))["means"] <= 2 ** -16
 
 
 def test_compressed_ply_round_trip_within_its_quantisation_step(tmp_path):
@@ -152,8 +168,8 @@ def test_every_format_renders_like_the_original_in_our_frame(tmp_path):
         path = tmp_path / f"m.{fmt}"
         write_format(fmt, path, g)
         assert _psnr(read_format(path, fmt=fmt).gaussians, g) > floor[fmt], fmt
-    write_spz(tmp_path / "v3.spz", g, SpzOptions(version=3))  # and SPZ's other version, in its other frame
-    assert _psnr(read_spz(tmp_path / "v3.spz"), g) > floor["spz"]
+    write_spz(tmp_path / "v4.spz", g, SpzOptions(version=4))  # and SPZ's other version (3 is the default)
+    assert _psnr(read_spz(tmp_path / "v4.spz"), g) > floor["spz"]
 
 
 def test_sog_round_trip_within_its_codebooks(tmp_path):
@@ -219,9 +235,10 @@ def test_bad_sog_files_are_refused_in_one_line(tmp_path):
         assert "\n" not in str(info.value), words
 
 
-def _spz_bytes(version=3, n=2, deg=0, payload: bytes | None = None) -> bytes:
+def _spz_bytes(version=3, n=2, deg=0, payload: bytes | None = None, flags=0, tail=b"") -> bytes:
     per = 9 + 1 + 3 + 3 + (4 if version == 3 else 3) + ((deg + 1) ** 2 - 1) * 3
-    body = struct.pack("<IIIBBBB", 0x5053474E, version, n, deg, 12, 0, 0) + (payload if payload is not None else bytes(n * per))
+    body = struct.pack("<IIIBBBB", 0x5053474E, version, n, deg, 12, flags, 0)
+    body += (payload if payload is not None else bytes(n * per)) + tail
     return gzip.compress(body, mtime=0)
 
 
@@ -235,6 +252,8 @@ def _spz_bytes(version=3, n=2, deg=0, payload: bytes | None = None) -> bytes:
     (_spz_bytes(deg=5), "SH degree 5"),
     (_spz_bytes(n=3, payload=bytes(20)), "truncated"),
     (_spz_bytes(n=4_000_000_000, payload=b""), "more than its"),  # a lying count: refused, nothing allocated
+    (_spz_bytes(flags=2, tail=struct.pack("<II", 0xADBE0003, 40)), "damaged extension records"),
+    (_spz_bytes(flags=2, tail=struct.pack("<III", 0xADBE0003, 4, 9)), "coordinate system 9"),
 ], ids=lambda x: x if isinstance(x, str) else None)  # the same test ids in every process (pytest-xdist)
 def test_bad_spz_files_are_refused_in_one_line(tmp_path, data, words):
     path = tmp_path / "bad.spz"
@@ -248,7 +267,7 @@ def test_bad_spz4_files_are_refused_in_one_line(tmp_path):
     import zstandard
 
     good = tmp_path / "g.spz"
-    write_spz(good, scene(50, sh_degree=1))
+    write_spz(good, scene(50, sh_degree=1), SpzOptions(version=4))
     raw = good.read_bytes()
     toc = 44  # after the header and the one extension record
 
@@ -335,8 +354,8 @@ def test_export_converts_between_formats_and_loaders_read_them(tmp_path):
     assert_user_error(run_cli("export", spz, "--format", "spz", "-o", spz), "source file itself")
     assert_user_error(run_cli("export", proj.root, "--format", "spz", "--spz-sh-bits", "9,4"), "--spz-sh-bits")
     assert_user_error(run_cli("export", proj.root, "--format", "spz", "--spz-version", "2"), "--spz-version 2")
-    r = run_cli("export", proj.root, "--format", "spz", "--spz-version", "3", "-o", tmp_path / "v3.spz")
-    assert r.exit_code == 0 and (tmp_path / "v3.spz").read_bytes()[:2] == b"\x1f\x8b" and spz.read_bytes()[:4] == b"NGSP"
+    r = run_cli("export", proj.root, "--format", "spz", "--spz-version", "4", "-o", tmp_path / "v4.spz")
+    assert r.exit_code == 0 and (tmp_path / "v4.spz").read_bytes()[:4] == b"NGSP" and spz.read_bytes()[:2] == b"\x1f\x8b"
 
 
 def test_eval_formats_reports_size_against_error(tmp_path):
@@ -405,10 +424,15 @@ def test_splat_transform_decodes_our_files_as_we_do(tmp_path, fmt):
     mine, theirs = read_format(ours, fmt=fmt).gaussians, _csv(tmp_path / "theirs.csv")
     _agree(mine, theirs)
     assert _psnr(theirs, g) > _psnr(mine, g) - 1 and _psnr(theirs, mine) > 40  # renders: the same picture
-    if fmt == "spz":  # version 3 is right-up-back, which splat-transform 3 no longer converts: upside down there
-        write_spz(ours, g, SpzOptions(version=3))
-        _st(str(ours), str(tmp_path / "theirs3.csv"))
-        _agree(Arrays.of(read_spz(ours))[0].flip().gaussians(), _csv(tmp_path / "theirs3.csv"))
+    if fmt == "spz":  # the default, version 3 with the extension after its arrays; and version 4
+        body = gzip.decompress(ours.read_bytes())
+        assert body[4] == 3 and body[14] == 2 and body[-12:] == struct.pack("<III", 0xADBE0003, 4, 6)
+        assert _psnr(theirs, g) > 40  # the right way up there (a frame flip: 14 dB)
+        write_spz(ours, g, SpzOptions(version=4))
+        _st(str(ours), str(tmp_path / "theirs4.csv"))
+        mine, theirs = read_spz(ours), _csv(tmp_path / "theirs4.csv")
+        _agree(mine, theirs)
+        assert ours.read_bytes()[:4] == b"NGSP" and _psnr(theirs, g) > max(_psnr(mine, g) - 1, 40) and _psnr(theirs, mine) > 40
 
 
 @needs_st
@@ -428,3 +452,9 @@ def test_we_read_what_splat_transform_writes_from_our_ply(tmp_path, fmt, suffix)
     assert e["means"] < {"spz": 2 ** -12, "sog": 1e-3}.get(fmt, 0.01) and e["alpha"] <= 1 / 255 + 1e-6
     if fmt == "spz":  # version 4 by default: zstd streams, no coordinate extension (raw, the .ply's frame)
         assert theirs.read_bytes()[:5] == b"NGSP\x04" and theirs.read_bytes()[14] & 2 == 0
+        # its version 3 is raw too, with no extension: read as the specification's right-up-back
+        # (as Scaniverse's and splatcli's earlier files need), so upside down here, y and z negated
+        _st(str(tmp_path / "m.ply"), "--spz-version", "3", str(tmp_path / "theirs3.spz"))
+        body = gzip.decompress((tmp_path / "theirs3.spz").read_bytes())
+        assert body[4] == 3 and body[14] & 2 == 0
+        _agree(Arrays.of(read_spz(tmp_path / "theirs3.spz"))[0].flip().gaussians(), decoded)

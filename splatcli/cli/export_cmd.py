@@ -36,9 +36,9 @@ def export(
     spz_sh_bits: str = typer.Option(f"{_D.spz.sh1_bits},{_D.spz.sh_rest_bits}", "--spz-sh-bits",
                                     help="SPZ: bits per SH coefficient of degree 1, and of degrees 2-3 (fewer: smaller, "
                                          "less view-dependent colour)."),
-    spz_version: int = typer.Option(_D.spz.version, "--spz-version", help="SPZ: 4 (zstd; Niantic's library, "
-                                    "PlayCanvas/SuperSplat, splat-transform 3) or 3 (gzip, right-up-back; Spark 2.2 and "
-                                    "other readers of v3 only)."),
+    spz_version: int = typer.Option(_D.spz.version, "--spz-version", help="SPZ: 3 (gzip; Spark 2.2, Niantic's "
+                                    "library, PlayCanvas/SuperSplat) or 4 (zstd, a little smaller; Niantic's library, PlayCanvas/SuperSplat, "
+                                    "splat-transform 3, not Spark 2.2). Both in the .ply's frame, declared."),
     sog_palette: Optional[int] = typer.Option(None, "--sog-palette", help="SOG: entries of the SH palette (k-means of the "
                                               "Gaussians' SH; default a power of two near N/16, 256 to 4096; more: larger, "
                                               "closer view-dependent colour)."),

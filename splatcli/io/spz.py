@@ -1,15 +1,17 @@
-"""Niantic's SPZ (`.spz`): versions 2, 3 and 4 read, 4 written (3 on request).
+"""Niantic's SPZ (`.spz`): versions 2, 3 and 4 read, 3 written (4 on request).
 
 Written from the published specification (nianticlabs/spz, README). Versions 2 and 3 are
-one gzip stream holding a 16-byte header and then the attribute arrays; version 4 is a
-32-byte plaintext header, extension records, a table of contents and one zstd stream per
-array (the SH stream absent at degree 0):
+one gzip stream holding a 16-byte header, the attribute arrays and then, where flag 2 is
+set, extension records (Niantic's library's legacy layout); version 4 is a 32-byte
+plaintext header, extension records, a table of contents and one zstd stream per array
+(the SH stream absent at degree 0):
 
     header v2/3  <u32 magic 0x5053474e ("NGSP"), u32 version, u32 count, u8 SH degree,
                  u8 fractional bits, u8 flags (1: antialiased, 2: extensions), u8 0
     header v4    the same to the flags, then u8 streams, u32 TOC offset, 12 zero bytes;
                  extension records <u32 type, u32 bytes, payload> up to the TOC; the TOC
                  <u64 compressed, u64 uncompressed> per stream
+    extensions   v2/3: the same records, after the SH array, to the end of the stream
     positions    3 x 24-bit signed fixed point, value = int / 2^fractional_bits
     alphas       u8 sigmoid(opacity) * 255
     colours      3 x u8 (SH DC * 0.15 + 0.5) * 255
@@ -27,16 +29,19 @@ The frame. Niantic's README says SPZ stores right-up-back (RUB) unless a writer 
 otherwise, but the tools that write it today store the .ply's right-down-front (RDF)
 values unchanged: Niantic's own ply_to_spz (default, unspecified frames) and PlayCanvas
 splat-transform 3.x, whose reader also takes every file as it is (2.x converted to RUB
-both ways, as splatcli did). So version 4 is written in RDF, splatcli's frame, and says
-so with the SPZ_ADOBE_coordinate_system extension (0xADBE0003, CoordinateSystem RDF = 6):
-raw readers and readers of the extension both get it right. Read: that extension's frame
-where a file has it (the axis-sign frames, 1-8; the z-up ones are refused), else RDF for
-version 4 (what its writers store, and how splat-transform 3.x and Niantic's tools read
-it) and RUB for versions 2 and 3 (the specification's frame, which Scaniverse,
-splat-transform 2.x and splatcli's earlier versions wrote). Files that break the rule
-read upside down, here as in splat-transform 3.x: splat-transform 3.x's version 3 (raw
-RDF) and 2.x's version 4 (RUB, no extension; May-July 2026). Version 3 is written in
-RUB, for the readers of that era (Spark 2.2 reads no version 4).
+both ways, as splatcli did), and so, by all accounts, does Spark. So both versions are
+written in RDF, splatcli's frame, and say so with the SPZ_ADOBE_coordinate_system
+extension (0xADBE0003, CoordinateSystem RDF = 6; in version 3 after the arrays, flag 2,
+as Niantic's library writes it there, and which splat-transform 3.7 reads past): raw
+readers and readers of the extension both get it right. Version 3 is the default because
+Spark 2.2, the renderer of splatcli's viewer, reads no version 4; version 4 is a little
+smaller. Read: that extension's frame where a file has it (the axis-sign frames, 1-8;
+the z-up ones are refused), else RDF for version 4 (what its writers store, and how
+splat-transform 3.x and Niantic's tools read it) and RUB for versions 2 and 3 (the
+specification's frame, which Scaniverse, splat-transform 2.x and splatcli before the
+extension wrote). Files that break the rule read upside down, here as in splat-transform
+3.x: splat-transform 3.x's version 3 (raw RDF, no extension) and 2.x's version 4 (RUB,
+no extension; May-July 2026).
 """
 
 from __future__ import annotations
@@ -88,7 +93,7 @@ class SpzOptions:
     sh1_bits: int = 6
     sh_rest_bits: int = 5
     fractional_bits: int | None = None  # None: the most the scene's extent allows (at most 16; the reference uses 12)
-    version: int = 4  # 4: zstd streams in RDF, declared; 3: one gzip stream in RUB (Spark 2.2 reads no 4)
+    version: int = 3  # 3: one gzip stream (Spark 2.2 reads no 4); 4: zstd streams, smaller. Both RDF, declared
 
 
 def _quantise_sh(v: np.ndarray, bits: int) -> np.ndarray:
@@ -100,9 +105,6 @@ def _quantise_sh(v: np.ndarray, bits: int) -> np.ndarray:
 def encode_spz(g: Gaussians, options: SpzOptions = SpzOptions()) -> tuple[bytes, int]:
     """The .spz bytes of the finite rows of `g`, and the number of rows dropped."""
     a, dropped = Arrays.of(g)
-    v3 = options.version == 3
-    if v3:
-        a = a.flip(sh=False)  # the SH bands are flipped block by block below
     n, deg = len(a), a.sh_degree
     span = float(np.abs(a.means).max()) if n else 1.0
     fb = options.fractional_bits
@@ -122,16 +124,15 @@ def encode_spz(g: Gaussians, options: SpzOptions = SpzOptions()) -> tuple[bytes,
     if deg > 0:
         sh = np.empty((n, a.sh.shape[1] - 1, 3), np.uint8)
         for b in blocks(n):
-            v = flip_sh(a.sh[b].copy()) if v3 else a.sh[b]
-            sh[b, :3] = _quantise_sh(v[:, 1:4], options.sh1_bits)
-            sh[b, 3:] = _quantise_sh(v[:, 4:], options.sh_rest_bits)
+            sh[b, :3] = _quantise_sh(a.sh[b, 1:4], options.sh1_bits)
+            sh[b, 3:] = _quantise_sh(a.sh[b, 4:], options.sh_rest_bits)
         parts.append(sh.tobytes())
-    if v3:
-        body = HEADER.pack(MAGIC, 3, n, deg, fb, 0, 0) + b"".join(parts)
+    ext = RECORD.pack(COORDINATE_SYSTEM, 4) + struct.pack("<I", RDF)  # the frame: ours, unchanged
+    if options.version == 3:  # Niantic's legacy layout: the extension records after the arrays, flag 2
+        body = HEADER.pack(MAGIC, 3, n, deg, fb, HAS_EXTENSIONS, 0) + b"".join(parts) + ext
         return gzip.compress(body, compresslevel=COMPRESS_LEVEL, mtime=0), dropped
     zc = zstandard.ZstdCompressor(level=ZSTD_LEVEL)
     streams = [(zc.compress(p), len(p)) for p in parts if p]  # none empty unless n == 0
-    ext = RECORD.pack(COORDINATE_SYSTEM, 4) + struct.pack("<I", RDF)
     toc = b"".join(struct.pack("<QQ", len(z), size) for z, size in streams)
     head = HEADER4.pack(MAGIC, 4, n, deg, fb, HAS_EXTENSIONS, len(streams), HEADER4.size + len(ext))
     return b"".join([head, ext, toc] + [z for z, _ in streams]), dropped
