@@ -10,6 +10,9 @@ import typer
 from ..device import resolve_device
 from ..errors import SplatError
 from ..eval.evaluate import EvalConfig, compare_folders, plan_eval, run_eval
+from ..io.atomic import atomic_write_json
+from ..mesh.measure import score_mesh
+from ..project import Project
 from .common import DebugOpt, DeviceOpt, JsonOpt, QuietOpt, RendererOpt, Ui, parse_background, resolve
 
 _D = EvalConfig()  # the defaults, written once in the config
@@ -44,6 +47,10 @@ def evaluate(
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Folder for eval.json, eval.md and plots (default PROJECT/reports)."),
     pred: Optional[Path] = typer.Option(None, "--pred", help="Compare this folder of images ..."),
     gt: Optional[Path] = typer.Option(None, "--gt", help="... with this one, by file name (no project needed)."),
+    mesh: Optional[Path] = typer.Option(None, "--mesh", help="Also score PROJECT/exports/mesh.ply (export --format mesh) "
+                                        "and a naive mesh of the Gaussian centres against this reference surface (.ply: "
+                                        "points or triangles, in the project's frame): Chamfer distance and F-score at 1% "
+                                        "of its size; written to reports/mesh.json."),
     device: str = DeviceOpt,
     renderer: str = RendererOpt,
     quiet: bool = QuietOpt,
@@ -70,7 +77,10 @@ def evaluate(
     plan = plan_eval(project, cfg, resolve(device, renderer, quiet)[0])  # input errors surface before any output
     with ui.progress() as sink:
         r = run_eval(plan, on_event=sink)
-    ui.summary(r.summary(), title=f"{r.split} split: PSNR {r.psnr:.2f} dB, SSIM {r.ssim:.4f}{_lpips(r.lpips)} over {len(r.per_image)} views",
+    geo = score_mesh(project, mesh) if mesh is not None else None  # mesh/measure.py
+    if geo is not None:
+        atomic_write_json(Project.open(project).reports_dir / "mesh.json", geo.to_json())
+    ui.summary(r.summary() | ({"mesh": geo.to_json()} if geo else {}), title=f"{r.split} split: PSNR {r.psnr:.2f} dB, SSIM {r.ssim:.4f}{_lpips(r.lpips)} over {len(r.per_image)} views",
                lines=[f"PSNR after a per-view colour fit (exposure and white balance removed): {r.psnr_color_fit:.2f} dB",
                       f"{r.num_gaussians:,} Gaussians (SH {r.sh_degree}, {r.ply_bytes / 1e6:.2f} MB): "
                       f"{r.render_fps:.2f} frames/s at {r.width}x{r.height} on {r.device} ({r.renderer})"]
@@ -79,4 +89,6 @@ def evaluate(
                   for b in r.budgets]
                + [f"  {f.format:>14}: {f.bytes / 1e6:8.2f} MB ({f.ratio:4.1f}x smaller than .ply)  {f.psnr:6.2f} dB "
                   f"({-f.db_lost:+.2f})" for f in r.formats]
+               + [f"  mesh {k}: Chamfer {s.chamfer:.4g}, F-score {s.fscore:.3f} (precision {s.precision:.3f}, recall "
+                  f"{s.recall:.3f}) at {s.tau:.3g}" for k, s in ((("fused", geo.fused), ("centres", geo.centres)) if geo else ())]
                + ([f"report: {r.report_path}"] if r.report_path else []))

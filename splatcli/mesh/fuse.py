@@ -4,7 +4,9 @@ Each chosen view's median depth (`render_median_depth`: where transmittance cros
 steadier on surfaces than the blended mean) and colour are fused into a truncated signed
 distance volume (Curless and Levoy's running average, the fusion 2DGS and gsplat's examples
 use), and marching cubes (scikit-image, the `mesh` extra) extracts its zero level set, with
-vertex colours from the fused colours. Pixels a mask leaves out are not fused.
+vertex colours from the fused colours. Pixels a mask leaves out are not fused, nor those on a
+depth edge (they mix the two sides); and only voxels that enough views fused can hold the
+surface, which removes what a view or two saw wrongly (floaters, the far side of a depth error).
 
 The volume covers the opaque Gaussians (their 0.5-99.5% quantiles per axis, grown by 5%) and
 is dense: DISTANCE + WEIGHT + COLOUR = 20 bytes a voxel, fused in chunks of voxels; a voxel
@@ -37,6 +39,9 @@ TRUNC_VOXELS = 4  # the signed distance is truncated at this many voxels
 BYTES_PER_VOXEL = 20  # float32 distance, weight and colour (3)
 CHUNK = 1 << 21  # voxels fused at a time
 FOCUS_REACH = 0.6  # the volume's half side at most, in median camera distances from the focus point
+EDGE = 0.03  # a pixel whose 3x3 neighbourhood spans more than this fraction of its depth is not fused
+MIN_SEEN = 0.2  # a surface needs a voxel fused from at least this share of the views (and 2)
+# (the sample scene at its demo preset, F-score at 1%: 0.73 with neither, 0.78 with EDGE, 0.92 with both)
 
 
 @dataclass(frozen=True)
@@ -99,70 +104,88 @@ def grid_for(lo: np.ndarray, hi: np.ndarray, voxel: float | None) -> tuple[float
     return voxel, shape  # type: ignore[return-value]
 
 
-def fuse(g: Gaussians, views: list[View], project: Project, lo: np.ndarray, voxel: float, shape: tuple[int, int, int],
-         depth_trunc: float | None, antialiased: bool, on_event: EventSink | None) -> tuple[Tensor, Tensor, Tensor]:
-    """The fused volume: signed distance in truncation units [X, Y, Z], weight [X, Y, Z]
-    (views that saw the voxel) and colour [X, Y, Z, 3], float32 on the model's device."""
-    dev = g.device
-    dist = torch.ones(shape, device=dev)
-    weight = torch.zeros(shape, device=dev)
-    color = torch.zeros(*shape, 3, device=dev)
-    trunc = TRUNC_VOXELS * voxel
-    ijk = lambda i: torch.stack(torch.unravel_index(i, shape), 1)  # noqa: E731  flat -> [n, 3]
-    origin = torch.as_tensor(lo, dtype=torch.float32, device=dev)
-    mode = project.mask_mode("auto")
-    emit(on_event, Stage("fuse", total=len(views)))
+def view_maps(g: Gaussians, views: list[View], project: Project, depth_trunc: float | None, antialiased: bool,
+              on_event: EventSink | None) -> list[tuple[Tensor, Tensor, Tensor, Tensor]]:
+    """Per view: the median depth to fuse [H, W] (0: not fused: no surface, beyond
+    --depth-trunc, masked out, or on a depth edge), the surface colour [H, W, 3], viewmat and K."""
+    dev, mode, maps = g.device, project.mask_mode("auto"), []
+    emit(on_event, Stage("render depth", total=len(views)))
     for n, v in enumerate(views):
         cam = v.camera
         vm, K = cam.torch(dev, torch.float32)
         with torch.no_grad():
             depth = render_median_depth(g.means, g.quats, g.log_scales, g.opacity_logits, vm, K, cam.width, cam.height,
-                                        antialiased=antialiased)
+                                        antialiased=antialiased).float()
             out = rasterize(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh, vm, K, cam.width, cam.height,
                             antialiased=antialiased)
-        rgb = (out.image / out.alpha.clamp_min(1e-3)[..., None]).clamp(0, 1)  # colour of the surface alone
-        ok = depth > 0
+        rgb = (out.image / out.alpha.clamp_min(1e-3)[..., None]).clamp(0, 1).float()  # the surface's own colour
+        ok = (depth > 0) & ~_edges(depth)
         if depth_trunc is not None:
             ok &= depth <= depth_trunc
         if mode != "off" and v.image is not None:
             keep = load_target(project, cam.name, (cam.width, cam.height), (0.0, 0.0, 0.0), "ignore")[1]
             if keep is not None:
                 ok &= torch.from_numpy(keep).to(dev)
-        depth = torch.where(ok, depth.float(), torch.zeros_like(depth, dtype=torch.float32))
-        total = math.prod(shape)
-        for s in range(0, total, CHUNK):
-            idx = torch.arange(s, min(total, s + CHUNK), device=dev)
-            p = origin + ijk(idx).float() * voxel  # [n, 3] voxel centres
-            c = p @ vm[:3, :3].T + vm[:3, 3]
+        maps.append((torch.where(ok, depth, torch.zeros_like(depth)), rgb, vm, K))
+        emit(on_event, Progress("render depth", n + 1, len(views)))
+    emit(on_event, StageDone("render depth", 0.0))
+    return maps
+
+
+def fuse(maps: list[tuple[Tensor, Tensor, Tensor, Tensor]], lo: np.ndarray, voxel: float, shape: tuple[int, int, int],
+         on_event: EventSink | None) -> tuple[Tensor, Tensor, Tensor]:
+    """The views' depth fused: signed distance in truncation units [X, Y, Z], weight [X, Y, Z]
+    (views that fused the voxel) and colour [X, Y, Z, 3], float32 on the maps' device. Chunk by
+    chunk of voxels, every view in turn, so a chunk's centres are computed once."""
+    dev = maps[0][0].device
+    total, trunc = math.prod(shape), TRUNC_VOXELS * voxel
+    dist = torch.ones(total, device=dev)
+    weight = torch.zeros(total, device=dev)
+    color = torch.zeros(total, 3, device=dev)
+    origin = torch.as_tensor(lo, dtype=torch.float32, device=dev)
+    chunks = range(0, total, CHUNK)
+    emit(on_event, Stage("fuse", total=len(chunks)))
+    for n, s in enumerate(chunks):
+        e = min(total, s + CHUNK)
+        p = origin + torch.stack(torch.unravel_index(torch.arange(s, e, device=dev), shape), 1).float() * voxel
+        dc, wc, cc = dist[s:e], weight[s:e], color[s:e]  # views into the volume
+        for depth, rgb, vm, K in maps:
+            H, W = depth.shape
+            c = p @ vm[:3, :3].T + vm[:3, 3]  # [n, 3] camera frame
             z = c[:, 2].clamp_min(1e-6)
             u = torch.floor(c[:, 0] / z * K[0, 0] + K[0, 2]).long()
-            w = torch.floor(c[:, 1] / z * K[1, 1] + K[1, 2]).long()
-            inside = (c[:, 2] > 1e-6) & (u >= 0) & (u < cam.width) & (w >= 0) & (w < cam.height)
-            pix = (w.clamp(0, cam.height - 1) * cam.width + u.clamp(0, cam.width - 1))
+            v = torch.floor(c[:, 1] / z * K[1, 1] + K[1, 2]).long()
+            pix = v.clamp(0, H - 1) * W + u.clamp(0, W - 1)
             d = depth.reshape(-1)[pix]
             sdf = d - c[:, 2]
-            use = inside & (d > 0) & (sdf > -trunc)
-            sel = idx[use]
-            if sel.numel() == 0:
-                continue
-            new = (sdf[use] / trunc).clamp(max=1.0)
-            wt = weight.view(-1)[sel]
-            dist.view(-1)[sel] = (dist.view(-1)[sel] * wt + new) / (wt + 1)
-            color.view(-1, 3)[sel] = (color.view(-1, 3)[sel] * wt[:, None] + rgb.reshape(-1, 3)[pix[use]]) / (wt + 1)[:, None]
-            weight.view(-1)[sel] = wt + 1
-        emit(on_event, Progress("fuse", n + 1, len(views)))
+            use = (c[:, 2] > 1e-6) & (u >= 0) & (u < W) & (v >= 0) & (v < H) & (d > 0) & (sdf > -trunc)
+            w1 = wc + use.float()
+            keep = torch.where(use, wc / w1.clamp_min(1), torch.ones_like(wc))  # running means: old share
+            dc.mul_(keep).add_(torch.where(use, (sdf / trunc).clamp(max=1.0), torch.zeros_like(sdf)) / w1.clamp_min(1))
+            cc.mul_(keep[:, None]).add_(torch.where(use[:, None], rgb.reshape(-1, 3)[pix], 0.0) / w1.clamp_min(1)[:, None])
+            wc.copy_(w1)
+        emit(on_event, Progress("fuse", n + 1, len(chunks)))
     emit(on_event, StageDone("fuse", 0.0))
-    return dist, weight, color
+    return dist.view(shape), weight.view(shape), color.view(*shape, 3)
 
 
-def extract(dist: Tensor, weight: Tensor, color: Tensor, lo: np.ndarray, voxel: float, level: float = 0.0) -> Mesh:
-    """Marching cubes on the seen voxels' zero level set; colours from the nearest voxel."""
+def _edges(depth: Tensor) -> Tensor:  # [H, W] -> [H, W] bool
+    """Pixels whose 3x3 neighbourhood spans more than EDGE of their depth."""
+    p = torch.nn.functional.pad(depth[None, None], (1, 1, 1, 1), mode="replicate")
+    span = torch.nn.functional.max_pool2d(p, 3, 1) + torch.nn.functional.max_pool2d(-p, 3, 1)
+    return span[0, 0] > EDGE * depth
+
+
+def extract(dist: Tensor, weight: Tensor, color: Tensor, lo: np.ndarray, voxel: float, min_views: float = 1,
+            level: float = 0.0) -> Mesh:
+    """Marching cubes on the zero level set of the voxels fused from at least `min_views`
+    views; colours from the nearest voxel."""
     try:
         from skimage.measure import marching_cubes
     except ImportError:
         raise SplatError("meshing needs scikit-image: pip install 'splatcli[mesh]'") from None
     vol = dist.cpu().numpy()
-    seen = (weight > 0).cpu().numpy()
+    seen = (weight >= max(min_views, 1e-9)).cpu().numpy()
     if not seen.any() or vol[seen].min() > level or vol[seen].max() < level:
         raise SplatError("no surface found: the fused views saw no depth inside the volume "
                          "(check --views and --depth-trunc)")
@@ -246,8 +269,9 @@ def export_mesh(root: str | Path, config: MeshConfig, out: Path | None = None, *
                  for v in choose_views(project, config.views)]
         lo, hi = scene_box(m.gaussians, [v.camera for v in views])
         voxel, shape = grid_for(lo, hi, config.voxel_size)
-        vol = fuse(m.gaussians, views, project, lo, voxel, shape, config.depth_trunc, bool(m.antialiased), on_event)
-        mesh = extract(*vol, lo, voxel)
+        maps = view_maps(m.gaussians, views, project, config.depth_trunc, bool(m.antialiased), on_event)
+        vol = fuse(maps, lo, voxel, shape, on_event)
+        mesh = extract(*vol, lo, voxel, max(2, round(MIN_SEEN * len(views))))
         path = Path(out) if out is not None else project.exports_dir / "mesh.ply"
         ply, obj = write_mesh(path, mesh)
     return MeshResult(ply, obj, len(mesh.verts), len(mesh.faces), voxel, shape, len(views),

@@ -82,3 +82,41 @@ def surface_score(points: np.ndarray, reference: np.ndarray, tau: float | None =
     p, r = float((d_pr < tau).mean()), float((d_rp < tau).mean())
     return SurfaceScore(chamfer=float(0.5 * (d_pr.mean() + d_rp.mean())), precision=p, recall=r,
                         fscore=0.0 if p + r == 0 else 2 * p * r / (p + r), tau=tau)
+
+
+@dataclass
+class MeshReport:
+    reference: str
+    tau: float
+    fused: SurfaceScore  # exports/mesh.ply (export --format mesh)
+    centres: SurfaceScore  # the naive mesh of the Gaussian centres, on the same grid
+
+    def to_json(self) -> dict[str, Any]:
+        return {"reference": self.reference, "tau": self.tau, "fused": self.fused.to_json(),
+                "centres": self.centres.to_json()}
+
+
+def score_mesh(root: str | Path, reference: str | Path) -> MeshReport:
+    """`eval PROJ --mesh REF`: the project's exported mesh and the naive mesh of its Gaussian
+    centres (fuse.centres_mesh, on the export's default grid), against the reference surface."""
+    import torch
+
+    from ..model import load_model
+    from ..project import Project
+    from .fuse import centres_mesh, grid_for, scene_box
+
+    project = Project.open(root)
+    path = project.exports_dir / "mesh.ply"
+    if not path.is_file():
+        raise SplatError(f"{path}: no mesh yet; run `splatcli export {project.root} --format mesh` first")
+    if not Path(reference).is_file():
+        raise SplatError(f"--mesh {reference}: no such file (a .ply of the reference surface: points or triangles)")
+    ref = read_surface(reference)
+    g = load_model(project.root, torch.device("cpu")).gaussians
+    from ..views.sources import dataset_views
+
+    lo, hi = scene_box(g, [v.camera for v in dataset_views(project, "train")])
+    voxel, shape = grid_for(lo, hi, None)
+    naive = centres_mesh(g, lo, voxel, shape)
+    fused = surface_score(read_surface(path), ref)
+    return MeshReport(str(reference), fused.tau, fused, surface_score(sample_surface(naive.verts, naive.faces), ref))
