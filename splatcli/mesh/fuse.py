@@ -39,7 +39,7 @@ TRUNC_VOXELS = 4  # the signed distance is truncated at this many voxels
 BYTES_PER_VOXEL = 20  # float32 distance, weight and colour (3)
 CHUNK = 1 << 21  # voxels fused at a time
 FOCUS_REACH = 0.6  # the volume's half side at most, in median camera distances from the focus point
-MIN_VIEWS = 5  # a surface needs voxels fused from at least this many views (half of them when fewer than 10):
+MIN_VIEWS = 5  # a surface needs voxels fused from at least this many views (a quarter of them when fewer than 20):
 # the sample scene at its demo preset, F-score at 1%: 0.73 with 1, 0.92 with 5. (Also tried: not fusing depth
 # edges, 0.73 -> 0.78 alone, nothing beside 5 views, and holes in lego; 20% of the views, holes in lego's 87; no
 # free-space carving beyond the band, 0.92 -> 0.91.)
@@ -265,7 +265,7 @@ def export_mesh(root: str | Path, config: MeshConfig, out: Path | None = None, *
         voxel, shape = grid_for(lo, hi, config.voxel_size)
         maps = view_maps(m.gaussians, views, project, config.depth_trunc, bool(m.antialiased), on_event)
         vol = fuse(maps, lo, voxel, shape, on_event)
-        mesh = extract(*vol, lo, voxel, min(MIN_VIEWS, max(1, len(views) // 2)))
+        mesh = extract(*vol, lo, voxel, min(MIN_VIEWS, max(1, len(views) // 4)))
         path = Path(out) if out is not None else project.exports_dir / "mesh.ply"
         ply, obj = write_mesh(path, mesh)
     return MeshResult(ply, obj, len(mesh.verts), len(mesh.faces), voxel, shape, len(views),
