@@ -26,7 +26,8 @@ def export(
                                   "(.ply, .compressed.ply, .spz, .sog, .splat)."),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Output file (default PROJECT/exports/scene.<suffix>, "
                                        "or the source file's name with the new suffix); for web a folder "
-                                       "(default PROJECT/exports/web/)."),
+                                       "(default PROJECT/exports/web/); for mesh the .ply, the .obj beside it "
+                                       "(default PROJECT/exports/mesh.ply)."),
     fmt: str = typer.Option(_D.format, "--format", "-f",
                             help="ply: 3DGS layout, lossless. spz: Niantic SPZ (~10x smaller). sog: PlayCanvas SOG (~15-20x smaller). compressed-ply: "
                                  "SuperSplat/PlayCanvas chunks (~4x smaller). splat: 32-byte web-viewer rows, SH degree 0 "
