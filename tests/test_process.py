@@ -302,11 +302,13 @@ def test_images_left_out_by_sequential_matching_are_matched_with_every_image(sce
     names = sorted(p.name for p in (scene / "images").glob("*.jpg"))
     first = set(names[:8])
     real = rec.sequential_pairs
-    # As if the capture order broke after image 8: sequential pairs never reach the rest.
+    # As if the capture order broke after image 8: sequential pairs never reach the rest. One thread:
+    # COLMAP's threaded matching and mapping left image 009 out once in a loaded CI run (seeded, but
+    # its threads race); with one it is the same run every time.
     monkeypatch.setattr(rec, "sequential_pairs", lambda n, k: [p for p in real(n, k) if set(p) <= first])
     notes = []
     res = rec.run_sfm(scene / "images", names, tmp_path / "work",
-                      rec.SfmOptions(exhaustive_max_images=0), cameras=[names], min_side=H,
+                      rec.SfmOptions(exhaustive_max_images=0, num_threads=1), cameras=[names], min_side=H,
                       where=scene, on_event=notes.append)
     assert res.matcher == "sequential+exhaustive" and res.unregistered == []
     assert any("left 8 image(s) out" in n.message for n in notes if isinstance(n, Note))
