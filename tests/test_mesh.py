@@ -132,3 +132,6 @@ def test_mesh_needs_a_trained_project_and_eval_mesh_an_export(tmp_path):
     trained = make_tiny_project(tmp_path / "q", photos=False)
     r = CliRunner().invoke(app, ["eval", str(trained.root), "--mesh", str(tmp_path / "ref.ply"), "--no-plots"])
     assert r.exit_code == 2 and "no mesh yet" in r.output, r.output
+    ply = next(trained.checkpoints_dir.glob("*.pt"))  # any file: a mesh is made from a project's views
+    r = CliRunner().invoke(app, ["export", str(ply), "--format", "mesh"])
+    assert r.exit_code == 2 and "needs a project, not a splat file" in r.output, r.output

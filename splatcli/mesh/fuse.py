@@ -253,6 +253,8 @@ def export_mesh(root: str | Path, config: MeshConfig, out: Path | None = None, *
     from ..project import writer_lock
 
     t0 = time.perf_counter()
+    if Path(root).is_file():
+        raise SplatError(f"{root}: --format mesh needs a project, not a splat file (it renders the project's views)")
     project = Project.open(root)
     with writer_lock(project.root, "export", shared=True):
         m = load_model(project.root, torch.device("cpu"))
