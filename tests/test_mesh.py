@@ -15,7 +15,7 @@ from splatcli.cli.main import app
 from splatcli.gaussians import Gaussians
 from splatcli.io.checkpoint import save_checkpoint
 from splatcli.mesh.measure import sample_surface, surface_score
-from splatcli.render.rasterize import render_median_depth
+from splatcli.render.rasterize import render_surface
 from tiny_project import make_tiny_project
 
 pytest.importorskip("skimage", reason="meshing needs scikit-image (the mesh extra)")
@@ -29,7 +29,7 @@ def _layers(o1: float, o2: float) -> torch.Tensor:
     log_scales = torch.log(torch.tensor([[20.0, 20.0, 1e-3]] * 2))
     logits = torch.logit(torch.tensor([o1, o2]))
     K = torch.tensor([[20.0, 0, 8], [0, 20.0, 8], [0, 0, 1]])
-    return render_median_depth(means, quats, log_scales, logits, torch.eye(4), K, 16, 16)
+    return render_surface(means, quats, log_scales, logits, torch.zeros(2, 1, 3), torch.eye(4), K, 16, 16)[0]
 
 
 def test_median_depth_is_where_transmittance_crosses_one_half():

@@ -10,9 +10,7 @@ import typer
 from ..device import resolve_device
 from ..errors import SplatError
 from ..eval.evaluate import EvalConfig, compare_folders, plan_eval, run_eval
-from ..io.atomic import atomic_write_json
 from ..mesh.measure import score_mesh
-from ..project import Project
 from .common import DebugOpt, DeviceOpt, JsonOpt, QuietOpt, RendererOpt, Ui, parse_background, resolve
 
 _D = EvalConfig()  # the defaults, written once in the config
@@ -78,8 +76,6 @@ def evaluate(
     with ui.progress() as sink:
         r = run_eval(plan, on_event=sink)
     geo = score_mesh(project, mesh) if mesh is not None else None  # mesh/measure.py
-    if geo is not None:
-        atomic_write_json(Project.open(project).reports_dir / "mesh.json", geo.to_json())
     ui.summary(r.summary() | ({"mesh": geo.to_json()} if geo else {}), title=f"{r.split} split: PSNR {r.psnr:.2f} dB, SSIM {r.ssim:.4f}{_lpips(r.lpips)} over {len(r.per_image)} views",
                lines=[f"PSNR after a per-view colour fit (exposure and white balance removed): {r.psnr_color_fit:.2f} dB",
                       f"{r.num_gaussians:,} Gaussians (SH {r.sh_degree}, {r.ply_bytes / 1e6:.2f} MB): "

@@ -29,7 +29,7 @@ The frame. Niantic's README says SPZ stores right-up-back (RUB) unless a writer 
 otherwise, but the tools that write it today store the .ply's right-down-front (RDF)
 values unchanged: Niantic's own ply_to_spz (default, unspecified frames) and PlayCanvas
 splat-transform 3.x, whose reader also takes every file as it is (2.x converted to RUB
-both ways, as splatcli did), and so, by all accounts, does Spark. So both versions are
+both ways, as splatcli did), and so does Spark 2.2 (docs/benchmarks.md, "formats"). So both versions are
 written in RDF, splatcli's frame, and say so with the SPZ_ADOBE_coordinate_system
 extension (0xADBE0003, CoordinateSystem RDF = 6; in version 3 after the arrays, flag 2,
 as Niantic's library writes it there, and which splat-transform 3.7 reads past): raw

@@ -1,6 +1,6 @@
 """`splatcli export PROJ --format mesh`: a triangle mesh of the trained scene.
 
-Each chosen view's median depth (`render_median_depth`: where transmittance crosses 0.5,
+Each chosen view's median depth (`render_surface`: where transmittance crosses 0.5,
 steadier on surfaces than the blended mean) and colour are fused into a truncated signed
 distance volume (Curless and Levoy's running average, the fusion 2DGS and gsplat's examples
 use), and marching cubes (scikit-image, the `mesh` extra) extracts its zero level set, with
@@ -15,12 +15,15 @@ size that would need more than half the free memory is refused with one that fit
 
 from __future__ import annotations
 
+import io
 import math
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
+from plyfile import PlyData, PlyElement
 from torch import Tensor
 
 from ..camera import Camera, focus_point
@@ -28,9 +31,10 @@ from ..errors import SplatError
 from ..eval.score import load_target
 from ..events import EventSink, Progress, Stage, StageDone, emit
 from ..gaussians import Gaussians
-from ..project import Project
-from ..render import rasterize
-from ..render.rasterize import render_median_depth
+from ..io.atomic import atomic_write_bytes
+from ..model import load_model
+from ..project import Project, writer_lock
+from ..render.rasterize import render_surface
 from ..train.memory import free_memory
 from ..views.sources import View, dataset_views
 
@@ -114,12 +118,10 @@ def view_maps(g: Gaussians, views: list[View], project: Project, depth_trunc: fl
     for n, v in enumerate(views):
         cam = v.camera
         vm, K = cam.torch(dev, torch.float32)
-        with torch.no_grad():
-            depth = render_median_depth(g.means, g.quats, g.log_scales, g.opacity_logits, vm, K, cam.width, cam.height,
-                                        antialiased=antialiased).float()
-            out = rasterize(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh, vm, K, cam.width, cam.height,
-                            antialiased=antialiased)
-        rgb = (out.image / out.alpha.clamp_min(1e-3)[..., None]).clamp(0, 1).float()  # the surface's own colour
+        depth, image, alpha = render_surface(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh, vm, K,
+                                             cam.width, cam.height, antialiased=antialiased)
+        depth = depth.float()
+        rgb = (image / alpha.clamp_min(1e-3)[..., None]).clamp(0, 1).float()  # the surface's own colour
         ok = depth > 0
         if depth_trunc is not None:
             ok &= depth <= depth_trunc
@@ -205,10 +207,6 @@ def centres_mesh(g: Gaussians, lo: np.ndarray, voxel: float, shape: tuple[int, i
 
 def write_mesh(path: Path, mesh: Mesh) -> list[Path]:
     """`path` (.ply: binary triangles with vertex colours) and the same mesh as .obj beside it."""
-    from plyfile import PlyData, PlyElement
-
-    from ..io.atomic import atomic_write_bytes
-
     v = np.empty(len(mesh.verts), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"),
                                          ("red", "u1"), ("green", "u1"), ("blue", "u1")])
     for i, k in enumerate("xyz"):
@@ -217,8 +215,6 @@ def write_mesh(path: Path, mesh: Mesh) -> list[Path]:
         v[k] = mesh.colors[:, i]
     f = np.empty(len(mesh.faces), dtype=[("vertex_indices", "i4", (3,))])
     f["vertex_indices"] = mesh.faces
-    import io
-
     buf = io.BytesIO()
     PlyData([PlyElement.describe(v, "vertex"), PlyElement.describe(f, "face")]).write(buf)
     atomic_write_bytes(path, buf.getvalue())
@@ -247,11 +243,6 @@ def export_mesh(root: str | Path, config: MeshConfig, out: Path | None = None, *
                 on_event: EventSink | None = None) -> MeshResult:
     """Fuse the latest checkpoint of the project at `root` into a mesh: PROJECT/exports/mesh.ply
     (or `out`) and the .obj beside it, under the project's shared export lock."""
-    import time
-
-    from ..model import load_model
-    from ..project import writer_lock
-
     t0 = time.perf_counter()
     if Path(root).is_file():
         raise SplatError(f"{root}: --format mesh needs a project, not a splat file (it renders the project's views)")

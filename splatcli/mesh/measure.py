@@ -16,8 +16,15 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
+from plyfile import PlyData
 
 from ..errors import SplatError
+from ..io.atomic import atomic_write_json
+from ..model import load_model
+from ..project import Project
+from ..views.sources import dataset_views
+from .fuse import centres_mesh, grid_for, scene_box
 
 SAMPLES = 200_000  # points sampled on a mesh
 TAU = 0.01  # of the reference's diagonal
@@ -52,8 +59,6 @@ def sample_surface(verts: np.ndarray, faces: np.ndarray, n: int = SAMPLES, seed:
 
 def read_surface(path: str | Path, seed: int = 0) -> np.ndarray:  # [n, 3]
     """A .ply's surface as points: sampled from its faces, or its vertices when it has none."""
-    from plyfile import PlyData
-
     try:
         ply = PlyData.read(str(path))
         v = ply["vertex"]
@@ -98,13 +103,8 @@ class MeshReport:
 
 def score_mesh(root: str | Path, reference: str | Path) -> MeshReport:
     """`eval PROJ --mesh REF`: the project's exported mesh and the naive mesh of its Gaussian
-    centres (fuse.centres_mesh, on the export's default grid), against the reference surface."""
-    import torch
-
-    from ..model import load_model
-    from ..project import Project
-    from .fuse import centres_mesh, grid_for, scene_box
-
+    centres (fuse.centres_mesh, on the export's default grid), against the reference surface;
+    also written to PROJECT/reports/mesh.json."""
     project = Project.open(root)
     path = project.exports_dir / "mesh.ply"
     if not path.is_file():
@@ -113,10 +113,10 @@ def score_mesh(root: str | Path, reference: str | Path) -> MeshReport:
         raise SplatError(f"--mesh {reference}: no such file (a .ply of the reference surface: points or triangles)")
     ref = read_surface(reference)
     g = load_model(project.root, torch.device("cpu")).gaussians
-    from ..views.sources import dataset_views
-
     lo, hi = scene_box(g, [v.camera for v in dataset_views(project, "train")])
     voxel, shape = grid_for(lo, hi, None)
     naive = centres_mesh(g, lo, voxel, shape)
     fused = surface_score(read_surface(path), ref)
-    return MeshReport(str(reference), fused.tau, fused, surface_score(sample_surface(naive.verts, naive.faces), ref))
+    report = MeshReport(str(reference), fused.tau, fused, surface_score(sample_surface(naive.verts, naive.faces), ref))
+    atomic_write_json(project.reports_dir / "mesh.json", report.to_json())
+    return report

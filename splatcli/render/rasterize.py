@@ -115,58 +115,65 @@ def rasterize(
     fp = pr.footprint
     if block == "auto":
         block = choose_block(fp.cov2d, fp.opacities, width, height)
-    est = estimate_pairs(fp.cov2d, fp.opacities, block)
-    nbands = min(math.ceil(est / PAIR_BUDGET), math.ceil(height / TILE)) if est > PAIR_BUDGET else 1
-    if nbands == 1:
+    bands = _bands(height, estimate_pairs(fp.cov2d, fp.opacities, block))
+    if len(bands) == 1:
         plan = make_plan(fp, width, height, block)
         image, alpha, depth = composite(plan, pr.means2d, pr.conics, pr.opacities, pr.colors, pr.depths, background)
     else:
-        image, alpha, depth = _banded(pr, width, height, block, background, nbands)
+        image, alpha, depth = _banded(pr, width, height, block, background, bands)
     return RenderOutput(image=image, alpha=alpha, depth=depth, means2d=pr.means2d, radii=pr.radii,
                         visible=pr.visible, depths=pr.depths)
 
 
-def _banded(pr, width, height, block, background, nbands):
-    """Render bands of whole tile rows one after another, each planned on its own (and
-    re-planned in backward) so memory stays bounded. A band is the same model on the rows
-    [y0, y1) (y0 a multiple of 16, so the tile rule is unchanged): means shift by -y0."""
+def _bands(height: int, est: float) -> list[tuple[int, int]]:
+    """The image rows [y0, y1) drawn one band after another: one band, or, when the plan
+    would hold more than PAIR_BUDGET pairs, bands of whole tile rows (y0 a multiple of 16,
+    so the tile rule is unchanged), each planned on its own so memory stays bounded."""
+    nbands = min(math.ceil(est / PAIR_BUDGET), math.ceil(height / TILE)) if est > PAIR_BUDGET else 1
     band = math.ceil(math.ceil(height / nbands) / TILE) * TILE
-    outs = []
-    for y0 in range(0, height, band):
-        y1 = min(height, y0 + band)
-        shift = torch.tensor([0.0, float(y0)], dtype=pr.means2d.dtype, device=pr.means2d.device)
+    return [(y0, min(height, y0 + band)) for y0 in range(0, height, band)]
 
+
+def _shift(pr, y0: int) -> Tensor:  # [N, 2] the projected means in the coordinates of the band from row y0
+    return pr.means2d - torch.tensor([0.0, float(y0)], dtype=pr.means2d.dtype, device=pr.means2d.device)
+
+
+def _banded(pr, width, height, block, background, bands):
+    """Render the bands one after another, each planned on its own and re-planned in
+    backward: the same model on the rows [y0, y1), means shifted by -y0."""
+    outs = []
+    for y0, y1 in bands:
         def planner(rows=(y0, y1)):
             return make_plan(pr.footprint, width, height, block, rows)
 
-        outs.append(composite(planner, pr.means2d - shift, pr.conics, pr.opacities, pr.colors, pr.depths, background))
+        outs.append(composite(planner, _shift(pr, y0), pr.conics, pr.opacities, pr.colors, pr.depths, background))
     return tuple(torch.cat([o[i] for o in outs], 0) for i in range(3))
 
 
 @torch.no_grad()
-def render_median_depth(
+def render_surface(
     means: Tensor,  # [N, 3] world
     quats: Tensor,  # [N, 4]
     log_scales: Tensor,  # [N, 3]
     opacity_logits: Tensor,  # [N]
+    sh: Tensor,  # [N, (d+1)^2, 3], every band drawn
     viewmat: Tensor,  # [4, 4] world -> camera
     K: Tensor,  # [3, 3] px
     width: int,
     height: int,
     *,
     antialiased: bool = False,
-) -> Tensor:  # [H, W] view depth where transmittance crosses 0.5; 0 where it never does
-    """The median depth of N Gaussians from one camera (composite.median_depth), the
-    surface that meshing fuses; in bands of tile rows when the plan would be large."""
-    sh = means.new_zeros(means.shape[0], 1, 3)
-    pr = project(means, quats, log_scales, opacity_logits, sh, viewmat, K, width, height, 0, NEAR, antialiased)
+) -> tuple[Tensor, Tensor, Tensor]:  # median depth [H, W] (0 where T never crosses 0.5), image [H, W, 3] over black, alpha [H, W]
+    """What meshing fuses from one camera: the median depth (composite.median_depth) and the
+    picture, from one projection and one plan per band (rasterize's bands)."""
+    d = int(round(math.sqrt(sh.shape[1]))) - 1
+    pr = project(means, quats, log_scales, opacity_logits, sh, viewmat, K, width, height, d, NEAR, antialiased)
     fp = pr.footprint
     block = choose_block(fp.cov2d, fp.opacities, width, height)
-    est = estimate_pairs(fp.cov2d, fp.opacities, block)
-    band = height if est <= PAIR_BUDGET else TILE * math.ceil(height / TILE / math.ceil(est / PAIR_BUDGET))
-    rows = []
-    for y0 in range(0, height, band):
-        shift = torch.tensor([0.0, float(y0)], dtype=pr.means2d.dtype, device=pr.means2d.device)
-        plan = make_plan(fp, width, height, block, (y0, min(height, y0 + band)))
-        rows.append(median_depth(plan, pr.means2d - shift, pr.conics, pr.opacities, pr.depths))
-    return torch.cat(rows, 0)
+    black = means.new_zeros(3)
+    out = []
+    for y0, y1 in _bands(height, estimate_pairs(fp.cov2d, fp.opacities, block)):
+        plan, m2 = make_plan(fp, width, height, block, (y0, y1)), _shift(pr, y0)
+        image, alpha, _ = composite(plan, m2, pr.conics, pr.opacities, pr.colors, pr.depths, black)
+        out.append((median_depth(plan, m2, pr.conics, pr.opacities, pr.depths), image, alpha))
+    return tuple(torch.cat(x, 0) for x in zip(*out))  # type: ignore[return-value]
