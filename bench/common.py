@@ -182,7 +182,7 @@ def splatcli(args: list[str], log: Path, *, cwd: Path = REPO, env: dict | None =
 # ---- curves, plots, the document ------------------------------------------------------
 
 
-def train_fresh(scene: str, dest: Path, args: list[str], *, cwd: Path = REPO, env: dict | None = None,
+def train_fresh(scene: str, dest: Path, args: list[str], /, *, cwd: Path = REPO, env: dict | None = None,
                 **extra) -> dict:
     """`splatcli train --device cpu ARGS` on a fresh copy (`dest`) of the processed `scene`, its
     log beside it (dest.log): what a benchmark keeps of it (`Run.train_record`, with `extra`)."""
