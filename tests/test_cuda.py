@@ -125,9 +125,14 @@ def test_gsplat_matches_the_pytorch_path_forward_and_backward(antialiased):
     o_gs, g_gs = _grads(rasterize_gsplat, args, CUDA, W, H, cot, antialiased)
     o_pt, g_pt = _grads(rasterize, args, CUDA, W, H, cot, antialiased)
     # float32 kernels with fast-math exp and another summation order; gsplat also skips the
-    # pixels beyond its opacity-aware footprint (alpha < 1/255 there, skipped by both)
-    torch.testing.assert_close(o_gs.image.cpu(), o_pt.image.cpu(), atol=2e-3, rtol=0)
-    torch.testing.assert_close(o_gs.alpha.cpu(), o_pt.alpha.cpu(), atol=2e-3, rtol=0)
+    # pixels beyond its opacity-aware footprint (alpha < 1/255 there, skipped by both). A
+    # Gaussian whose alpha sits at the 1/255 cut is drawn by one and skipped by the other (the
+    # exp rounds differently), which moves a pixel by up to alpha * colour, about 1.5/255 for
+    # these SH colours: seen on an H200 at 2 of 57,600 values with antialiasing (0.0059).
+    for a, b in ((o_gs.image, o_pt.image), (o_gs.alpha, o_pt.alpha)):
+        diff = (a - b).detach().abs().cpu()
+        assert float((diff > 2e-3).float().mean()) < 1e-3, "more than 0.1% of pixels differ by over 2e-3"
+        assert float(diff.max()) < 2e-3 + 2 / 255
     for name, a, b in zip(PARAMS[:5], g_gs, g_pt):  # the camera's gradients are the PyTorch path's alone
         torch.testing.assert_close(a, b, atol=1e-2 * float(b.abs().max()), rtol=1e-2, msg=name)
 
@@ -145,7 +150,13 @@ def test_train_render_eval_with_gsplat(tmp_path):
     r = run(app, ["train", str(proj), "--renderer", "gsplat", "--iterations", "200", "--eval-every", "100", "--json", "-q"])
     assert r.exit_code == 0, r.output
     s = json.loads(r.output.strip().splitlines()[-1])
-    assert s["renderer"] == "gsplat" and s["psnr"] > 15
+    # the PyTorch path on the same settings (12.13 dB on the CPU: 200 steps from random points)
+    twin = make_tiny_project(tmp_path / "q", trained=False).root
+    r = run(app, ["train", str(twin), "--renderer", "torch", "--iterations", "200", "--eval-every", "100", "--json", "-q"])
+    assert r.exit_code == 0, r.output
+    t = json.loads(r.output.strip().splitlines()[-1])
+    assert s["renderer"] == "gsplat" and t["renderer"] == "torch"
+    assert abs(s["psnr"] - t["psnr"]) < 0.3 and s["psnr"] > 11, (s["psnr"], t["psnr"])
     for cmd in (["render", str(proj), "--renderer", "gsplat", "--json"], ["eval", str(proj), "--renderer", "gsplat", "--json"]):
         r = run(app, cmd)
         assert r.exit_code == 0, r.output

@@ -28,7 +28,7 @@ BUDGET_S = 600.0  # training seconds of a default CPU run: with loading and the 
 MAX_SIZE = 480  # px, the longest side a default CPU run trains at
 GAUSSIANS_PER_PIXEL = 0.45  # the MCMC budget per training pixel (fox at 480 px: 58k; lego at 200 px: 18k)
 MIN_GAUSSIANS, MAX_GAUSSIANS = 5_000, 400_000
-MAX_PROCESSES = 8  # data-parallel processes at most (measured up to 2 here; docs/benchmarks.md)
+MAX_PROCESSES = 8  # data-parallel processes at most (2 measured here, 16 on a lent machine: 54% efficient at 8; docs/benchmarks.md)
 CHOSEN_ENV = "SPLATCLI_CHOSEN"  # the launcher's choices, for the record its processes write
 
 
