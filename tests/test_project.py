@@ -92,7 +92,7 @@ def test_atomic_files_get_the_usual_mode_not_mkstemps_0600(tmp_path):
 
     new = tmp_path / "new.json"
     atomic_write_text(new, "{}")
-    assert new.stat().st_mode & 0o777 == 0o666 & ~atomic._UMASK  # e.g. 0644 under umask 022
+    assert new.stat().st_mode & 0o777 == 0o666 & ~atomic.UMASK  # e.g. 0644 under umask 022
     kept = tmp_path / "kept.json"
     kept.write_text("old")
     os.chmod(kept, 0o640)

@@ -25,8 +25,8 @@ MAX_JSON_BYTES = 64 * 1024 * 1024  # a manifest is kilobytes; refuse absurd file
 # would (0666 less the umask), so viewers and servers running as other users can
 # read an export. Read once, at import, while nothing else runs: os.umask can only
 # be read by setting it.
-_UMASK = os.umask(0o022)
-os.umask(_UMASK)
+UMASK = os.umask(0o022)  # the process umask (read once): the mode published files and folders get
+os.umask(UMASK)
 
 
 def _publish_mode(target: Path) -> int:
@@ -34,7 +34,7 @@ def _publish_mode(target: Path) -> int:
     try:
         return target.stat().st_mode & 0o7777
     except OSError:
-        return 0o666 & ~_UMASK
+        return 0o666 & ~UMASK
 
 
 @contextlib.contextmanager

@@ -52,7 +52,7 @@ class Asset:
     gzipped: bool = False
 
 
-def _assets() -> dict[str, Asset]:
+def assets() -> dict[str, Asset]:
     """Every file the page may load, by URL path: the list is fixed here."""
     root = resources.files("splatcli.viewer") / "static"
     names = ["index.html", "viewer.js", "vendor/LICENSES", "vendor/VERSIONS",
@@ -234,7 +234,7 @@ class ViewerServer:
         self.store = store
         self.host = host
         allowed = {host.lower(), "localhost", "127.0.0.1", "::1"} if is_loopback(host) else None
-        handler = _handler(store, _assets(), allowed)
+        handler = _handler(store, assets(), allowed)
         self._httpd = _bind(host, port, handler)
         self.port = int(self._httpd.server_address[1])
         self._thread = threading.Thread(target=self._httpd.serve_forever, kwargs={"poll_interval": 0.2},

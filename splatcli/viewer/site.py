@@ -21,11 +21,11 @@ from pathlib import Path
 
 from ..errors import SplatError
 from ..events import EventSink
-from ..io.atomic import _UMASK, atomic_write_bytes
+from ..io.atomic import UMASK, atomic_write_bytes
 from ..io.export import ExportConfig, ExportResult, check_web_folder, export_gaussians
 from ..model import LoadedModel
 from . import project_scene
-from .server import SceneStore, _assets
+from .server import SceneStore, assets
 
 SPLATS = "api/scene.sog"
 
@@ -39,10 +39,10 @@ def export_site(m: LoadedModel, out: Path, config: ExportConfig, on_event: Event
     except OSError as exc:
         raise SplatError(f"cannot write {out}: {exc.strerror or exc}") from exc
     try:
-        os.chmod(tmp, 0o777 & ~_UMASK)  # mkdtemp's 0700 would hide the site from a server run as another user
+        os.chmod(tmp, 0o777 & ~UMASK)  # mkdtemp's 0700 would hide the site from a server run as another user
         r = export_gaussians(m.gaussians, tmp / SPLATS, dataclasses.replace(config, format="sog"),
                              source=m.path, step=m.step, notes=m.notes, on_event=on_event)
-        for url, a in _assets().items():
+        for url, a in assets().items():
             atomic_write_bytes(tmp / ("index.html" if url == "/" else url[1:]), gzip.decompress(a.body) if a.gzipped else a.body)
         store = project_scene(m.project, m.project.root.name) if m.project else SceneStore(source=m.path.name)
         store.publish(m.gaussians)
