@@ -137,14 +137,28 @@ def _choose_matcher(opts: SfmOptions, names: list[str]) -> str:
     return "sequential" if looks_ordered(names) else "exhaustive"
 
 
+# One camera each is kept over a shared one when the focal lengths it finds spread by more
+# than this (90th over 10th percentile): 1.04 on fox's 50 photos from one camera, 2.0 on
+# the same photos cropped as four zooms (docs/benchmarks.md, "several cameras, simulated").
+FOCAL_SPREAD = 1.15
+
+
+def _focal_spread(focals: list[float]) -> float:
+    if len(focals) < 2:
+        return 1.0
+    lo, hi = np.percentile(focals, [10, 90])
+    return float(hi / lo) if lo > 0 else float("inf")
+
+
 def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions, *,
             cameras: list[list[str]], min_side: int, where: Path, split_cameras: list[list[str]] | None = None,
             on_event: EventSink | None = None, mask_dir: Path | None = None) -> SfmResult:
     """Extract, match and map `names` (files in `image_dir`).
 
     `cameras` groups the names into cameras (one camera per group: process/cameras.py);
-    `split_cameras`, a finer grouping to map with when under half the images register
-    (photos that share a camera only for want of EXIF may come from several);
+    `split_cameras`, a finer grouping also mapped with, and kept when it registers more or
+    finds different focal lengths (photos that share a camera only for want of EXIF may
+    come from several);
     `min_side` is the smallest image side SIFT sees (chooses the octave); `mask_dir`
     holds a mask for every image, `<name>.png` (0: no features there); `where`
     names the input in error messages. Raises SplatError (with the likely
@@ -193,17 +207,25 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
         models = _map(db, image_dir, work_dir / "models_relaxed", mapper, len(names), clock)
         tried.append(f"relaxed initial-pair thresholds ({RELAXED_INIT['init_min_num_inliers']} inliers, "
                      f"{RELAXED_INIT['init_min_tri_angle']:g} degrees)")
-    if split_cameras is not None and (not models or models[0].num_registered < len(names) / 2):
-        # Photos grouped by size alone may come from several cameras: one camera each.
-        emit(on_event, Note(f"{models[0].num_registered if models else 0} of {len(names)} images registered with "
-                            f"{len(cameras)} camera(s); mapping again with {len(split_cameras)}"))
+    if split_cameras is not None:
+        # Photos grouped by size alone may come from several cameras. One shared camera then
+        # registers badly, or (worse) registers them all with poses bent to fit one focal
+        # length. So they are also mapped with one camera each, and that model is kept when it
+        # registers more, or nearly as many with focal lengths that differ (several cameras).
+        n0 = models[0].num_registered if models else 0
+        why = (f"{n0} of {len(names)} images registered with {len(cameras)} camera(s)" if n0 < len(names) / 2 else
+               "photos without EXIF camera data may come from several cameras")
+        emit(on_event, Note(f"{why}; mapping again with {len(split_cameras)}"))
         split_db = work_dir / "database_split.db"
         colmap.regroup_database(db, split_db, image_dir, split_cameras, camera_model=opts.camera_model)
         split = _map(split_db, image_dir, work_dir / "models_split", mapper, len(names), clock)
         tried.append(f"{len(split_cameras)} cameras instead of {len(cameras)} (the photos without EXIF apart)")
-        if split and (not models or split[0].num_registered > models[0].num_registered):
+        spread = _focal_spread(split[0].focal_lengths()) if split else 1.0
+        if split and (split[0].num_registered > n0
+                      or (split[0].num_registered >= 0.9 * n0 and spread > FOCAL_SPREAD)):
             models, cameras = split, split_cameras
             split_db.replace(db)
+            tried.append(f"kept one camera each (their focal lengths spread {spread:.2f}x)")
     if not models or models[0].num_registered < 2:
         raise SplatError(f"{where}: structure from motion found no model (tried {'; '.join(tried)}): "
                          f"{_diagnose(db, len(names))}")
