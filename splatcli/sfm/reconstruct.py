@@ -213,9 +213,12 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
         # length. So they are also mapped with one camera each, and that model is kept when it
         # registers more, or nearly as many with focal lengths that differ (several cameras).
         n0 = models[0].num_registered if models else 0
-        why = (f"{n0} of {len(names)} images registered with {len(cameras)} camera(s)" if n0 < len(names) / 2 else
-               "photos without EXIF camera data may come from several cameras")
-        emit(on_event, Note(f"{why}; mapping again with {len(split_cameras)}"))
+        if n0 < len(names) / 2:
+            emit(on_event, Note(f"{n0} of {len(names)} images registered with {len(cameras)} camera(s); mapping again "
+                                f"with {len(split_cameras)}"))
+        else:
+            emit(on_event, Note(f"photos without EXIF camera data may come from several cameras: mapping again with "
+                                f"{len(split_cameras)}, one each, to compare"))
         split_db = work_dir / "database_split.db"
         colmap.regroup_database(db, split_db, image_dir, split_cameras, camera_model=opts.camera_model)
         split = _map(split_db, image_dir, work_dir / "models_split", mapper, len(names), clock)
