@@ -56,13 +56,14 @@ class Grouping:
 
     def split(self) -> Grouping | None:
         """The same with the photos that share a camera for want of EXIF apart (one camera
-        each), for SfM to try when they register badly together; None when there are none."""
+        each), for SfM to compare with (sfm/reconstruct.py); None when there are none."""
         if not any(g.source == "size" and len(g.names) > 1 for g in self.groups):
             return None
         groups = [h for g in self.groups for h in ([CameraGroup([n], g.width, g.height, "image") for n in g.names]
                                                     if g.source == "size" else [g])]
         return Grouping(groups, self.rule, f"{len(groups)} camera(s): the photos without EXIF camera data one each, "
-                        "as they registered badly sharing one", self.problems)
+                        "which fit them better than one shared camera (more registered, or focal lengths "
+                        "that differ)", self.problems)
 
 
 def group_cameras(staged: list[StagedImage], sources: dict[str, Path] | None, mode: str, *,
