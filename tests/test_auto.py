@@ -54,9 +54,25 @@ def test_every_choice_yields_to_its_option(proj, monkeypatch):
     assert "strategy" not in got and "max_gaussians" not in got and got["time_budget"] == auto.BUDGET_S
     with pytest.raises(SplatError, match="--max-size 0"):  # what was given is checked first
         auto.choose(proj, {"max_size": 0}, None, CPU)
-    # A time budget alone gets the rest of a planned run.
+    # A time budget alone gets the rest of a planned run (the photos are smaller than any size it picks).
     got = _chosen(auto.choose(proj, {"time_budget": 30.0}, None, CPU))
     assert set(got) == {"preset", "strategy", "max_gaussians"}
+
+
+def test_the_training_size_follows_the_time_budget(proj, monkeypatch):
+    """480 px up to the default budget, then the side grows with the square root of the time
+    (the default's step count, on views with proportionally more pixels); the photos' own
+    size is never exceeded: a budget whose size is above it picks none."""
+    assert auto.train_size(90) == auto.train_size(auto.BUDGET_S) == auto.MAX_SIZE == 480
+    assert auto.train_size(4 * auto.BUDGET_S) == 960 and auto.train_size(3 * auto.BUDGET_S) == 830
+    big = auto.read_project_scene(proj).cameras
+    monkeypatch.setattr(auto, "read_project_scene", lambda p: type("S", (), {"cameras": [
+        c.scaled(40.0) for c in big]})())  # 40x: 1920x1600 photos
+    monkeypatch.setattr(auto, "free_cores", lambda: 1)
+    for budget, size in ((180.0, 480), (2400.0, 960), (None, 480)):
+        given = {} if budget is None else {"time_budget": budget}
+        got = _chosen(auto.choose(proj, given, None, CPU))
+        assert got["max_size"] == size, (budget, got)
 
 
 def test_cuda_and_resume_choose_nothing(proj):
