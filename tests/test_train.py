@@ -325,6 +325,36 @@ def test_a_plan_prices_each_step_by_its_resolution():
     assert abs(plan.replan(plan.scaled(flat, 7000), 170, 5.0).iterations - (170 + 170 / 5.0 * 595.0)) <= 1
 
 
+def test_the_eta_of_a_step_schedule_prices_the_steps_left_by_their_resolution():
+    """A run without a time budget says once, after ETA_AFTER_S training seconds, how long is left:
+    the steps left at the measured speed, each priced by its coarse-to-fine scale as plans price
+    them (the fast preset's first steps are 1/8 of a full step's pixels), and said as a lower bound."""
+    from types import SimpleNamespace
+
+    from splatcli.events import Note
+    from splatcli.train import log
+    from splatcli.train.plan import step_costs
+
+    def told(cfg, step, elapsed, world=1):
+        notes = []
+        eta = log.Eta(SimpleNamespace(step=0, elapsed_s=0.0, world=world), cfg)
+        eta.tell(SimpleNamespace(step=step, elapsed_s=log.ETA_AFTER_S / 2, world=world), notes.append)
+        assert notes == []  # too soon
+        eta.tell(SimpleNamespace(step=step, elapsed_s=elapsed, world=world), notes.append)
+        eta.tell(SimpleNamespace(step=step + 1, elapsed_s=elapsed + 1, world=world), notes.append)
+        assert len(notes) == 1 and isinstance(notes[0], Note)  # once
+        return notes[0].message
+
+    fast = make_config("fast", iterations=7000)
+    left = 20.0 * step_costs(fast, 7000, 100, 7000).sum() / step_costs(fast, 7000, 0, 100).sum()
+    assert left > 3 * (6900 / 100 * 20.0)  # the coarse speed alone would promise a third of it
+    msg = told(fast, 100, 20.0)
+    assert msg.startswith(f"at least {log.duration(left)} of training left at 5.00 steps/s"), msg
+    flat = make_config("demo")  # no coarse steps: the measured rate times the steps left
+    assert told(flat, 200, 20.0, world=2).startswith(f"at least {log.duration(1300 / 10.0)} of training left at "
+                                                     "20.00 steps/s")
+
+
 def test_plan_keeps_a_switched_off_reset_off():
     from splatcli.train.plan import TimePlan
 

@@ -22,6 +22,7 @@ from ..project import Project
 from ..strategy import RefineStats
 from .config import TrainConfig, TrainReport, TrainSummary
 from .distributed import Comm
+from .plan import step_costs
 from .state import TrainState
 
 PROGRESS_PERIOD_S = 0.25  # progress-bar refresh; a loss read is a host sync on CUDA
@@ -114,21 +115,25 @@ class LogWriter:
 
 
 class Eta:
-    """The one note a run without a time budget gives once its speed is measured: when
-    it ends at that speed (a growing model slows it; --time-budget plans to a time)."""
+    """The one note a run without a time budget gives once its speed is measured: when it
+    ends at that speed, the steps left priced by their coarse-to-fine resolution as a
+    time budget's plans price them (train/plan.py). A lower bound: a growing model slows it."""
 
-    def __init__(self, state: TrainState) -> None:
-        self.start = (state.images, state.elapsed_s)
+    def __init__(self, state: TrainState, cfg: TrainConfig) -> None:
+        self.start = (state.step, state.elapsed_s)
+        self.cfg = cfg
         self.told = False
 
-    def tell(self, state: TrainState, total: int, on_event: EventSink | None) -> None:
-        views, elapsed = state.images - self.start[0], state.elapsed_s - self.start[1]
-        if self.told or elapsed < ETA_AFTER_S or views <= 0:
+    def tell(self, state: TrainState, on_event: EventSink | None) -> None:
+        done, elapsed = state.step - self.start[0], state.elapsed_s - self.start[1]
+        if self.told or elapsed < ETA_AFTER_S or done <= 0:
             return
         self.told = True
-        left = (total - state.images) * elapsed / views
-        emit(on_event, Note(f"about {duration(left)} of training left at {views / elapsed:.2f} steps/s (growing "
-                            "models slow down; --time-budget SECONDS plans the run to end in time)"))
+        total = self.cfg.total_steps
+        spent = float(step_costs(self.cfg, total, self.start[0], state.step).sum())
+        left = elapsed * float(step_costs(self.cfg, total, state.step, total).sum()) / spent
+        emit(on_event, Note(f"at least {duration(left)} of training left at {done * state.world / elapsed:.2f} "
+                            "steps/s (more as the model grows; --time-budget SECONDS plans the run to end in time)"))
 
 
 def duration(seconds: float) -> str:

@@ -135,7 +135,7 @@ def _loop(project: Project, base: TrainConfig, cfg: TrainConfig, data: TrainData
     k = comm.world
     emit(on_event, Stage(STAGE, total * k))
     writer = log.LogWriter(project.train_log_path, state, enabled=comm.main)
-    eta = log.Eta(state)
+    eta = log.Eta(state, cfg)
     for strategy, st in zip(state.strategies, state.splats.states):  # a resumed run: what is due now
         writer.refined(strategy.catch_up(state.splats, st, state.step))
     if _agreed_stop(comm, stop):  # signalled during setup: keep what there is (a resume starts here)
@@ -200,7 +200,7 @@ def _loop(project: Project, base: TrainConfig, cfg: TrainConfig, data: TrainData
         writer.line(step, state, evaluated, fitted, cfg.log_every, force=step == total)
         emit(on_event, Progress(STAGE, state.images, total * k, writer.info(state)))
         if comm.main and state.plan is None:
-            eta.tell(state, total * k, on_event)
+            eta.tell(state, on_event)
         if comm.main:
             emit(on_event, Snapshot(state.images, state.model))  # for live displays (train --viewer)
         if stopping or (k == 1 and stop.is_set()):
