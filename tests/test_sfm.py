@@ -422,3 +422,18 @@ def test_detect_input_kinds(tmp_path):
         detect_input(tmp_path / "nothing")
     with pytest.raises(SplatError, match="no COLMAP model"):
         detect_input(photos, "colmap")
+
+
+def test_the_focal_spread_is_measured_within_each_camera_taken_apart():
+    """One camera each is kept when the images of one shared camera find different focal lengths;
+    two shared cameras of other sizes (or EXIF cameras) differ from each other anyway."""
+    from splatcli.sfm.reconstruct import FOCAL_SPREAD, _focal_spread
+
+    small, large = [f"s{i}" for i in range(10)], [f"l{i}" for i in range(10)]
+    apart = [[n] for n in small + large]
+    focals = {**{n: 500.0 + i for i, n in enumerate(small)}, **{n: 1000.0 - i for i, n in enumerate(large)}}
+    assert _focal_spread(focals, [small, large], apart) < 1.05 < FOCAL_SPREAD  # 2x apart between the groups
+    zooms = {**focals, **{n: 1000.0 * (1 + i % 2) for i, n in enumerate(large)}}
+    assert _focal_spread(zooms, [small, large], apart) > 1.9
+    assert _focal_spread(zooms, [small, large], [[n] for n in small] + [large]) < 1.05  # large not taken apart
+    assert _focal_spread({"l0": 1000.0}, [large], apart) == 1.0  # under two registered: nothing to compare

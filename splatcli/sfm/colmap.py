@@ -262,10 +262,10 @@ class Model:
     def mean_track_length(self) -> float:
         return float(self._rec.compute_mean_track_length()) if self.num_points else 0.0
 
-    def focal_lengths(self) -> list[float]:
-        """The mean focal length (px) of each registered image's camera."""
-        return [float(self._rec.cameras[im.camera_id].mean_focal_length())
-                for im in self._rec.images.values() if im.has_pose]
+    def focal_lengths(self) -> dict[str, float]:
+        """Registered image name -> the mean focal length (px) of its camera."""
+        return {im.name: float(self._rec.cameras[im.camera_id].mean_focal_length())
+                for im in self._rec.images.values() if im.has_pose}
 
     def camera_models(self) -> set[str]:
         return {_model_name(c) for c in self._rec.cameras.values()}

@@ -143,11 +143,18 @@ def _choose_matcher(opts: SfmOptions, names: list[str]) -> str:
 FOCAL_SPREAD = 1.15
 
 
-def _focal_spread(focals: list[float]) -> float:
-    if len(focals) < 2:
-        return 1.0
-    lo, hi = np.percentile(focals, [10, 90])
-    return float(hi / lo) if lo > 0 else float("inf")
+def _focal_spread(focals: dict[str, float], cameras: list[list[str]], split: list[list[str]]) -> float:
+    """The largest spread (90th over 10th percentile) of the focal lengths found for the
+    images of one shared camera of `cameras` that `split` takes apart (within a camera: other
+    cameras, and other sizes, differ anyway)."""
+    kept = {tuple(g) for g in split}
+    out = 1.0
+    for g in cameras:
+        f = [focals[n] for n in g if n in focals]
+        if tuple(g) not in kept and len(f) >= 2:
+            lo, hi = np.percentile(f, [10, 90])
+            out = max(out, float(hi / lo) if lo > 0 else float("inf"))
+    return out
 
 
 def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions, *,
@@ -223,7 +230,7 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
         colmap.regroup_database(db, split_db, image_dir, split_cameras, camera_model=opts.camera_model)
         split = _map(split_db, image_dir, work_dir / "models_split", mapper, len(names), clock)
         tried.append(f"{len(split_cameras)} cameras instead of {len(cameras)} (the photos without EXIF apart)")
-        spread = _focal_spread(split[0].focal_lengths()) if split else 1.0
+        spread = _focal_spread(split[0].focal_lengths(), cameras, split_cameras) if split else 1.0
         if split and (split[0].num_registered > n0
                       or (split[0].num_registered >= 0.9 * n0 and spread > FOCAL_SPREAD)):
             models, cameras = split, split_cameras
