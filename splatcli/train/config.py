@@ -61,7 +61,9 @@ class TrainConfig:
     iterations: int = opt(30_000, "Optimiser steps (the paper's schedule).", group=SCHEDULE, short="-n", at_least=1,
                           steps="schedule")
     time_budget: float | None = opt(None, "Training seconds to fit in: the run measures its speed and plans the "
-                                    "preset's schedule, compressed, to end within them (evaluation not counted).",
+                                    "preset's schedule, compressed, to end within them (evaluation not counted). "
+                                    "Alone, on a CPU, it also chooses the preset, strategy, Gaussian budget, "
+                                    "training size and processes (train.json says why).",
                                     group=SCHEDULE, more_than=0, metavar="SECONDS")
     sh_degree: int | str = opt(3, "0-3, or auto: train at 3, keep the lowest degree within sh_auto_tol_db of it on "
                                "training views.", group=SCHEDULE, parse=parse_sh_degree, at_least=0,
@@ -71,7 +73,8 @@ class TrainConfig:
 
     # ---- data ----------------------------------------------------------------
     downscale: float = opt(1.0, "Train at the stored image size divided by this.", group=DATA, more_than=0, at_most=64)
-    max_size: int = opt(1600, "Then cap the longest image side at this (pixels), as 3DGS does for large photos.",
+    max_size: int = opt(1600, "Then cap the longest image side at this (pixels), as 3DGS does for large photos "
+                        "(a planned CPU run picks 480, more for budgets over 10 min).",
                         group=DATA, at_least=16)
     coarse_scale: float = opt(1.0, "Coarse to fine: the resolution (a fraction of the above) at step 0; 1 = off ...",
                               at_least=0.1, at_most=1)
