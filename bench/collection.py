@@ -45,7 +45,7 @@ def make_collection(src: Path, out: Path, n: int, zooms: list[float], size: tupl
     import cv2
 
     out.mkdir(parents=True)
-    poses = {f.name: f.viewmat for f in read_transforms(src.parent / "transforms.json").frames}
+    poses = fox_poses(src.parent)
     truth = []
     for i, p in enumerate(sorted(src.glob("*.jpg"))[:n]):
         img = cv2.imread(str(p))
@@ -56,8 +56,13 @@ def make_collection(src: Path, out: Path, n: int, zooms: list[float], size: tupl
         crop = cv2.resize(img[y0:y0 + ch, x0:x0 + cw], size, interpolation=cv2.INTER_AREA)
         name = f"{i:03d}_{p.name}"
         cv2.imwrite(str(out / name), crop, [cv2.IMWRITE_JPEG_QUALITY, 95])
-        truth.append(Camera(name, size[0], size[1], np.eye(3), np.asarray(poses[p.name], float)))
+        truth.append(Camera(name, size[0], size[1], np.eye(3), poses[p.name]))
     return out, truth
+
+
+def fox_poses(fox: Path) -> dict[str, np.ndarray]:
+    """Image name -> world-to-camera [4, 4] of fox's transforms.json (the capture's own COLMAP run)."""
+    return {f.name: np.asarray(f.viewmat, float) for f in read_transforms(fox / "transforms.json").frames}
 
 
 def pose_error(cameras: list[Camera], truth: list[Camera]) -> str:
@@ -133,9 +138,7 @@ def main() -> None:
         print(row("splatcli process --per-image-cameras", each, n), flush=True)
         one = ours(photos, Path(t) / "one", truth, ProcessConfig(cameras="single"))
         print(row("splatcli process --single-camera", one, n), flush=True)
-        fox_truth = [Camera(c.name, 1080, 1920, np.eye(3), c.viewmat) for c in
-                     (Camera(f.name, 1, 1, np.eye(3), np.asarray(f.viewmat, float))
-                      for f in read_transforms(src.parent / "transforms.json").frames)]
+        fox_truth = [Camera(name, 1080, 1920, np.eye(3), vm) for name, vm in fox_poses(src.parent).items()]
         fox = ours(src, Path(t) / "fox", fox_truth, ProcessConfig(max_size=400))
         print(row("fox's own photos", fox, len(list(src.glob("*.jpg")))), flush=True)
     text = [SECTION, "",

@@ -55,6 +55,17 @@ def make_scene() -> ModuleType:
     return mod
 
 
+def zoom_about_centre(img, zoom: float):  # [H, W, C] uint8 -> the same size
+    """The picture a `zoom` times longer lens on the same camera takes: zoomed about the image
+    centre (pixel centres at i + 0.5), which stays the principal point."""
+    import cv2
+    import numpy as np
+
+    h, w = img.shape[:2]
+    t = (0.5 - w / 2) * zoom + w / 2 - 0.5, (0.5 - h / 2) * zoom + h / 2 - 0.5
+    return cv2.warpAffine(img, np.array([[zoom, 0, t[0]], [0, zoom, t[1]]]), (w, h), flags=cv2.INTER_AREA)
+
+
 # scene -> (input, process args, train args, preset): the scenes bench/train.py measures; the
 # other scripts train copies of the same processed projects
 SCENES = {

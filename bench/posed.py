@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from align import compare_poses
-from common import REPO, data_dir, make_scene, publish
+from common import REPO, data_dir, make_scene, publish, zoom_about_centre
 from splatcli.camera import Camera
 from splatcli.io.llff import to_poses_bounds
 from splatcli.io.transforms import read_transforms
@@ -116,8 +116,7 @@ def two_camera_scene(out: Path, zoom: float = 1.25, exif: bool = True) -> tuple[
         h, w = img.shape[:2]
         ex = Image.Exif()
         if i % 2:
-            t = ((0.5 - w / 2) * zoom + w / 2 - 0.5, (0.5 - h / 2) * zoom + h / 2 - 0.5)
-            img = cv2.warpAffine(img, np.array([[zoom, 0, t[0]], [0, zoom, t[1]]]), (w, h), flags=cv2.INTER_AREA)
+            img = zoom_about_centre(img, zoom)
             ex[0x010F], ex[0x0110] = "Panasonic", "DMC-FZ150"
             ex.get_ifd(0x8769)[0x920A] = 62.5
         else:

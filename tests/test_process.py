@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from align import compare_poses
-from common import make_scene
+from common import make_scene, zoom_about_centre
 from splatcli.camera import Camera
 from splatcli.events import Note
 from splatcli.process.run import ProcessConfig, process
@@ -393,9 +393,7 @@ def test_photos_of_two_cameras_get_two_cameras_and_register(scene, tmp_path):
         img = cv2.imread(str(scene / "images" / c.name))
         ex = Image.Exif()
         if i % 2:
-            # pixel centres at (i + 0.5): zoom about the image centre, which stays the principal point
-            t = (0.5 - W / 2) * zoom + W / 2 - 0.5, (0.5 - H / 2) * zoom + H / 2 - 0.5
-            img = cv2.warpAffine(img, np.array([[zoom, 0, t[0]], [0, zoom, t[1]]]), (W, H), flags=cv2.INTER_AREA)
+            img = zoom_about_centre(img, zoom)  # the principal point stays at the centre
             ex[_MAKE], ex[_MODEL] = "Panasonic", "DMC-FZ150"
             ex.get_ifd(_EXIF_IFD)[_FOCAL] = 62.5
         else:
@@ -449,8 +447,7 @@ def _zoomed(scene: Path, out: Path, zoom: float, every: int) -> Path:
     for i, c in enumerate(ground_truth(scene)):
         img = cv2.imread(str(scene / "images" / c.name))
         if i % every == 1:
-            t = (0.5 - W / 2) * zoom + W / 2 - 0.5, (0.5 - H / 2) * zoom + H / 2 - 0.5
-            img = cv2.warpAffine(img, np.array([[zoom, 0, t[0]], [0, zoom, t[1]]]), (W, H), flags=cv2.INTER_AREA)
+            img = zoom_about_centre(img, zoom)
         cv2.imwrite(str(out / c.name), img, [cv2.IMWRITE_JPEG_QUALITY, 95])
     return out
 
