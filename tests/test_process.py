@@ -458,10 +458,11 @@ def test_photos_without_exif_from_two_cameras_that_all_register_together_still_g
     The default also maps them a camera each, finds focal lengths 1.5x apart, and keeps that."""
     src = _zoomed(scene, tmp_path / "zoomed", 1.5, 4)
     gt = ground_truth(scene)
-    one = process(src, tmp_path / "one", ProcessConfig(cameras="single"))
+    # one thread: COLMAP's threads make the mapping differ from run to run (the bent poses most)
+    one = process(src, tmp_path / "one", ProcessConfig(cameras="single", num_threads=1))
     bent = compare_poses(read_scene(Project(tmp_path / "one").sparse_dir).cameras, gt)
     assert one.registered == N_VIEWS and bent.max_rotation_deg > 3  # what the check below is for
-    r = process(src, tmp_path / "p")
+    r = process(src, tmp_path / "p", ProcessConfig(num_threads=1))
     assert len(r.cameras) == N_VIEWS and r.registered == N_VIEWS
     assert any("kept one camera each" in t for t in r.sfm_tried), r.sfm_tried
     e = compare_poses(read_scene(Project(tmp_path / "p").sparse_dir).cameras, gt)
