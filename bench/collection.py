@@ -14,6 +14,13 @@ Then, one after the other in one run, on the same photos:
   * `splatcli process PHOTOS` with its defaults.
 Registered images, cameras, points, mean reprojection error and seconds, with the load average.
 Writes the "## process: several cameras, simulated (issue 38)" section of docs/benchmarks.md.
+
+    python bench/collection.py --real DIR [--square 640] [--no-write]
+
+A real collection instead (photos from different cameras, as a sharing site gives them), each
+photo's centre square resized to one size and saved without EXIF (the issue's case: one pixel
+size, nothing that tells the cameras apart), and also as they are. No true poses: each pipeline's
+are compared with plain pycolmap's. Writes "## process: several cameras, real photos (issue 38)".
 """
 
 from __future__ import annotations
@@ -121,7 +128,12 @@ def main() -> None:
     ap.add_argument("--zooms", default="1,1.3,1.6,2", help="one per simulated camera, in turn")
     ap.add_argument("--size", default="540x960", help="the one pixel size of every photo, WIDTHxHEIGHT")
     ap.add_argument("--no-write", action="store_true")
+    ap.add_argument("--real", type=Path, help="a folder of real photos from different cameras")
+    ap.add_argument("--about", default="", help="--real: where the photos come from, for the section's text")
+    ap.add_argument("--square", type=int, default=640, help="--real: the one size, SIDExSIDE, of the squares")
     a = ap.parse_args()
+    if a.real:
+        return real_collection(a.real, a.square, a.about, write=not a.no_write)
     src = data_dir() / "fox" / "images"
     if not src.is_dir():
         raise SystemExit(f"{src}: missing; set SPLATCLI_DATA")
@@ -174,6 +186,44 @@ def main() -> None:
             "Target (issue 38): at least as many as plain pycolmap's largest model, aim for more than 30 of 40, "
             "reprojection error at most 1.5 px.", ""]
     publish(SECTION, "\n".join(text), write=not a.no_write)
+
+
+def real_collection(src: Path, side: int, about: str, *, write: bool) -> None:
+    """Plain pycolmap, then splatcli's defaults and --single-camera, on `src`'s photos as squares of one
+    size without EXIF and as they are; poses against plain pycolmap's largest model of the same photos."""
+    import cv2
+
+    rows, tried, names = [], [], sorted(p.name for p in src.iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png"))
+    with tempfile.TemporaryDirectory(prefix="splatcli-real-") as t:
+        square = Path(t) / "square"
+        square.mkdir()
+        for n in names:  # cv2 writes no EXIF
+            img = cv2.imread(str(src / n))
+            h, w = img.shape[:2]
+            k = min(h, w)
+            crop = img[(h - k) // 2:(h - k) // 2 + k, (w - k) // 2:(w - k) // 2 + k]
+            cv2.imwrite(str(square / n), cv2.resize(crop, (side, side), interpolation=cv2.INTER_AREA),
+                        [cv2.IMWRITE_JPEG_QUALITY, 95])
+        for label, photos in ((f"centre squares, {side}×{side}, no EXIF", square), ("as they are", src)):
+            work = Path(t) / label[:6].strip(",")
+            work.mkdir()
+            plain = plain_pycolmap(photos, work / "plain", [])
+            sparse = sorted((work / "plain" / "sparse").iterdir())
+            ref = max((read_scene(m, pinhole_only=False).cameras for m in sparse), key=len) if sparse else []
+            rows.append(row(f"{label}: plain pycolmap (largest of {plain.get('models', 0)} models)", plain, len(names)))
+            for opt, cfg in (("no options", ProcessConfig()), ("--single-camera", ProcessConfig(cameras="single"))):
+                r = ours(photos, work / opt.strip("-"), ref, cfg)
+                rows.append(row(f"{label}: `splatcli process` {opt}", r, len(names)))
+                tried.append(f"- {label}, {opt}: {r.get('tried') or r.get('failed')}.")
+                print(rows[-1], flush=True)
+    text = ["## process: several cameras, real photos (issue 38)", "",
+            f"`python bench/collection.py --real DIR` ({os.cpu_count()} cores; load average beside each row): "
+            f"{len(names)} photos from different cameras{about and ' (' + about + ')'}. Poses are compared with plain "
+            "pycolmap's (no ground truth); one after the other, in one run.",
+            "", "| pipeline | registered | cameras | points | reproj. error (px) | max rot. / centre error vs plain "
+            "pycolmap's | seconds | load |", "| --- | --- | ---: | ---: | ---: | --- | ---: | --- |", *rows, "",
+            "splatcli's attempts:", "", *tried, ""]
+    publish(text[0], "\n".join(text), write=write)
 
 
 if __name__ == "__main__":

@@ -489,3 +489,33 @@ def test_photos_without_exif_from_two_cameras_get_a_camera_each_when_they_fail_t
     assert len(r.cameras) == N_VIEWS and r.registered >= N_VIEWS - 2
     e = compare_poses(read_scene(Project(tmp_path / "p").sparse_dir).cameras, gt)
     assert e.max_rotation_deg < 1.0 and e.max_center_error_rel < 0.01
+
+
+def test_a_camera_each_that_registers_too_few_extracts_more_features_and_maps_again(scene, tmp_path, monkeypatch):
+    """Photos of 768x576 without EXIF (SIFT at octave 0), every other one zoomed 1.25x. When a camera each
+    registers too few against the shared camera (here the octave-0 split mapping is made to fail, as 4 of 10
+    real photos from different cameras did), SIFT runs again on the upsampled octave and both mappings are
+    made again; that model keeps a camera each, with the true poses, and its database becomes the project's."""
+    from splatcli.sfm import reconstruct
+
+    src, gt = tmp_path / "big", ground_truth(scene)
+    src.mkdir()
+    for c in gt:
+        img = cv2.imread(str(scene / "images" / c.name))
+        img = zoom_about_centre(img, 1.25) if int(c.name[:3]) % 2 else img
+        cv2.imwrite(str(src / c.name), cv2.resize(img, (3 * W, 3 * H), interpolation=cv2.INTER_CUBIC))
+    real, seen = reconstruct._map, []
+
+    def split_fails_at_octave_0(db, image_dir, out, *a, **k):
+        seen.append(out.relative_to(tmp_path).as_posix())
+        return [] if out.name == "models_split" and "upsampled" not in out.parts else real(db, image_dir, out, *a, **k)
+
+    monkeypatch.setattr(reconstruct, "_map", split_fails_at_octave_0)
+    r = process(src, tmp_path / "p", ProcessConfig(num_threads=1))
+    assert any(t.startswith("SIFT again on the upsampled octave (one camera each registered 0)") for t in r.sfm_tried)
+    assert any("kept one camera each" in t for t in r.sfm_tried), r.sfm_tried
+    assert any(s.endswith("upsampled/models_split") for s in seen), seen
+    assert len(r.cameras) == N_VIEWS and r.registered == N_VIEWS
+    assert (tmp_path / "p" / "sfm" / "database.db").is_file()
+    e = compare_poses(read_scene(Project(tmp_path / "p").sparse_dir).cameras, gt)
+    assert e.max_rotation_deg < 1.0 and e.max_center_error_rel < 0.01
