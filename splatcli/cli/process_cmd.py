@@ -60,8 +60,20 @@ def process(
              + (f", reprojection error {r.mean_reprojection_error:.2f} px" if r.mean_reprojection_error else ""),
              "stages: " + ", ".join(f"{k} {v:.1f}s" for k, v in r.seconds.items())]
     if r.cameras:
-        lines.append(f"cameras: {len(r.cameras)} ({r.camera_grouping})")
+        lines.append(f"cameras: {len(r.cameras)} ({_camera_kinds(r.cameras)})")
     if r.mask_source:
         src = "the images' alpha channel" if r.mask_source == "alpha" else "mask files"
         lines.append(f"masks: from {src}, in {r.project / 'masks'}")
     ui.summary(r.summary(), title=f"{r.input_kind}: {r.registered}/{r.total} images posed -> {r.project}", lines=lines)
+
+
+_KINDS = {"exif": "from EXIF", "size": "shared by same-size photos without EXIF", "image": "one per photo",
+          "video": "the video's", "single": "shared (--single-camera)"}
+
+
+def _camera_kinds(cameras: list[dict]) -> str:
+    """'2 from EXIF, 3 one per photo': how the cameras in the manifest were made."""
+    counts: dict[str, int] = {}
+    for c in cameras:
+        counts[c["source"]] = counts.get(c["source"], 0) + 1
+    return ", ".join(f"{k} {_KINDS.get(s, s)}" for s, k in counts.items())

@@ -141,6 +141,9 @@ def _choose_matcher(opts: SfmOptions, names: list[str]) -> str:
 # than this (90th over 10th percentile): 1.04 on fox's 50 photos from one camera, 2.0 on
 # the same photos cropped as four zooms (docs/benchmarks.md, "several cameras, simulated").
 FOCAL_SPREAD = 1.15
+# SIFT goes again to the upsampled octave when its image's short side is under this and the
+# mapping left images out: upsampling larger images costs much and is rarely needed.
+UPSAMPLE_BELOW = 1000
 
 
 def _focal_spread(focals: dict[str, float], cameras: list[list[str]], split: list[list[str]]) -> float:
@@ -174,6 +177,7 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
     names = sorted(names, key=natural_key)
     work_dir.mkdir(parents=True, exist_ok=True)
     db = work_dir / "database.db"
+    cameras0 = cameras
 
     # -- features
     kp_median = _extract(db, image_dir, names, opts, min_side, clock, mask_dir,
@@ -214,6 +218,7 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
         models = _map(db, image_dir, work_dir / "models_relaxed", mapper, len(names), clock)
         tried.append(f"relaxed initial-pair thresholds ({RELAXED_INIT['init_min_num_inliers']} inliers, "
                      f"{RELAXED_INIT['init_min_tri_angle']:g} degrees)")
+    weak_split = False
     if split_cameras is not None:
         # Photos grouped by size alone may come from several cameras. One shared camera then
         # registers badly, or (worse) registers them all with poses bent to fit one focal
@@ -230,31 +235,14 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
         colmap.regroup_database(db, split_db, image_dir, split_cameras, camera_model=opts.camera_model)
         split = _map(split_db, image_dir, work_dir / "models_split", mapper, len(names), clock)
         tried.append(f"{len(split_cameras)} cameras instead of {len(cameras)} (the photos without EXIF apart)")
-        n1 = split[0].num_registered if split else 0
-        if n1 < 0.9 * n0 and _octave(opts, min_side) == 0:
-            # A camera each needs more features to calibrate than a shared one: on 10 real
-            # photos from different cameras (640x640) it registered 4 where the shared camera
-            # bent all 10 to one focal length. SIFT again on COLMAP's upsampled octave.
-            emit(on_event, Note(f"one camera each registered {n1} of {len(names)} images; extracting more features "
-                                "(SIFT on the upsampled octave) and mapping again"))
-            again = run_sfm(image_dir, names, work_dir / "upsampled", replace(opts, first_octave=-1),
-                            cameras=cameras, min_side=min_side, where=where, split_cameras=split_cameras,
-                            on_event=on_event, mask_dir=mask_dir)
-            (work_dir / "upsampled" / "database.db").replace(db)
-            again.tried[:0] = [*tried, f"SIFT again on the upsampled octave (one camera each registered {n1})"]
-            again.seconds = {k: clock.seconds.get(k, 0.0) + again.seconds.get(k, 0.0)
-                             for k in {*clock.seconds, *again.seconds}}
-            return again
+        weak_split = (split[0].num_registered if split else 0) < 0.9 * n0
         spread = _focal_spread(split[0].focal_lengths(), cameras, split_cameras) if split else 1.0
         if split and (split[0].num_registered > n0
                       or (split[0].num_registered >= 0.9 * n0 and spread > FOCAL_SPREAD)):
             models, cameras = split, split_cameras
             split_db.replace(db)
             tried.append(f"kept one camera each (their focal lengths spread {spread:.2f}x)")
-    if not models or models[0].num_registered < 2:
-        raise SplatError(f"{where}: structure from motion found no model (tried {'; '.join(tried)}): "
-                         f"{_diagnose(db, len(names))}")
-    if models[0].num_registered < len(names):
+    if models and 2 <= models[0].num_registered < len(names):
         # A second pass over the images left out: the largest model goes on, registering
         # with relaxed pose thresholds (what COLMAP's defaults refused may fit it now).
         before = models[0].num_registered
@@ -264,6 +252,31 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
         if more and more[0].num_registered > before:
             emit(on_event, Note(f"a second pass registered {more[0].num_registered - before} more image(s)"))
             models = more
+    n_best = models[0].num_registered if models else 0
+    if _octave(opts, min_side) == 0 and min_side < UPSAMPLE_BELOW and (weak_split or n_best < len(names)):
+        # Too few features, perhaps: a camera each needs more to calibrate than a shared one
+        # (10 real photos from different cameras, 640x640: it registered 4 where the shared
+        # camera bent all 10 to one focal length). SIFT again on COLMAP's upsampled octave.
+        emit(on_event, Note(f"{n_best} of {len(names)} images registered"
+                            + (" (fewer with a camera each)" if weak_split else "")
+                            + "; extracting more features (SIFT on the upsampled octave) and mapping again"))
+        try:
+            again = run_sfm(image_dir, names, work_dir / "upsampled", replace(opts, first_octave=-1),
+                            cameras=cameras0, min_side=min_side, where=where, split_cameras=split_cameras,
+                            on_event=on_event, mask_dir=mask_dir)
+        except SplatError:
+            again = None
+        tried.append("SIFT again on the upsampled octave")
+        if again is not None and again.model.num_registered >= n_best:
+            (work_dir / "upsampled" / "database.db").replace(db)
+            again.tried[:0] = tried
+            again.seconds = {k: clock.seconds.get(k, 0.0) + again.seconds.get(k, 0.0)
+                             for k in {*clock.seconds, *again.seconds}}
+            return again
+        tried[-1] += f" (it registered {again.model.num_registered if again else 0}: not kept)"
+    if not models or models[0].num_registered < 2:
+        raise SplatError(f"{where}: structure from motion found no model (tried {'; '.join(tried)}): "
+                         f"{_diagnose(db, len(names))}")
     best = models[0]
     registered = set(best.registered_names())
     fell_into = {}
