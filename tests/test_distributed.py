@@ -154,6 +154,11 @@ def test_the_rank_that_died_is_named_not_the_ones_the_launcher_stopped(tmp_path)
     assert isinstance(err, RankDied) and "rank 1 was killed by SIGABRT" in str(err), err
     err = _report(tmp_path / "errors", {0: -signal.SIGTERM, 1: -signal.SIGTERM}, root)
     assert "rank 0 was killed by SIGTERM" in str(err)  # stopped from outside: the lowest rank
+    # Rank 0 wrote its user error and exited 2; rank 1 was stopped before it wrote its own (a CI run
+    # under load): rank 0's error is the report, not rank 1's SIGTERM.
+    (tmp_path / "errors" / "rank0.json").write_text(json.dumps({"exit_code": 2, "error": "nowhere.ply: no such file"}))
+    err = _report(tmp_path / "errors", {0: 2, 1: -signal.SIGTERM}, root)
+    assert not isinstance(err, RankDied) and str(err) == "nowhere.ply: no such file" and err.exit_code == 2, err
 
 
 @pytest.mark.slow

@@ -125,8 +125,10 @@ def _report(errors: Path, codes: dict[int, int], project_dir: Path,
     """The one exception that explains a failed run: a rank that died without a word
     (killed) first, then the lowest rank's own error."""
     said = _read(errors)
-    # The launcher stops the other ranks with SIGTERM once one fails: that one explains.
-    for rank, code in sorted(codes.items(), key=lambda rc: (rc[1] == -signal.SIGTERM, rc[0])):
+    # The launcher stops the other ranks with SIGTERM once one fails: that one explains, and a
+    # rank it stopped before that rank's own error was written says nothing (all SIGTERM: from outside).
+    failed = {r: c for r, c in codes.items() if c != -signal.SIGTERM} or codes
+    for rank, code in sorted(failed.items()):
         if rank not in said:
             how = f"exited with code {code}"
             if code < 0:
