@@ -142,7 +142,8 @@ def _choose_matcher(opts: SfmOptions, names: list[str]) -> str:
 # the same photos cropped as four zooms (docs/benchmarks.md, "several cameras, simulated").
 FOCAL_SPREAD = 1.15
 # SIFT goes again to the upsampled octave when its image's short side is under this and the
-# mapping left images out: upsampling larger images costs much and is rarely needed.
+# mapping left over 10% of the images out (not for a few blurry frames of a video): upsampling
+# larger images costs much and is rarely needed.
 UPSAMPLE_BELOW = 1000
 
 
@@ -253,7 +254,7 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
             emit(on_event, Note(f"a second pass registered {more[0].num_registered - before} more image(s)"))
             models = more
     n_best = models[0].num_registered if models else 0
-    if _octave(opts, min_side) == 0 and min_side < UPSAMPLE_BELOW and (weak_split or n_best < len(names)):
+    if _octave(opts, min_side) == 0 and min_side < UPSAMPLE_BELOW and (weak_split or n_best < 0.9 * len(names)):
         # Too few features, perhaps: a camera each needs more to calibrate than a shared one
         # (10 real photos from different cameras, 640x640: it registered 4 where the shared
         # camera bent all 10 to one focal length). SIFT again on COLMAP's upsampled octave.
