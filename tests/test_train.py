@@ -355,6 +355,26 @@ def test_the_eta_of_a_step_schedule_prices_the_steps_left_by_their_resolution():
                                                      "20.00 steps/s")
 
 
+def test_a_second_eta_comes_once_the_model_has_stopped_growing():
+    """The first estimate is a lower bound (the model grows after it); once the strategy stops
+    refining (the demo preset: step 900 of 1,500), the speed of the grown model is measured again
+    for ETA_AFTER_S seconds and the time left said once more, as "about"."""
+    from types import SimpleNamespace
+
+    from splatcli.train import log
+
+    demo, notes = make_config("demo"), []
+    eta = log.Eta(SimpleNamespace(step=0, elapsed_s=0.0, world=1), demo)
+    for step, elapsed in ((200, 20.0), (899, 90.0), (950, 100.0), (990, 100.0 + log.ETA_AFTER_S / 2),
+                          (1000, 100.0 + log.ETA_AFTER_S), (1100, 200.0)):
+        eta.tell(SimpleNamespace(step=step, elapsed_s=elapsed, world=1, num_gaussians=20_000), notes.append)
+    said = [n.message for n in notes]
+    assert len(said) == 2 and said[0].startswith("at least "), said
+    rate = 50 / log.ETA_AFTER_S  # steps 950..1000 in ETA_AFTER_S seconds
+    assert said[1] == (f"the model has stopped growing (20,000 Gaussians): about {log.duration(500 / rate)} of "
+                       f"training left at {rate:.2f} steps/s"), said[1]
+
+
 def test_plan_keeps_a_switched_off_reset_off():
     from splatcli.train.plan import TimePlan
 

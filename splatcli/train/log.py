@@ -115,24 +115,40 @@ class LogWriter:
 
 
 class Eta:
-    """The one note a run without a time budget gives once its speed is measured: when it
-    ends at that speed, the steps left priced by their coarse-to-fine resolution as a
-    time budget's plans price them (train/plan.py). A lower bound: a growing model slows it."""
+    """The notes a run without a time budget gives once its speed is measured: when it ends
+    at that speed, the steps left priced by their coarse-to-fine resolution as a time
+    budget's plans price them (train/plan.py). The first is a lower bound (a growing model
+    slows it); a second comes once the model has stopped growing (the strategy's refine_stop)."""
 
     def __init__(self, state: TrainState, cfg: TrainConfig) -> None:
         self.start = (state.step, state.elapsed_s)
         self.cfg = cfg
         self.told = False
+        self.grown = cfg.refine.refine_stop  # the step growth ends at
+        self.again = state.step < self.grown < cfg.total_steps  # a second note is due then
+        self.since: tuple[int, float] | None = None  # (step, elapsed) once grown
+
+    def _left(self, state: TrainState, start: tuple[int, float]) -> tuple[float, float] | None:
+        """(seconds left, steps/s) measured from `start`, once ETA_AFTER_S seconds have passed."""
+        done, elapsed = state.step - start[0], state.elapsed_s - start[1]
+        if elapsed < ETA_AFTER_S or done <= 0:
+            return None
+        total = self.cfg.total_steps
+        spent = float(step_costs(self.cfg, total, start[0], state.step).sum())
+        return elapsed * float(step_costs(self.cfg, total, state.step, total).sum()) / spent, done * state.world / elapsed
 
     def tell(self, state: TrainState, on_event: EventSink | None) -> None:
-        done, elapsed = state.step - self.start[0], state.elapsed_s - self.start[1]
-        if self.told or elapsed < ETA_AFTER_S or done <= 0:
+        if self.again and state.step >= self.grown:
+            self.since = self.since or (state.step, state.elapsed_s)
+            est = self._left(state, self.since)
+            if est is not None:
+                self.again = False
+                emit(on_event, Note(f"the model has stopped growing ({state.num_gaussians:,} Gaussians): about "
+                                    f"{duration(est[0])} of training left at {est[1]:.2f} steps/s"))
+        if self.told or (est := self._left(state, self.start)) is None:
             return
         self.told = True
-        total = self.cfg.total_steps
-        spent = float(step_costs(self.cfg, total, self.start[0], state.step).sum())
-        left = elapsed * float(step_costs(self.cfg, total, state.step, total).sum()) / spent
-        emit(on_event, Note(f"at least {duration(left)} of training left at {done * state.world / elapsed:.2f} "
+        emit(on_event, Note(f"at least {duration(est[0])} of training left at {est[1]:.2f} "
                             "steps/s (more as the model grows; --time-budget SECONDS plans the run to end in time)"))
 
 
