@@ -58,13 +58,18 @@ def make_collection(src: Path, out: Path, n: int, zooms: list[float], size: tupl
         img = cv2.imread(str(p))
         h, w = img.shape[:2]
         z = zooms[i % len(zooms)]
-        cw, ch = round(w / z), round(h / z)
-        x0, y0 = (w - cw) // 2, (h - ch) // 2
-        crop = cv2.resize(img[y0:y0 + ch, x0:x0 + cw], size, interpolation=cv2.INTER_AREA)
+        crop = cv2.resize(centre_crop(img, round(w / z), round(h / z)), size, interpolation=cv2.INTER_AREA)
         name = f"{i:03d}_{p.name}"
         cv2.imwrite(str(out / name), crop, [cv2.IMWRITE_JPEG_QUALITY, 95])
         truth.append(Camera(name, size[0], size[1], np.eye(3), poses[p.name]))
     return out, truth
+
+
+def centre_crop(img, cw: int, ch: int):  # [H, W, C] -> [ch, cw, C]
+    """The middle `cw` x `ch` of an image: the principal point stays at the centre."""
+    h, w = img.shape[:2]
+    x0, y0 = (w - cw) // 2, (h - ch) // 2
+    return img[y0:y0 + ch, x0:x0 + cw]
 
 
 def fox_poses(fox: Path) -> dict[str, np.ndarray]:
@@ -96,10 +101,10 @@ def plain_pycolmap(photos: Path, work: Path, truth: list[Camera]) -> dict:
         return {"registered": 0, "cameras": 0, "points": 0, "error": None, "seconds": seconds, "load": load,
                 "models": 0}
     key, best = max(models.items(), key=lambda kv: kv[1].num_reg_images())
-    poses = pose_error(read_scene(work / "sparse" / str(key), pinhole_only=False).cameras, truth)
+    posed = read_scene(work / "sparse" / str(key), pinhole_only=False).cameras
     return {"registered": best.num_reg_images(), "cameras": len(best.cameras), "points": best.num_points3D(),
             "error": best.compute_mean_reprojection_error(), "seconds": seconds, "load": load,
-            "models": len(models), "poses": poses}
+            "models": len(models), "poses": pose_error(posed, truth), "posed": posed}
 
 
 def ours(photos: Path, out: Path, truth: list[Camera], cfg: ProcessConfig) -> dict:
@@ -199,17 +204,14 @@ def real_collection(src: Path, side: int, about: str, *, write: bool) -> None:
         square.mkdir()
         for n in names:  # cv2 writes no EXIF
             img = cv2.imread(str(src / n))
-            h, w = img.shape[:2]
-            k = min(h, w)
-            crop = img[(h - k) // 2:(h - k) // 2 + k, (w - k) // 2:(w - k) // 2 + k]
-            cv2.imwrite(str(square / n), cv2.resize(crop, (side, side), interpolation=cv2.INTER_AREA),
+            k = min(img.shape[:2])
+            cv2.imwrite(str(square / n), cv2.resize(centre_crop(img, k, k), (side, side), interpolation=cv2.INTER_AREA),
                         [cv2.IMWRITE_JPEG_QUALITY, 95])
         for label, photos in ((f"centre squares, {side}×{side}, no EXIF", square), ("as they are", src)):
             work = Path(t) / label[:6].strip(",")
             work.mkdir()
             plain = plain_pycolmap(photos, work / "plain", [])
-            sparse = sorted((work / "plain" / "sparse").iterdir())
-            ref = max((read_scene(m, pinhole_only=False).cameras for m in sparse), key=len) if sparse else []
+            ref = plain.get("posed", [])  # its largest model's cameras: what ours are compared with
             rows.append(row(f"{label}: plain pycolmap (largest of {plain.get('models', 0)} models)", plain, len(names)))
             for opt, cfg in (("no options", ProcessConfig()), ("--single-camera", ProcessConfig(cameras="single"))):
                 r = ours(photos, work / opt.strip("-"), ref, cfg)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections import Counter
 from pathlib import Path
 from typing import Optional
 
@@ -73,7 +74,4 @@ _KINDS = {"exif": "from EXIF", "size": "shared by same-size photos without EXIF"
 
 def _camera_kinds(cameras: list[dict]) -> str:
     """'2 from EXIF, 3 one per photo': how the cameras in the manifest were made."""
-    counts: dict[str, int] = {}
-    for c in cameras:
-        counts[c["source"]] = counts.get(c["source"], 0) + 1
-    return ", ".join(f"{k} {_KINDS.get(s, s)}" for s, k in counts.items())
+    return ", ".join(f"{k} {_KINDS.get(s, s)}" for s, k in Counter(c["source"] for c in cameras).items())
