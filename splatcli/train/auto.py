@@ -30,6 +30,10 @@ MAX_SIZE = 480  # px, the longest side a default CPU run trains at
 GAUSSIANS_PER_PIXEL = 0.45  # the MCMC budget per training pixel (fox at 480 px: 58k; lego at 200 px: 18k)
 MIN_GAUSSIANS, MAX_GAUSSIANS = 5_000, 400_000
 MAX_PROCESSES = 8  # data-parallel processes at most (2 measured here, 16 on a lent machine: 54% efficient at 8; docs/benchmarks.md)
+# torch threads per chosen process at most, where cores are left over: on 16 cores (fox, 480 px, 150 s), 6 processes
+# with 2 threads each took 27% more steps than with 1 (30.81 against 30.59 dB); 1 process with 16, 943 steps against
+# 2,124 (docs/benchmarks.md, "every core on 16 cores")
+MAX_THREADS = 2
 CHOSEN_ENV = "SPLATCLI_CHOSEN"  # the launcher's choices, for the record its processes write
 
 
@@ -51,11 +55,17 @@ class Chosen:
 
     def words(self) -> list[str]:
         """The chosen options as command-line words (the processes of `train --nproc`)."""
-        return options.as_argv(TrainConfig, {c.option: c.value for c in self.choices if c.option != "nproc"})
+        return options.as_argv(TrainConfig, {c.option: c.value for c in self.choices
+                                             if c.option not in ("nproc", "threads")})
 
     def env(self) -> dict[str, str]:
-        """What the processes of `train --nproc` inherit (they get the options as words)."""
-        return {CHOSEN_ENV: json.dumps(self.record())}
+        """What the processes of `train --nproc` inherit (they get the options as words):
+        the record, and their torch threads where they were chosen."""
+        env = {CHOSEN_ENV: json.dumps(self.record())}
+        for c in self.choices:
+            if c.option == "threads":
+                env["OMP_NUM_THREADS"] = str(c.value)
+        return env
 
 
 def inherited(given: dict[str, Any]) -> Chosen:
@@ -150,10 +160,15 @@ def choose(project: Project, given: dict[str, Any], nproc: int | None, device: t
         pick("max_gaussians", int(min(MAX_GAUSSIANS, max(MIN_GAUSSIANS, round(GAUSSIANS_PER_PIXEL * train_px, -3)))),
              f"{GAUSSIANS_PER_PIXEL} per pixel of a {train_px:,}-pixel training view")
     if nproc is None:
-        k = min(free_cores(), MAX_PROCESSES, max(1, len(cams) // 8))
+        free = free_cores()
+        k = min(free, MAX_PROCESSES, max(1, len(cams) // 8))
         if k > 1:
             out.nproc = k
-            out.choices.append(Choice("nproc", k, f"{k} free cores: one training process each (--nproc 1 for one)"))
+            out.choices.append(Choice("nproc", k, f"{free} free cores: {k} training processes (--nproc 1 for one)"))
+            threads = min(MAX_THREADS, free // k)
+            if threads > 1 and torch.get_num_threads() == 1:  # OMP_NUM_THREADS above 1 is the user's: kept
+                out.choices.append(Choice("threads", threads, f"{free} free cores for {k} processes: "
+                                          f"{threads} torch threads each (OMP_NUM_THREADS to choose)"))
     return out
 
 
