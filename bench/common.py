@@ -93,6 +93,21 @@ def ensure_processed(scene: str) -> Path:
     return base
 
 
+def cpu_model(checkpoint: Path, max_size: int) -> tuple[Any, dict]:
+    """What the scripts that time the rasterizer on one torch thread start from: the training
+    views at `max_size` of the project `checkpoint` (PROJECT/checkpoints/step-*.pt) belongs to,
+    and its Gaussians' parameters by name (Gaussians.PARAM_NAMES order), detached, on the CPU."""
+    import torch  # here: the scripts that only run `splatcli` start without it
+
+    from splatcli.io.checkpoint import load_checkpoint
+    from splatcli.train.data import load_train_data
+
+    torch.set_num_threads(1)
+    dev = torch.device("cpu")
+    data = load_train_data(Project.open(checkpoint.parents[1]), 1.0, max_size, dev, 0)
+    return data, load_checkpoint(checkpoint, dev).gaussians.detach().as_dict()
+
+
 def fresh_copy(base: Path, dest: Path) -> Path:
     """`dest` = a copy of the processed project `base` without any training outputs (checkpoints,
     reports, renders, exports); whatever was at `dest` is replaced."""
