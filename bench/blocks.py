@@ -19,16 +19,10 @@ import os
 import time
 from pathlib import Path
 
-import torch
-
-from common import publish
-from splatcli.io.checkpoint import load_checkpoint
-from splatcli.project import Project
+from common import cpu_model, publish
 from splatcli.render.rasterize import rasterize
-from splatcli.train.data import load_train_data
 
 R = importlib.import_module("splatcli.render.rasterize")  # the module (the package exports the function)
-NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh")
 BLOCKS = (4, 8, 16)
 
 
@@ -44,8 +38,6 @@ def main() -> None:
     ap.add_argument("--views", type=int, default=6)
     ap.add_argument("--no-write", action="store_true")
     args = ap.parse_args()
-    torch.set_num_threads(1)
-    dev = torch.device("cpu")
     picked: list[int] = []
     real = R.choose_block
 
@@ -57,9 +49,8 @@ def main() -> None:
     for spec in args.checkpoints:
         path, _, size = spec.partition("@")
         ck = Path(path)
-        data = load_train_data(Project.open(ck.parents[1]), 1.0, int(size or 480), dev, 0)
-        g = load_checkpoint(ck, dev).gaussians
-        p = [getattr(g, k).detach().clone().requires_grad_(True) for k in NAMES]
+        data, params = cpu_model(ck, int(size or 480))
+        p = [v.clone().requires_grad_(True) for v in params.values()]
         views = data.train[:: max(1, len(data.train) // args.views)][: args.views]
         tot = {b: 0.0 for b in (*BLOCKS, "auto", "best")}
         for i, v in enumerate(views):

@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from align import compare_poses
-from common import data_dir, loadavg, publish
+from common import data_dir, fmt, loadavg, publish
 from splatcli.camera import Camera
 from splatcli.io.transforms import read_transforms
 from splatcli.process.config import ProcessConfig
@@ -122,8 +122,7 @@ def ours(photos: Path, out: Path, truth: list[Camera], cfg: ProcessConfig) -> di
 def row(label: str, r: dict, total: int) -> str:
     if "failed" in r:
         return f"| {label} | failed: {r['failed']} | | | | | {r['seconds']:.0f} | {r['load']} |"
-    err = "–" if r["error"] is None else f"{r['error']:.2f}"
-    return (f"| {label} | **{r['registered']}/{total}** | {r['cameras']} | {r['points']} | {err} | {r['poses']} | "
+    return (f"| {label} | **{r['registered']}/{total}** | {r['cameras']} | {r['points']} | {fmt(r['error'])} | {r['poses']} | "
             f"{r['seconds']:.0f} | {r['load']} |")
 
 

@@ -93,6 +93,21 @@ def ensure_processed(scene: str) -> Path:
     return base
 
 
+def cpu_model(checkpoint: Path, max_size: int) -> tuple[Any, dict]:
+    """What the scripts that time the rasterizer on one torch thread start from: the training
+    views at `max_size` of the project `checkpoint` (PROJECT/checkpoints/step-*.pt) belongs to,
+    and its Gaussians' parameters by name (Gaussians.PARAM_NAMES order), detached, on the CPU."""
+    import torch  # here: the scripts that only run `splatcli` start without it
+
+    from splatcli.io.checkpoint import load_checkpoint
+    from splatcli.train.data import load_train_data
+
+    torch.set_num_threads(1)
+    dev = torch.device("cpu")
+    data = load_train_data(Project.open(checkpoint.parents[1]), 1.0, max_size, dev, 0)
+    return data, load_checkpoint(checkpoint, dev).gaussians.detach().as_dict()
+
+
 def fresh_copy(base: Path, dest: Path) -> Path:
     """`dest` = a copy of the processed project `base` without any training outputs (checkpoints,
     reports, renders, exports); whatever was at `dest` is replaced."""
@@ -214,6 +229,16 @@ def seconds_to(curve: list[tuple[float, float]], target: float) -> float | None:
     return next((t for t, p in curve if p >= target - TOL_DB), None)
 
 
+def fmt(v, spec=".2f") -> str:
+    """A table cell: `v` formatted, or a dash where there is none."""
+    return "–" if v is None else format(v, spec)
+
+
+def load_span(r: dict) -> str:
+    """A table cell: the 1-minute load average before → after a run (its record's load_before, load_after)."""
+    return f"{r['load_before'][0]} → {r['load_after'][0]}"
+
+
 def psnr_figure(path: Path, scene: str, curves: dict[str, list[tuple[float, float]]],
                 side: Callable[[Any], None] | None = None) -> bool:
     """Held-out PSNR against training seconds, one line per labelled curve, drawn off-screen
@@ -270,15 +295,22 @@ def train_scenes(out: Path, scenes: str, train_args: str, eval_every: int, name:
     return results
 
 
-def scene_tables(head: list[str], results: dict, rows: Callable[[str, list[dict]], list[str]]) -> str:
-    """Markdown for `train_scenes`' results: `head` (heading, text, table header), then each
-    scene's table rows (`rows(scene, runs)`) and its figure, where one was drawn."""
+def scene_benchmark(args: argparse.Namespace, out: Path, name: str, runs: Callable[[str, list[str]], list[dict]],
+                    plot: Callable[[str, list[dict], Path], bool], head: list[str],
+                    row: Callable[[str, dict, dict, float | None, float | None], str]) -> None:
+    """The benchmark `scene_parser`'s `args` ask for: `train_scenes`, then its section published:
+    `head` (heading, text, table header), each scene's runs, a row each (`row(scene, run, first,
+    t, speed-up)`: the seconds to the first run's final PSNR, `seconds_to`, and the speed-up over
+    the first run there, None where either never got there), and its figure, where one was drawn."""
+    results = train_scenes(out, args.scenes, args.train_args, args.eval_every, name, runs, plot)
     lines = list(head)
     for scene, r in results.items():
-        lines += rows(scene, r["runs"])
+        first = r["runs"][0]
+        ts = [seconds_to(run["curve"], first["final_psnr"]) for run in r["runs"]]
+        lines += [row(scene, run, first, t, ts[0] / t if t and ts[0] else None) for run, t in zip(r["runs"], ts)]
         if r.get("figure"):
             lines += ["", f"![{scene}](figures/{Path(r['figure']).name})", ""]
-    return "\n".join(lines) + "\n"
+    publish(head[0], "\n".join(lines) + "\n", write=not args.no_write)
 
 
 def publish(heading: str, text: str, *, write: bool) -> None:

@@ -20,7 +20,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from common import REPO, TOL_DB, psnr_figure, publish, scene_parser, scene_tables, seconds_to, train_fresh, train_scenes
+from common import REPO, TOL_DB, fmt, load_span, psnr_figure, scene_benchmark, scene_parser, train_fresh
 
 OUT = REPO / "bench" / "out" / "distributed"
 
@@ -45,36 +45,26 @@ def plot(scene: str, runs: list[dict], path: Path) -> bool:
     return psnr_figure(path, scene, {f"{r['k']} process(es)": r["curve"] for r in runs}, scaling)
 
 
-def markdown(results: dict) -> str:
-    lines = ["## data-parallel training", "",
-             "Measured by `python bench/distributed.py`: the same scene and schedule trained with K processes "
-             "(`train --nproc K`, one torch thread each), one after the other in one run. Every run sees the same "
-             "number of images; K processes take 1/K of the steps with K views each (docs/guide.md, \"Many "
-             "processes\"). *train s* is rank 0's training time (evaluation excluded); *to 1-proc PSNR* is the "
-             f"first held-out evaluation within {TOL_DB} dB of the one-process run's final PSNR; *comm* is the "
-             "share of rank 0's training time spent in collectives (exchanging gradients, and waiting for the "
-             "slower rank).", "",
-             "| scene | K | arguments | views seen | train s | time vs K=1 | final PSNR | s to 1-proc PSNR | "
-             "speed-up | efficiency | comm | Gaussians | load before → after |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
-    return scene_tables(lines, results, rows)
+HEAD = ["## data-parallel training", "",
+       "Measured by `python bench/distributed.py`: the same scene and schedule trained with K processes "
+       "(`train --nproc K`, one torch thread each), one after the other in one run. Every run sees the same "
+       "number of images; K processes take 1/K of the steps with K views each (docs/guide.md, \"Many "
+       "processes\"). *train s* is rank 0's training time (evaluation excluded); *to 1-proc PSNR* is the "
+       f"first held-out evaluation within {TOL_DB} dB of the one-process run's final PSNR; *comm* is the "
+       "share of rank 0's training time spent in collectives (exchanging gradients, and waiting for the "
+       "slower rank).", "",
+       "| scene | K | arguments | views seen | train s | time vs K=1 | final PSNR | s to 1-proc PSNR | "
+       "speed-up | efficiency | comm | Gaussians | load before → after |",
+       "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
 
 
-def rows(scene: str, runs: list[dict]) -> list[str]:
-    one = runs[0]
-    t_one = seconds_to(one["curve"], one["final_psnr"])
-    out = []
-    for run in runs:
-        t = seconds_to(run["curve"], one["final_psnr"])
-        sp = t_one / t if t and t_one else None
-        comm = f"{100 * run['comm_seconds'] / run['train_seconds']:.1f}%" if run.get("comm_seconds") else "–"
-        out.append(
-            f"| {scene} | {run['k']} | `{' '.join(run['args'])}` | {run['steps']} | {run['train_seconds']:.0f} | "
+def row(scene: str, run: dict, one: dict, t: float | None, sp: float | None) -> str:
+    comm = f"{100 * run['comm_seconds'] / run['train_seconds']:.1f}%" if run.get("comm_seconds") else "–"
+    return (f"| {scene} | {run['k']} | `{' '.join(run['args'])}` | {run['steps']} | {run['train_seconds']:.0f} | "
             f"{run['train_seconds'] / one['train_seconds']:.2f} | {run['final_psnr']:.2f} | "
-            f"{'–' if t is None else f'{t:.0f}'} | {'–' if sp is None else f'{sp:.2f}x'} | "
+            f"{fmt(t, '.0f')} | {'–' if sp is None else f'{sp:.2f}x'} | "
             f"{'–' if sp is None else format(100 * sp / run['k'], '.0f') + '%'} | {comm} | {run['num_gaussians']} | "
-            f"{run['load_before'][0]} → {run['load_after'][0]} |")
-    return out
+            f"{load_span(run)} |")
 
 
 def main() -> None:
@@ -88,8 +78,7 @@ def main() -> None:
         common = common + (["--iterations", iters[scene]] if scene in iters else [])
         return [train_k(scene, int(k), common) for k in args.nprocs.split(",")]
 
-    results = train_scenes(OUT, args.scenes, args.train_args, args.eval_every, "distributed", each_k, plot)
-    publish("## data-parallel training", markdown(results), write=not args.no_write)
+    scene_benchmark(args, OUT, "distributed", each_k, plot, HEAD, row)
 
 
 if __name__ == "__main__":

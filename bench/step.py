@@ -25,16 +25,13 @@ import time
 
 import torch
 
-from common import publish
-from splatcli.io.checkpoint import load_checkpoint
+from common import cpu_model, publish
 from splatcli.project import Project
 from splatcli.render.composite import choose_block, composite, estimate_pairs, make_plan
 from splatcli.render.projection import project
-from splatcli.train.data import load_train_data
 from splatcli.train.loss import photometric_loss
 
 STAGES = ("project", "plan", "composite", "loss", "loss bwd", "composite bwd", "project bwd")
-NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh")
 
 
 def step_times(p: dict, view, bg) -> tuple[dict, int]:
@@ -48,7 +45,7 @@ def step_times(p: dict, view, bg) -> tuple[dict, int]:
         out[name] = now - t
         t = now
 
-    pr = project(*(p[k] for k in NAMES), view.viewmat, view.K, W, H, 3)
+    pr = project(*p.values(), view.viewmat, view.K, W, H, 3)
     lap("project")
     fp = pr.footprint
     block = choose_block(fp.cov2d, fp.opacities, W, H)
@@ -79,12 +76,7 @@ def main() -> None:
     ap.add_argument("--views", type=int, default=12)
     ap.add_argument("--no-write", action="store_true")
     args = ap.parse_args()
-    torch.set_num_threads(1)
-    dev = torch.device("cpu")
-    proj = Project.open(args.project)
-    data = load_train_data(proj, 1.0, args.max_size, dev, 0)
-    g = load_checkpoint(proj.latest_checkpoint(), dev).gaussians
-    full = {k: getattr(g, k).detach() for k in NAMES}
+    data, full = cpu_model(Project.open(args.project).latest_checkpoint(), args.max_size)
     n_all = len(full["means"])
     load0 = os.getloadavg()[0]
     rows = []

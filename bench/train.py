@@ -34,7 +34,7 @@ import platform
 import shutil
 from pathlib import Path
 
-from common import PROCESSED, SCENES, ensure_processed, fresh_copy, splatcli, write_section
+from common import PROCESSED, SCENES, ensure_processed, fmt, fresh_copy, splatcli, write_section
 from splatcli.eval.curve import read_log
 from splatcli.project import Project
 
@@ -104,10 +104,6 @@ def save_result(path: Path, r: dict) -> None:
     tmp = path.with_suffix(f".{os.getpid()}.tmp")
     tmp.write_text(json.dumps(old, indent=1))
     os.replace(tmp, path)
-
-
-def fmt(v, spec=".2f") -> str:
-    return "–" if v is None else format(v, spec)
 
 
 def markdown(results: list[dict], meta: dict) -> str:

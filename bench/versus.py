@@ -22,18 +22,7 @@ import shlex
 import subprocess
 from pathlib import Path
 
-from common import (
-    REPO,
-    SCENES,
-    TOL_DB,
-    psnr_figure,
-    publish,
-    scene_parser,
-    scene_tables,
-    seconds_to,
-    train_fresh,
-    train_scenes,
-)
+from common import REPO, SCENES, TOL_DB, fmt, load_span, psnr_figure, scene_benchmark, scene_parser, train_fresh
 
 OUT = REPO / "bench" / "out" / "versus"
 
@@ -57,31 +46,22 @@ def plot(scene: str, runs: list[dict], path: Path) -> bool:
     return psnr_figure(path, scene, {r["label"]: r["curve"] for r in runs})
 
 
-def markdown(results: dict) -> str:
-    lines = ["## time to quality", "",
-             "Measured by `python bench/versus.py`: the earlier commit and this version train the same processed "
-             "scene one after the other in one run (same machine, 2 cores, one torch thread per process; a planned "
-             "run of this version takes one process per free core). Seconds are training "
-             "seconds (held-out evaluation excluded); *to base* is the first held-out evaluation within "
-             f"{TOL_DB} dB of the earlier version's final PSNR.", "",
-             "| scene | version | arguments | steps | train s | final PSNR | s to base | speed-up | Gaussians | "
-             "peak RSS MB | load before → after |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
-    return scene_tables(lines, results, rows)
+HEAD = ["## time to quality", "",
+       "Measured by `python bench/versus.py`: the earlier commit and this version train the same processed "
+       "scene one after the other in one run (same machine, 2 cores, one torch thread per process; a planned "
+       "run of this version takes one process per free core). Seconds are training "
+       "seconds (held-out evaluation excluded); *to base* is the first held-out evaluation within "
+       f"{TOL_DB} dB of the earlier version's final PSNR.", "",
+       "| scene | version | arguments | steps | train s | final PSNR | s to base | speed-up | Gaussians | "
+       "peak RSS MB | load before → after |",
+       "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
 
 
-def rows(scene: str, runs: list[dict]) -> list[str]:
-    old, new = runs
-    target = old["final_psnr"]
-    t_old, t_new = seconds_to(old["curve"], target), seconds_to(new["curve"], target)
-    out = []
-    for run_, t in ((old, t_old), (new, t_new)):
-        sp = f"{t_old / t:.2f}x" if t and t_old and run_ is new else ("1x" if run_ is old else "–")
-        out.append(f"| {scene} | {run_['label']} | `{' '.join(run_['args'])}` | {run_['steps']} | "
-                   f"{run_['train_seconds']:.0f} | {run_['final_psnr']:.2f} | "
-                   f"{'–' if t is None else f'{t:.0f}'} | {sp} | {run_['num_gaussians']} | "
-                   f"{run_['peak_rss_mb']} | {run_['load_before'][0]} → {run_['load_after'][0]} |")
-    return out
+def row(scene: str, run: dict, old: dict, t: float | None, sp: float | None) -> str:
+    speedup = "1x" if run is old else "–" if sp is None else f"{sp:.2f}x"  # the earlier version is the base
+    return (f"| {scene} | {run['label']} | `{' '.join(run['args'])}` | {run['steps']} | "
+            f"{run['train_seconds']:.0f} | {run['final_psnr']:.2f} | {fmt(t, '.0f')} | {speedup} | "
+            f"{run['num_gaussians']} | {run['peak_rss_mb']} | {load_span(run)} |")
 
 
 def main() -> None:
@@ -100,8 +80,7 @@ def main() -> None:
         mine += shlex.split(args.new_args)
         return [{**old, "args": common}, {**train_once(scene, "this version", REPO, mine), "args": mine}]
 
-    results = train_scenes(OUT, args.scenes, args.train_args, args.eval_every, "versus", both, plot)
-    publish("## time to quality", markdown(results), write=not args.no_write)
+    scene_benchmark(args, OUT, "versus", both, plot, HEAD, row)
 
 
 if __name__ == "__main__":

@@ -32,7 +32,7 @@ import cv2
 import torch
 
 from browser import capture, open_page, psnr_u8
-from common import REPO, SPLATCLI, ensure_processed, fresh_copy, loadavg, write_section
+from common import REPO, SPLATCLI, ensure_processed, fresh_copy, load_span, loadavg, write_section
 from splatcli.gaussians import Gaussians
 from splatcli.io.ply import write_ply
 from splatcli.model import load_model
@@ -160,7 +160,7 @@ def markdown(res: dict) -> str:
     for r in res["first_frame"]:
         t = r["first_frame_s"]
         lines.append(f"| {r['source']} | {r['num_gaussians']:,} | {r['sh_degree']} | {r['mb']} | "
-                     f"{r['decoded_s'][len(t) // 2]:.2f} | {t[0]:.2f} / {t[len(t) // 2]:.2f} / {t[-1]:.2f} | {r['load_before'][0]} → {r['load_after'][0]} |")
+                     f"{r['decoded_s'][len(t) // 2]:.2f} | {t[0]:.2f} / {t[len(t) // 2]:.2f} / {t[-1]:.2f} | {load_span(r)} |")
     lines += ["", f"**Picture**: the browser's screenshot at each test camera of `{res['project']}` against "
               "`splatcli render` of that camera:", "", "| camera | size | PSNR dB |", "| --- | --- | ---: |"]
     lines += [f"| {r['camera']} | {r['size']} | {r['psnr']:.2f} |" for r in res["pictures"]]
@@ -174,7 +174,7 @@ def markdown(res: dict) -> str:
         c = {None: "–", "poller": f"polls like the page: {r.get('versions_fetched')} versions, {r.get('mb_fetched')} MB",
              "chromium": f"Chromium showing the page ({r.get('versions_shown')} versions)"}[r["client"]]
         lines.append(f"| {r['label']} | {r['train_seconds']:.1f} | {r['train_seconds'] / base:.3f} | {r['psnr']:.2f} | "
-                     f"{c} | {r['load_before'][0]} → {r['load_after'][0]} |")
+                     f"{c} | {load_span(r)} |")
     lines += ["", "![viewer](figures/viewer.png)", ""]
     return "\n".join(lines) + "\n"
 

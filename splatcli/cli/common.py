@@ -43,6 +43,7 @@ SeedOpt = typer.Option(0, "--seed", help="Random seed; the same seed on CPU give
 QuietOpt = typer.Option(False, "--quiet", "-q", help="Print nothing but errors (and the --json object).")
 JsonOpt = typer.Option(False, "--json", help="Print one JSON summary object on stdout, for scripts and Makefiles.")
 DebugOpt = typer.Option(False, "--debug", help="Show full tracebacks on errors.")
+BackgroundOpt = typer.Option(None, "--background", help="white, black, gray or R,G,B in [0, 1] (default: the scene's).")  # render, eval (process allows auto)
 
 
 def resolve(device: str, renderer: str, quiet: bool = False) -> tuple[torch.device, Renderer]:

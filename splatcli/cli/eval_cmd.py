@@ -11,7 +11,7 @@ from ..device import resolve_device
 from ..errors import SplatError
 from ..eval.evaluate import EvalConfig, compare_folders, plan_eval, run_eval
 from ..mesh.measure import score_mesh
-from .common import DebugOpt, DeviceOpt, JsonOpt, QuietOpt, RendererOpt, Ui, parse_background, resolve
+from .common import BackgroundOpt, DebugOpt, DeviceOpt, JsonOpt, QuietOpt, RendererOpt, Ui, parse_background, resolve
 
 _D = EvalConfig()  # the defaults, written once in the config
 
@@ -30,7 +30,7 @@ def _lpips(v: float | None, sep: str = ", ") -> str:
 def evaluate(
     project: Optional[Path] = typer.Argument(None, help="The project directory (omit with --pred/--gt)."),
     split: str = typer.Option(_D.split, "--split", help="Views to score: test (held out), train or all."),
-    background: Optional[str] = typer.Option(None, "--background", help="white, black, gray or R,G,B in [0, 1] (default: the scene's)."),
+    background: Optional[str] = BackgroundOpt,
     downscale: Optional[float] = typer.Option(None, "--downscale", help="Score at the stored size divided by this (default: as trained)."),
     budgets: str = typer.Option(",".join(f"{b:g}" for b in _D.budgets), "--budgets", help="Fractions of the Gaussians for the render-time curve."),
     plots: bool = typer.Option(_D.plots, "--plots/--no-plots", help="Draw PNG plots beside eval.md (needs matplotlib)."),

@@ -8,7 +8,7 @@ from typing import Optional
 import typer
 
 from ..views.output import RenderConfig, plan_render, run_render
-from .common import DebugOpt, DeviceOpt, JsonOpt, QuietOpt, RendererOpt, Ui, parse_background, resolve
+from .common import BackgroundOpt, DebugOpt, DeviceOpt, JsonOpt, QuietOpt, RendererOpt, Ui, parse_background, resolve
 
 _D = RenderConfig()  # the defaults, written once in the config
 
@@ -24,7 +24,7 @@ def render(
     width: Optional[int] = typer.Option(None, "--width", help="Image width in pixels (alone: keeps the aspect)."),
     height: Optional[int] = typer.Option(None, "--height", help="Image height in pixels (alone: keeps the aspect)."),
     downscale: Optional[float] = typer.Option(None, "--downscale", help="Divide the cameras' stored resolution by this (default: a project's cameras at the resolution trained)."),
-    background: Optional[str] = typer.Option(None, "--background", help="white, black, gray or R,G,B in [0, 1] (default: the scene's)."),
+    background: Optional[str] = BackgroundOpt,
     antialias: str = typer.Option(_D.antialias, "--antialias", help="auto | on | off: draw with the 2D antialiasing filter "
                                   "against aliasing). auto: on for a model trained with --mip-filter "
                                   "or drawn smaller than trained (zoomed in it only blurs)."),

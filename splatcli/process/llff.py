@@ -16,24 +16,21 @@ from ..sfm import colmap
 from ..sfm.colmap import CameraSpec
 from .bounds import depth_bounds
 from .config import ProcessConfig
-from .dataset import Dataset, stage_posed
+from .dataset import Dataset
 from .detect import InputSpec
 from .masks import find_masks_dir, mask_file, stage_all
-from .posed import finish_posed
+from .posed import finish_posed, stage_frames
 
 
 def from_llff(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: tuple[float, float, float] | None,
               run: Stages) -> Dataset:
     assert spec.poses is not None
     work = stage / "work"
-    st = Project(stage)
     scene = read_llff(spec.poses)
-    frames = {f.name: f for f in scene.frames}
-    staged, bad = stage_posed([(f.source, f.name) for f in scene.frames], work, run, cfg, where=scene.images_dir,
-                              what="the capture's images", background=background)
+    staged, frames, bad = stage_frames(scene.frames, work, run, cfg, where=scene.images_dir,
+                                       what="the capture's images", background=background)
     specs, cams = [], []
-    for s in staged:
-        f = frames[s.name]
+    for s, f in zip(staged, frames):
         focal = scaled_focal(f, s.width, s.height, f"{spec.poses}: {s.name}")
         params = [focal, focal, s.width / 2.0, s.height / 2.0]
         specs.append(CameraSpec(s.name, s.width, s.height, "PINHOLE", params, f.viewmat))
@@ -47,9 +44,9 @@ def from_llff(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: tupl
     mdir = find_masks_dir(scene.images_dir)
     found = {s.name: mask_file(mdir, s.name) for s in staged} if mdir is not None else {}
     mask_source = stage_all(found, staged, work, run, invert=cfg.invert_masks, where=mdir)
-    undistorted, facts = finish_posed(model, staged, work, st, cfg, run, mask_source=mask_source)
-    near = np.array([frames[s.name].near for s in staged])
-    far = np.array([frames[s.name].far for s in staged])
+    undistorted, facts = finish_posed(model, staged, work, Project(stage), cfg, run, mask_source=mask_source)
+    near = np.array([f.near for f in frames])
+    far = np.array([f.far for f in frames])
     return Dataset(registered=len(staged), total=len(scene.frames), undistorted=undistorted,
                    masks=mask_source is not None, mask_source=mask_source, background=background, skipped=bad,
                    bounds=depth_bounds(cams, near, far), **facts)

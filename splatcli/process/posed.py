@@ -13,6 +13,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from ..events import Stages
 from ..io.images import StagedImage, fit_size
@@ -20,7 +21,7 @@ from ..project import Project
 from ..sfm.colmap import Model
 from ..sfm.reconstruct import SfmOptions, triangulate_posed
 from .config import ProcessConfig, sift_max_size
-from .dataset import finish_model
+from .dataset import finish_model, stage_posed
 from .masks import MASKS_DIR
 
 MIN_POINTS = 1000  # fewer triangulated points than this: random points serve training better
@@ -67,6 +68,16 @@ def add_points(model: Model, staged: list[StagedImage], work: Path, st: Project,
              f"(reprojection error {info.mean_reprojection_error:.2f} px, track length "
              f"{info.mean_track_length:.1f}); training starts from them")
     return out, info
+
+
+def stage_frames(frames: list[Any], work: Path, run: Stages, cfg: ProcessConfig, *, where: Path, what: str,
+                 background: tuple[float, float, float] | None) -> tuple[list[StagedImage], list[Any], list[str]]:
+    """stage_posed for the frames of a posed capture (io/llff.py's or io/transforms.py's: an image
+    `source` and its `name`): the images staged, the frame of each, and the skipped ones."""
+    staged, bad = stage_posed([(f.source, f.name) for f in frames], work, run, cfg, where=where, what=what,
+                              background=background)
+    by_name = {f.name: f for f in frames}
+    return staged, [by_name[s.name] for s in staged], bad
 
 
 def finish_posed(model: Model, staged: list[StagedImage], work: Path, st: Project, cfg: ProcessConfig, run: Stages,

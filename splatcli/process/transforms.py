@@ -13,24 +13,21 @@ from ..project import Project
 from ..sfm import colmap
 from ..sfm.colmap import CameraSpec
 from .config import ProcessConfig
-from .dataset import Dataset, stage_posed
+from .dataset import Dataset
 from .detect import InputSpec
 from .masks import stage_all
-from .posed import finish_posed
+from .posed import finish_posed, stage_frames
 
 
 def from_transforms(spec: InputSpec, stage: Path, cfg: ProcessConfig,
                      background: tuple[float, float, float] | None, run: Stages) -> Dataset:
     assert spec.transforms is not None
     work = stage / "work"
-    st = Project(stage)
     scene = read_transforms(spec.transforms)
-    frames = {f.name: f for f in scene.frames}
-    staged, bad = stage_posed([(f.source, f.name) for f in scene.frames], work, run, cfg, where=spec.transforms,
-                              what="the listed images", background=background)
+    staged, frames, bad = stage_frames(scene.frames, work, run, cfg, where=spec.transforms, what="the listed images",
+                                       background=background)
     specs = []
-    for s in staged:
-        f = frames[s.name]
+    for s, f in zip(staged, frames):
         model_name, params = f.intrinsics.resolve(s.width, s.height, f"{spec.transforms}: {f.source.name}")
         specs.append(CameraSpec(s.name, s.width, s.height, model_name, params, f.viewmat))
     # Notes once the input is known to be usable: a failed run says one line.
@@ -48,7 +45,7 @@ def from_transforms(spec: InputSpec, stage: Path, cfg: ProcessConfig,
     found = {f.name: f.mask for f in scene.frames if f.mask is not None}
     mask_source = stage_all(found, staged, work, run, invert=cfg.invert_masks, where=None)
     has_masks = mask_source is not None
-    undistorted, facts = finish_posed(model, staged, work, st, cfg, run, mask_source=mask_source)
+    undistorted, facts = finish_posed(model, staged, work, Project(stage), cfg, run, mask_source=mask_source)
     kept = {s.name for s in staged}
     test = sorted(f.name for f in scene.frames if f.split == "test" and f.name in kept) if scene.has_test_split else None
     bg = background
