@@ -124,14 +124,24 @@ def resolve_renderer(name: str, device: torch.device) -> Renderer:
 
 
 def gsplat_inputs(
-    means: Tensor, quats: Tensor, log_scales: Tensor, opacity_logits: Tensor, sh: Tensor,
-    viewmat: Tensor, K: Tensor, width: int, height: int, background: Tensor, *,
-    sh_degree: int, near: float, antialiased: bool,
+    means: Tensor,  # [N, 3] world
+    quats: Tensor,  # [N, 4] w, x, y, z, any norm
+    log_scales: Tensor,  # [N, 3]
+    opacity_logits: Tensor,  # [N]
+    sh: Tensor,  # [N, (d+1)^2, 3] DC first
+    viewmat: Tensor,  # [4, 4] world -> camera (OpenCV)
+    K: Tensor,  # [3, 3] px
+    width: int,
+    height: int,
+    background: Tensor,  # [3]
+    *,
+    sh_degree: int,
+    near: float,
+    antialiased: bool,
 ) -> dict[str, Any]:
-    """`rasterize`'s arguments (its shapes; the background and SH degree as `validate` gives them)
-    as keyword arguments of gsplat's `rasterization()` for one camera: splatcli's parameters and
-    conventions in gsplat's (both use OpenCV frames and sample pixel (u, v) at (u + 0.5, v + 0.5)
-    in K's coordinates)."""
+    """splatcli's parameters and conventions as keyword arguments of gsplat's
+    `rasterization()` for one camera (both use OpenCV frames and sample pixel (u, v) at
+    (u + 0.5, v + 0.5) in K's coordinates)."""
     return dict(
         means=means, quats=quats, scales=log_scales.exp(), opacities=torch.sigmoid(opacity_logits), colors=sh,
         viewmats=viewmat[None], Ks=K[None], width=width, height=height, near_plane=near, eps2d=BLUR,
