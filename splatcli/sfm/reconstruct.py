@@ -198,8 +198,7 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
     matched = set(pairs)
 
     # -- mapping
-    mapper = MapperOptions(seed=opts.seed, num_threads=opts.num_threads,
-                           min_model_size=min(10, max(2, len(names) // 4)))
+    mapper = MapperOptions(seed=opts.seed, min_model_size=min(10, max(2, len(names) // 4)))
     models = _map(db, image_dir, work_dir / "models", mapper, len(names), clock)
     used = matcher
     if matcher == "sequential" and opts.matcher == "auto" and (not models or models[0].num_registered < len(names)):
@@ -324,7 +323,7 @@ def triangulate_posed(image_dir: Path, model: Model, work_dir: Path, opts: SfmOp
     pairs = posed_pairs(model.cameras(), neighbours)
     _match(db, pairs, work_dir, MatchOptions(num_threads=opts.num_threads, seed=opts.seed), clock)
     with clock.stage("triangulate", 1) as st:
-        mapper = MapperOptions(seed=opts.seed, num_threads=opts.num_threads)
+        mapper = MapperOptions(seed=opts.seed)
         out = colmap.triangulate(model, db, image_dir, work_dir / "triangulated", mapper)
         st.progress(1)
     return TriangulationResult(model=out, num_pairs=len(pairs), keypoints_median=kp_median,
