@@ -83,8 +83,9 @@ def evaluate(
                + ([f"masks: scored on {r.masks}"] if r.masks else [])
                + [f"  {b.fraction:>4.0%}: {b.num_gaussians:>9,} Gaussians  {b.psnr:6.2f} dB  {b.ms_per_frame:8.1f} ms/frame"
                   for b in r.budgets]
-               + [f"  {f.format:>14}: {f.bytes / 1e6:8.2f} MB ({f.ratio:4.1f}x smaller than .ply)  {f.psnr:6.2f} dB "
-                  f"({-f.db_lost:+.2f})" for f in r.formats]
+               + [f"  {f.format:>14}: {f.bytes / 1e6:8.2f} MB "
+                  + (f"({f.ratio:4.1f}x smaller than .ply)" if f.format != "ply" else f"{'':>26}")
+                  + f"  {f.psnr:6.2f} dB ({-f.db_lost:+.2f})" for f in r.formats]
                + [f"  mesh {k}: Chamfer {s.chamfer:.4g}, F-score {s.fscore:.3f} (precision {s.precision:.3f}, recall "
                   f"{s.recall:.3f}) at {s.tau:.3g}" for k, s in ((("fused", geo.fused), ("centres", geo.centres)) if geo else ())]
                + ([f"report: {r.report_path}"] if r.report_path else []))
