@@ -10,6 +10,7 @@ import typer
 from ..device import resolve_device
 from ..errors import SplatError
 from ..eval.evaluate import EvalConfig, compare_folders, plan_eval, run_eval
+from ..eval.report import FormatPoint
 from ..mesh.measure import score_mesh
 from .common import BackgroundOpt, DebugOpt, DeviceOpt, JsonOpt, QuietOpt, RendererOpt, Ui, parse_background, resolve
 
@@ -21,6 +22,10 @@ def _budgets(text: str) -> tuple[float, ...]:
         return tuple(float(x) for x in text.split(",") if x.strip())
     except ValueError:
         raise SplatError(f"--budgets {text!r}: expected fractions in (0, 1] separated by commas, e.g. 1,0.5,0.25,0.1") from None
+
+
+def _smaller(f: FormatPoint) -> str:  # the .ply is what the others are measured against
+    return "" if f.format == "ply" else f"({f.ratio:4.1f}x smaller than .ply)"
 
 
 def _lpips(v: float | None, sep: str = ", ") -> str:
@@ -83,9 +88,8 @@ def evaluate(
                + ([f"masks: scored on {r.masks}"] if r.masks else [])
                + [f"  {b.fraction:>4.0%}: {b.num_gaussians:>9,} Gaussians  {b.psnr:6.2f} dB  {b.ms_per_frame:8.1f} ms/frame"
                   for b in r.budgets]
-               + [f"  {f.format:>14}: {f.bytes / 1e6:8.2f} MB "
-                  + (f"({f.ratio:4.1f}x smaller than .ply)" if f.format != "ply" else f"{'':>26}")
-                  + f"  {f.psnr:6.2f} dB ({-f.db_lost:+.2f})" for f in r.formats]
+               + [f"  {f.format:>14}: {f.bytes / 1e6:8.2f} MB {_smaller(f):25}  {f.psnr:6.2f} dB ({-f.db_lost:+.2f})"
+                  for f in r.formats]
                + [f"  mesh {k}: Chamfer {s.chamfer:.4g}, F-score {s.fscore:.3f} (precision {s.precision:.3f}, recall "
                   f"{s.recall:.3f}) at {s.tau:.3g}" for k, s in ((("fused", geo.fused), ("centres", geo.centres)) if geo else ())]
                + ([f"report: {r.report_path}"] if r.report_path else []))

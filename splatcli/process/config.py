@@ -31,7 +31,7 @@ class ProcessConfig:
     first_octave: int | None = None  # SIFT: None picks 0, or -1 (upsampled) for images under 400 px
     sequential_overlap: int = 5  # neighbours each image is matched with (plus 2^k further ones)
     blur_ratio: float = 0.6  # video: drop frames less sharp than this x their neighbours' median
-    num_threads: int = -1  # -1: all cores
+    num_threads: int = -1  # SIFT and matching (-1: all cores); the mapper runs on one, to be repeatable
     strict: bool = False  # an unreadable image or video frame is an error instead of a skipped input
     invert_masks: bool = False  # mask files given with white = masked out (flipped to the project's 255 = keep)
     triangulate: bool = True  # posed captures: points triangulated from the photos with the poses fixed

@@ -40,7 +40,7 @@ class SfmOptions:
     max_features: int = 4096
     first_octave: int | None = None  # None: 0, or -1 when SIFT's image is under 400 px (too few features otherwise)
     seed: int = 0
-    num_threads: int = -1
+    num_threads: int = -1  # features and matching (-1: all cores); the mapper runs on one (MapperOptions)
     chunk: int = 8  # images per extraction call (progress granularity)
     camera_model: str = "SIMPLE_RADIAL"  # the COLMAP model each camera is fitted with
 
