@@ -70,12 +70,6 @@ class SceneData:
     points: np.ndarray  # [P, 3] float64
     colors: np.ndarray  # [P, 3] uint8
 
-    def camera(self, name: str) -> Camera:
-        for c in self.cameras:
-            if c.name == name:
-                return c
-        raise KeyError(name)
-
 
 def scene_extent(cameras: list[Camera]) -> tuple[np.ndarray, float]:
     """3DGS's normalisation: centre of the camera centres and 1.1 × the largest
