@@ -343,7 +343,7 @@ def test_truncated_video_frames_are_listed_and_strict_refuses_them(tmp_path):
     from splatcli.process.video import extract_frames
 
     clip = _truncated_video(tmp_path / "clip.avi")
-    fr = extract_frames(clip, tmp_path / "frames", every_fps=None, num_frames=10, max_size=None)
+    fr = extract_frames(clip, tmp_path / "frames", every_fps=None, num_frames=10)
     assert fr.names and fr.unreadable  # some frames decoded, the lost ones listed
     assert not set(fr.unreadable) & {int(n[6:12]) for n in fr.names}
     r = run_cli("process", clip, "-o", tmp_path / "p", "--strict", "--num-frames", "10")

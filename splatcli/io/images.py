@@ -9,8 +9,8 @@ decoding twice (Pillow only reads EXIF camera facts, io/exif.py).
 
 Staging writes the image the rest of the pipeline sees: oriented (EXIF) when
 asked, 8-bit, 3 channels (RGBA composited over the background, the alpha kept
-as a mask), and no larger than `max_size` on its longest side. An image that
-needs none of this is copied byte for byte, so JPEGs are not re-compressed.
+as a mask), at full resolution. An image that needs none of this is copied
+byte for byte, so JPEGs are not re-compressed.
 """
 
 from __future__ import annotations
@@ -264,23 +264,18 @@ def load_mask(path: Path, size: tuple[int, int] | None = None) -> np.ndarray:  #
     return m >= MASK_KEEP
 
 
-def stage_image(src: Path, name: str, dst: Path, mask_dst: Path, *, max_size: int | None,
+def stage_image(src: Path, name: str, dst: Path, mask_dst: Path, *,
                 background: tuple[float, float, float], orient: bool,
                 expect_size: tuple[int, int] | None = None) -> StagedImage:
-    """Write the usable version of `src` to `dst` (same format), its alpha to
-    `mask_dst` (PNG) if it has one. Raises ImageError."""
+    """Write the usable version of `src` to `dst` (same format, full resolution: the
+    dataset keeps it, train caps what it loads), its alpha to `mask_dst` (PNG) if it
+    has one. Raises ImageError."""
     img, alpha, changed = read_image(src, orient=orient)
-    h0, w0 = img.shape[:2]
-    if expect_size is not None and (w0, h0) != tuple(expect_size):
-        raise ImageError(f"is {w0}x{h0} but its camera says {expect_size[0]}x{expect_size[1]}")
-    w, h = fit_size(w0, h0, max_size)
+    h, w = img.shape[:2]
+    if expect_size is not None and (w, h) != tuple(expect_size):
+        raise ImageError(f"is {w}x{h} but its camera says {expect_size[0]}x{expect_size[1]}")
     if alpha is not None:
         img = composite(img, alpha, background)
-    if (w, h) != (w0, h0):
-        img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
-        if alpha is not None:
-            alpha = cv2.resize(alpha, (w, h), interpolation=cv2.INTER_AREA)
-        changed = True
     dst.parent.mkdir(parents=True, exist_ok=True)
     if changed:
         write_image(dst, img)
@@ -288,7 +283,7 @@ def stage_image(src: Path, name: str, dst: Path, mask_dst: Path, *, max_size: in
         shutil.copyfile(src, dst)
     if alpha is not None:
         write_image(mask_dst, alpha)
-    return StagedImage(name, w, h, w0, h0, alpha is not None)
+    return StagedImage(name, w, h, w, h, alpha is not None)
 
 
 def sharpness(img: np.ndarray) -> float:

@@ -61,7 +61,7 @@ def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
         with run.stage("video frames", None) as s:
             frames = extract_frames(
                 spec.path, work / "input", every_fps=cfg.fps, num_frames=None if cfg.fps else cfg.num_frames,
-                max_size=None, blur_ratio=cfg.blur_ratio,
+                blur_ratio=cfg.blur_ratio,
                 on_progress=lambda k, n: s.progress(k, n),
             )
         dropped = len(frames.dropped)

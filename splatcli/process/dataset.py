@@ -70,7 +70,6 @@ def stage_images(files: list[tuple[Path, str]], work: Path, run: Stages, *,
             try:
                 out.append(stage_image(
                     src, name, work / "input" / name, staged_mask(work, name),
-                    max_size=None,  # the dataset keeps full resolution; train caps what it loads
                     background=bg, orient=orient, expect_size=(expect or {}).get(name),
                 ))
             except ImageError as exc:

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 
 from ..errors import SplatError
-from ..io.images import fit_size, sharpness, write_image
+from ..io.images import sharpness, write_image
 
 VIDEO_EXTS = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv", ".flv", ".3gp", ".mts")
 
@@ -18,7 +18,7 @@ VIDEO_EXTS = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", 
 @dataclass(frozen=True)
 class VideoFrames:
     names: list[str]  # written frames, sorted (frame order)
-    width: int  # pixels, after capping at max_size
+    width: int  # pixels, as decoded (frames are kept at full resolution)
     height: int
     fps: float  # the video's frame rate (0 when unknown)
     total_frames: int  # frames in the video
@@ -83,7 +83,7 @@ def blurry_frames(scores: list[float], *, ratio: float = 0.6, window: int = 9) -
 
 
 def extract_frames(path: Path, out_dir: Path, *, every_fps: float | None, num_frames: int | None,
-                   max_size: int | None, blur_ratio: float = 0.6,
+                   blur_ratio: float = 0.6,
                    on_progress: Callable[[int, int], None] | None = None) -> VideoFrames:
     """Write the chosen frames as JPEGs `frame_NNNNNN.jpg` (source frame index)."""
     total, fps = count_frames(path)
@@ -105,9 +105,6 @@ def extract_frames(path: Path, out_dir: Path, *, every_fps: float | None, num_fr
             if not (ok and img is not None and img.size):
                 failed.append(idx)
             else:
-                w, h = fit_size(img.shape[1], img.shape[0], max_size)
-                if (w, h) != (img.shape[1], img.shape[0]):
-                    img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
                 name = f"frame_{idx:06d}.jpg"
                 size = (img.shape[1], img.shape[0])
                 write_image(out_dir / name, img)  # written now: a long video must not sit in memory
