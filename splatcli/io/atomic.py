@@ -12,7 +12,7 @@ import contextlib
 import json
 import os
 import tempfile
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -72,12 +72,6 @@ def atomic_write_text(target: str | os.PathLike, text: str) -> None:
 
 def atomic_write_json(target: str | os.PathLike, obj: Any) -> None:
     atomic_write_text(target, json.dumps(obj, indent=2, sort_keys=False, default=json_default) + "\n")
-
-
-def atomic_write_with(target: str | os.PathLike, writer: Callable[[Path], None]) -> None:
-    """Call `writer(tmp_path)` and publish the file atomically."""
-    with atomic_path(target) as tmp:
-        writer(tmp)
 
 
 def append_line(target: str | os.PathLike, line: str) -> None:

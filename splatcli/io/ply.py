@@ -40,7 +40,7 @@ import torch
 
 from ..errors import SplatError
 from ..gaussians import Gaussians, num_sh_bases
-from .atomic import atomic_write_with
+from .atomic import atomic_path
 
 MAX_SH_DEGREE = 3
 MAX_HEADER_BYTES = 1 << 20  # a 3DGS header is ~1.5 KB; anything past 1 MiB is not a splat
@@ -128,13 +128,9 @@ def write_ply(path: str | os.PathLike, gaussians: Gaussians) -> PlyWriteResult:
         rows = rows[finite]
     rows = np.ascontiguousarray(rows, dtype="<f4")
     header = ply_header(rows.shape[0], d)
-
-    def _write(tmp: Path) -> None:
-        with open(tmp, "wb") as f:
-            f.write(header)
-            rows.tofile(f)
-
-    atomic_write_with(path, _write)
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        f.write(header)
+        rows.tofile(f)
     return PlyWriteResult(path=path, num_written=int(rows.shape[0]), num_dropped=dropped, sh_degree=d,
                           bytes=len(header) + rows.nbytes)
 
