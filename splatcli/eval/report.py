@@ -163,10 +163,12 @@ def _figure(width: float = 6.0, height: float = 4.0):
     return fig
 
 
-def _save(fig, path: Path) -> None:
+def _save(fig, path: Path) -> str:
+    """Write `fig` as a PNG at `path`; returns the file's name."""
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png")
+    return path.name
 
 
 def write_plots(report: EvalReport, project: Project, out_dir: Path) -> list[str] | None:
@@ -205,8 +207,7 @@ def write_plots(report: EvalReport, project: Project, out_dir: Path) -> list[str
     ax2.set_ylabel("PSNR (dB)")
     ax2.set_title("error against render time, by Gaussian budget")
     ax2.grid(alpha=0.3)
-    _save(fig, path("speed_vs_error"))
-    names.append(path("speed_vs_error").name)
+    names.append(_save(fig, path("speed_vs_error")))
 
     if report.formats:
         fig = _figure(6, 4)
@@ -220,8 +221,7 @@ def write_plots(report: EvalReport, project: Project, out_dir: Path) -> list[str
         ax.set_ylabel("held-out PSNR (dB)")
         ax.set_title("size against error, by file format")
         ax.grid(alpha=0.3)
-        _save(fig, path("formats"))
-        names.append(path("formats").name)
+        names.append(_save(fig, path("formats")))
 
     st = report.stats
     if st is not None:
@@ -236,8 +236,7 @@ def write_plots(report: EvalReport, project: Project, out_dir: Path) -> list[str
             ax.set_xlabel(xlabel)
             ax.set_ylabel("count")
             ax.set_title(title)
-            _save(fig, path(name))
-            names.append(path(name).name)
+            names.append(_save(fig, path(name)))
 
         fig = _figure(5, 3.5)
         ax = fig.subplots()
@@ -245,8 +244,7 @@ def write_plots(report: EvalReport, project: Project, out_dir: Path) -> list[str
         ax.set_xlabel("highest SH degree used")
         ax.set_ylabel("Gaussians")
         ax.set_title("SH degree actually used")
-        _save(fig, path("sh_degrees"))
-        names.append(path("sh_degrees").name)
+        names.append(_save(fig, path("sh_degrees")))
     return names
 
 
