@@ -38,9 +38,6 @@ class SurfaceScore:
     fscore: float
     tau: float  # world units
 
-    def to_json(self) -> dict[str, Any]:
-        return asdict(self)
-
 
 def sample_surface(verts: np.ndarray, faces: np.ndarray, n: int = SAMPLES, seed: int = 0) -> np.ndarray:  # [n, 3]
     """Points uniform by area on a triangle mesh (verts [V, 3], faces [F, 3])."""
@@ -97,8 +94,7 @@ class MeshReport:
     centres: SurfaceScore  # the naive mesh of the Gaussian centres, on the same grid
 
     def to_json(self) -> dict[str, Any]:
-        return {"reference": self.reference, "tau": self.tau, "fused": self.fused.to_json(),
-                "centres": self.centres.to_json()}
+        return asdict(self)  # the scores nest as dicts of their fields
 
 
 def score_mesh(root: str | Path, reference: str | Path) -> MeshReport:
