@@ -9,7 +9,7 @@ from typing import Optional
 import typer
 
 from ..events import Note
-from ..io.export import ExportConfig, check_export_config
+from ..io.export import ExportConfig
 from ..io.sog import SogOptions
 from ..io.spz import SpzOptions
 from ..mesh.fuse import MeshConfig, export_mesh
@@ -66,7 +66,6 @@ def export(
                                  f"(voxel {m.voxel_size:.4g}) in {m.seconds:.1f} s"])
     cfg = ExportConfig(format=fmt.strip().lower(), out=out, spz=SpzOptions(*_bits(spz_sh_bits), version=spz_version),
                        sog=SogOptions(palette=sog_palette))
-    check_export_config(cfg)
     # notes only: an export takes seconds, and errors must stay the only line
     sink = lambda ev: ui.note(ev.message, ev.level) if isinstance(ev, Note) else None  # noqa: E731
     r = export_project(source, cfg, on_event=sink, write=export_site if cfg.format == "web" else None)
