@@ -90,10 +90,6 @@ def _slerp(q0: np.ndarray, q1: np.ndarray, t: float) -> np.ndarray:
     return q / np.linalg.norm(q)
 
 
-def _template(cams: Sequence[Camera]) -> Camera:
-    return cams[0]
-
-
 def _generated(template: Camera, kind: str, viewmats: list[np.ndarray], Ks: list[np.ndarray] | None = None) -> list[View]:
     views = []
     for i, vm in enumerate(viewmats):
@@ -138,7 +134,7 @@ def orbit_path(cams: Sequence[Camera], frames: int) -> list[View]:
         a = start + (span * (1 - math.cos(2 * math.pi * s)) / 2 if sweep else span * s)
         eye = target + height * up + radius * (math.cos(a) * e1 + math.sin(a) * e2)
         vms.append(look_at(eye, target, up))
-    return _generated(_template(cams), "orbit", vms)
+    return _generated(cams[0], "orbit", vms)
 
 
 def spiral_path(cams: Sequence[Camera], frames: int, rotations: float = 2.0) -> list[View]:
@@ -170,7 +166,7 @@ def spiral_path(cams: Sequence[Camera], frames: int, rotations: float = 2.0) -> 
         off = rads * np.array([math.cos(t), -math.sin(t), -math.sin(0.5 * t)])
         eye = mid + off @ basis
         vms.append(look_at(eye, mid + focal * z, up))
-    return _generated(_template(cams), "spiral", vms)
+    return _generated(cams[0], "spiral", vms)
 
 
 def _spiral_360(cams: Sequence[Camera], frames: int, rotations: float, up: np.ndarray) -> list[View]:
@@ -188,7 +184,7 @@ def _spiral_360(cams: Sequence[Camera], frames: int, rotations: float, up: np.nd
         h = height + 0.5 * radius * math.sin(a / rotations)  # one full rise and fall over the path
         eye = target + h * up + radius * (math.cos(a) * e1 + math.sin(a) * e2)
         vms.append(look_at(eye, target, up))
-    return _generated(_template(cams), "spiral", vms)
+    return _generated(cams[0], "spiral", vms)
 
 
 def interpolate_path(cams: Sequence[Camera], frames: int) -> list[View]:
@@ -197,7 +193,7 @@ def interpolate_path(cams: Sequence[Camera], frames: int) -> list[View]:
     camera's image size)."""
     if len(cams) < 2:
         raise SplatError("--path interpolate needs at least 2 cameras")
-    tmpl = _template(cams)
+    tmpl = cams[0]
     cams = [c.resized(tmpl.width, tmpl.height) for c in cams]
     P = np.stack([c.center for c in cams])
     Q = [rot_to_quat(c.viewmat[:3, :3]) for c in cams]
