@@ -135,6 +135,23 @@ def top_by_weight(weight: Tensor, k: int) -> Tensor:  # [N] -> [N] bool
     return keep
 
 
+def morton_order(points: Tensor) -> Tensor:  # [N, 3] -> [N] int64 permutation
+    """Order along a Z curve through the bounding box, 10 bits per axis (x in the lowest
+    bit), stable: the one spatial order of init's nearest neighbours and of the formats
+    that store Gaussians in chunks (.compressed.ply, .sog)."""
+    lo = points.min(0).values
+    span = (points.max(0).values - lo).clamp_min(1e-12)
+    q = ((points - lo) / span * 1023).long().clamp(0, 1023)
+
+    def spread(v: Tensor) -> Tensor:  # insert two zero bits between each of 10 bits
+        v = (v | (v << 16)) & 0x030000FF
+        v = (v | (v << 8)) & 0x0300F00F
+        v = (v | (v << 4)) & 0x030C30C3
+        return (v | (v << 2)) & 0x09249249
+
+    return torch.argsort(spread(q[:, 0]) | (spread(q[:, 1]) << 1) | (spread(q[:, 2]) << 2), stable=True)
+
+
 @dataclass
 class Histogram:
     edges: list[float]  # len(counts) + 1

@@ -19,12 +19,12 @@ import torch
 
 from splatcli.camera import Camera
 from splatcli.errors import SplatError
-from splatcli.gaussians import Gaussians
+from splatcli.gaussians import Gaussians, morton_order
 from splatcli.io.codec import Arrays
 from splatcli.io.compressed_ply import read_compressed_ply, write_compressed_ply
 from splatcli.io.formats import FORMATS, format_of, read_format, write_format
 from splatcli.io.ply import write_ply
-from splatcli.io.sog import SogOptions, kmeans_1d, read_sog, write_sog
+from splatcli.io.sog import SogOptions, encode_sog, kmeans_1d, read_sog, write_sog
 from splatcli.io.spz import SpzOptions, read_spz, write_spz
 from splatcli.model import load_model
 from splatcli.render import render_camera
@@ -188,6 +188,30 @@ def test_sog_round_trip_within_its_codebooks(tmp_path):
     write_sog(big, g, SogOptions(palette=3000))
     assert float((g.sh[:, 1:] - _matched(g, read_sog(big)).sh[:, 1:]).abs().max()) < 0.02
     assert big.stat().st_size > path.stat().st_size
+
+
+def test_sog_bytes_do_not_depend_on_the_clock(monkeypatch):
+    """The same model gives the same .sog, whenever it is written (zip stamps members with the time)."""
+    import time
+
+    g = scene(500)
+    first = encode_sog(g)[0]
+    monkeypatch.setattr(time, "time", lambda: 2e9)  # 2033: another zip timestamp if the clock were read
+    assert encode_sog(g)[0] == first
+
+
+def test_morton_order_is_the_z_curve():
+    """`morton_order` (init's neighbours, the chunked formats' row order) against the Z-curve key built
+    bit by bit: 10 bits per axis of the position in the bounding box, x in the lowest bit, stable."""
+    gen = torch.Generator().manual_seed(0)
+    pts = torch.randn(400, 3, generator=gen) * torch.tensor([3.0, 1e-3, 1.0])
+    pts[:100, 2] = 0.5  # ties in one axis
+    pts[100:110] = pts[110:120]  # equal points keep their order
+    lo, hi = pts.min(0).values, pts.max(0).values
+    q = ((pts - lo) / (hi - lo) * 1023).long().tolist()
+    keys = [sum(((c[a] >> b) & 1) << (3 * b + a) for b in range(10) for a in range(3)) for c in q]
+    assert morton_order(pts).tolist() == sorted(range(len(keys)), key=lambda i: keys[i])
+    assert morton_order(torch.zeros(5, 3)).tolist() == list(range(5))  # an empty box: the input order
 
 
 def test_1d_codebook_covers_the_tails():

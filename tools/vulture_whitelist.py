@@ -53,3 +53,4 @@ _.comm_seconds
 _.rank_checks
 _.scale_hist  # train/config.py TrainReport: reports/train.json
 _.has_prior_focal_length  # sfm/colmap.py: a pycolmap camera's flag, read by COLMAP's two-view verification
+_.external_attr  # io/sog.py: a zip member's permissions, read by unzip

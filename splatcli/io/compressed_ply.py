@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..gaussians import SH_C0, Gaussians
+from ..gaussians import SH_C0, Gaussians, morton_order
 from .atomic import atomic_write_bytes
 from .codec import Arrays, blocks, logit, pack_smallest_three, refuse, sigmoid, unpack_smallest_three
 
@@ -38,17 +38,6 @@ CHUNK_PROPS = ["min_x", "min_y", "min_z", "max_x", "max_y", "max_z",
 VERTEX_PROPS = ["packed_position", "packed_rotation", "packed_scale", "packed_color"]
 WXYZ = (0, 1, 2, 3)
 MAX_HEADER = 64 * 1024
-
-
-def morton_order(p: np.ndarray) -> np.ndarray:  # [N, 3] -> [N] permutation
-    """Order along a Z curve through the bounding box, 10 bits per axis."""
-    lo, hi = p.min(0), p.max(0)
-    q = ((p - lo) / np.maximum(hi - lo, 1e-12) * 1023).astype(np.uint64)
-    code = np.zeros(len(p), np.uint64)
-    for bit in range(10):
-        for axis in range(3):
-            code |= ((q[:, axis] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + axis)
-    return np.argsort(code, kind="stable")
 
 
 def _unorm(x: np.ndarray, bits: int) -> np.ndarray:
@@ -74,7 +63,7 @@ def encode_compressed_ply(g: Gaussians) -> tuple[bytes, int]:
     """The .compressed.ply bytes of the finite rows of `g`, and the number dropped."""
     a, dropped = Arrays.of(g)
     n = len(a)
-    order = morton_order(a.means) if n else np.zeros(0, np.int64)
+    order = morton_order(torch.from_numpy(a.means)).numpy() if n else np.zeros(0, np.int64)
     n_chunks = (n + CHUNK - 1) // CHUNK
     pad = np.concatenate([order, np.full(n_chunks * CHUNK - n, order[-1] if n else 0, np.int64)])  # repeat the last
     means, ls = a.means[pad], np.clip(a.log_scales[pad], -20.0, 20.0)

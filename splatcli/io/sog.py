@@ -33,10 +33,9 @@ import numpy as np
 import torch
 
 from .. import __version__
-from ..gaussians import Gaussians
+from ..gaussians import Gaussians, morton_order
 from .atomic import atomic_write_bytes
 from .codec import Arrays, logit, pack_smallest_three, refuse, sigmoid, unpack_smallest_three
-from .compressed_ply import morton_order
 
 WXYZ = (0, 1, 2, 3)
 MAX_META = 64 << 20
@@ -129,7 +128,7 @@ def encode_sog(g: Gaussians, options: SogOptions = SogOptions()) -> tuple[bytes,
     """The .sog (zip) bytes of the finite rows of `g`, and the number of rows dropped."""
     a, dropped = Arrays.of(g)
     n = len(a)
-    order = morton_order(a.means) if n else np.zeros(0, np.int64)
+    order = morton_order(torch.from_numpy(a.means)).numpy() if n else np.zeros(0, np.int64)
     w = max(4, math.ceil(math.sqrt(n) / 4) * 4)
     h = max(4, math.ceil(n / w / 4) * 4)
     files: dict[str, bytes] = {}
@@ -178,9 +177,11 @@ def encode_sog(g: Gaussians, options: SogOptions = SogOptions()) -> tuple[bytes,
 
     out = io.BytesIO()
     with zipfile.ZipFile(out, "w", zipfile.ZIP_STORED) as z:  # WebP is compressed already
-        z.writestr("meta.json", json.dumps(meta))
-        for name, data in files.items():
-            z.writestr(name, data)
+        for name, data in {"meta.json": json.dumps(meta).encode(), **files}.items():
+            # A fixed timestamp (zip's earliest), not the clock's: the same model gives the same bytes.
+            info = zipfile.ZipInfo(name, date_time=(1980, 1, 1, 0, 0, 0))
+            info.external_attr = 0o644 << 16  # rw-r--r-- when unzipped
+            z.writestr(info, data)
     return out.getvalue(), dropped
 
 

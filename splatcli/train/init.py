@@ -14,7 +14,7 @@ import torch
 from torch import Tensor
 
 from ..errors import SplatError
-from ..gaussians import SH_C0, Gaussians, num_sh_bases
+from ..gaussians import SH_C0, Gaussians, morton_order, num_sh_bases
 from ..model import load_model
 from ..render.projection import in_frustum
 from .config import TrainConfig
@@ -151,7 +151,7 @@ def knn_rms_distance(points: Tensor, k: int = 3) -> Tensor:  # [P, 3] -> [P]
     if n <= 1:
         return out.fill_(1.0).to(points.dtype)  # nothing to measure against: unit scale
     kk = min(k, n - 1)
-    order = _morton_order(pts)
+    order = morton_order(pts)
     sorted_pts = pts[order]
     for s in range(0, n, KNN_BLOCK):
         q = sorted_pts[s : s + KNN_BLOCK]  # [B, 3]
@@ -164,18 +164,3 @@ def knn_rms_distance(points: Tensor, k: int = 3) -> Tensor:  # [P, 3] -> [P]
         d = torch.cdist(q, cand, compute_mode=CDIST_MODE).topk(kk + 1, dim=1, largest=False).values[:, 1:]  # drop the point itself
         out[order[s : s + KNN_BLOCK]] = d.square().mean(dim=1).sqrt()
     return out.to(points.dtype)
-
-
-def _morton_order(pts: Tensor) -> Tensor:  # [P, 3] -> [P] permutation
-    lo = pts.min(0).values
-    span = (pts.max(0).values - lo).clamp_min(1e-12)
-    q = ((pts - lo) / span * 1023).long().clamp(0, 1023)  # 10 bits per axis
-
-    def spread(v: Tensor) -> Tensor:  # insert two zero bits between each of 10 bits
-        v = (v | (v << 16)) & 0x030000FF
-        v = (v | (v << 8)) & 0x0300F00F
-        v = (v | (v << 4)) & 0x030C30C3
-        return (v | (v << 2)) & 0x09249249
-
-    code = spread(q[:, 0]) | (spread(q[:, 1]) << 1) | (spread(q[:, 2]) << 2)
-    return torch.argsort(code, stable=True)
