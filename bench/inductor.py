@@ -1,5 +1,5 @@
-"""What fusing the per-Gaussian passes would buy: the projection's element-wise chain, eager
-against torch.compile (inductor, CPU), forward and backward, one torch thread.
+"""What fusing the per-Gaussian passes would buy: the projection's element-wise chain (forward
+and backward) and the planner's make_plan, eager against torch.compile (inductor, CPU), one torch thread.
 
     .venv/bin/python bench/inductor.py PROJECT [--max-size 200] [--no-write]
 
@@ -7,6 +7,7 @@ PROJECT is a trained project (its latest checkpoint is the model), as for bench/
 is the projection's model on every Gaussian of the first training view, written once with
 `render/projection.py`'s own helpers (camera transform, EWA covariance, conic, SH colour) and
 differentiated by autograd: each side runs the same code, so the ratio is what fusion alone buys.
+`make_plan` runs as it is on the footprints of the first 8 training views (block 8).
 The compile is timed twice, in two fresh processes sharing one new cache folder: cold (an empty
 cache, as on a user's first run) and warm (the second run on a machine).
 Results go to the "## Fused kernels: torch.compile" section of docs/benchmarks.md.
@@ -31,7 +32,8 @@ def child(project: str, max_size: int) -> dict:
 
     from common import cpu_model
     from splatcli.project import Project
-    from splatcli.render.projection import BLUR, NEAR, _Camera, _cov2d, _mean2d
+    from splatcli.render.composite import make_plan
+    from splatcli.render.projection import BLUR, NEAR, _Camera, _cov2d, _mean2d, project as project_view
     from splatcli.render.sh import sh_basis
 
     data, p = cpu_model(Project.open(project).latest_checkpoint(), max_size)
@@ -76,9 +78,21 @@ def child(project: str, max_size: int) -> dict:
     first = time.perf_counter() - t
     with torch.no_grad():
         diff = max(float((a - b).abs().max()) for a, b in zip(chain(*leaves), compiled(*leaves)))
-    return {"n": len(leaves[0]), "size": f"{view.camera.width}x{view.camera.height}", "first_s": first, "diff": diff,
-            "eager_fwd": median_ms(lambda: chain(*leaves)), "eager": median_ms(lambda: step(chain)),
-            "compiled": median_ms(lambda: step(compiled))}
+    out = {"n": len(leaves[0]), "size": f"{view.camera.width}x{view.camera.height}", "first_s": first, "diff": diff,
+           "eager_fwd": median_ms(lambda: chain(*leaves)), "eager": median_ms(lambda: step(chain)),
+           "compiled": median_ms(lambda: step(compiled))}
+
+    with torch.no_grad():
+        fps = [(project_view(*p.values(), v.viewmat, v.K, v.camera.width, v.camera.height, 3).footprint, v.camera.width,
+                v.camera.height) for v in data.train[:8]]
+    plan_c = torch.compile(make_plan, dynamic=True)
+    t = time.perf_counter()
+    plan_c(*fps[0], 8)
+    out["plan_first_s"] = time.perf_counter() - t
+    out["plan_same"] = all(torch.equal(make_plan(*f, 8).pair_gid, plan_c(*f, 8).pair_gid) for f in fps)
+    for name, fn in (("plan_eager", make_plan), ("plan_compiled", plan_c)):
+        out[name] = statistics.median(median_ms(lambda f=f, fn=fn: fn(*f, 8), reps=3) for f in fps)
+    return out
 
 
 def main() -> None:
@@ -103,6 +117,9 @@ def main() -> None:
     cold, warm = runs
     rows = [f"| {name} | {r['first_s']:.1f} | {r['eager_fwd']:.1f} | {r['eager']:.1f} | {r['compiled']:.1f} | "
             f"{r['eager'] / r['compiled']:.1f}x | {r['diff']:.1e} |" for name, r in (("cold", cold), ("warm", warm))]
+    plan_rows = [f"| {name} | {r['plan_first_s']:.1f} | {r['plan_eager']:.1f} | {r['plan_compiled']:.1f} | "
+                 f"{r['plan_eager'] / r['plan_compiled']:.1f}x | {'yes' if r['plan_same'] else '**no**'} |"
+                 for name, r in (("cold", cold), ("warm", warm))]
     text = "\n".join([
         HEADING, "",
         f"Measured by `python bench/inductor.py {args.project} --max-size {args.max_size}` (one torch thread; "
@@ -112,7 +129,10 @@ def main() -> None:
         "*First call* is the compiled side's first forward and backward: cold in a fresh cache folder, warm from "
         "the cache the cold run left.", "",
         "| cache | first call s | eager forward ms | eager fwd+bwd ms | compiled fwd+bwd ms | faster by | max abs diff |",
-        "| --- | ---: | ---: | ---: | ---: | ---: | ---: |", *rows, ""])
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: |", *rows, "",
+        "`make_plan` (no gradient), the median over the 8 views of each view's median of 3:", "",
+        "| cache | first call s | eager ms | compiled ms | faster by | the same pairs |",
+        "| --- | ---: | ---: | ---: | ---: | --- |", *plan_rows, ""])
     from common import publish
 
     publish(HEADING, text, write=not args.no_write)
