@@ -24,13 +24,14 @@ import sys
 import tempfile
 import time
 
+from common import cpu_model, loadavg, publish
+
 HEADING = "## Fused kernels: torch.compile"
 
 
 def child(project: str, max_size: int) -> dict:
     import torch
 
-    from common import cpu_model
     from splatcli.project import Project
     from splatcli.render.composite import make_plan
     from splatcli.render.projection import BLUR, NEAR, _Camera, _cov2d, _mean2d, project as project_view
@@ -105,7 +106,7 @@ def main() -> None:
     if args.child:
         print(json.dumps(child(args.project, args.max_size)))
         return
-    load0 = os.getloadavg()[0]
+    load0 = loadavg()
     runs = []
     with tempfile.TemporaryDirectory() as cache:
         env = dict(os.environ, TORCHINDUCTOR_CACHE_DIR=cache, OMP_NUM_THREADS="1")
@@ -113,7 +114,7 @@ def main() -> None:
             out = subprocess.run([sys.executable, __file__, args.project, "--max-size", str(args.max_size), "--child"],
                                  env=env, check=True, capture_output=True, text=True).stdout
             runs.append(json.loads(out.strip().splitlines()[-1]))
-    load1 = os.getloadavg()[0]
+    load1 = loadavg()
     cold, warm = runs
     rows = [f"| {name} | {r['first_s']:.1f} | {r['eager_fwd']:.1f} | {r['eager']:.1f} | {r['compiled']:.1f} | "
             f"{r['eager'] / r['compiled']:.1f}x | {r['diff']:.1e} |" for name, r in (("cold", cold), ("warm", warm))]
@@ -133,8 +134,6 @@ def main() -> None:
         "`make_plan` (no gradient), the median over the 8 views of each view's median of 3:", "",
         "| cache | first call s | eager ms | compiled ms | faster by | the same pairs |",
         "| --- | ---: | ---: | ---: | ---: | --- |", *plan_rows, ""])
-    from common import publish
-
     publish(HEADING, text, write=not args.no_write)
 
 

@@ -39,7 +39,7 @@ def photo(path: Path, size: tuple[int, int] = (64, 48), *, make: str | None = No
 
 
 def staged(path: Path, size: tuple[int, int] = (64, 48)) -> StagedImage:
-    return StagedImage(path.name, size[0], size[1], size[0], size[1], False)
+    return StagedImage(path.name, size[0], size[1], False)
 
 
 def test_exif_camera_facts_are_read(tmp_path):

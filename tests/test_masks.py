@@ -115,7 +115,7 @@ def test_images_without_a_mask_are_kept_whole_with_a_warning(scene, tmp_path):
 
     notes = []
     run = Stages(lambda e: notes.append(getattr(e, "message", None)))
-    staged = [StagedImage(n, W, H, W, H, False) for n in ("000.jpg", "001.jpg")]
+    staged = [StagedImage(n, W, H, False) for n in ("000.jpg", "001.jpg")]
     found = {"000.jpg": None, "001.jpg": scene / "masks" / "001.png"}
     assert stage_all(found, staged, tmp_path, run, invert=False, where=scene / "masks") == "files"
     assert (cv2.imread(str(staged_mask(tmp_path, "000.jpg")), cv2.IMREAD_GRAYSCALE) == 255).all()

@@ -43,10 +43,8 @@ class ImageError(Exception):
 @dataclass(frozen=True)
 class StagedImage:
     name: str
-    width: int  # pixels, after resizing
+    width: int  # pixels, as staged: the source file's (after orientation)
     height: int
-    src_width: int  # pixels in the source file (after orientation)
-    src_height: int
     has_alpha: bool
 
 
@@ -283,7 +281,7 @@ def stage_image(src: Path, name: str, dst: Path, mask_dst: Path, *,
         shutil.copyfile(src, dst)
     if alpha is not None:
         write_image(mask_dst, alpha)
-    return StagedImage(name, w, h, w, h, alpha is not None)
+    return StagedImage(name, w, h, alpha is not None)
 
 
 def sharpness(img: np.ndarray) -> float:

@@ -74,7 +74,7 @@ def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
         if len(frames.names) < MIN_IMAGES:
             raise SplatError(f"{spec.path}: only {len(frames.names)} usable frame(s); need at least {MIN_IMAGES}")
         w, h = frames.width, frames.height
-        staged = [StagedImage(n, w, h, w, h, False) for n in frames.names]
+        staged = [StagedImage(n, w, h, False) for n in frames.names]
         grouping = group_cameras(staged, None, cfg.cameras, video=True)
     else:
         assert spec.images_dir is not None

@@ -89,9 +89,9 @@ def stage_masks(found: dict[str, Path | None], staged: list[StagedImage], work: 
                     grey = read_mask(src)
                 except ImageError as exc:
                     raise SplatError(f"{src}: mask of {s.name}: {exc}") from None
-                if (grey.shape[1], grey.shape[0]) != (s.src_width, s.src_height):
+                if (grey.shape[1], grey.shape[0]) != (s.width, s.height):
                     raise SplatError(f"{src}: mask is {grey.shape[1]}x{grey.shape[0]} but its image {s.name} is "
-                                     f"{s.src_width}x{s.src_height}")
+                                     f"{s.width}x{s.height}")
                 keep = grey >= MASK_KEEP
                 m = np.where(keep != invert, 255, 0).astype(np.uint8)
             write_image(staged_mask(work, s.name), m)
