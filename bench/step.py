@@ -27,6 +27,7 @@ import torch
 
 from common import cpu_model, publish
 from splatcli.project import Project
+from splatcli.render import kernels
 from splatcli.render.composite import choose_block, composite, estimate_pairs, make_plan
 from splatcli.render.projection import project
 from splatcli.train.loss import photometric_loss
@@ -74,8 +75,10 @@ def main() -> None:
     ap.add_argument("--scales", default="0.25,0.5,1")
     ap.add_argument("--fractions", default="0.25,0.5,1", help="shares of the model's Gaussians")
     ap.add_argument("--views", type=int, default=12)
+    ap.add_argument("--compile", choices=("on", "off"), default="off", help="the rasterizer's compiled kernels")
     ap.add_argument("--no-write", action="store_true")
     args = ap.parse_args()
+    kernels.set_mode(args.compile)
     data, full = cpu_model(Project.open(args.project).latest_checkpoint(), args.max_size)
     n_all = len(full["means"])
     load0 = os.getloadavg()[0]

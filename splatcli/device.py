@@ -2,9 +2,15 @@
 
 from __future__ import annotations
 
+import platform
+from functools import cache
+
 import torch
 
 from .errors import SplatError
+
+# The vector extensions that rank the same code differently on different CPUs, as /proc/cpuinfo names them.
+VECTOR_FLAGS = ("avx512f", "avx512_bf16", "avx2", "fma", "avx", "neon", "asimd", "sve")
 
 
 def resolve_device(name: str = "auto") -> torch.device:
@@ -28,7 +34,31 @@ def describe_device(device: torch.device) -> str:
     if device.type == "cuda":
         return f"{device} ({torch.cuda.get_device_name(device)})"
     n = torch.get_num_threads()
-    return f"{device.type} ({n} thread{'' if n == 1 else 's'})"
+    return f"{device.type} ({n} thread{'' if n == 1 else 's'}; {cpu_name()})"
+
+
+@cache
+def cpu_name() -> str:
+    """The CPU model and its widest vector extensions, for every timing's record:
+    "AMD EPYC (avx2, fma)". From /proc/cpuinfo where there is one."""
+    model, flags = platform.processor() or platform.machine(), set()
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                key, _, val = line.partition(":")
+                key = key.strip().lower()
+                if key in ("model name", "hardware") and model in ("", platform.machine(), platform.processor()):
+                    model = val.strip()
+                elif key in ("flags", "features") and not flags:
+                    flags = set(val.split())
+    except OSError:
+        pass
+    ext = [f for f in VECTOR_FLAGS if f in flags]
+    if "avx512f" in ext:  # the widest says enough
+        ext = [f for f in ext if f.startswith("avx512")]
+    elif "avx2" in ext:
+        ext = [f for f in ext if f in ("avx2", "fma")]
+    return f"{model or 'unknown CPU'} ({', '.join(ext)})" if ext else (model or "unknown CPU")
 
 
 def synchronize(device: torch.device) -> None:

@@ -42,6 +42,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from . import kernels
 from .projection import TILE, Footprint
 
 ALPHA_MIN = 1.0 / 255.0  # contributions below this are skipped
@@ -138,64 +139,77 @@ def make_plan(
     assert TILE % block == 0
     y0, y1 = rows or (0, height)
     assert y0 % TILE == 0
-    height = y1 - y0
-    dev = fp.gid.device
-    f64, i64 = torch.float64, torch.int64
-    nbx, nby = math.ceil(width / block), math.ceil(height / block)
-    nblocks = nbx * nby
+    nbx, nby = math.ceil(width / block), math.ceil((y1 - y0) / block)
     with torch.no_grad():
-        # alpha >= 1/255  <=>  d^T Sigma'^-1 d <= 2 ln(255 o). Slightly generous margin:
-        # the per-pixel test in the compositor is the exact one. The footprint holds the
-        # rows where this is positive, in depth order.
-        t2 = (2.0 * torch.log(torch.clamp_min(fp.opacities * 255.0, 1e-30)) + 1e-3) * (1 + 1e-6)
-        u, v = fp.means2d.unbind(1)
-        a, b, c = fp.cov2d.unbind(1)
-        rc = fp.rect * TILE
-        hy = torch.sqrt(t2 * c)
-        # Pixel i is sampled at i + 0.5: inside [lo, hi] iff ceil(lo - .5) <= i <= floor(hi - .5).
-        py0 = torch.maximum(torch.ceil(v - hy - 0.5), rc[:, 1].to(f64)).clamp_min(y0).to(i64) - y0
-        py1 = torch.minimum(torch.floor(v + hy - 0.5), (rc[:, 3] - 1).to(f64)).clamp_max(y1 - 1).to(i64) - y0
-        by0 = torch.div(py0, block, rounding_mode="floor")
-        nrow = (torch.div(py1, block, rounding_mode="floor") - by0 + 1).clamp_min(0)
-        nrow = torch.where(py1 >= py0, nrow, torch.zeros_like(nrow))
-        # What each row of a Gaussian needs, one column per Gaussian (gathered once per row):
-        # the mean (v in band coordinates), x | y's slope b / c and variance, the dy of the
-        # ellipse's rightmost point, t2, c, the pixel rows and the tile columns.
-        per = torch.stack([u, v - y0, b / c, fp.vx, torch.sqrt(t2 / a) * b, t2, c, py0.to(f64), py1.to(f64),
-                           rc[:, 0].to(f64), (rc[:, 2] - 1).to(f64)])
-        # --- one entry per (Gaussian, block row) ---
-        S = fp.gid.numel()
-        rg = torch.repeat_interleave(torch.arange(S, device=dev), nrow)
-        R = rg.numel()
-        by = (by0 - (torch.cumsum(nrow, 0) - nrow)).index_select(0, rg) + torch.arange(R, device=dev)
-        ur, vr, kr, vxr, dys, t2r, cr, py0r, py1r, rx0, rx1 = per.index_select(1, rg)
-        top = (by * block).to(f64)
-        ylo = torch.maximum(top, py0r) + 0.5 - vr
-        yhi = torch.minimum(top + (block - 1), py1r) + 0.5 - vr
-        dmax = torch.minimum(torch.maximum(dys, ylo), yhi)
-        dmin = torch.minimum(torch.maximum(-dys, ylo), yhi)
-        xhi = ur + kr * dmax + torch.sqrt((vxr * (t2r - dmax * dmax / cr)).clamp_min(0))
-        xlo = ur + kr * dmin - torch.sqrt((vxr * (t2r - dmin * dmin / cr)).clamp_min(0))
-        px0 = torch.maximum(torch.ceil(xlo - 0.5), rx0).clamp_min(0).to(i64)
-        px1 = torch.minimum(torch.floor(xhi - 0.5), rx1).clamp_max(width - 1).to(i64)
-        bx0 = torch.div(px0, block, rounding_mode="floor")
-        ncol = (torch.div(px1, block, rounding_mode="floor") - bx0 + 1).clamp_min(0)
-        ncol = torch.where(px1 >= px0, ncol, torch.zeros_like(ncol))
-        # --- one entry per (Gaussian, block): expanded from per-row values ---
-        M = int(ncol.sum())
-        bid = torch.repeat_interleave(by * nbx + bx0 - (torch.cumsum(ncol, 0) - ncol), ncol, output_size=M)
-        bid += torch.arange(M, device=dev)
-        # Pairs were generated in depth order: a stable sort by block alone gives
-        # (block, depth) order; small integer keys sort fastest.
-        kdt = torch.int16 if nblocks < 2**15 else (torch.int32 if nblocks < 2**31 else i64)
-        perm = torch.sort(bid.to(kdt), stable=True).indices
-        pair_gid = torch.repeat_interleave(fp.gid.index_select(0, rg), ncol, output_size=M).index_select(0, perm)
-        count = torch.bincount(bid, minlength=nblocks)
-        start = torch.cumsum(count, 0) - count
-        dseg, dchunk, every = device_settings(dev)
+        pair_gid, start, count, M = _pairs_fast(fp.gid, fp.means2d, fp.cov2d, fp.vx, fp.opacities, fp.rect, width, y0,
+                                                y1, block)
+        dseg, dchunk, every = device_settings(fp.gid.device)
         seg, chunk_elems = seg or dseg, chunk_elems or dchunk
         chunks = _schedule(count, block * block, chunk_elems, seg)
-    return Plan(width, height, block, nbx, nby, pair_gid, start, count, chunks, M, seg, chunk_elems, every)
+    return Plan(width, y1 - y0, block, nbx, nby, pair_gid, start, count, chunks, M, seg, chunk_elems, every)
+
+
+def _pairs(gid: Tensor, means2d: Tensor, cov2d: Tensor, vx: Tensor, opacities: Tensor, rect: Tensor, width: int,
+           y0: int, y1: int, block: int) -> tuple[Tensor, Tensor, Tensor, int]:
+    """make_plan's pairs from a footprint's columns: pair_gid [M] sorted by (block, depth), each
+    block's start [nblocks] and count [nblocks] in it, and M."""
+    dev = gid.device
+    f64, i64 = torch.float64, torch.int64
+    nbx, nby = (width + block - 1) // block, (y1 - y0 + block - 1) // block
+    nblocks = nbx * nby
+    # alpha >= 1/255  <=>  d^T Sigma'^-1 d <= 2 ln(255 o). Slightly generous margin:
+    # the per-pixel test in the compositor is the exact one. The footprint holds the
+    # rows where this is positive, in depth order.
+    t2 = (2.0 * torch.log(torch.clamp_min(opacities * 255.0, 1e-30)) + 1e-3) * (1 + 1e-6)
+    u, v = means2d.unbind(1)
+    a, b, c = cov2d.unbind(1)
+    rc = rect * TILE
+    hy = torch.sqrt(t2 * c)
+    # Pixel i is sampled at i + 0.5: inside [lo, hi] iff ceil(lo - .5) <= i <= floor(hi - .5).
+    py0 = torch.maximum(torch.ceil(v - hy - 0.5), rc[:, 1].to(f64)).clamp_min(y0).to(i64) - y0
+    py1 = torch.minimum(torch.floor(v + hy - 0.5), (rc[:, 3] - 1).to(f64)).clamp_max(y1 - 1).to(i64) - y0
+    by0 = torch.div(py0, block, rounding_mode="floor")
+    nrow = (torch.div(py1, block, rounding_mode="floor") - by0 + 1).clamp_min(0)
+    nrow = torch.where(py1 >= py0, nrow, torch.zeros_like(nrow))
+    # What each row of a Gaussian needs, one column per Gaussian (gathered once per row):
+    # the mean (v in band coordinates), x | y's slope b / c and variance, the dy of the
+    # ellipse's rightmost point, t2, c, the pixel rows and the tile columns.
+    per = torch.stack([u, v - y0, b / c, vx, torch.sqrt(t2 / a) * b, t2, c, py0.to(f64), py1.to(f64),
+                       rc[:, 0].to(f64), (rc[:, 2] - 1).to(f64)])
+    # --- one entry per (Gaussian, block row) ---
+    S = gid.numel()
+    rg = torch.repeat_interleave(torch.arange(S, device=dev), nrow)
+    R = rg.numel()
+    by = (by0 - (torch.cumsum(nrow, 0) - nrow)).index_select(0, rg) + torch.arange(R, device=dev)
+    ur, vr, kr, vxr, dys, t2r, cr, py0r, py1r, rx0, rx1 = per.index_select(1, rg)
+    top = (by * block).to(f64)
+    ylo = torch.maximum(top, py0r) + 0.5 - vr
+    yhi = torch.minimum(top + (block - 1), py1r) + 0.5 - vr
+    dmax = torch.minimum(torch.maximum(dys, ylo), yhi)
+    dmin = torch.minimum(torch.maximum(-dys, ylo), yhi)
+    xhi = ur + kr * dmax + torch.sqrt((vxr * (t2r - dmax * dmax / cr)).clamp_min(0))
+    xlo = ur + kr * dmin - torch.sqrt((vxr * (t2r - dmin * dmin / cr)).clamp_min(0))
+    px0 = torch.maximum(torch.ceil(xlo - 0.5), rx0).clamp_min(0).to(i64)
+    px1 = torch.minimum(torch.floor(xhi - 0.5), rx1).clamp_max(width - 1).to(i64)
+    bx0 = torch.div(px0, block, rounding_mode="floor")
+    ncol = (torch.div(px1, block, rounding_mode="floor") - bx0 + 1).clamp_min(0)
+    ncol = torch.where(px1 >= px0, ncol, torch.zeros_like(ncol))
+    # --- one entry per (Gaussian, block): expanded from per-row values ---
+    M = int(ncol.sum())  # compiled: the graph breaks here (the pair count sizes what follows)
+    bid = torch.repeat_interleave(by * nbx + bx0 - (torch.cumsum(ncol, 0) - ncol), ncol, output_size=M)
+    bid += torch.arange(M, device=dev)
+    # Pairs were generated in depth order: a stable sort by block alone gives
+    # (block, depth) order; small integer keys sort fastest.
+    kdt = torch.int16 if nblocks < 2**15 else (torch.int32 if nblocks < 2**31 else i64)
+    perm = torch.sort(bid.to(kdt), stable=True).indices
+    pair_gid = torch.repeat_interleave(gid.index_select(0, rg), ncol, output_size=M).index_select(0, perm)
+    count = torch.bincount(bid, minlength=nblocks)
+    return pair_gid, torch.cumsum(count, 0) - count, count, M
+
+
+# Compiled on the CPU when compiling is on: the same pairs (the integer bounds come from the same
+# float64 arithmetic, and the planner's 1e-6 margin dwarfs any reordering of it).
+_pairs_fast = kernels.fast(_pairs, lambda gid, *_: gid.device, lambda gid, *_: gid.numel() < 2, fullgraph=False)
 
 
 def device_settings(device: torch.device) -> tuple[int, int, int]:
@@ -255,60 +269,102 @@ class _Gauss:
         self.cz = torch.cat([cz, cz.new_zeros(1, 5)], 0)  # [N + 1, 5]
 
 
-class _Slots:
-    """The (block, k) slots of one segment: Gaussian ids and the exponent coefficients.
+def _coef(p: Tensor, centre: Tensor):  # p [na, k, 6] gathered rows; centre [na, 2]
+    """The exponent's coefficients of one segment's slots.
 
     log(o G) is a quadratic in the block-local pixel offset l,
     c0 + gx lx + gy ly + qa lx^2 + qb lx ly + qc ly^2, with d0 = mean - block centre.
     Expanding around the block centre keeps the terms small where alpha matters: the
-    large part of d0 lies along the ellipse's long axis, where Q d0 is small."""
-
-    def __init__(self, gs: _Gauss, gid: Tensor, centre: Tensor):  # gid [na, k]; centre [na, 1, 2]
-        self.gid = gid
-        p = gs.geo.index_select(0, gid.reshape(-1)).view(*gid.shape, 6)  # [na, k, 6]
-        self.d0x = p[..., 0] - centre[..., 0]
-        self.d0y = p[..., 1] - centre[..., 1]
-        self.A, self.B, self.C = p[..., 2], p[..., 3], p[..., 4]
-        self.gx = self.A * self.d0x + self.B * self.d0y
-        self.gy = self.B * self.d0x + self.C * self.d0y
-        c0 = p[..., 5] - 0.5 * (self.d0x * self.gx + self.d0y * self.gy)
-        self.coef2 = torch.stack([c0, self.gx, self.gy, -0.5 * self.A, -self.B, -0.5 * self.C], 1).mul_(_LOG2E)
-
-    def grads(self, R: Tensor, dcz: Tensor) -> Tensor:  # R [na, 6, k], dcz [na, 4, k] -> [na, k, 10]
-        """Chain rule from the per-slot pixel sums to (mean, conic, log o, colour, z)."""
-        A, B, C, d0x, d0y = self.A, self.B, self.C, self.d0x, self.d0y
-        R0, R1, R2, R3, R4, R5 = R.unbind(1)
-        return torch.stack(
-            [
-                -self.gx * R0 + A * R1 + B * R2,
-                -self.gy * R0 + B * R1 + C * R2,
-                -0.5 * (R0 * d0x * d0x - 2 * R1 * d0x + R3),
-                -(R0 * d0x * d0y - R1 * d0y - R2 * d0x + R4),
-                -0.5 * (R0 * d0y * d0y - 2 * R2 * d0y + R5),
-                R0,
-                *dcz.unbind(1),
-            ],
-            -1,
-        )
+    large part of d0 lies along the ellipse's long axis, where Q d0 is small.
+    Returns coef2 [na, 6, k] in log2 units and (d0x, d0y, A, B, C, gx, gy), each [na, k]."""
+    d0x = p[..., 0] - centre[:, 0:1]
+    d0y = p[..., 1] - centre[:, 1:2]
+    A, B, C = p[..., 2], p[..., 3], p[..., 4]
+    gx = A * d0x + B * d0y
+    gy = B * d0x + C * d0y
+    c0 = p[..., 5] - 0.5 * (d0x * gx + d0y * gy)
+    coef2 = torch.stack([c0, gx, gy, -0.5 * A, -B, -0.5 * C], 1).mul_(_LOG2E)
+    return coef2, (d0x, d0y, A, B, C, gx, gy)
 
 
-def _alpha(coef2: Tensor, featsT: Tensor, c: _Consts) -> Tensor:  # [nb, P, k]
+def _slot_grads(q, R: Tensor, dcz: Tensor) -> Tensor:  # R [na, 6, k], dcz [na, 4, k] -> [na, k, 10]
+    """Chain rule from the per-slot pixel sums to (mean, conic, log o, colour, z)."""
+    d0x, d0y, A, B, C, gx, gy = q
+    R0, R1, R2, R3, R4, R5 = R.unbind(1)
+    return torch.stack(
+        [
+            -gx * R0 + A * R1 + B * R2,
+            -gy * R0 + B * R1 + C * R2,
+            -0.5 * (R0 * d0x * d0x - 2 * R1 * d0x + R3),
+            -(R0 * d0x * d0y - R1 * d0y - R2 * d0x + R4),
+            -0.5 * (R0 * d0y * d0y - 2 * R2 * d0y + R5),
+            R0,
+            *dcz.unbind(1),
+        ],
+        -1,
+    )
+
+
+def _alpha(coef2: Tensor, featsT: Tensor, a_min: float) -> Tensor:  # [nb, P, k]
     """alpha = min(0.99, o G), zeroed below 1/255; coef2 [nb, 6, k] is in log2 units."""
     a = torch.matmul(featsT, coef2)  # [P, 6] @ [nb, 6, k]
     a.exp2_()
-    F.threshold_(a, c.a_min, 0.0)
+    F.threshold_(a, a_min, 0.0)
     return a.clamp_max_(ALPHA_MAX)
 
 
-def _transmittance(alpha: Tensor, Tc: Tensor | None, c: _Consts):
+def _transmittance(alpha: Tensor, Tc: Tensor, t_min: float):
     """om = 1 - alpha; U = T after each Gaussian, zero from the first one that would
     bring T below 1e-4 (that one and all behind it are not blended)."""
     om = torch.rsub(alpha, 1.0)
     U = torch.cumprod(om, 2)
-    if Tc is not None:
-        U.mul_(Tc[..., None])
-    F.threshold_(U, c.t_min, 0.0)
+    U.mul_(Tc[..., None])
+    F.threshold_(U, t_min, 0.0)
     return om, U
+
+
+def _seg_forward(geo: Tensor, cz: Tensor, gid: Tensor, centre: Tensor, featsT: Tensor, Tc: Tensor, a_min: float,
+                 t_min: float) -> tuple[Tensor, Tensor]:
+    """One segment of the forward blend: geo [N + 1, 6] and cz [N + 1, 5] (`_Gauss`), gid [na, k]
+    slot ids, centre [na, 2], featsT [P, 6], Tc [na, P] transmittance entering. Returns the
+    sums of blending weight times (r, g, b, z, 1) per pixel [na, 5, P] and T after [na, P]."""
+    p = geo.index_select(0, gid.reshape(-1)).view(*gid.shape, 6)  # [na, k, 6]
+    coef2, _ = _coef(p, centre)
+    a = _alpha(coef2, featsT, a_min)
+    om, U = _transmittance(a, Tc, t_min)
+    w = a.div_(om).mul_(U)  # alpha T_before; 0 where not blended
+    czg = cz.index_select(0, gid.reshape(-1)).view(*gid.shape, 5)
+    return torch.bmm(czg.transpose(1, 2), w.transpose(1, 2)), U[:, :, -1].clone()
+
+
+def _seg_backward(geo: Tensor, cz: Tensor, gid: Tensor, centre: Tensor, feats: Tensor, featsT: Tensor, Tc: Tensor,
+                  g4: Tensor, g4t: Tensor, base: Tensor, pc: Tensor, a_min: float, t_min: float, u_scale: float,
+                  a_scale: float) -> tuple[Tensor, Tensor, Tensor]:
+    """One segment of the backward pass, alpha and T recomputed: g4 [na, 4, P] and g4t [na, P, 4]
+    the image gradient of (r, g, b, z), base [na, P] (see backward), pc [na, P] the prefix sum of
+    w v over the earlier segments. Returns d(u, v, A, B, C, log o, r, g, b, z) per slot [na, k, 10],
+    T after [na, P] and the prefix sum after [na, P]."""
+    p = geo.index_select(0, gid.reshape(-1)).view(*gid.shape, 6)
+    coef2, q = _coef(p, centre)
+    a = _alpha(coef2, featsT, a_min)
+    om, U = _transmittance(a, Tc, t_min)
+    r = a / om
+    w = r * U
+    czt = cz.index_select(0, gid.reshape(-1)).view(*gid.shape, 5)[..., :4].transpose(1, 2)  # [na, 4, k]
+    v = torch.bmm(g4t, czt)  # [na, P, k]: g . (rgb, z) per slot
+    t = torch.mul(w, v).cumsum_(2)  # prefix sums of w v (this segment)
+    off = pc - base  # [na, P]: earlier segments' prefix - base
+    pc = t[:, :, -1] + pc
+    # d loss / d power = alpha d loss / d alpha = r (U v - (base - prefix)) for
+    # blended, unclamped alpha; 0 otherwise (indicators built without branches).
+    t += off[..., None]
+    t.addcmul_(U, v)
+    Tlast = U[:, :, -1].clone()
+    ind = torch.minimum(U.mul_(u_scale), a.sub_(ALPHA_MAX).mul_(-a_scale)).clamp_(max=1.0)
+    dpow = t.mul_(r).mul_(ind)
+    Rs = torch.matmul(feats, dpow)  # [na, 6, k]: sums of dpow * pixel features
+    ds = torch.bmm(g4, w)  # [na, 4, k]
+    return _slot_grads(q, Rs, ds), Tlast, pc
 
 
 def _seg_end(plan: Plan, k0: int, K: int, rows: int) -> int:
@@ -321,14 +377,14 @@ def _seg_end(plan: Plan, k0: int, K: int, rows: int) -> int:
 
 def _chunk_ids(plan: Plan, bl: Tensor, K: int, n: int):
     """Gaussian id of every (block, k) slot of a chunk ([nb, K], padding -> n) and the
-    block centres [nb, 1, 2]."""
+    block centres [nb, 2]."""
     ar = torch.arange(K, device=bl.device)
     pos = (plan.block_start[bl][:, None] + ar).clamp_max(max(plan.n_pairs - 1, 0))
     gid = torch.where(ar < plan.block_count[bl][:, None], plan.pair_gid.index_select(0, pos.reshape(-1)).view_as(pos), n)
     b = plan.block
     cx = (bl % plan.nbx) * b + b / 2
     cy = torch.div(bl, plan.nbx, rounding_mode="floor") * b + b / 2
-    return gid, torch.stack([cx, cy], -1)[:, None, :]
+    return gid, torch.stack([cx, cy], -1)
 
 
 def _rowsel(x: Tensor, act: Tensor | None) -> Tensor:
@@ -345,32 +401,23 @@ def _terminate(act: Tensor | None, Tc: Tensor, more: Tensor, *carry: Tensor):
     return act, Tc[alive], tuple(x[alive] for x in carry)
 
 
-def _segment(plan: Plan, gs: _Gauss, featsT: Tensor, c: _Consts, gid: Tensor, centre: Tensor, bl: Tensor,
-             act: Tensor | None, Tc: Tensor | None, k0: int, K: int):
-    """The segment of a chunk's slots from k0 (to k1, `_seg_end`) in the blocks still active
-    (`act`, None: all of `bl`), entered with transmittance `Tc`: its slots, alphas, 1 - alphas
-    and transmittances, as forward blends them and backward computes them again."""
-    k1 = _seg_end(plan, k0, K, len(bl) if act is None else len(act))
-    sl = _Slots(gs, _rowsel(gid, act)[:, k0:k1], _rowsel(centre, act))
-    a = _alpha(sl.coef2, featsT, c)
-    om, U = _transmittance(a, Tc, c)
-    return k1, sl, a, om, U
-
-
-def _weight(a: Tensor, om: Tensor, U: Tensor) -> Tensor:  # [na, P, k] each
-    return a.div_(om).mul_(U)  # alpha T_before; 0 where not blended
-
-
-def _median_weight(a: Tensor, om: Tensor, U: Tensor) -> Tensor:  # [na, P, k] each
-    """1 at the slot where transmittance crosses 0.5 (T_before > 0.5 >= T_after), else 0."""
-    return ((U > 0.5 * om) & (U <= 0.5)).to(a.dtype)
+def _seg_median(geo: Tensor, cz: Tensor, gid: Tensor, centre: Tensor, featsT: Tensor, Tc: Tensor, a_min: float,
+                t_min: float) -> tuple[Tensor, Tensor]:
+    """`_seg_forward` with weight 1 at the slot where transmittance crosses 0.5 (T_before > 0.5 >=
+    T_after), else 0: the median depth's."""
+    p = geo.index_select(0, gid.reshape(-1)).view(*gid.shape, 6)
+    a = _alpha(_coef(p, centre)[0], featsT, a_min)
+    om, U = _transmittance(a, Tc, t_min)
+    w = ((U > 0.5 * om) & (U <= 0.5)).to(a.dtype)
+    czg = cz.index_select(0, gid.reshape(-1)).view(*gid.shape, 5)
+    return torch.bmm(czg.transpose(1, 2), w.transpose(1, 2)), U[:, :, -1].clone()
 
 
 def _blend(plan: Plan, means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor, depths: Tensor,
-           weight) -> Tensor:  # [nblocks, 5, P]: sums of weight times (r, g, b, z, 1) per pixel
-    """The forward pass over the plan's chunks and segments, each slot weighted by
-    `weight(alpha, 1 - alpha, T_after)`: blending weights for the picture, the 0.5
-    crossing for the median depth."""
+           seg=_seg_forward) -> Tensor:  # [nblocks, 5, P]: sums of weight times (r, g, b, z, 1) per pixel
+    """The forward pass over the plan's chunks and segments, each slot weighted by `seg`'s
+    weight: blending weights for the picture (`_seg_forward`), the 0.5 crossing for the
+    median depth (`_seg_median`)."""
     dt, dev = means2d.dtype, means2d.device
     N = means2d.shape[0]
     P = plan.block * plan.block
@@ -383,20 +430,19 @@ def _blend(plan: Plan, means2d: Tensor, conics: Tensor, opacities: Tensor, color
         centre = centre.to(dt)
         cnt = plan.block_count.index_select(0, bl)  # [nb] list lengths
         out = None
-        act, Tc = None, None
+        act, Tc = None, torch.ones(len(bl), P, dtype=dt, device=dev)
         k0 = nseg = 0
         while k0 < K:
-            k1, sl, a, om, U = _segment(plan, gs, featsT, c, gid, centre, bl, act, Tc, k0, K)
-            w = weight(a, om, U)
-            czg = gs.cz.index_select(0, sl.gid.reshape(-1)).view(*sl.gid.shape, 5)
-            o = torch.bmm(czg.transpose(1, 2), w.transpose(1, 2))  # [na, 5, P]
+            k1 = _seg_end(plan, k0, K, len(bl) if act is None else len(act))
+            o, Tc = seg(gs.geo, gs.cz, _rowsel(gid, act)[:, k0:k1].contiguous(), _rowsel(centre, act), featsT, Tc, c.a_min,
+                         c.t_min)
             if out is None:
                 out = o
             elif act is None:
                 out += o
             else:
                 out.index_add_(0, act, o)
-            Tc, nseg = U[:, :, -1], nseg + 1
+            nseg += 1
             if k1 < K and nseg % plan.terminate_every == 0:
                 act, Tc, _ = _terminate(act, Tc, _rowsel(cnt, act) > k1)
                 if act is not None and act.numel() == 0:
@@ -412,7 +458,7 @@ class _Composite(torch.autograd.Function):
         # planner: a Plan, or a function that builds one. A function is called again in
         # backward instead of keeping the plan alive (memory-bounded banded renders).
         plan = planner() if callable(planner) else planner
-        acc = _blend(plan, means2d, conics, opacities, colors, depths, _weight)
+        acc = _blend(plan, means2d, conics, opacities, colors, depths)
         ctx.planner = planner
         ctx.save_for_backward(means2d, conics, opacities, colors, depths, background, acc)
         return _unblock(plan, acc, background)
@@ -425,6 +471,7 @@ class _Composite(torch.autograd.Function):
         N = means2d.shape[0]
         c = _Consts(dt)
         gs = _Gauss(means2d, conics, opacities, colors, depths)
+        P = plan.block * plan.block
         feats = _feats(plan.block, dt, dev)  # [6, P]
         featsT = feats.T.contiguous()
         g4, gA = _block(plan, g_image, g_alpha, g_depth)  # [nblocks, 4, P], [nblocks, P]
@@ -440,29 +487,16 @@ class _Composite(torch.autograd.Function):
             g4b, g4tb = g4.index_select(0, bl), g4t_all.index_select(0, bl).contiguous()  # [nb, 4, P], [nb, P, 4]
             base = base_all.index_select(0, bl)  # [nb, P]
             cnt = plan.block_count.index_select(0, bl)  # [nb] list lengths
-            act, Tc, pc = None, None, None
+            act = None
+            Tc, pc = torch.ones(len(bl), P, dtype=dt, device=dev), torch.zeros(len(bl), P, dtype=dt, device=dev)
             k0 = nseg = 0
             while k0 < K:
-                k1, sl, a, om, U = _segment(plan, gs, featsT, c, gid, centre, bl, act, Tc, k0, K)
-                r = a / om
-                w = r * U
-                czt = gs.cz.index_select(0, sl.gid.reshape(-1)).view(*sl.gid.shape, 5)[..., :4].transpose(1, 2)  # [na, 4, k]
-                v = torch.bmm(_rowsel(g4tb, act), czt)  # [na, P, k]: g . (rgb, z) per slot
-                t = torch.mul(w, v).cumsum_(2)  # prefix sums of w v (this segment)
-                b0 = _rowsel(base, act)
-                off = -b0 if pc is None else pc - b0  # [na, P]: earlier segments' prefix - base
-                pc = t[:, :, -1] + (0 if pc is None else pc)
-                # d loss / d power = alpha d loss / d alpha = r (U v - (base - prefix)) for
-                # blended, unclamped alpha; 0 otherwise (indicators built without branches).
-                t += off[..., None]
-                t.addcmul_(U, v)
-                Tlast = U[:, :, -1].clone()
-                ind = torch.minimum(U.mul_(c.u_scale), a.sub_(ALPHA_MAX).mul_(-c.a_scale)).clamp_(max=1.0)
-                dpow = t.mul_(r).mul_(ind)
-                Rs = torch.matmul(feats, dpow)  # [na, 6, k]: sums of dpow * pixel features
-                ds = torch.bmm(_rowsel(g4b, act), w)  # [na, 4, k]
-                dg.index_add_(0, sl.gid.reshape(-1), sl.grads(Rs, ds).reshape(-1, 10))
-                Tc, nseg = Tlast, nseg + 1
+                k1 = _seg_end(plan, k0, K, len(bl) if act is None else len(act))
+                gid_s = _rowsel(gid, act)[:, k0:k1].contiguous()
+                dgs, Tc, pc = _seg_backward(gs.geo, gs.cz, gid_s, _rowsel(centre, act), feats, featsT, Tc, _rowsel(g4b, act),
+                                   _rowsel(g4tb, act), _rowsel(base, act), pc, c.a_min, c.t_min, c.u_scale, c.a_scale)
+                dg.index_add_(0, gid_s.reshape(-1), dgs.reshape(-1, 10))
+                nseg += 1
                 if k1 < K and nseg % plan.terminate_every == 0:
                     act, Tc, (pc,) = _terminate(act, Tc, _rowsel(cnt, act) > k1, pc)
                     if act is not None and act.numel() == 0:
@@ -540,4 +574,4 @@ def median_depth(plan: Plan, means2d: Tensor, conics: Tensor, opacities: Tensor,
     """Per pixel, the depth of the Gaussian at which transmittance falls through 0.5 (0 where
     it never does): a surface depth more stable than the blended mean (2DGS; meshing)."""
     zeros = depths.new_zeros(depths.shape[0], 3)
-    return _to_image(plan, _blend(plan, means2d, conics, opacities, zeros, depths, _median_weight))[..., 3]
+    return _to_image(plan, _blend(plan, means2d, conics, opacities, zeros, depths, _seg_median))[..., 3]
