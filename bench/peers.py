@@ -36,8 +36,9 @@ import torch
 
 from common import REPO, publish
 from scenes import workloads
+from splatcli.device import cpu_name
 from splatcli.gaussians import SH_C0
-from splatcli.render import rasterize
+from splatcli.render import kernels, rasterize
 
 OUT = REPO / "bench" / "out" / "peers"
 SOURCES = ["project_gaussians.cpp", "rasterize_gaussians.cpp", "rasterizer/gsplat-cpu/gsplat_cpu.cpp"]
@@ -89,7 +90,8 @@ def build(source: Path):
                    build_directory=str(build_dir), verbose=False)
     except Exception as exc:  # a compiler error: say it and skip
         return None, f"building the peer failed: {' '.join(str(exc).split())[:300]}"
-    return (mod, rev.stdout.strip() if rev.returncode == 0 else ""), None
+    inside = rev.returncode == 0 and (source / ".git").exists()  # not the repository around an exported tree
+    return (mod, rev.stdout.strip() if inside else ""), None
 
 
 def projection(K: torch.Tensor, width: int, height: int) -> torch.Tensor:  # [4, 4], as model.cpp builds it
@@ -144,6 +146,7 @@ def main() -> None:
     ap.add_argument("--threads", default="1,2")
     ap.add_argument("--reps", type=int, default=5)
     ap.add_argument("--only", default="", help="comma-separated workload names")
+    ap.add_argument("--compile", choices=("on", "off"), default="off", help="our rasterizer's compiled kernels")
     ap.add_argument("--no-write", action="store_true")
     ap.add_argument("--one", default="", help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -159,9 +162,14 @@ def main() -> None:
     if args.one:  # a child: one workload at one thread count, one JSON line
         wl = next(w for w in workloads([args.one]))
         torch.set_num_threads(int(args.threads))
+        kernels.set_mode(args.compile)
+        if args.compile == "on":  # compiled (or loaded from the cache) before the clock starts
+            ours_step(wl.args, wl.width, wl.height)
         print(json.dumps(time_pair(mod, wl, args.reps)), flush=True)
         return
     rows = []
+    print(f"{cpu_name()}, {os.cpu_count()} cores; OpenSplat {rev}; ours {args.compile == 'on' and 'compiled' or 'eager'}",
+          flush=True)
     load0 = os.getloadavg()[0]
     for wl in workloads([x for x in args.only.split(",") if x] or None):
         if wl.args[4].shape[1] != 1:  # the peer's path here is SH degree 0
@@ -170,7 +178,8 @@ def main() -> None:
             # Each pair in its own process: the peer crashes on some inputs, and a crash
             # must cost one row, not the run.
             r = subprocess.run([sys.executable, __file__, "--source", str(args.source), "--one", wl.name,
-                                "--threads", str(nt), "--reps", str(args.reps)], capture_output=True, text=True)
+                                "--threads", str(nt), "--reps", str(args.reps), "--compile", args.compile],
+                               capture_output=True, text=True)
             if r.returncode != 0:
                 why = f"crashed (exit {r.returncode})" if r.returncode < 0 or r.returncode > 128 else "failed"
                 print(f"{wl.name:20s} threads {nt}: the peer {why}", flush=True)
@@ -183,7 +192,8 @@ def main() -> None:
     load1 = os.getloadavg()[0]
     out = ["## Rasterizer against OpenSplat (same run)", "",
            f"Measured by `python bench/peers.py --source OpenSplat` (OpenSplat commit {rev}, its CPU rasterizer "
-           f"built here against the pip wheel's libtorch; torch {torch.__version__}), on {os.cpu_count()} cores, "
+           f"built here against the pip wheel's libtorch; torch {torch.__version__}), on {cpu_name()}, "
+           f"{os.cpu_count()} cores, ours {'with its compiled planner' if args.compile == 'on' else 'eager'}, "
            f"load average {load0:.2f} at the start and {load1:.2f} at the end. Forward+backward, medians of "
            f"{args.reps} reps after a warm-up, the two sides alternating rep by rep. The peer's CPU path blends "
            "in a wrong depth order at this commit (a strided depth view read as contiguous), so its pictures "

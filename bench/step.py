@@ -26,6 +26,7 @@ import time
 import torch
 
 from common import cpu_model, publish
+from splatcli.device import cpu_name
 from splatcli.project import Project
 from splatcli.render import kernels
 from splatcli.render.composite import choose_block, composite, estimate_pairs, make_plan
@@ -100,8 +101,13 @@ def main() -> None:
             print(f"N {n:7d}  {rows[-1][1]:>9s}  " + "  ".join(f"{k} {med[k]:.1f}" for k in STAGES)
                   + f"  total {sum(med.values()):.1f} ms", flush=True)
     load1 = os.getloadavg()[0]
+    st = kernels.status()
+    compiled = (f"compiled planner (first calls {st.compile_s:.1f} s, not in the medians)" if args.compile == "on"
+                else "eager")
+    print(f"{cpu_name()}; {compiled}; load {load0:.2f} -> {load1:.2f}", flush=True)
     out = ["## Where a training step goes", "",
-           f"Measured by `python bench/step.py {args.project} --max-size {args.max_size}` (one torch thread; medians "
+           f"Measured by `python bench/step.py {args.project} --max-size {args.max_size} --compile {args.compile}` "
+           f"on {cpu_name()}, {compiled} (one torch thread; medians "
            f"over {args.views} training views after 2 warm-ups; load average {load0:.2f} at the start, {load1:.2f} at "
            "the end). Milliseconds per stage of one training step; *pairs* are (Gaussian, block) pairs planned.", "",
            "| Gaussians | image | pairs | " + " | ".join(STAGES) + " | total |",

@@ -76,6 +76,8 @@ class Project:
     train_log_path = _at("reports", "train_log.jsonl")
     train_report_path = _at("reports", "train.json")
     process_report_path = _at("reports", "process.json")
+    profile_json_path = _at("reports", "profile.json")  # train --profile
+    profile_md_path = _at("reports", "profile.md")
     eval_json_path = _at("reports", "eval.json")
     eval_md_path = _at("reports", "eval.md")
     lock_path = _at(LOCK_NAME)

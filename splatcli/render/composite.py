@@ -36,13 +36,14 @@ Gaussians or blocks individually (the Python loops run over chunks and segments)
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from . import kernels
+from . import kernels, timing
 from .projection import TILE, Footprint
 
 ALPHA_MIN = 1.0 / 255.0  # contributions below this are skipped
@@ -141,22 +142,23 @@ def make_plan(
     assert y0 % TILE == 0
     nbx, nby = math.ceil(width / block), math.ceil((y1 - y0) / block)
     with torch.no_grad():
-        pair_gid, start, count, M = _pairs_fast(fp.gid, fp.means2d, fp.cov2d, fp.vx, fp.opacities, fp.rect, width, y0,
-                                                y1, block)
+        by, bx0, ncol, rg = _block_rows_fast(fp.means2d, fp.cov2d, fp.vx, fp.opacities, fp.rect, width, y0, y1,
+                                             block)
+        M = int(ncol.sum())  # the pair count sizes what follows: between two compiled graphs
+        pair_gid, start, count = _expand_fast(by, bx0, ncol, fp.gid.index_select(0, rg), nbx, nbx * nby, M)
         dseg, dchunk, every = device_settings(fp.gid.device)
         seg, chunk_elems = seg or dseg, chunk_elems or dchunk
         chunks = _schedule(count, block * block, chunk_elems, seg)
     return Plan(width, y1 - y0, block, nbx, nby, pair_gid, start, count, chunks, M, seg, chunk_elems, every)
 
 
-def _pairs(gid: Tensor, means2d: Tensor, cov2d: Tensor, vx: Tensor, opacities: Tensor, rect: Tensor, width: int,
-           y0: int, y1: int, block: int) -> tuple[Tensor, Tensor, Tensor, int]:
-    """make_plan's pairs from a footprint's columns: pair_gid [M] sorted by (block, depth), each
-    block's start [nblocks] and count [nblocks] in it, and M."""
-    dev = gid.device
+def _block_rows(means2d: Tensor, cov2d: Tensor, vx: Tensor, opacities: Tensor, rect: Tensor, width: int, y0: int,
+                y1: int, block: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """One entry per (Gaussian, block row) that the Gaussian reaches, from a footprint's columns:
+    the block row, the first block column, the number of block columns, and the Gaussian's
+    index in the footprint (each [R])."""
+    dev = means2d.device
     f64, i64 = torch.float64, torch.int64
-    nbx, nby = (width + block - 1) // block, (y1 - y0 + block - 1) // block
-    nblocks = nbx * nby
     # alpha >= 1/255  <=>  d^T Sigma'^-1 d <= 2 ln(255 o). Slightly generous margin:
     # the per-pixel test in the compositor is the exact one. The footprint holds the
     # rows where this is positive, in depth order.
@@ -176,9 +178,7 @@ def _pairs(gid: Tensor, means2d: Tensor, cov2d: Tensor, vx: Tensor, opacities: T
     # ellipse's rightmost point, t2, c, the pixel rows and the tile columns.
     per = torch.stack([u, v - y0, b / c, vx, torch.sqrt(t2 / a) * b, t2, c, py0.to(f64), py1.to(f64),
                        rc[:, 0].to(f64), (rc[:, 2] - 1).to(f64)])
-    # --- one entry per (Gaussian, block row) ---
-    S = gid.numel()
-    rg = torch.repeat_interleave(torch.arange(S, device=dev), nrow)
+    rg = torch.repeat_interleave(torch.arange(u.numel(), device=dev), nrow)
     R = rg.numel()
     by = (by0 - (torch.cumsum(nrow, 0) - nrow)).index_select(0, rg) + torch.arange(R, device=dev)
     ur, vr, kr, vxr, dys, t2r, cr, py0r, py1r, rx0, rx1 = per.index_select(1, rg)
@@ -194,22 +194,29 @@ def _pairs(gid: Tensor, means2d: Tensor, cov2d: Tensor, vx: Tensor, opacities: T
     bx0 = torch.div(px0, block, rounding_mode="floor")
     ncol = (torch.div(px1, block, rounding_mode="floor") - bx0 + 1).clamp_min(0)
     ncol = torch.where(px1 >= px0, ncol, torch.zeros_like(ncol))
-    # --- one entry per (Gaussian, block): expanded from per-row values ---
-    M = int(ncol.sum())  # compiled: the graph breaks here (the pair count sizes what follows)
+    return by, bx0, ncol, rg
+
+
+def _expand(by: Tensor, bx0: Tensor, ncol: Tensor, row_gid: Tensor, nbx: int, nblocks: int,
+            M: int) -> tuple[Tensor, Tensor, Tensor]:
+    """The block rows expanded to their M (Gaussian, block) pairs: pair_gid [M] sorted by (block,
+    depth), and each block's start [nblocks] and count [nblocks] in it."""
     bid = torch.repeat_interleave(by * nbx + bx0 - (torch.cumsum(ncol, 0) - ncol), ncol, output_size=M)
-    bid += torch.arange(M, device=dev)
+    bid += torch.arange(M, device=bid.device)
     # Pairs were generated in depth order: a stable sort by block alone gives
     # (block, depth) order; small integer keys sort fastest.
-    kdt = torch.int16 if nblocks < 2**15 else (torch.int32 if nblocks < 2**31 else i64)
+    kdt = torch.int16 if nblocks < 2**15 else (torch.int32 if nblocks < 2**31 else torch.int64)
     perm = torch.sort(bid.to(kdt), stable=True).indices
-    pair_gid = torch.repeat_interleave(gid.index_select(0, rg), ncol, output_size=M).index_select(0, perm)
+    pair_gid = torch.repeat_interleave(row_gid, ncol, output_size=M).index_select(0, perm)
     count = torch.bincount(bid, minlength=nblocks)
-    return pair_gid, torch.cumsum(count, 0) - count, count, M
+    return pair_gid, torch.cumsum(count, 0) - count, count
 
 
 # Compiled on the CPU when compiling is on: the same pairs (the integer bounds come from the same
-# float64 arithmetic, and the planner's 1e-6 margin dwarfs any reordering of it).
-_pairs_fast = kernels.fast(_pairs, lambda gid, *_: gid.device, lambda gid, *_: gid.numel() < 2, fullgraph=False)
+# float64 arithmetic, and the planner's 1e-6 margin dwarfs any reordering of it). One Gaussian, one
+# row or one pair stays eager: a size of 1 would compile a graph of its own.
+_block_rows_fast = kernels.fast(_block_rows, lambda m, *_: m.device, lambda m, *_: m.shape[0] < 2)
+_expand_fast = kernels.fast(_expand, lambda by, *_: by.device, lambda by, *a: by.numel() < 2 or a[-1] < 2)
 
 
 def device_settings(device: torch.device) -> tuple[int, int, int]:
@@ -465,6 +472,7 @@ class _Composite(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_image, g_alpha, g_depth):
+        t0 = time.perf_counter()
         plan: Plan = ctx.planner() if callable(ctx.planner) else ctx.planner
         means2d, conics, opacities, colors, depths, background, acc = ctx.saved_tensors
         dt, dev = means2d.dtype, means2d.device
@@ -495,7 +503,7 @@ class _Composite(torch.autograd.Function):
                 gid_s = _rowsel(gid, act)[:, k0:k1].contiguous()
                 dgs, Tc, pc = _seg_backward(gs.geo, gs.cz, gid_s, _rowsel(centre, act), feats, featsT, Tc, _rowsel(g4b, act),
                                    _rowsel(g4tb, act), _rowsel(base, act), pc, c.a_min, c.t_min, c.u_scale, c.a_scale)
-                dg.index_add_(0, gid_s.reshape(-1), dgs.reshape(-1, 10))
+                dg.index_put_((gid_s.reshape(-1),), dgs.reshape(-1, 10), accumulate=True)  # faster than index_add_ here
                 nseg += 1
                 if k1 < K and nseg % plan.terminate_every == 0:
                     act, Tc, (pc,) = _terminate(act, Tc, _rowsel(cnt, act) > k1, pc)
@@ -507,6 +515,7 @@ class _Composite(torch.autograd.Function):
         d_bg = None
         if ctx.needs_input_grad[6]:
             d_bg = (g_image * _to_image(plan, Tfin[:, None])[..., 0:1]).sum((0, 1))
+        timing.add("compositing backward", time.perf_counter() - t0)
         return None, dg[:, :2], dg[:, 2:5], d_opac, dg[:, 6:9], dg[:, 9], d_bg
 
 

@@ -31,8 +31,8 @@ import torch
 class Status:
     mode: str = "off"  # "on" or "off"
     failed: str | None = None  # why compiling was given up (every call eager since)
-    compile_s: float = 0.0  # seconds spent in first calls of new graphs (compiling, or loading from the cache)
-    graphs: int = 0  # graphs compiled or loaded
+    compile_s: float = 0.0  # seconds spent since set_mode in calls that compiled (or loaded from the cache) a graph
+    graphs: int = 0  # graphs compiled or loaded since set_mode
 
 
 _status = Status()
@@ -69,6 +69,7 @@ def set_mode(mode: str) -> Status:
     if mode not in ("on", "off"):
         raise ValueError(f"compile mode must be 'on' or 'off', got {mode!r}")
     _status.mode = mode
+    _status.compile_s, _status.graphs = 0.0, 0  # this run's figures
     if mode == "on":
         if compiler() is None:
             _status.failed = "no C++ compiler found (c++, g++ or clang++); running eagerly"
@@ -90,32 +91,35 @@ def active() -> bool:
     return _status.mode == "on" and _status.failed is None
 
 
-def fast(fn: Callable, device: Callable[..., torch.device], small: Callable[..., bool] | None = None,
-         fullgraph: bool = True) -> Callable:
-    """`fn`, run compiled while compiling is on, `device(*args)` is the CPU and `small(*args)` is
-    false; otherwise `fn` itself. `fullgraph=False` lets the compiler break the function into
-    graphs where a size depends on the data (each graph compiled, the Python between them eager)."""
+def _graphs() -> int:
+    """Graphs compiled so far in this process (torch's own count)."""
+    from torch._dynamo.utils import counters
+
+    return counters["stats"]["unique_graphs"]
+
+
+def fast(fn: Callable, device: Callable[..., torch.device], small: Callable[..., bool] | None = None) -> Callable:
+    """`fn` (one graph: no data-dependent sizes inside), run compiled while compiling is on,
+    `device(*args)` is the CPU and `small(*args)` is false; otherwise `fn` itself."""
     compiled = None
-    seen: set = set()
 
     def call(*args, **kw):
         nonlocal compiled
         if not active() or device(*args).type != "cpu" or (small is not None and small(*args)):
             return fn(*args, **kw)
         if compiled is None:
-            compiled = torch.compile(fn, dynamic=True, fullgraph=fullgraph)
-        key = tuple(x.dtype if isinstance(x, torch.Tensor) else type(x) for x in args + tuple(kw.values()))
-        if key in seen:
-            return compiled(*args, **kw)
+            compiled = torch.compile(fn, dynamic=True, fullgraph=True)
+        graphs = _graphs()
         t = time.perf_counter()
         try:
             out = compiled(*args, **kw)
         except Exception as exc:  # a compiler error, a missing header: eager from now on
             _status.failed = f"compiling failed ({type(exc).__name__}: {' '.join(str(exc).split())[:200]}); running eagerly"
             return fn(*args, **kw)
-        seen.add(key)
-        _status.compile_s += time.perf_counter() - t
-        _status.graphs += 1
+        new = _graphs() - graphs
+        if new:  # this call compiled (or loaded from the cache) a graph: its time is the compile's
+            _status.compile_s += time.perf_counter() - t
+            _status.graphs += new
         return out
 
     call.__wrapped__ = fn

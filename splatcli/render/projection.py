@@ -34,11 +34,13 @@ replaced by benign values before its rows are differentiated, so it gets exactly
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
+from . import timing
 from .sh import sh_basis, sh_basis_rows_backward
 
 TILE = 16  # pixels; a Gaussian touches only the 16x16 tiles its 3-sigma square overlaps
@@ -386,6 +388,13 @@ class _Project(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_means2d, g_conics, g_opac, g_colors, g_depths, *_):
+        t0 = time.perf_counter()
+        out = _Project._backward(ctx, g_means2d, g_conics, g_opac, g_colors, g_depths)
+        timing.add("projection backward", time.perf_counter() - t0)
+        return out
+
+    @staticmethod
+    def _backward(ctx, g_means2d, g_conics, g_opac, g_colors, g_depths):
         (sh,) = ctx.saved_tensors
         idx, keep, N, cam, deg, valid = ctx.idx, ctx.keep, ctx.N, ctx.cam, ctx.deg, ctx.valid
         need = ctx.needs_input_grad

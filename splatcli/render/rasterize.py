@@ -10,10 +10,12 @@ Forward model (3DGS, exactly): see `projection.py` (per Gaussian) and `composite
 from __future__ import annotations
 
 import math
+import time
 
 import torch
 from torch import Tensor
 
+from . import timing
 from .composite import choose_block, composite, estimate_pairs, make_plan, median_depth
 from .output import RenderOutput
 from .projection import NEAR, TILE, project
@@ -111,14 +113,21 @@ def rasterize(
     if block not in (4, 8, 16, "auto"):
         raise ValueError(f"rasterize: block must be 4, 8, 16 or 'auto', got {block!r}")
 
+    t0 = time.perf_counter()
     pr = project(means, quats, log_scales, opacity_logits, sh, viewmat, K, width, height, sh_degree, near, antialiased)
     fp = pr.footprint
+    t1 = time.perf_counter()
+    timing.add("projection", t1 - t0)
     if block == "auto":
         block = choose_block(fp.cov2d, fp.opacities, width, height)
     bands = _bands(height, estimate_pairs(fp.cov2d, fp.opacities, block))
     if len(bands) == 1:
         plan = make_plan(fp, width, height, block)
+        t2 = time.perf_counter()
+        timing.add("planning", t2 - t1)
+        timing.add("pairs", plan.n_pairs)
         image, alpha, depth = composite(plan, pr.means2d, pr.conics, pr.opacities, pr.colors, pr.depths, background)
+        timing.add("compositing", time.perf_counter() - t2)
     else:
         image, alpha, depth = _banded(pr, width, height, block, background, bands)
     return RenderOutput(image=image, alpha=alpha, depth=depth, means2d=pr.means2d, radii=pr.radii,

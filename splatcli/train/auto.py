@@ -22,6 +22,7 @@ import torch
 
 from .. import options
 from ..project import Project
+from ..render import kernels
 from ..sfm.colmap import read_project_scene
 from .config import TrainConfig
 
@@ -170,6 +171,34 @@ def choose(project: Project, given: dict[str, Any], nproc: int | None, device: t
                 out.choices.append(Choice("threads", threads, f"{free} free cores for {k} processes: "
                                           f"{threads} torch threads each (OMP_NUM_THREADS to choose)"))
     return out
+
+
+# --compile auto: compile when the run is at least this long (seconds of training). Compiling the
+# planner takes about 15 s on an empty cache and 3 s from a warm one, and saves a few per cent of
+# every step (docs/benchmarks.md, "Compiled kernels").
+COMPILE_COLD_S = 300.0
+COMPILE_WARM_S = 60.0
+COMPILE_STEPS = 3000  # a step schedule without a time budget: compile from this many steps
+
+
+def compile_mode(cfg: TrainConfig, device: torch.device) -> tuple[str, str]:
+    """--compile resolved to "on" or "off", and why (train.json)."""
+    if device.type != "cpu":
+        return "off", "the CPU path only (CUDA draws with gsplat's kernels or eagerly)"
+    if cfg.compile != "auto":
+        return cfg.compile, "--compile " + cfg.compile
+    if kernels.compiler() is None:
+        return "off", "no C++ compiler found"
+    warm = kernels.warm_cache()
+    need = COMPILE_WARM_S if warm else COMPILE_COLD_S
+    cache = "the kernels are cached" if warm else "the first run on this machine compiles"
+    if cfg.time_budget is not None:
+        if cfg.time_budget >= need:
+            return "on", f"a {cfg.time_budget:.0f} s run repays compiling ({cache})"
+        return "off", f"a {cfg.time_budget:.0f} s run is too short to repay compiling ({cache}; from {need:.0f} s)"
+    if cfg.total_steps >= COMPILE_STEPS:
+        return "on", f"{cfg.total_steps} steps repay compiling ({cache})"
+    return "off", f"{cfg.total_steps} steps are too few to repay compiling (from {COMPILE_STEPS})"
 
 
 def summary_line(chosen: Chosen, budget_s: float | None) -> str:

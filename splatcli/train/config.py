@@ -36,6 +36,7 @@ MAX_SH_DEGREE = 3
 PRESET_NAMES = ("default", "fast", "demo")
 STRATEGIES = ("default", "mcmc")  # --strategy: each is the section of its name
 MASK_MODES = ("auto", "ignore", "background", "off")  # --mask-mode (Project.mask_mode resolves them)
+COMPILE_MODES = ("auto", "on", "off")  # --compile (train/auto.compile_mode resolves auto)
 
 
 def parse_sh_degree(text: str) -> int | str:
@@ -147,12 +148,20 @@ class TrainConfig:
     log_every: int = opt(100, "One train_log.jsonl line every this many steps.", at_least=1, steps="cadence")
     checkpoint_every: int = opt(5000, "Write a checkpoint every this many steps (also at the end and on Ctrl-C).",
                                 group=OUTPUT, at_least=1, steps="cadence")
+    profile: bool = opt(False, "Write where each step's time went (projection, planning, compositing, backward, "
+                        "optimiser, densification, data), with the pairs per step, to reports/profile.json and "
+                        "profile.md.", group=OUTPUT)
     keep_checkpoints: int = opt(2, "Keep the newest this many checkpoints (each holds parameters and Adam's state).",
                                 group=OUTPUT, at_least=1)
 
     # ---- run -----------------------------------------------------------------
     max_bad_steps: int = opt(20, "Consecutive non-finite steps before the run stops (TrainingDiverged).", at_least=0)
     seed: int = opt(0, "Random seed; the same seed on CPU gives the same result.", group=RUN)
+    compile: str = opt("auto", "Compile the rasterizer's planner with torch.compile on a CPU (a C++ compiler is "
+                       "needed; kernels are kept in ~/.cache/splatcli, so only a machine's first run compiles, about "
+                       "15 s): on, off, or auto = on for runs long enough to repay it (docs/guide.md, \"Compiled "
+                       "kernels\"). The result is the same either way.", group=RUN, choices=COMPILE_MODES,
+                       parse=_lower)
     device: str = "cpu"  # the resolved device, for the record (the command line's --device is shared by commands)
     renderer: str = "torch"  # the resolved renderer (torch | gsplat), likewise from the shared --renderer
 
@@ -340,6 +349,7 @@ class TrainSummary:
     mask_mode: str = "off"  # what was done with the masks (Project.mask_mode); eval scores the same way
     chosen: list[dict[str, Any]] | None = None  # what `train` chose for options not given, and why (train/auto.py)
     quantisation: str = "8-bit"  # how psnr/ssim (the held-out log's last figures) were scored (eval/score.py)
+    compiled: dict[str, Any] | None = None  # --compile: mode, why, seconds in first calls, graphs, why it fell back
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)

@@ -234,6 +234,7 @@ def finish(project: Project, cfg: TrainConfig, state: TrainState, resumed_from: 
         mask_mode=project.mask_mode(cfg.mask_mode),
         chosen=chosen or None,
         quantisation=REPORTED,
+        compiled=state.compiled,
         **owned,
     )
     if not comm.main:

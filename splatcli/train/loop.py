@@ -26,18 +26,19 @@ from ..eval.score import REPORTED, score_image
 from ..events import EventSink, Note, Progress, Snapshot, Stage, StageDone, emit
 from ..io.checkpoint import load_checkpoint
 from ..project import Project, writer_lock
-from ..render import RenderOutput
+from ..render import RenderOutput, kernels
 from ..render.backends import rasterizer
 from ..render.weights import blending_weights
 from ..sfm.colmap import read_project_scene
 from ..strategy import Context, StepInfo
-from . import log
+from . import auto, log
 from .config import TrainConfig, TrainSummary
 from .data import TrainData, TrainView, load_train_data, subset, views_seeing
 from .distributed import Comm
 from .init import initial_gaussians
 from .loss import photometric_loss
 from .memory import check_memory, is_out_of_memory, plan_memory
+from .profile import StepProfile
 from .state import TrainState, make_strategies, means_lr, new_state, save_state, state_from_checkpoint, time_plan
 
 STAGE = "train"
@@ -113,10 +114,34 @@ def _train(project: Project, cfg: TrainConfig, device: torch.device, resume: boo
             if comm.main:
                 log.start_fresh(project, on_event)
         state.draw = rasterizer(cfg.renderer)
+        state.compiled = _compile(cfg, device, on_event if comm.main else None)
         comm.broadcast_params(state.trainable())  # identical from the first step, whatever each rank computed
         box.append(state)
         cfg = _loop(project, cfg, run, data, state, ctx, stop, on_event, comm)
     return log.finish(project, cfg, state, resumed_from, comm, chosen)
+
+
+def _compile(cfg: TrainConfig, device: torch.device, on_event: EventSink | None) -> dict[str, Any]:
+    """--compile resolved and set for this process (render/kernels.py); the record train.json keeps."""
+    mode, why = auto.compile_mode(cfg, device)
+    status = kernels.set_mode(mode)
+    if status.failed:
+        emit(on_event, Note(status.failed, "warning"))
+    elif mode == "on":
+        first = "" if kernels.warm_cache() else " (the first run on this machine compiles, about 15 s, counted in the time)"
+        emit(on_event, Note(f"compiling the rasterizer's planner for this CPU{first}; kernels kept in "
+                            f"{kernels.cache_dir()}; --compile off to skip"))
+    return {"mode": mode, "why": why}
+
+
+def _compiled_record(state: TrainState, on_event: EventSink | None) -> None:
+    """The compile's figures into the run's record; a fallback to eager said once."""
+    rec, st = state.compiled, kernels.status()
+    if rec is None or rec["mode"] != "on":
+        return
+    if st.failed and not rec.get("failed"):
+        emit(on_event, Note(st.failed, "warning"))
+    rec.update(failed=st.failed, seconds=round(st.compile_s, 2), graphs=st.graphs)
 
 
 def render_view(state: TrainState, view: TrainView, bg: Tensor, sh_degree: int) -> RenderOutput:  # bg [3]
@@ -136,6 +161,7 @@ def _loop(project: Project, base: TrainConfig, cfg: TrainConfig, data: TrainData
     emit(on_event, Stage(STAGE, total * k))
     writer = log.LogWriter(project.train_log_path, state, enabled=comm.main)
     eta = log.Eta(state, cfg)
+    prof = StepProfile(cfg.profile)
     for strategy, st in zip(state.strategies, state.splats.states):  # a resumed run: what is due now
         writer.refined(strategy.catch_up(state.splats, st, state.step))
     if _agreed_stop(comm, stop):  # signalled during setup: keep what there is (a resume starts here)
@@ -145,29 +171,29 @@ def _loop(project: Project, base: TrainConfig, cfg: TrainConfig, data: TrainData
         t0 = time.perf_counter()
         state.optimizers["means"].param_groups[0]["lr"] = means_lr(cfg, step, data.extent)
         views = [state.next_view(len(data.train)) for _ in range(k)]  # the one-process stream, dealt out
-        view = data.train[views[comm.rank]].at_scale(cfg.train_scale(step))
+        with prof.stage("data"):
+            view = data.train[views[comm.rank]].at_scale(cfg.train_scale(step))
+            target = view.target()
         with _out_of_memory(project, base, state, step, save=True, comm=comm):  # nothing is updated yet: save this state
-            out = render_view(state, view, data.background, state.active_sh_degree(step, cfg.sh_degree_interval))
+            with prof.stage("render"):
+                out = render_view(state, view, data.background, state.active_sh_degree(step, cfg.sh_degree_interval))
             info = StepInfo(out, view.camera.width, view.camera.height, combine=comm.combine_rows)
-            for strategy, st in zip(state.strategies, state.splats.states):
-                strategy.step_pre_backward(state.splats, st, step, info)
-            image, penalty = state.image_model.shade(out.image, views[comm.rank], step, cfg.iterations)
-            loss = photometric_loss(image, view.target(), cfg.lambda_dssim, view.keep) + penalty
-            loss.backward()
-        loss, stopping = comm.reduce_step(state.trainable(), loss, stop.is_set())
-        info.finite = _all_finite(loss, state)
-        if info.finite:
-            for opt in state.all_optimizers():
-                opt.step()
-            state.bad_run = 0
-        else:  # skip: never let NaN/Inf reach the parameters or the Adam moments
-            state.bad_steps += 1
-            state.bad_run += 1
-        for opt in state.all_optimizers():
-            opt.zero_grad(set_to_none=True)
+            with prof.stage("densification"):
+                for strategy, st in zip(state.strategies, state.splats.states):
+                    strategy.step_pre_backward(state.splats, st, step, info)
+            with prof.stage("loss"):
+                image, penalty = state.image_model.shade(out.image, views[comm.rank], step, cfg.iterations)
+                loss = photometric_loss(image, target, cfg.lambda_dssim, view.keep) + penalty
+            with prof.stage("backward"):
+                loss.backward()
+        with prof.stage("optimiser"):
+            loss, stopping = comm.reduce_step(state.trainable(), loss, stop.is_set())
+            info.finite = _all_finite(loss, state)
+            _optimise(state, info.finite)
         state.step = step
         state.elapsed_s += time.perf_counter() - t0
         writer.add(loss.detach() if info.finite else None)
+        _compiled_record(state, on_event if comm.main else None)
         if state.bad_run >= cfg.max_bad_steps:
             path = _save(project, base, state, comm)
             raise TrainingDiverged(
@@ -181,14 +207,17 @@ def _loop(project: Project, base: TrainConfig, cfg: TrainConfig, data: TrainData
         info.heldout = _measure(cfg, data, state, step, total, comm, force=step == cfg.iterations < total)
         fitted = _measure_fit(cfg, data, state, step, comm) if info.heldout is not None else None
         t1 = time.perf_counter()
-        with _out_of_memory(project, base, state, step, save=False, comm=comm):  # may be half edited: keep the last checkpoint
-            for strategy, st in zip(state.strategies, state.splats.states):
+        with _out_of_memory(project, base, state, step, save=False, comm=comm), prof.stage("densification"):
+            for strategy, st in zip(state.strategies, state.splats.states):  # may be half edited: keep the last checkpoint
                 writer.refined(strategy.step_post_backward(state.splats, st, step, info))
         state.elapsed_s += time.perf_counter() - t1
+        prof.step_done()
         if state.plan is not None:
+            stalled = kernels.status().compile_s  # compiling: spent from the budget, not a step's speed
             if k > 1:  # every rank plans from the same clock
-                state.elapsed_s = float(comm.mean(torch.tensor([state.elapsed_s, 1.0], dtype=torch.float64))[0])
-            planned = state.plan.replan(base, state.images, state.elapsed_s) if state.plan.due(state.elapsed_s) else None
+                state.elapsed_s, stalled = comm.mean(torch.tensor([state.elapsed_s, stalled, 1.0], dtype=torch.float64)).tolist()
+            planned = (state.plan.replan(base, state.images, state.elapsed_s, stalled)
+                       if state.plan.due(state.elapsed_s) else None)
             if planned is not None:  # the strategies' schedules follow the new plan
                 base, cfg = planned, planned.for_world(k)
                 state.strategies = make_strategies(cfg, data.extent, ctx)
@@ -208,7 +237,23 @@ def _loop(project: Project, base: TrainConfig, cfg: TrainConfig, data: TrainData
         if step % cfg.checkpoint_every == 0 or step == total:
             _save(project, base, state, comm)
     emit(on_event, StageDone(STAGE, state.elapsed_s))
+    if comm.main:
+        prof.write(project, {"nproc": k, "compile": (state.compiled or {}).get("mode", "off")})
     return base
+
+
+def _optimise(state: TrainState, finite: bool) -> None:
+    """Adam's step on every parameter when the loss and gradients are finite (else the step is
+    skipped and counted: NaN or Inf never reaches the parameters or the moments), then no gradients."""
+    if finite:
+        for opt in state.all_optimizers():
+            opt.step()
+        state.bad_run = 0
+    else:
+        state.bad_steps += 1
+        state.bad_run += 1
+    for opt in state.all_optimizers():
+        opt.zero_grad(set_to_none=True)
 
 
 def _save(project: Project, cfg: TrainConfig, state: TrainState, comm: Comm) -> Path:

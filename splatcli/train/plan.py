@@ -94,14 +94,16 @@ class TimePlan:
         nxt = self.probe_s if not self.history else self.history[-1]["elapsed_s"] + self.replan_every * self.budget_s
         return elapsed >= nxt or elapsed >= self.budget_s
 
-    def replan(self, cfg: TrainConfig, views: int, elapsed: float) -> TrainConfig | None:
+    def replan(self, cfg: TrainConfig, views: int, elapsed: float, stalled: float = 0.0) -> TrainConfig | None:
         """The schedule (one process's, in views) that ends the main steps when the budget
         is spent, at the speed of the views since the last plan; at once when it is spent
-        already. None once the main schedule is over (a fine-tune may follow)."""
+        already. None once the main schedule is over (a fine-tune may follow). `stalled`:
+        seconds of `elapsed` that were not steps' own work (compiling kernels, --compile):
+        spent from the budget, but left out of the speed."""
         if views >= cfg.iterations:
             return None
         last = self.history[-1] if self.history else {"step": 0, "elapsed_s": 0.0}
-        spent = max(elapsed - last["elapsed_s"], 1e-9)
+        spent = max(elapsed - last["elapsed_s"] - (stalled - last.get("stalled_s", 0.0)), 1e-9)
         rate = (views - last["step"]) / spent  # views per training second, recently
         # Seconds per unit of cost, from the steps since the last plan as they ran.
         unit = spent / max(float(step_costs(cfg, cfg.iterations, last["step"], views).sum()), 1e-9)
@@ -125,6 +127,7 @@ class TimePlan:
         ahead = min(iterations, ahead)
         planned = self.scaled(cfg, iterations, ahead)
         self.history.append({"step": views, "elapsed_s": round(elapsed, 3), "steps_per_s": round(rate, 3),
+                             **({"stalled_s": round(stalled, 3)} if stalled else {}),
                              "iterations": iterations,
                              **({"max_gaussians": planned.refine.max_gaussians} if self.cap is not None else {})})
         return planned

@@ -57,6 +57,7 @@ class TrainState:
     plan: TimePlan | None = None  # --time-budget
     image_model: ImageModel = field(default_factory=ImageModel)  # --appearance: between a render and its photo
     draw: Rasterizer = rasterize  # the renderer (render/backends.py): rasterize's signature and result
+    compiled: dict[str, Any] | None = None  # --compile: what was resolved, and the compile's figures (train.json)
 
     @property
     def params(self) -> dict[str, nn.Parameter]:
