@@ -5,6 +5,7 @@ eager, the auto rule, the time plan leaving compile time out of the speed, and -
 from __future__ import annotations
 
 import json
+import time
 
 import pytest
 import torch
@@ -28,6 +29,8 @@ needs_compiler = pytest.mark.skipif(kernels.compiler() is None, reason="no C++ c
 def compiled(tmp_path_factory, monkeypatch):
     """Compiling on for one test, with kernels cached where the whole session shares them."""
     monkeypatch.setenv("SPLATCLI_CACHE_DIR", str(tmp_path_factory.getbasetemp() / "cache"))
+    monkeypatch.setattr(kernels, "_status", kernels.Status())  # nothing chosen yet
+    monkeypatch.setattr(kernels, "TRIALS", 10_000)  # no choice: every other call compiled
     kernels.set_mode("on")
     yield kernels.status()
     kernels.set_mode("off")
@@ -100,6 +103,7 @@ def test_gradcheck_float64_compiled(compiled):
 
 
 def test_without_a_compiler_every_call_is_eager(monkeypatch):
+    monkeypatch.setattr(kernels, "_status", kernels.Status())
     monkeypatch.setattr(kernels, "compiler", lambda: None)
     called = []
     monkeypatch.setattr(torch, "compile", lambda *a, **k: called.append(1))
@@ -113,7 +117,6 @@ def test_without_a_compiler_every_call_is_eager(monkeypatch):
         assert called == []
     finally:
         kernels.set_mode("off")
-        kernels.status().failed = None
 
 
 def test_a_compile_that_fails_falls_back_once_with_the_same_picture(monkeypatch):
@@ -122,6 +125,7 @@ def test_a_compile_that_fails_falls_back_once_with_the_same_picture(monkeypatch)
             raise RuntimeError("C++ compile error: cannot find Python.h")
         return run
 
+    monkeypatch.setattr(kernels, "_status", kernels.Status())
     monkeypatch.setattr(torch, "compile", broken)
     monkeypatch.setattr(kernels, "compiler", lambda: "g++")
     fresh = kernels.fast(composite._block_rows, lambda m, *_: m.device)
@@ -135,7 +139,41 @@ def test_a_compile_that_fails_falls_back_once_with_the_same_picture(monkeypatch)
         torch.testing.assert_close(got, want, atol=0, rtol=0)
     finally:
         kernels.set_mode("off")
-        kernels.status().failed = None
+
+
+def test_the_faster_form_is_kept_after_taking_turns(monkeypatch):
+    """Each function runs eager and compiled by turns for TRIALS calls each (after the call that
+    compiles), then keeps the faster for the rest of the process."""
+    monkeypatch.setattr(kernels, "_status", kernels.Status())
+    monkeypatch.setattr(kernels, "compiler", lambda: "g++")
+    ran = []
+
+    def slow_compiled(fn, **_):
+        def run(*a):
+            ran.append("compiled")
+            time.sleep(0.002)
+            return fn(*a)
+        return run
+
+    monkeypatch.setattr(torch, "compile", slow_compiled)
+
+    def double(x):
+        ran.append("eager") if not ran or ran[-1] != "compiled" else None
+        return 2 * x
+
+    f = kernels.fast(double, lambda x: x.device)
+    kernels.set_mode("on")
+    try:
+        x = torch.ones(3)
+        for _ in range(2 * kernels.TRIALS + 5):
+            assert torch.equal(f(x), 2 * x)
+        kept = kernels.status().chosen["double"]
+        assert kept["kept"] == "eager" and kept["compiled_ms"] > kept["eager_ms"]
+        n = ran.count("compiled")
+        f(x)
+        assert ran.count("compiled") == n  # eager from now on
+    finally:
+        kernels.set_mode("off")
 
 
 @pytest.mark.parametrize("budget, warm, steps, mode", [(90.0, False, None, "off"), (600.0, False, None, "on"),

@@ -2,13 +2,15 @@
 
 The functions compiled here are ordinary PyTorch (the same code runs eagerly, and the tests hold
 both to `reference.py`); PyTorch's compiler (inductor) writes and builds C++ kernels from them,
-fusing the element-wise chains so that each [blocks, pixels, slots] tensor is read and written
-fewer times. Nothing here changes a result beyond float32 rounding.
+fusing their element-wise chains. Today that is the planner's pair enumeration (composite.py),
+whose compiled form gives the same pairs; what else was measured and left eager is in
+docs/benchmarks.md ("Compiled kernels").
 
     set_mode("on" | "off")   process-wide; rasterize() itself never decides (train does, by config)
-    fast(fn, device, small)  fn, compiled while the mode is on and the inputs live on the CPU;
-                             eager when `small(*args)` says the call is too small to be worth a
-                             compiled graph of its own (sizes 0 and 1 would each compile another)
+    fast(fn, device, small)  fn, compiled while the mode is on and the inputs live on the CPU, if
+                             the compiled form measures faster on this machine (the first calls
+                             take turns); eager when `small(*args)` says the call is too small to be
+                             worth a graph of its own (sizes 0 and 1 would each compile another)
 
 Compiled kernels are kept in the user's cache folder (`cache_dir()`), so only the first run on a
 machine pays for compiling (docs/guide.md, "Compiled kernels"). When no C++ compiler is found, or
@@ -21,7 +23,7 @@ import os
 import shutil
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
@@ -33,6 +35,8 @@ class Status:
     failed: str | None = None  # why compiling was given up (every call eager since)
     compile_s: float = 0.0  # seconds spent since set_mode in calls that compiled (or loaded from the cache) a graph
     graphs: int = 0  # graphs compiled or loaded since set_mode
+    chosen: dict[str, dict] = field(default_factory=dict)  # per function: the form kept, and the medians that chose it
+    trials: dict[str, dict] = field(default_factory=dict)  # per function: seconds of the calls timed so far
 
 
 _status = Status()
@@ -69,7 +73,7 @@ def set_mode(mode: str) -> Status:
     if mode not in ("on", "off"):
         raise ValueError(f"compile mode must be 'on' or 'off', got {mode!r}")
     _status.mode = mode
-    _status.compile_s, _status.graphs = 0.0, 0  # this run's figures
+    _status.compile_s, _status.graphs = 0.0, 0  # this run's figures (what was chosen stays for the process)
     if mode == "on":
         if compiler() is None:
             _status.failed = "no C++ compiler found (c++, g++ or clang++); running eagerly"
@@ -98,28 +102,48 @@ def _graphs() -> int:
     return counters["stats"]["unique_graphs"]
 
 
+# Calls of each compiled function timed eager and compiled, taking turns, before the faster one is
+# kept for the rest of the process: whether compiling pays depends on the CPU and on torch's version
+# (a 16-core Xeon with torch 2.11 ran the compiled planner slower than the eager one; docs/benchmarks.md).
+TRIALS = 5
+
+
 def fast(fn: Callable, device: Callable[..., torch.device], small: Callable[..., bool] | None = None) -> Callable:
     """`fn` (one graph: no data-dependent sizes inside), run compiled while compiling is on,
-    `device(*args)` is the CPU and `small(*args)` is false; otherwise `fn` itself."""
+    `device(*args)` is the CPU, `small(*args)` is false and the compiled form measured faster here
+    (TRIALS calls each way, taking turns, after the compiling call); otherwise `fn` itself. Both
+    forms must give the same result, so that the choice changes nothing but speed."""
     compiled = None
+    name = fn.__name__
 
     def call(*args, **kw):
         nonlocal compiled
         if not active() or device(*args).type != "cpu" or (small is not None and small(*args)):
             return fn(*args, **kw)
+        chosen = _status.chosen.get(name)
+        if chosen is not None:
+            return (compiled if chosen["kept"] == "compiled" else fn)(*args, **kw)
         if compiled is None:
             compiled = torch.compile(fn, dynamic=True, fullgraph=True)
+        trial = _status.trials.setdefault(name, {"eager": [], "compiled": []})
         graphs = _graphs()
+        way = "eager" if len(trial["eager"]) < len(trial["compiled"]) else "compiled"
         t = time.perf_counter()
         try:
-            out = compiled(*args, **kw)
+            out = (fn if way == "eager" else compiled)(*args, **kw)
         except Exception as exc:  # a compiler error, a missing header: eager from now on
             _status.failed = f"compiling failed ({type(exc).__name__}: {' '.join(str(exc).split())[:200]}); running eagerly"
             return fn(*args, **kw)
-        new = _graphs() - graphs
+        dt, new = time.perf_counter() - t, _graphs() - graphs
         if new:  # this call compiled (or loaded from the cache) a graph: its time is the compile's
-            _status.compile_s += time.perf_counter() - t
+            _status.compile_s += dt
             _status.graphs += new
+        else:
+            trial[way].append(dt)
+        if min(len(v) for v in trial.values()) >= TRIALS:
+            e, c = (1e3 * sorted(trial[k])[TRIALS // 2] for k in ("eager", "compiled"))
+            _status.chosen[name] = {"kept": "compiled" if c < e else "eager", "eager_ms": round(e, 3),
+                                    "compiled_ms": round(c, 3)}
         return out
 
     call.__wrapped__ = fn

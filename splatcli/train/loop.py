@@ -141,7 +141,7 @@ def _compiled_record(state: TrainState, on_event: EventSink | None) -> None:
         return
     if st.failed and not rec.get("failed"):
         emit(on_event, Note(st.failed, "warning"))
-    rec.update(failed=st.failed, seconds=round(st.compile_s, 2), graphs=st.graphs)
+    rec.update(failed=st.failed, seconds=round(st.compile_s, 2), graphs=st.graphs, kept=dict(st.chosen))
 
 
 def render_view(state: TrainState, view: TrainView, bg: Tensor, sh_degree: int) -> RenderOutput:  # bg [3]
