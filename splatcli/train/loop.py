@@ -166,9 +166,11 @@ def _loop(project: Project, base: TrainConfig, cfg: TrainConfig, data: TrainData
         writer.refined(strategy.catch_up(state.splats, st, state.step))
     if _agreed_stop(comm, stop):  # signalled during setup: keep what there is (a resume starts here)
         _interrupt(project, base, state, comm)
+    # seconds of training spent compiling kernels (spent from a --time-budget, but not a step's speed)
+    stalled = state.plan.history[-1].get("stalled_s", 0.0) if state.plan is not None and state.plan.history else 0.0
     while state.step < total:
         step = state.step + 1
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), kernels.status().compile_s
         state.optimizers["means"].param_groups[0]["lr"] = means_lr(cfg, step, data.extent)
         views = [state.next_view(len(data.train)) for _ in range(k)]  # the one-process stream, dealt out
         with prof.stage("data"):
@@ -192,6 +194,7 @@ def _loop(project: Project, base: TrainConfig, cfg: TrainConfig, data: TrainData
             _optimise(state, info.finite)
         state.step = step
         state.elapsed_s += time.perf_counter() - t0
+        stalled += kernels.status().compile_s - c0  # (not evaluation's compiles: evaluation is not training time)
         writer.add(loss.detach() if info.finite else None)
         _compiled_record(state, on_event if comm.main else None)
         if state.bad_run >= cfg.max_bad_steps:
@@ -213,7 +216,6 @@ def _loop(project: Project, base: TrainConfig, cfg: TrainConfig, data: TrainData
         state.elapsed_s += time.perf_counter() - t1
         prof.step_done()
         if state.plan is not None:
-            stalled = kernels.status().compile_s  # compiling: spent from the budget, not a step's speed
             if k > 1:  # every rank plans from the same clock
                 state.elapsed_s, stalled = comm.mean(torch.tensor([state.elapsed_s, stalled, 1.0], dtype=torch.float64)).tolist()
             planned = (state.plan.replan(base, state.images, state.elapsed_s, stalled)

@@ -103,7 +103,7 @@ class TimePlan:
         if views >= cfg.iterations:
             return None
         last = self.history[-1] if self.history else {"step": 0, "elapsed_s": 0.0}
-        spent = max(elapsed - last["elapsed_s"] - (stalled - last.get("stalled_s", 0.0)), 1e-9)
+        spent = max(elapsed - last["elapsed_s"] - max(stalled - last.get("stalled_s", 0.0), 0.0), 1e-9)
         rate = (views - last["step"]) / spent  # views per training second, recently
         # Seconds per unit of cost, from the steps since the last plan as they ran.
         unit = spent / max(float(step_costs(cfg, cfg.iterations, last["step"], views).sum()), 1e-9)
