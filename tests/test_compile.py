@@ -208,13 +208,15 @@ def test_a_plan_spends_compile_time_from_the_budget_but_not_from_the_speed():
 
 def test_profile_writes_where_the_time_went(tmp_path):
     proj = make_tiny_project(tmp_path / "p", trained=False)
-    train(proj.root, make_config(iterations=12, init_random_points=200, eval_every=0, profile=True), CPU)
+    train(proj.root, make_config(iterations=12, init_random_points=200, eval_every=6, profile=True), CPU)
     r = json.loads(proj.profile_json_path.read_text())
     assert r["steps"] == 12 and r["pairs_per_step"] > 0 and r["ms_per_step"] > 0 and r["cpu"]
     for stage in ("data", "projection", "planning", "compositing", "loss", "compositing backward",
                   "projection backward", "optimiser", "densification"):
         assert stage in r["stages"] and r["stages"][stage]["ms_per_step"] >= 0
     assert r["stages"]["compositing backward"]["ms_per_step"] > 0
+    # the render's own stages are of the steps' renders alone: held-out evaluation's are not in them
+    assert r["stages"]["render, other"]["ms_per_step"] >= 0 and r["stages"]["backward, other"]["ms_per_step"] >= 0
     assert abs(sum(s["share"] for s in r["stages"].values()) - 1) < 1e-3
     assert "| compositing backward |" in proj.profile_md_path.read_text()
     plain = make_tiny_project(tmp_path / "q", trained=False)

@@ -32,19 +32,20 @@ class StepProfile:
         self.enabled = enabled
         self.totals: dict[str, float] = {}
         self.steps = 0
-        if enabled:
-            timing.collect(self.totals)
 
     @contextlib.contextmanager
     def stage(self, name: str) -> Iterator[None]:
         if not self.enabled:
             yield
             return
+        if name in ("render", "backward"):  # the render's own stages, of this step's render alone (not evaluation's)
+            timing.collect(self.totals)
         t = time.perf_counter()
         try:
             yield
         finally:
             self.totals[name] = self.totals.get(name, 0.0) + time.perf_counter() - t
+            timing.collect(None)
 
     def step_done(self) -> None:
         self.steps += self.enabled
@@ -61,7 +62,6 @@ class StepProfile:
                 "pairs_per_step": round(t.get("pairs", 0.0) / n), "cpu": cpu_name(), **extra}
 
     def write(self, project: Project, extra: dict[str, Any]) -> None:
-        timing.collect(None)
         if not self.enabled:
             return
         r = self.report(extra)
