@@ -34,7 +34,6 @@ def child(name: str, reps: int, mode: str) -> dict:
     from splatcli.render import rasterize
 
     torch.set_num_threads(1)
-    first = 0.0
     if mode != "base":
         from splatcli.render import kernels
 

@@ -13,12 +13,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import re
 
 import torch
 
 from common import OUT, SPLATCLI, ensure_processed, fresh_copy, loadavg, publish, run, write_section
+from splatcli.device import cpu_name
 
 # label -> (scene, train arguments, target PSNR, budget seconds or None)
 RUNS = {
@@ -50,7 +50,7 @@ def one(label: str) -> dict:
 
 def markdown(rows: list[dict]) -> str:
     out = [SECTION, "",
-           f"Measured by `python bench/minutes.py` on {platform.machine()} ({platform.system()}), 2 CPU cores, "
+           f"Measured by `python bench/minutes.py` on {cpu_name()}, 2 CPU cores, "
            f"torch {torch.__version__}: each run is `splatcli train` on a fresh copy of the processed scene, one after "
            "the other, nothing else running. PSNR is held-out, on 8-bit renders at the trained size; *train s* are "
            "training seconds (the budget counts them), *wall s* the whole command (loading, processes starting, "

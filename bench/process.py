@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import tempfile
 import time
 from pathlib import Path
@@ -30,6 +29,7 @@ import numpy as np
 from align import PoseErrors, compare_poses
 from common import DOC, REPO, data_dir, make_scene, write_section
 from splatcli.camera import Camera
+from splatcli.device import cpu_name
 from splatcli.io.transforms import read_transforms
 from splatcli.process.run import ProcessConfig, ProcessResult, process
 from splatcli.project import Project
@@ -103,7 +103,7 @@ def main() -> None:
 
     load0 = os.getloadavg()[0]
     out = [SECTION, "", f"Measured by `python bench/process.py{' --baseline' if args.baseline else ''}` on "
-           f"{platform.machine()}, {os.cpu_count()} CPU cores shared with other jobs (load average {load0:.1f} "
+           f"{cpu_name()}, {os.cpu_count()} CPU cores shared with other jobs (load average {load0:.1f} "
            "at the start: wall times stretch with it; CPU seconds are this process's and do not). "
            "Stage columns are wall seconds.", ""]
     complete = not args.no_accuracy  # only a full run replaces the figures in the docs

@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import platform
 import statistics
 import threading
 import time
@@ -38,6 +37,7 @@ import torch
 
 from common import publish
 from scenes import Workload, workloads
+from splatcli.device import cpu_name
 from splatcli.render import rasterize
 from splatcli.render.projection import project
 from splatcli.render.reference import rasterize_reference
@@ -292,11 +292,7 @@ def main() -> None:
                      f"{diff:.1e}.")
         print(flat_line, flush=True)
     load1 = os.getloadavg()[0]
-    cpu = platform.processor() or platform.machine()
-    try:
-        cpu = next(ln.split(":", 1)[1].strip() for ln in open("/proc/cpuinfo") if ln.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
+    cpu = cpu_name()
     out = [
         SECTION,
         "",

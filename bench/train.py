@@ -35,6 +35,7 @@ import shutil
 from pathlib import Path
 
 from common import PROCESSED, SCENES, ensure_processed, fmt, fresh_copy, splatcli, write_section
+from splatcli.device import cpu_name
 from splatcli.eval.curve import read_log
 from splatcli.project import Project
 
@@ -237,7 +238,7 @@ def main() -> None:
             save_result(results_path, train_variant(scene, variant, extra, args.preset, args.iterations, args.threads,
                                                           args.resume))
     old = json.loads(results_path.read_text()) if results_path.exists() else {"results": []}
-    meta = {"machine": f"{platform.machine()} ({platform.processor() or platform.system()})",
+    meta = {"machine": f"{platform.machine()} ({cpu_name()})",
             "cores": os.cpu_count(), "shared": True, "torch": torch.__version__, "notes": args.notes}
     order = {s: i for i, s in enumerate(SCENES)}
     allres = sorted(old["results"], key=lambda r: (order.get(r["scene"], 9),

@@ -320,36 +320,46 @@ def _alpha(coef2: Tensor, featsT: Tensor, a_min: float) -> Tensor:  # [nb, P, k]
     return a.clamp_max_(ALPHA_MAX)
 
 
-def _transmittance(alpha: Tensor, Tc: Tensor, t_min: float):
-    """om = 1 - alpha; U = T after each Gaussian, zero from the first one that would
-    bring T below 1e-4 (that one and all behind it are not blended)."""
+def _transmittance(alpha: Tensor, Tc: Tensor | None, t_min: float):
+    """om = 1 - alpha; U = T after each Gaussian (Tc [na, P] the T entering, None: 1), zero
+    from the first one that would bring T below 1e-4 (that one and all behind it are not blended)."""
     om = torch.rsub(alpha, 1.0)
     U = torch.cumprod(om, 2)
-    U.mul_(Tc[..., None])
+    if Tc is not None:
+        U.mul_(Tc[..., None])
     F.threshold_(U, t_min, 0.0)
     return om, U
 
 
-def _seg_forward(geo: Tensor, cz: Tensor, gid: Tensor, centre: Tensor, featsT: Tensor, Tc: Tensor, a_min: float,
-                 t_min: float) -> tuple[Tensor, Tensor]:
-    """One segment of the forward blend: geo [N + 1, 6] and cz [N + 1, 5] (`_Gauss`), gid [na, k]
-    slot ids, centre [na, 2], featsT [P, 6], Tc [na, P] transmittance entering. Returns the
-    sums of blending weight times (r, g, b, z, 1) per pixel [na, 5, P] and T after [na, P]."""
+def _blend_weight(a: Tensor, om: Tensor, U: Tensor) -> Tensor:  # [na, P, k] each
+    return a.div_(om).mul_(U)  # alpha T_before; 0 where not blended
+
+
+def _median_weight(a: Tensor, om: Tensor, U: Tensor) -> Tensor:  # [na, P, k] each
+    """1 at the slot where transmittance crosses 0.5 (T_before > 0.5 >= T_after), else 0."""
+    return ((U > 0.5 * om) & (U <= 0.5)).to(a.dtype)
+
+
+def _seg_forward(geo: Tensor, cz: Tensor, gid: Tensor, centre: Tensor, featsT: Tensor, Tc: Tensor | None,
+                 a_min: float, t_min: float, weight=_blend_weight) -> tuple[Tensor, Tensor]:
+    """One segment of the forward pass: geo [N + 1, 6] and cz [N + 1, 5] (`_Gauss`), gid [na, k]
+    slot ids, centre [na, 2], featsT [P, 6], Tc [na, P] transmittance entering (None: 1). Returns
+    the sums of weight(alpha, 1 - alpha, T after) times (r, g, b, z, 1) per pixel [na, 5, P]
+    (blending weights for the picture, `_median_weight` for the median depth) and T after [na, P]."""
     p = geo.index_select(0, gid.reshape(-1)).view(*gid.shape, 6)  # [na, k, 6]
-    coef2, _ = _coef(p, centre)
-    a = _alpha(coef2, featsT, a_min)
+    a = _alpha(_coef(p, centre)[0], featsT, a_min)
     om, U = _transmittance(a, Tc, t_min)
-    w = a.div_(om).mul_(U)  # alpha T_before; 0 where not blended
+    w = weight(a, om, U)
     czg = cz.index_select(0, gid.reshape(-1)).view(*gid.shape, 5)
-    return torch.bmm(czg.transpose(1, 2), w.transpose(1, 2)), U[:, :, -1].clone()
+    return torch.bmm(czg.transpose(1, 2), w.transpose(1, 2)), U[:, :, -1]
 
 
-def _seg_backward(geo: Tensor, cz: Tensor, gid: Tensor, centre: Tensor, feats: Tensor, featsT: Tensor, Tc: Tensor,
-                  g4: Tensor, g4t: Tensor, base: Tensor, pc: Tensor, a_min: float, t_min: float, u_scale: float,
-                  a_scale: float) -> tuple[Tensor, Tensor, Tensor]:
+def _seg_backward(geo: Tensor, cz: Tensor, gid: Tensor, centre: Tensor, feats: Tensor, featsT: Tensor,
+                  Tc: Tensor | None, g4: Tensor, g4t: Tensor, base: Tensor, pc: Tensor | None, a_min: float,
+                  t_min: float, u_scale: float, a_scale: float) -> tuple[Tensor, Tensor, Tensor]:
     """One segment of the backward pass, alpha and T recomputed: g4 [na, 4, P] and g4t [na, P, 4]
     the image gradient of (r, g, b, z), base [na, P] (see backward), pc [na, P] the prefix sum of
-    w v over the earlier segments. Returns d(u, v, A, B, C, log o, r, g, b, z) per slot [na, k, 10],
+    w v over the earlier segments (None in the first). Returns d(u, v, A, B, C, log o, r, g, b, z) per slot [na, k, 10],
     T after [na, P] and the prefix sum after [na, P]."""
     p = geo.index_select(0, gid.reshape(-1)).view(*gid.shape, 6)
     coef2, q = _coef(p, centre)
@@ -360,8 +370,8 @@ def _seg_backward(geo: Tensor, cz: Tensor, gid: Tensor, centre: Tensor, feats: T
     czt = cz.index_select(0, gid.reshape(-1)).view(*gid.shape, 5)[..., :4].transpose(1, 2)  # [na, 4, k]
     v = torch.bmm(g4t, czt)  # [na, P, k]: g . (rgb, z) per slot
     t = torch.mul(w, v).cumsum_(2)  # prefix sums of w v (this segment)
-    off = pc - base  # [na, P]: earlier segments' prefix - base
-    pc = t[:, :, -1] + pc
+    off = -base if pc is None else pc - base  # [na, P]: earlier segments' prefix - base
+    pc = t[:, :, -1].clone() if pc is None else t[:, :, -1] + pc  # (t is edited in place below)
     # d loss / d power = alpha d loss / d alpha = r (U v - (base - prefix)) for
     # blended, unclamped alpha; 0 otherwise (indicators built without branches).
     t += off[..., None]
@@ -408,23 +418,11 @@ def _terminate(act: Tensor | None, Tc: Tensor, more: Tensor, *carry: Tensor):
     return act, Tc[alive], tuple(x[alive] for x in carry)
 
 
-def _seg_median(geo: Tensor, cz: Tensor, gid: Tensor, centre: Tensor, featsT: Tensor, Tc: Tensor, a_min: float,
-                t_min: float) -> tuple[Tensor, Tensor]:
-    """`_seg_forward` with weight 1 at the slot where transmittance crosses 0.5 (T_before > 0.5 >=
-    T_after), else 0: the median depth's."""
-    p = geo.index_select(0, gid.reshape(-1)).view(*gid.shape, 6)
-    a = _alpha(_coef(p, centre)[0], featsT, a_min)
-    om, U = _transmittance(a, Tc, t_min)
-    w = ((U > 0.5 * om) & (U <= 0.5)).to(a.dtype)
-    czg = cz.index_select(0, gid.reshape(-1)).view(*gid.shape, 5)
-    return torch.bmm(czg.transpose(1, 2), w.transpose(1, 2)), U[:, :, -1].clone()
-
-
 def _blend(plan: Plan, means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor, depths: Tensor,
-           seg=_seg_forward) -> Tensor:  # [nblocks, 5, P]: sums of weight times (r, g, b, z, 1) per pixel
-    """The forward pass over the plan's chunks and segments, each slot weighted by `seg`'s
-    weight: blending weights for the picture (`_seg_forward`), the 0.5 crossing for the
-    median depth (`_seg_median`)."""
+           weight=_blend_weight) -> Tensor:  # [nblocks, 5, P]: sums of weight times (r, g, b, z, 1) per pixel
+    """The forward pass over the plan's chunks and segments, each slot weighted by
+    `weight(alpha, 1 - alpha, T_after)`: blending weights for the picture, the 0.5
+    crossing for the median depth."""
     dt, dev = means2d.dtype, means2d.device
     N = means2d.shape[0]
     P = plan.block * plan.block
@@ -437,12 +435,12 @@ def _blend(plan: Plan, means2d: Tensor, conics: Tensor, opacities: Tensor, color
         centre = centre.to(dt)
         cnt = plan.block_count.index_select(0, bl)  # [nb] list lengths
         out = None
-        act, Tc = None, torch.ones(len(bl), P, dtype=dt, device=dev)
+        act, Tc = None, None
         k0 = nseg = 0
         while k0 < K:
             k1 = _seg_end(plan, k0, K, len(bl) if act is None else len(act))
-            o, Tc = seg(gs.geo, gs.cz, _rowsel(gid, act)[:, k0:k1].contiguous(), _rowsel(centre, act), featsT, Tc, c.a_min,
-                         c.t_min)
+            o, Tc = _seg_forward(gs.geo, gs.cz, _rowsel(gid, act)[:, k0:k1].contiguous(), _rowsel(centre, act), featsT,
+                                 Tc, c.a_min, c.t_min, weight)
             if out is None:
                 out = o
             elif act is None:
@@ -479,7 +477,6 @@ class _Composite(torch.autograd.Function):
         N = means2d.shape[0]
         c = _Consts(dt)
         gs = _Gauss(means2d, conics, opacities, colors, depths)
-        P = plan.block * plan.block
         feats = _feats(plan.block, dt, dev)  # [6, P]
         featsT = feats.T.contiguous()
         g4, gA = _block(plan, g_image, g_alpha, g_depth)  # [nblocks, 4, P], [nblocks, P]
@@ -495,8 +492,7 @@ class _Composite(torch.autograd.Function):
             g4b, g4tb = g4.index_select(0, bl), g4t_all.index_select(0, bl).contiguous()  # [nb, 4, P], [nb, P, 4]
             base = base_all.index_select(0, bl)  # [nb, P]
             cnt = plan.block_count.index_select(0, bl)  # [nb] list lengths
-            act = None
-            Tc, pc = torch.ones(len(bl), P, dtype=dt, device=dev), torch.zeros(len(bl), P, dtype=dt, device=dev)
+            act, Tc, pc = None, None, None
             k0 = nseg = 0
             while k0 < K:
                 k1 = _seg_end(plan, k0, K, len(bl) if act is None else len(act))
@@ -583,4 +579,4 @@ def median_depth(plan: Plan, means2d: Tensor, conics: Tensor, opacities: Tensor,
     """Per pixel, the depth of the Gaussian at which transmittance falls through 0.5 (0 where
     it never does): a surface depth more stable than the blended mean (2DGS; meshing)."""
     zeros = depths.new_zeros(depths.shape[0], 3)
-    return _to_image(plan, _blend(plan, means2d, conics, opacities, zeros, depths, _seg_median))[..., 3]
+    return _to_image(plan, _blend(plan, means2d, conics, opacities, zeros, depths, _median_weight))[..., 3]
