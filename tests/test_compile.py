@@ -5,6 +5,7 @@ eager, the auto rule, the time plan leaving compile time out of the speed, and -
 from __future__ import annotations
 
 import json
+import os
 import time
 
 import pytest
@@ -115,6 +116,27 @@ def test_without_a_compiler_every_call_is_eager(monkeypatch):
         kernels.set_mode("off")
         torch.testing.assert_close(out.image, rasterize(*args, 40, 30).image, atol=0, rtol=0)
         assert called == []
+    finally:
+        kernels.set_mode("off")
+
+
+def test_kernels_go_to_our_cache_unless_the_user_chose_a_folder(tmp_path, monkeypatch):
+    from torch._inductor.runtime.cache_dir_utils import default_cache_dir
+
+    monkeypatch.setattr(kernels, "_status", kernels.Status())
+    monkeypatch.setattr(kernels, "compiler", lambda: "g++")
+    monkeypatch.setenv("SPLATCLI_CACHE_DIR", str(tmp_path))
+    try:
+        for before in (None, default_cache_dir()):  # unset, or torch's default as a launcher passes it on
+            if before is None:
+                monkeypatch.delenv("TORCHINDUCTOR_CACHE_DIR", raising=False)
+            else:
+                monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", before)
+            kernels.set_mode("on")
+            assert os.environ["TORCHINDUCTOR_CACHE_DIR"] == str(tmp_path / "inductor")
+        monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "mine"))
+        kernels.set_mode("on")
+        assert os.environ["TORCHINDUCTOR_CACHE_DIR"] == str(tmp_path / "mine")
     finally:
         kernels.set_mode("off")
 

@@ -78,13 +78,24 @@ def set_mode(mode: str) -> Status:
         if compiler() is None:
             _status.failed = "no C++ compiler found (c++, g++ or clang++); running eagerly"
         else:
-            os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", str(cache_dir()))
+            _use_cache_dir()
             import torch.fx.experimental._config as fx_config
 
             # Sizes that happen to be equal in the first call must not be tied together in the graph
             # (each later mismatch would compile another one).
             fx_config.use_duck_shape = False
     return _status
+
+
+def _use_cache_dir() -> None:
+    """Point inductor at `cache_dir()`, unless the user chose a folder of their own. torch writes its
+    default (a folder in /tmp) into TORCHINDUCTOR_CACHE_DIR the first time it asks, and processes that
+    `--nproc` starts inherit it from the launcher: that value is torch's, not the user's."""
+    from torch._inductor.runtime.cache_dir_utils import default_cache_dir
+
+    now = os.environ.get("TORCHINDUCTOR_CACHE_DIR")
+    if now is None or os.path.abspath(now) == os.path.abspath(default_cache_dir()):
+        os.environ["TORCHINDUCTOR_CACHE_DIR"] = str(cache_dir())
 
 
 def status() -> Status:
