@@ -173,9 +173,9 @@ def choose(project: Project, given: dict[str, Any], nproc: int | None, device: t
     return out
 
 
-# --compile auto: compile when the run is at least this long (seconds of training). Compiling the
-# planner takes about 15 s on an empty cache and 3 s from a warm one, and saves a few per cent of
-# every step (docs/benchmarks.md, "Compiled kernels").
+# --compile auto: compile when the run is at least this long (seconds of training), so that the
+# few per cent a compiled planner saves on every step repay its first compile (the costs measured:
+# docs/benchmarks.md, "Compiled kernels").
 COMPILE_COLD_S = 300.0
 COMPILE_WARM_S = 60.0
 COMPILE_STEPS = 3000  # a step schedule without a time budget: compile from this many steps

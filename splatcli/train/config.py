@@ -159,7 +159,7 @@ class TrainConfig:
     seed: int = opt(0, "Random seed; the same seed on CPU gives the same result.", group=RUN)
     compile: str = opt("auto", "Compile the rasterizer's planner with torch.compile on a CPU (a C++ compiler is "
                        "needed; kernels are kept in ~/.cache/splatcli, so only a machine's first run compiles, about "
-                       "15 s): on, off, or auto = on for runs long enough to repay it (docs/guide.md, \"Compiled "
+                       "20 s): on, off, or auto = on for runs long enough to repay it (docs/guide.md, \"Compiled "
                        "kernels\"). The result is the same either way.", group=RUN, choices=COMPILE_MODES,
                        parse=_lower)
     device: str = "cpu"  # the resolved device, for the record (the command line's --device is shared by commands)

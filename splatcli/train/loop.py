@@ -128,7 +128,7 @@ def _compile(cfg: TrainConfig, device: torch.device, on_event: EventSink | None)
     if status.failed:
         emit(on_event, Note(status.failed, "warning"))
     elif mode == "on":
-        first = "" if kernels.warm_cache() else " (the first run on this machine compiles, about 15 s, counted in the time)"
+        first = "" if kernels.warm_cache() else " (the first run on this machine compiles, about 20 s, counted in the time)"
         emit(on_event, Note(f"compiling the rasterizer's planner for this CPU{first}; kernels kept in "
                             f"{kernels.cache_dir()}; --compile off to skip"))
     return {"mode": mode, "why": why}
