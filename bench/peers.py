@@ -39,6 +39,7 @@ from scenes import workloads
 from splatcli.device import cpu_name
 from splatcli.gaussians import SH_C0
 from splatcli.render import kernels, rasterize
+from splatcli.render.blocks import BlockTuner
 
 OUT = REPO / "bench" / "out" / "peers"
 SOURCES = ["project_gaussians.cpp", "rasterize_gaussians.cpp", "rasterizer/gsplat-cpu/gsplat_cpu.cpp"]
@@ -118,24 +119,29 @@ def peer_step(mod, args, width: int, height: int) -> None:
     img.sum().backward()
 
 
-def ours_step(args, width: int, height: int) -> None:
+def ours_step(args, width: int, height: int, block) -> None:
     a = [t.detach().clone().requires_grad_(i < 5) for i, t in enumerate(args)]
-    rasterize(*a, width, height).image.sum().backward()
+    rasterize(*a, width, height, block=block).image.sum().backward()
 
 
-def time_pair(mod, wl, reps: int) -> dict:
-    """Medians of `reps` forward+backward passes of each side, alternating, after a warm-up."""
+def time_pair(mod, wl, reps: int, block: str) -> dict:
+    """Medians of `reps` forward+backward passes of each side, alternating, after a warm-up. Ours draws
+    as `train` does (block "tuned": a BlockTuner, warmed up until it has measured every candidate
+    block) or with the cost model's block ("model")."""
+    ours = BlockTuner() if block == "tuned" else "auto"
     peer_step(mod, wl.args, wl.width, wl.height)
-    ours_step(wl.args, wl.width, wl.height)
+    for _ in range(1 + 3 * ours.samples if block == "tuned" else 1):
+        ours_step(wl.args, wl.width, wl.height, ours)
     tp, to = [], []
     for _ in range(reps):
         t = time.perf_counter()
         peer_step(mod, wl.args, wl.width, wl.height)
         tp.append(time.perf_counter() - t)
         t = time.perf_counter()
-        ours_step(wl.args, wl.width, wl.height)
+        ours_step(wl.args, wl.width, wl.height, ours)
         to.append(time.perf_counter() - t)
-    return {"peer": statistics.median(tp), "ours": statistics.median(to)}
+    used = ours.summary()["used"] if block == "tuned" else {}
+    return {"peer": statistics.median(tp), "ours": statistics.median(to), "used": used}
 
 
 def main() -> None:
@@ -147,6 +153,8 @@ def main() -> None:
     ap.add_argument("--reps", type=int, default=5)
     ap.add_argument("--only", default="", help="comma-separated workload names")
     ap.add_argument("--compile", choices=("on", "off"), default="off", help="our rasterizer's compiled kernels")
+    ap.add_argument("--block", choices=("tuned", "model"), default="tuned",
+                    help="our block size: measured as train does (tuned), or the cost model's pick")
     ap.add_argument("--no-write", action="store_true")
     ap.add_argument("--one", default="", help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -164,11 +172,12 @@ def main() -> None:
         torch.set_num_threads(int(args.threads))
         kernels.set_mode(args.compile)
         if args.compile == "on":  # compiled (or loaded from the cache) before the clock starts
-            ours_step(wl.args, wl.width, wl.height)
-        print(json.dumps(time_pair(mod, wl, args.reps)), flush=True)
+            ours_step(wl.args, wl.width, wl.height, "auto")
+        print(json.dumps(time_pair(mod, wl, args.reps, args.block)), flush=True)
         return
     rows = []
-    print(f"{cpu_name()}, {os.cpu_count()} cores; OpenSplat {rev}; ours {args.compile == 'on' and 'compiled' or 'eager'}",
+    print(f"{cpu_name()}, {os.cpu_count()} cores; OpenSplat {rev}; ours {args.compile == 'on' and 'compiled' or 'eager'}, "
+          f"block {args.block}",
           flush=True)
     load0 = os.getloadavg()[0]
     for wl in workloads([x for x in args.only.split(",") if x] or None):
@@ -178,7 +187,8 @@ def main() -> None:
             # Each pair in its own process: the peer crashes on some inputs, and a crash
             # must cost one row, not the run.
             r = subprocess.run([sys.executable, __file__, "--source", str(args.source), "--one", wl.name,
-                                "--threads", str(nt), "--reps", str(args.reps), "--compile", args.compile],
+                                "--threads", str(nt), "--reps", str(args.reps), "--compile", args.compile,
+                                "--block", args.block],
                                capture_output=True, text=True)
             if r.returncode != 0:
                 why = f"crashed (exit {r.returncode})" if r.returncode < 0 or r.returncode > 128 else "failed"
@@ -188,12 +198,13 @@ def main() -> None:
             t = json.loads(r.stdout.strip().splitlines()[-1])
             rows.append((wl.name, nt, t["peer"], t["ours"], ""))
             print(f"{wl.name:20s} threads {nt}: OpenSplat {t['peer'] * 1e3:8.1f} ms  splatcli {t['ours'] * 1e3:8.1f} ms  "
-                  f"ratio {t['peer'] / t['ours']:.2f}x", flush=True)
+                  f"ratio {t['peer'] / t['ours']:.2f}x  blocks {t.get('used')}", flush=True)
     load1 = os.getloadavg()[0]
     out = ["## Rasterizer against OpenSplat (same run)", "",
            f"Measured by `python bench/peers.py --source OpenSplat` (OpenSplat commit {rev}, its CPU rasterizer "
            f"built here against the pip wheel's libtorch; torch {torch.__version__}), on {cpu_name()}, "
-           f"{os.cpu_count()} cores, ours {'with its compiled planner' if args.compile == 'on' else 'eager'}, "
+           f"{os.cpu_count()} cores, ours {'with its compiled planner' if args.compile == 'on' else 'eager'} and "
+           f"{'the block measured as train does' if args.block == 'tuned' else 'the cost model block'}, "
            f"load average {load0:.2f} at the start and {load1:.2f} at the end. Forward+backward, medians of "
            f"{args.reps} reps after a warm-up, the two sides alternating rep by rep. The peer's CPU path blends "
            "in a wrong depth order at this commit (a strided depth view read as contiguous), so its pictures "

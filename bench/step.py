@@ -29,7 +29,8 @@ from common import cpu_model, publish
 from splatcli.device import cpu_name
 from splatcli.project import Project
 from splatcli.render import kernels
-from splatcli.render.composite import choose_block, composite, estimate_pairs, make_plan
+from splatcli.render.blocks import choose_block, estimate_pairs
+from splatcli.render.composite import composite, make_plan
 from splatcli.render.projection import project
 from splatcli.train.loss import photometric_loss
 

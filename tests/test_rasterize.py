@@ -6,6 +6,7 @@ import pytest
 import torch
 
 import splatcli
+import splatcli.render.blocks as blocks
 import splatcli.render.composite as composite
 from scenes import test_scene as make_scene
 from splatcli import RenderOutput, rasterize
@@ -208,4 +209,4 @@ def test_auto_block_follows_screen_size_not_overlap(sigma, many, expected):
     for n in (many, 10 * many):
         cov2d = torch.tensor([[sigma**2, 0.0, sigma**2]]).repeat(n, 1)
         opac = torch.full((n,), 0.9)
-        assert composite.choose_block(cov2d, opac, 1000, 1000) == expected
+        assert blocks.choose_block(cov2d, opac, 1000, 1000) == expected

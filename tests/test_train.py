@@ -31,7 +31,8 @@ from tiny_project import make_tiny_project
 CPU = torch.device("cpu")
 # Every feature inside 50 steps: SH growth, refinement, an opacity reset, a
 # checkpoint, evaluation, then --sh-degree auto, --compact and its fine-tune.
-SMALL = dict(iterations=30, init_random_points=300, max_gaussians=600, eval_every=15, log_every=10,
+# block="8": the runs here are compared bit for bit, and a measured block (--block auto) follows the clock
+SMALL = dict(block="8", iterations=30, init_random_points=300, max_gaussians=600, eval_every=15, log_every=10,
              refine_start=4, refine_every=4, opacity_reset=16, sh_degree_interval=8, checkpoint_every=10,
              grow_grad2d=2e-5)
 
@@ -179,6 +180,8 @@ def test_cli_train_json_and_resume(tmp_path):
     assert r.exit_code == 0, r.output
     out = json.loads(r.stdout)
     assert out["steps"] == 8 and out["num_gaussians"] <= 200 and out["psnr"] is not None
+    # --block auto (the default): every step drew with the block a BlockTuner measured, and the record says which
+    assert sum(out["blocks"]["used"].values()) == 8 and out["blocks"]["ns_per_cost"]
     r = CliRunner().invoke(app, ["train", str(proj.root), "--resume", "--iterations", "12", "--json", "--device", "cpu"])
     assert r.exit_code == 0, r.output
     out = json.loads(r.stdout)
@@ -190,6 +193,7 @@ def test_cli_train_json_and_resume(tmp_path):
     (["--iterations", "0"], "--iterations"),
     (["--preset", "turbo"], "--preset"),
     (["--max-gaussians", "0"], "--max-gaussians"),
+    (["--block", "5"], "--block"),
 ])
 def test_cli_bad_options_are_one_line_errors(tmp_path, args, needle):
     proj = tiny(tmp_path)

@@ -44,6 +44,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from . import kernels, timing
+from .blocks import Meter
 from .projection import TILE, Footprint
 
 ALPHA_MIN = 1.0 / 255.0  # contributions below this are skipped
@@ -78,6 +79,7 @@ class Plan:
     seg: int = SEGMENT  # K-segment length between early-termination checks
     chunk_elems: int = CHUNK_ELEMS  # dense elements per segment (segments grow as blocks terminate)
     terminate_every: int = 1  # segments between early-termination tests (each a host sync on CUDA)
+    meter: Meter | None = None  # told the compositing backward's seconds (a BlockTuner's measurement)
 
 
 def _feats(block: int, dtype: torch.dtype, device: torch.device) -> Tensor:  # [6, P]
@@ -86,38 +88,6 @@ def _feats(block: int, dtype: torch.dtype, device: torch.device) -> Tensor:  # [
     ly, lx = torch.meshgrid(i, i, indexing="ij")
     lx, ly = lx.reshape(-1), ly.reshape(-1)
     return torch.stack([torch.ones_like(lx), lx, ly, lx * lx, lx * ly, ly * ly])
-
-
-# Cost model for choosing the block size (ns per (Gaussian, block) pair and per dense
-# [pixel, pair] element, forward + backward, one CPU thread). Fitted on 2026-11-25 to
-# the fastest block of 111 views: lego at 200 and 800 px, fox at 480 and 960 px and the
-# sample scene, models from step 50 to the end, both strategies (bench: docs/benchmarks.md
-# "Block size"). 16 px blocks were never the fastest there, and the old model, which
-# favoured large blocks where many Gaussians overlap (early termination), chose them
-# on fox at 1.3-1.5x the time: a block stops only when all its pixels have saturated.
-_COST_SLOT, _COST_ELEM = 50.0, 12.0
-
-
-def choose_block(
-    cov2d: Tensor,  # [S, 3] px^2, of the Gaussians that may be drawn (a Footprint's)
-    opacities: Tensor,  # [S]
-    width: int,
-    height: int,
-) -> int:
-    """The block side (4, 8 or 16 px) that minimises a simple cost model: small blocks
-    waste fewer pixels on small Gaussians, large blocks make fewer pairs."""
-    with torch.no_grad():
-        o = opacities.detach().double()
-        cv = cov2d.detach().double()
-        t2 = 2.0 * torch.log(torch.clamp_min(o * 255.0, 1e-30))
-        ok = t2 > 0
-        if not bool(ok.any()):
-            return 8
-        cv, t2 = cv[ok], t2[ok]
-        w = (2 * torch.sqrt(t2 * cv[:, 0])).clamp_max(width)
-        h = (2 * torch.sqrt(t2 * cv[:, 2])).clamp_max(height)
-        cost = {b: float(((w / b + 1) * (h / b + 1)).sum()) * (_COST_SLOT + _COST_ELEM * b * b) for b in (4, 8, 16)}
-        return min(cost, key=cost.get)
 
 
 def make_plan(
@@ -511,7 +481,10 @@ class _Composite(torch.autograd.Function):
         d_bg = None
         if ctx.needs_input_grad[6]:
             d_bg = (g_image * _to_image(plan, Tfin[:, None])[..., 0:1]).sum((0, 1))
-        timing.add("compositing backward", time.perf_counter() - t0)
+        dt = time.perf_counter() - t0
+        timing.add("compositing backward", dt)
+        if plan.meter is not None:
+            plan.meter.add(dt, last=True)
         return None, dg[:, :2], dg[:, 2:5], d_opac, dg[:, 6:9], dg[:, 9], d_bg
 
 
@@ -545,21 +518,6 @@ def _block(plan: Plan, g_image, g_alpha, g_depth):
     gd = g_depth if g_depth is not None else z(H, W)
     g5 = _to_blocks(plan, torch.cat([gi, gd[..., None], ga[..., None]], -1))
     return g5[:, :4].contiguous(), g5[:, 4].contiguous()
-
-
-def estimate_pairs(
-    cov2d: Tensor,  # [S, 3] px^2, of the Gaussians that may be drawn (a Footprint's)
-    opacities: Tensor,  # [S]
-    block: int,
-) -> float:
-    """About how many (Gaussian, block) pairs a plan will hold (from alpha bounding boxes)."""
-    with torch.no_grad():
-        o = opacities.detach().double()
-        cv = cov2d.detach().double()
-        t2 = (2.0 * torch.log(torch.clamp_min(o * 255.0, 1e-30))).clamp_min(0)
-        w = 2 * torch.sqrt(t2 * cv[:, 0])
-        h = 2 * torch.sqrt(t2 * cv[:, 2])
-        return float(((w / block + 1) * (h / block + 1) * (t2 > 0)).sum())
 
 
 def composite(

@@ -16,7 +16,8 @@ import torch
 from torch import Tensor
 
 from . import timing
-from .composite import choose_block, composite, estimate_pairs, make_plan, median_depth
+from .blocks import BlockTuner, choose_block, estimate_pairs
+from .composite import composite, make_plan, median_depth
 from .output import RenderOutput
 from .projection import NEAR, TILE, project
 
@@ -94,15 +95,16 @@ def rasterize(
     sh_degree: int | None = None,
     near: float = 0.2,
     antialiased: bool = False,
-    block: int | str = "auto",
+    block: int | str | BlockTuner = "auto",
     check: bool = True,
 ) -> RenderOutput:
     """Render N Gaussians into a width x height image.
 
     Returns image [H, W, 3] (C + T * background), alpha [H, W] (1 - T), depth [H, W]
     (sum of blending weight times view depth), and per Gaussian means2d [N, 2] px,
-    radii [N] int32, visible [N] bool, depths [N] view z. `block` (4, 8, 16 or "auto")
-    is a speed knob only: the picture does not depend on it.
+    radii [N] int32, visible [N] bool, depths [N] view z. `block` (4, 8, 16, "auto" for
+    the cost model's pick, or a BlockTuner that measures the pick on this machine, render
+    after render: render/blocks.py) is a speed knob only: the picture does not depend on it.
     Raises ValueError naming the parameter for bad shapes or non-finite values. A caller
     that has checked the values already (the training loop checks every gradient) passes
     check=False: shapes, dtypes and devices are still checked, but not the values (finite
@@ -110,15 +112,20 @@ def rasterize(
     """
     width, height, background, sh_degree = validate(means, quats, log_scales, opacity_logits, sh, viewmat, K,
                                                     width, height, background, sh_degree, near, check)
-    if block not in (4, 8, 16, "auto"):
-        raise ValueError(f"rasterize: block must be 4, 8, 16 or 'auto', got {block!r}")
+    tuner = block if isinstance(block, BlockTuner) else None
+    if tuner is None and block not in (4, 8, 16, "auto"):
+        raise ValueError(f"rasterize: block must be 4, 8, 16, 'auto' or a BlockTuner, got {block!r}")
 
     t0 = time.perf_counter()
     pr = project(means, quats, log_scales, opacity_logits, sh, viewmat, K, width, height, sh_degree, near, antialiased)
     fp = pr.footprint
     t1 = time.perf_counter()
     timing.add("projection", t1 - t0)
-    if block == "auto":
+    meter = None
+    if tuner is not None and means.device.type == "cpu":  # timing CUDA work would need syncs
+        timed = not tuner.backward or torch.is_grad_enabled()  # else nothing will report a backward
+        block, meter = tuner.choose(fp.cov2d, fp.opacities, width, height, measure=timed)
+    elif not isinstance(block, int):
         block = choose_block(fp.cov2d, fp.opacities, width, height)
     bands = _bands(height, estimate_pairs(fp.cov2d, fp.opacities, block))
     if len(bands) == 1:
@@ -126,8 +133,13 @@ def rasterize(
         t2 = time.perf_counter()
         timing.add("planning", t2 - t1)
         timing.add("pairs", plan.n_pairs)
+        backward = meter is not None and tuner.backward
+        plan.meter = meter if backward else None
         image, alpha, depth = composite(plan, pr.means2d, pr.conics, pr.opacities, pr.colors, pr.depths, background)
-        timing.add("compositing", time.perf_counter() - t2)
+        t3 = time.perf_counter()
+        timing.add("compositing", t3 - t2)
+        if meter is not None:
+            meter.add(t3 - t1, last=not backward)
     else:
         image, alpha, depth = _banded(pr, width, height, block, background, bands)
     return RenderOutput(image=image, alpha=alpha, depth=depth, means2d=pr.means2d, radii=pr.radii,

@@ -37,6 +37,7 @@ PRESET_NAMES = ("default", "fast", "demo")
 STRATEGIES = ("default", "mcmc")  # --strategy: each is the section of its name
 MASK_MODES = ("auto", "ignore", "background", "off")  # --mask-mode (Project.mask_mode resolves them)
 COMPILE_MODES = ("auto", "on", "off")  # --compile (train/auto.compile_mode resolves auto)
+BLOCKS = ("auto", "4", "8", "16")  # --block (render/blocks.py)
 
 
 def parse_sh_degree(text: str) -> int | str:
@@ -156,12 +157,17 @@ class TrainConfig:
 
     # ---- run -----------------------------------------------------------------
     max_bad_steps: int = opt(20, "Consecutive non-finite steps before the run stops (TrainingDiverged).", at_least=0)
-    seed: int = opt(0, "Random seed; the same seed on CPU gives the same result.", group=RUN)
+    seed: int = opt(0, "Random seed; the same seed on CPU with a fixed --block gives the same result, bit for bit.",
+                    group=RUN)
     compile: str = opt("auto", "Compile the rasterizer's planner with torch.compile on a CPU (a C++ compiler is "
                        "needed; kernels are kept in ~/.cache/splatcli, so only a machine's first run compiles, about "
                        "20 s): on, off, or auto = on for runs long enough to repay it (docs/guide.md, \"Compiled "
                        "kernels\"). The result is the same either way.", group=RUN, choices=COMPILE_MODES,
                        parse=_lower)
+    block: str = opt("auto", "The PyTorch compositor's pixel block, 4, 8 or 16 px: a speed knob (the picture is the same "
+                     "up to float rounding). auto measures which is fastest on this CPU as training goes "
+                     "(docs/guide.md, \"Block size\"); a fixed size makes runs with the same seed, and resumed "
+                     "runs, equal bit for bit.", group=RUN, choices=BLOCKS, parse=_lower)
     device: str = "cpu"  # the resolved device, for the record (the command line's --device is shared by commands)
     renderer: str = "torch"  # the resolved renderer (torch | gsplat), likewise from the shared --renderer
 
@@ -350,6 +356,7 @@ class TrainSummary:
     chosen: list[dict[str, Any]] | None = None  # what `train` chose for options not given, and why (train/auto.py)
     quantisation: str = "8-bit"  # how psnr/ssim (the held-out log's last figures) were scored (eval/score.py)
     compiled: dict[str, Any] | None = None  # --compile: mode, why, seconds in first calls, graphs, why it fell back
+    blocks: dict[str, Any] | None = None  # --block auto: renders per block size, and what each measured
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)

@@ -19,6 +19,7 @@ from ..gaussians import histogram
 from ..io.atomic import append_line, atomic_write_json, atomic_write_text
 from ..io.ply import ply_bytes
 from ..project import Project
+from ..render.blocks import BlockTuner
 from ..strategy import RefineStats
 from .config import TrainConfig, TrainReport, TrainSummary
 from .distributed import Comm
@@ -235,6 +236,7 @@ def finish(project: Project, cfg: TrainConfig, state: TrainState, resumed_from: 
         chosen=chosen or None,
         quantisation=REPORTED,
         compiled=state.compiled,
+        blocks=state.block.summary() if isinstance(state.block, BlockTuner) and state.block.calls else None,
         **owned,
     )
     if not comm.main:

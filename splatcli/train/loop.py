@@ -28,6 +28,7 @@ from ..io.checkpoint import load_checkpoint
 from ..project import Project, writer_lock
 from ..render import RenderOutput, kernels
 from ..render.backends import rasterizer
+from ..render.blocks import BlockTuner
 from ..render.weights import blending_weights
 from ..sfm.colmap import read_project_scene
 from ..strategy import Context, StepInfo
@@ -114,6 +115,7 @@ def _train(project: Project, cfg: TrainConfig, device: torch.device, resume: boo
             if comm.main:
                 log.start_fresh(project, on_event)
         state.draw = rasterizer(cfg.renderer)
+        state.block = BlockTuner() if cfg.block == "auto" else int(cfg.block)
         state.compiled = _compile(cfg, device, on_event if comm.main else None)
         comm.broadcast_params(state.trainable())  # identical from the first step, whatever each rank computed
         box.append(state)
@@ -149,7 +151,7 @@ def render_view(state: TrainState, view: TrainView, bg: Tensor, sh_degree: int) 
     g = state.drawn()
     return state.draw(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh, view.viewmat, view.K,
                       view.camera.width, view.camera.height, bg, sh_degree=sh_degree, antialiased=state.antialiased,
-                      check=False)  # the loop checks every gradient for non-finite values
+                      block=state.block, check=False)  # the loop checks every gradient for non-finite values
 
 
 def _loop(project: Project, base: TrainConfig, cfg: TrainConfig, data: TrainData, state: TrainState, ctx: Context,

@@ -21,6 +21,7 @@ from ..gaussians import Gaussians
 from ..io.checkpoint import Checkpoint, save_checkpoint
 from ..render import rasterize
 from ..render.backends import Rasterizer
+from ..render.blocks import BlockTuner
 from ..strategy import (
     CompactStep,
     Context,
@@ -58,6 +59,7 @@ class TrainState:
     image_model: ImageModel = field(default_factory=ImageModel)  # --appearance: between a render and its photo
     draw: Rasterizer = rasterize  # the renderer (render/backends.py): rasterize's signature and result
     compiled: dict[str, Any] | None = None  # --compile: what was resolved, and the compile's figures (train.json)
+    block: int | BlockTuner = 8  # --block: a fixed size, or the tuner that measures one (render/blocks.py)
 
     @property
     def params(self) -> dict[str, nn.Parameter]:

@@ -1,0 +1,158 @@
+"""The compositor's block size (4, 8 or 16 px): a speed knob only, the picture does not depend on it.
+
+    choose_block(cov2d, opacities, W, H)   the cost model's pick (no state; any device)
+    tuner = BlockTuner()                   the pick measured on this machine, call by call:
+    rasterize(..., block=tuner)            (training passes one; CPU only, CUDA syncs would be needed)
+
+Which block is fastest depends on the CPU as much as on the scene: the cost model below was
+fitted on one machine, and on dense scenes another CPU runs 8 px blocks 1.1-1.3x faster than the
+4 px the model picks (docs/benchmarks.md, "Block size"). A tuner therefore corrects the model
+per block size by what it measures: each render reports the seconds its planning, compositing
+and compositing backward took, divided by the model's predicted cost for the block it used; the
+tuner picks the block whose median ratio times its predicted cost is least. It first measures
+each block the model does not rule out a few times, then keeps measuring the others now and
+then, since the model's Gaussians change as training goes on.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from . import kernels
+
+BLOCKS = (4, 8, 16)
+
+# Cost model (ns per (Gaussian, block) pair and per dense [pixel, pair] element, forward +
+# backward, one CPU thread), fitted to the fastest block of 111 training views on one machine
+# (lego at 200 and 800 px, fox at 480 and 960 px, models from step 50 to the end). 16 px blocks
+# were never the fastest there: a block stops early only when all its pixels have saturated.
+_COST_SLOT, _COST_ELEM = 50.0, 12.0
+
+
+def _extents(cov2d: Tensor, opacities: Tensor, width: int, height: int) -> tuple[Tensor, Tensor] | None:
+    """Each Gaussian's alpha >= 1/255 bounding box (w [S], h [S] px, float64), or None if none is drawn."""
+    o = opacities.detach().double()
+    cv = cov2d.detach().double()
+    t2 = 2.0 * torch.log(torch.clamp_min(o * 255.0, 1e-30))
+    ok = t2 > 0
+    if not bool(ok.any()):
+        return None
+    cv, t2 = cv[ok], t2[ok]
+    return (2 * torch.sqrt(t2 * cv[:, 0])).clamp_max(width), (2 * torch.sqrt(t2 * cv[:, 2])).clamp_max(height)
+
+
+@torch.no_grad()
+def block_costs(
+    cov2d: Tensor,  # [S, 3] px^2, of the Gaussians that may be drawn (a Footprint's)
+    opacities: Tensor,  # [S]
+    width: int,
+    height: int,
+) -> dict[int, float]:
+    """The cost model's prediction for each block size (arbitrary units; empty when nothing is drawn)."""
+    ext = _extents(cov2d, opacities, width, height)
+    if ext is None:
+        return {}
+    w, h = ext
+    return {b: float(((w / b + 1) * (h / b + 1)).sum()) * (_COST_SLOT + _COST_ELEM * b * b) for b in BLOCKS}
+
+
+def choose_block(cov2d: Tensor, opacities: Tensor, width: int, height: int) -> int:
+    """The block side (4, 8 or 16 px) that minimises the cost model: small blocks waste fewer
+    pixels on small Gaussians, large blocks make fewer pairs."""
+    cost = block_costs(cov2d, opacities, width, height)
+    return min(cost, key=cost.get) if cost else 8
+
+
+@torch.no_grad()
+def estimate_pairs(
+    cov2d: Tensor,  # [S, 3] px^2, of the Gaussians that may be drawn (a Footprint's)
+    opacities: Tensor,  # [S]
+    block: int,
+) -> float:
+    """About how many (Gaussian, block) pairs a plan will hold (from alpha bounding boxes)."""
+    o = opacities.detach().double()
+    cv = cov2d.detach().double()
+    t2 = (2.0 * torch.log(torch.clamp_min(o * 255.0, 1e-30))).clamp_min(0)
+    w = 2 * torch.sqrt(t2 * cv[:, 0])
+    h = 2 * torch.sqrt(t2 * cv[:, 2])
+    return float(((w / block + 1) * (h / block + 1) * (t2 > 0)).sum())
+
+
+class Meter:
+    """One render's block-dependent seconds (planning, compositing, and its backward when the
+    tuner waits for it), handed to the tuner when the render is complete."""
+
+    def __init__(self, tuner: BlockTuner, block: int, cost: float):
+        self.tuner, self.block, self.cost, self.seconds = tuner, block, cost, 0.0
+        self._compile_s = _compile_seconds()
+
+    def add(self, seconds: float, last: bool) -> None:
+        self.seconds += seconds
+        if last and _compile_seconds() == self._compile_s:  # a call that compiled a kernel says nothing
+            self.tuner.record(self.block, self.seconds / self.cost)
+
+
+def _compile_seconds() -> float:
+    return kernels.status().compile_s
+
+
+@dataclass
+class BlockTuner:
+    """The block size measured on this machine (module docstring). One per training run (or per
+    process); not thread-safe. `backward`: whether each render is back-propagated (training): its
+    time is then counted only once the backward has run."""
+
+    backward: bool = True
+    samples: int = 3  # measurements of each candidate block before the ratios are trusted
+    every: int = 25  # once settled, one render in `every` measures another candidate
+    spread: float = 2.5  # blocks predicted this many times costlier than the model's pick are never tried
+    warmup: int = 1  # first renders not measured (one-off allocations)
+    ratios: dict[int, deque] = field(default_factory=lambda: {b: deque(maxlen=5) for b in BLOCKS})
+    used: dict[int, int] = field(default_factory=lambda: {b: 0 for b in BLOCKS})
+    calls: int = 0
+
+    def choose(self, cov2d: Tensor, opacities: Tensor, width: int, height: int,
+               measure: bool = True) -> tuple[int, Meter | None]:
+        """The block for this render, and the meter its timed parts report to (None: not measured).
+        measure=False (a render that will not be timed, such as an evaluation inside training): the
+        best block known so far, counted nowhere."""
+        cost = block_costs(cov2d, opacities, width, height)
+        if not cost:
+            return 8, None
+        best = min(cost.values())
+        cand = [b for b in sorted(cost, key=cost.get) if cost[b] <= self.spread * best]
+        settled = all(len(self.ratios[b]) >= self.samples for b in cand)
+        ranked = sorted(cand, key=lambda b: self.ratio(b) * cost[b]) if settled else cand
+        if not measure:
+            return ranked[0], None
+        self.calls += 1
+        if self.calls <= self.warmup:
+            block, meter = cand[0], None
+        elif not settled:
+            block = next(b for b in cand if len(self.ratios[b]) < self.samples)
+            meter = Meter(self, block, cost[block])
+        else:
+            block = ranked[0]
+            if len(ranked) > 1 and self.calls % self.every == 0:  # the others, in turn, now and then
+                others = ranked[1:]
+                block = others[(self.calls // self.every) % len(others)]
+            meter = Meter(self, block, cost[block])
+        self.used[block] += 1
+        return block, meter
+
+    def ratio(self, block: int) -> float:
+        """Median measured seconds per unit of predicted cost for `block`."""
+        r = sorted(self.ratios[block])
+        return r[len(r) // 2]
+
+    def record(self, block: int, ratio: float) -> None:
+        self.ratios[block].append(ratio)
+
+    def summary(self) -> dict:
+        """What train.json keeps: renders per block, and the measured ns per unit of predicted cost."""
+        return {"used": {str(b): n for b, n in self.used.items() if n},
+                "ns_per_cost": {str(b): round(1e9 * self.ratio(b), 4) for b in BLOCKS if self.ratios[b]}}

@@ -1,0 +1,112 @@
+"""The block size measured at run time (render/blocks.py): the tuner follows what it measures,
+not the cost model, and the picture does not depend on its choice beyond float rounding."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from scenes import test_scene as make_scene
+from splatcli.render import blocks, kernels, rasterize
+from splatcli.render.blocks import BlockTuner
+
+
+def _small_gaussians(n: int = 500) -> tuple[torch.Tensor, torch.Tensor]:  # cov2d [n, 3], opacities [n]
+    """Gaussians of 3 px sigma: the cost model's pick is 4 px, with 8 and 16 px in its range."""
+    return torch.tensor([[9.0, 0.0, 9.0]]).repeat(n, 1), torch.full((n,), 0.9)
+
+
+def _drive(tuner: BlockTuner, seconds_per_cost: dict[int, float], calls: int) -> list[int]:
+    """`calls` renders whose measured time is `seconds_per_cost[block]` times the model's cost."""
+    cov2d, opac = _small_gaussians()
+    cost = blocks.block_costs(cov2d, opac, 640, 480)
+    picked = []
+    for _ in range(calls):
+        block, meter = tuner.choose(cov2d, opac, 640, 480)
+        picked.append(block)
+        if meter is not None:
+            meter.add(seconds_per_cost[block] * cost[block], last=True)
+    return picked
+
+
+def test_tuner_keeps_the_block_that_measures_fastest_not_the_models_pick():
+    cov2d, opac = _small_gaussians()
+    assert blocks.choose_block(cov2d, opac, 640, 480) == 4
+    cost = blocks.block_costs(cov2d, opac, 640, 480)
+    # 8 px blocks measure 10% faster in absolute time than the model's 4 px; 16 px slower
+    truth = {4: 1.0 / cost[4], 8: 0.9 / cost[8], 16: 1.3 / cost[16]}
+    tuner = BlockTuner(every=10)
+    picked = _drive(tuner, truth, 60)
+    assert picked[0] == 4  # the warm-up render: the model's pick, not measured
+    assert picked[1:4] == [4, 4, 4]  # then each candidate, best predicted first
+    settled = picked[1 + 3 * 3:]
+    assert settled.count(8) >= len(settled) - 6  # kept, but for a look at the others every 10th render
+    assert {4, 16} <= set(settled)  # ... which do happen
+    assert tuner.summary()["used"]["8"] == picked.count(8)
+
+
+def test_tuner_follows_a_change_of_speed():
+    """The model's Gaussians change as training goes on: the others are measured again now and then,
+    and the last five measurements of each block decide."""
+    cov2d, opac = _small_gaussians()
+    cost = blocks.block_costs(cov2d, opac, 640, 480)
+    tuner = BlockTuner(every=2)
+    _drive(tuner, {4: 1.0 / cost[4], 8: 0.8 / cost[8], 16: 2.0 / cost[16]}, 30)
+    late = _drive(tuner, {4: 0.5 / cost[4], 8: 0.8 / cost[8], 16: 2.0 / cost[16]}, 40)
+    assert late[-10:].count(4) >= 5
+
+
+def test_blocks_far_outside_the_model_are_never_tried():
+    cov2d, opac = _small_gaussians()
+    cost = blocks.block_costs(cov2d, opac, 640, 480)
+    tuner = BlockTuner(spread=1.0 + 1e-9)  # only the model's pick is within range
+    assert set(_drive(tuner, {b: 1e-9 for b in cost}, 20)) == {4}
+
+
+def test_nothing_drawn_draws_with_8px_and_measures_nothing():
+    tuner = BlockTuner()
+    block, meter = tuner.choose(torch.zeros(3, 3), torch.zeros(3), 64, 64)
+    assert (block, meter) == (8, None)
+
+
+def test_a_render_that_compiled_a_kernel_is_not_measured(monkeypatch):
+    cov2d, opac = _small_gaussians()
+    tuner = BlockTuner(warmup=0)
+    block, meter = tuner.choose(cov2d, opac, 640, 480)
+    monkeypatch.setattr(kernels.status(), "compile_s", kernels.status().compile_s + 5.0)
+    meter.add(5.0, last=True)
+    assert not tuner.ratios[block]
+
+
+@pytest.mark.parametrize("backward", [True, False])
+def test_rasterize_with_a_tuner_measures_each_render_and_draws_the_same_picture(backward):
+    torch.manual_seed(0)
+    args = make_scene(300, 96, 64, dtype=torch.float32, seed=3)
+    tuner = BlockTuner(backward=backward, warmup=0)
+    recorded = []
+    keep = tuner.record
+    tuner.record = lambda block, ratio: (recorded.append(block), keep(block, ratio))  # type: ignore[method-assign]
+    ref = rasterize(*args, 96, 64, block=8)
+    for i in range(9):
+        p = [a.clone().requires_grad_(j < 5) for j, a in enumerate(args)]
+        out = rasterize(*p, 96, 64, block=tuner)
+        # the alpha polynomial is expanded around each block's centre: float32 rounding differs by block
+        torch.testing.assert_close(out.image, ref.image, atol=2e-5, rtol=1e-4)
+        if backward:
+            out.image.sum().backward()
+        assert len(recorded) == i + 1  # every render measured, once its backward (if awaited) ran
+    assert recorded[:3] == [recorded[0]] * 3 and recorded[3] != recorded[0]  # each candidate in turn
+
+
+def test_a_tuner_without_gradients_waits_for_no_backward():
+    """Rendering under no_grad with a training tuner (evaluation mid-run) measures nothing, counts
+    nothing, and draws with the best block measured so far."""
+    args = make_scene(100, 64, 64, dtype=torch.float32, seed=1)
+    tuner = BlockTuner(warmup=0)
+    with torch.no_grad():
+        rasterize(*args, 64, 64, block=tuner)
+    assert not any(tuner.ratios.values()) and tuner.calls == 0 and not any(tuner.used.values())
+    cov2d, opac = _small_gaussians()
+    cost = blocks.block_costs(cov2d, opac, 640, 480)
+    _drive(tuner, {4: 1.0 / cost[4], 8: 0.5 / cost[8], 16: 2.0 / cost[16]}, 12)
+    assert tuner.choose(cov2d, opac, 640, 480, measure=False) == (8, None)
