@@ -477,6 +477,18 @@ def test_photos_without_exif_from_one_camera_keep_one_shared_camera(scene, tmp_p
     assert not any("kept one camera each" in t for t in r.sfm_tried)
 
 
+def test_frames_in_shooting_order_that_all_register_are_not_mapped_again_a_camera_each(scene, tmp_path):
+    """Sequential matching (frames in order) registered every image on one camera: the comparison with a
+    camera each is skipped, and the manifest's attempts say why."""
+    notes = []
+    r = process(_zoomed(scene, tmp_path / "plain", 1.0, 4), tmp_path / "p", ProcessConfig(matcher="sequential"),
+                on_event=notes.append)
+    assert len(r.cameras) == 1 and r.registered == N_VIEWS
+    assert any("every image registered in shooting order" in t for t in r.sfm_tried), r.sfm_tried
+    assert not any("cameras instead of 1" in t for t in r.sfm_tried)
+    assert any("not mapping again with a camera each" in n.message for n in notes if isinstance(n, Note))
+
+
 def test_photos_without_exif_from_two_cameras_get_a_camera_each_when_they_fail_together(scene, tmp_path):
     """The two-camera capture above stripped of its EXIF (as photo-sharing sites do): same size, so
     one shared camera first; under half register with it, so SfM maps again with a camera each."""

@@ -219,6 +219,13 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
         tried.append(f"relaxed initial-pair thresholds ({RELAXED_INIT['init_min_num_inliers']} inliers, "
                      f"{RELAXED_INIT['init_min_tri_angle']:g} degrees)")
     weak_split = False
+    if split_cameras is not None and used == "sequential" and models and models[0].num_registered == len(names):
+        # Frames in shooting order that all registered on one camera come from one camera (a video,
+        # a walk around with one phone): a second mapping with a camera each would only confirm it.
+        emit(on_event, Note(f"all {len(names)} images registered in shooting order with one camera; not mapping "
+                            "again with a camera each (--per-image-cameras asks for that)"))
+        tried.append(f"no mapping with {len(split_cameras)} cameras: every image registered in shooting order")
+        split_cameras = None
     if split_cameras is not None:
         # Photos grouped by size alone may come from several cameras. One shared camera then
         # registers badly, or (worse) registers them all with poses bent to fit one focal
