@@ -167,3 +167,27 @@ def test_json_failures_are_one_object_with_code_and_hint(monkeypatch, runner, tm
     # without --json, stdout stays empty on failure
     r = runner.invoke(app, ["train", str(tmp_path)])
     assert r.stdout == ""
+
+
+def test_off_a_terminal_a_long_stage_prints_a_line_now_and_then_with_its_eta(capsys, monkeypatch):
+    """CI and Make logs: the bars are drawn once at the end, so a long stage prints a plain line every
+    LOG_PERIOD_S (with count, elapsed time and ETA), and a quick one none."""
+    from splatcli.cli import common
+    from splatcli.events import Progress, Stage, StageDone
+
+    now = [1000.0]
+    monkeypatch.setattr(common.time, "monotonic", lambda: now[0])
+    with common.Ui().progress() as sink:
+        sink(Stage("quick", total=3))
+        sink(Progress("quick", 3, 3))
+        sink(StageDone("quick", 0.1))
+        sink(Stage("train", total=1000))
+        for step in range(1, 1001):
+            now[0] += 0.1  # 100 s in all: about ten lines
+            sink(Progress("train", step, 1000, {"loss": 0.5}))
+        sink(StageDone("train", 100.0))
+    err = capsys.readouterr().err.splitlines()
+    logged = [line for line in err if line.startswith("train: ")]
+    assert 8 <= len(logged) <= 10, err
+    assert logged[0] == "train: 100/1,000 (10%), 0:10 elapsed, ETA 1:30  loss 0.5", logged[0]
+    assert not any(line.startswith("quick: ") for line in err)

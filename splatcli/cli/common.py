@@ -10,6 +10,7 @@ import contextlib
 import json
 import math
 import sys
+import time
 from collections.abc import Iterator
 from typing import Any
 
@@ -95,6 +96,43 @@ def _fmt(v: Any) -> str:
     return str(v)
 
 
+# Off a terminal (CI, Make, a log file) the bars are drawn once, at the end; until then a long stage
+# prints one plain line at most this often, with its count, elapsed time and ETA.
+LOG_PERIOD_S = 10.0
+
+
+def _clock(seconds: float) -> str:
+    s = int(round(seconds))
+    return f"{s // 3600}:{s % 3600 // 60:02d}:{s % 60:02d}" if s >= 3600 else f"{s // 60}:{s % 60:02d}"
+
+
+class _LogLines:
+    """The plain progress lines printed off a terminal: a stage's first after LOG_PERIOD_S, then
+    one every LOG_PERIOD_S (a quick stage prints none)."""
+
+    def __init__(self, console: Console) -> None:
+        self.console = console
+        self.started: dict[str, float] = {}
+        self.last: dict[str, float] = {}
+
+    def __call__(self, ev: Event) -> None:
+        now = time.monotonic()
+        if isinstance(ev, Stage):
+            self.started[ev.name] = self.last[ev.name] = now
+        elif isinstance(ev, Progress):
+            t0 = self.started.setdefault(ev.name, now)
+            if now - self.last.setdefault(ev.name, t0) < LOG_PERIOD_S:
+                return
+            self.last[ev.name] = now
+            elapsed = now - t0
+            count = f"{ev.done:,}" + (f"/{ev.total:,} ({100 * ev.done / ev.total:.0f}%)" if ev.total else "")
+            eta = ""
+            if ev.total and 0 < ev.done < ev.total:
+                eta = f", ETA {_clock(elapsed / ev.done * (ev.total - ev.done))}"
+            info = "  ".join(f"{k} {_fmt(v)}" for k, v in ev.info.items())
+            self.console.print(escape(f"{ev.name}: {count}, {_clock(elapsed)} elapsed{eta}" + (f"  {info}" if info else "")))
+
+
 class Ui:
     """The console of one command run."""
 
@@ -128,6 +166,7 @@ class Ui:
         )
         tasks: dict[str, TaskID] = {}
         started = False
+        lines = _LogLines(self.err) if not self.err.is_terminal and not self.quiet else None
 
         def start() -> None:
             # Lazily: a command that fails on its input before any progress must
@@ -140,6 +179,8 @@ class Ui:
         def sink(ev: Event) -> None:
             if isinstance(ev, (Stage, Progress)):
                 start()
+                if lines is not None:
+                    lines(ev)
             if isinstance(ev, Stage):
                 tasks[ev.name] = bars.add_task(ev.name, total=ev.total, info="", counted=ev.total is not None)
             elif isinstance(ev, Progress):
