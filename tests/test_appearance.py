@@ -33,8 +33,8 @@ from splatcli.train.loss import photometric_loss
 from tiny_project import make_tiny_project, run_cli, tiny_gaussians
 
 CPU = torch.device("cpu")
-# block="8": the runs here are compared bit for bit, and a measured block (--block auto) follows the clock
-SMALL = dict(block="8", iterations=20, init_random_points=300, max_gaussians=600, eval_every=10, log_every=5, refine_start=4,
+# block="model": the runs here are compared bit for bit, and a measured block (--block auto) follows the clock
+SMALL = dict(block="model", iterations=20, init_random_points=300, max_gaussians=600, eval_every=10, log_every=5, refine_start=4,
              refine_every=4, opacity_reset=100, sh_degree_interval=8, checkpoint_every=10, appearance="exposure")
 
 

@@ -220,6 +220,8 @@ def test_a_plan_spends_compile_time_from_the_budget_but_not_from_the_speed():
     cfg = make_config("fast", time_budget=300.0, coarse_scale=1.0)
     plan = TimePlan.start(cfg)
     start = plan.scaled(cfg, 7000)
+    # the first plan waits for probe_s seconds of steps, whatever the compile took
+    assert plan.probe_s == 5.0 and not plan.due(6.0, stalled=4.0) and plan.due(9.0, stalled=4.0) and plan.due(5.0)
     # 50 views in 20 s, 15 of them compiling: 10 views/s, and 280 s left
     n = plan.replan(start, 50, 20.0, stalled=15.0).iterations
     assert abs(n - (50 + 10 * 280)) <= 1

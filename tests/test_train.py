@@ -31,8 +31,8 @@ from tiny_project import make_tiny_project
 CPU = torch.device("cpu")
 # Every feature inside 50 steps: SH growth, refinement, an opacity reset, a
 # checkpoint, evaluation, then --sh-degree auto, --compact and its fine-tune.
-# block="8": the runs here are compared bit for bit, and a measured block (--block auto) follows the clock
-SMALL = dict(block="8", iterations=30, init_random_points=300, max_gaussians=600, eval_every=15, log_every=10,
+# block="model": the runs here are compared bit for bit, and a measured block (--block auto) follows the clock
+SMALL = dict(block="model", iterations=30, init_random_points=300, max_gaussians=600, eval_every=15, log_every=10,
              refine_start=4, refine_every=4, opacity_reset=16, sh_degree_interval=8, checkpoint_every=10,
              grow_grad2d=2e-5)
 

@@ -115,7 +115,7 @@ def _train(project: Project, cfg: TrainConfig, device: torch.device, resume: boo
             if comm.main:
                 log.start_fresh(project, on_event)
         state.draw = rasterizer(cfg.renderer)
-        state.block = BlockTuner() if cfg.block == "auto" else int(cfg.block)
+        state.block = BlockTuner() if cfg.block == "auto" else ("auto" if cfg.block == "model" else int(cfg.block))
         state.compiled = _compile(cfg, device, on_event if comm.main else None)
         comm.broadcast_params(state.trainable())  # identical from the first step, whatever each rank computed
         box.append(state)
@@ -221,7 +221,7 @@ def _loop(project: Project, base: TrainConfig, cfg: TrainConfig, data: TrainData
             if k > 1:  # every rank plans from the same clock
                 state.elapsed_s, stalled = comm.mean(torch.tensor([state.elapsed_s, stalled, 1.0], dtype=torch.float64)).tolist()
             planned = (state.plan.replan(base, state.images, state.elapsed_s, stalled)
-                       if state.plan.due(state.elapsed_s) else None)
+                       if state.plan.due(state.elapsed_s, stalled) else None)
             if planned is not None:  # the strategies' schedules follow the new plan
                 base, cfg = planned, planned.for_world(k)
                 state.strategies = make_strategies(cfg, data.extent, ctx)

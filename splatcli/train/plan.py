@@ -90,9 +90,13 @@ class TimePlan:
         """The Gaussian budget at `step` of `cfg`: cap x the resolution's area then."""
         return max(1, round(self.cap * cfg.train_scale(step) ** 2))  # type: ignore[operator]
 
-    def due(self, elapsed: float) -> bool:
-        nxt = self.probe_s if not self.history else self.history[-1]["elapsed_s"] + self.replan_every * self.budget_s
-        return elapsed >= nxt or elapsed >= self.budget_s
+    def due(self, elapsed: float, stalled: float = 0.0) -> bool:
+        """Whether to plan now. The first plan waits for `probe_s` seconds of steps, `stalled` seconds
+        (compiling kernels) left out: a compile that filled the probe left a second or less of steps
+        to measure, and a 90 s lego run on a warm cache planned 78 steps from them."""
+        if not self.history:
+            return elapsed - stalled >= self.probe_s or elapsed >= self.budget_s
+        return elapsed >= self.history[-1]["elapsed_s"] + self.replan_every * self.budget_s or elapsed >= self.budget_s
 
     def replan(self, cfg: TrainConfig, views: int, elapsed: float, stalled: float = 0.0) -> TrainConfig | None:
         """The schedule (one process's, in views) that ends the main steps when the budget

@@ -59,7 +59,7 @@ class TrainState:
     image_model: ImageModel = field(default_factory=ImageModel)  # --appearance: between a render and its photo
     draw: Rasterizer = rasterize  # the renderer (render/backends.py): rasterize's signature and result
     compiled: dict[str, Any] | None = None  # --compile: what was resolved, and the compile's figures (train.json)
-    block: int | BlockTuner = 8  # --block: a fixed size, or the tuner that measures one (render/blocks.py)
+    block: int | str | BlockTuner = "auto"  # --block: rasterize's block= (a size, "auto": the cost model's, or a tuner)
 
     @property
     def params(self) -> dict[str, nn.Parameter]:
