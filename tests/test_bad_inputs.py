@@ -473,7 +473,7 @@ def fake_sfm(monkeypatch):
     calls = []
 
     def run_sfm(image_dir, names, work, opts, *, cameras, min_side, where, split_cameras=None, on_event=None,
-                mask_dir=None):
+                mask_dir=None, features_ready=False, on_features=None):
         calls.append(list(names))
         cams = ring_cameras(len(names))
         specs = []

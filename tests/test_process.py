@@ -117,6 +117,40 @@ def test_rerun_needs_overwrite_and_interrupts_leave_the_project_alone(processed,
     assert not (tmp_path / "new").exists()
 
 
+def test_a_run_interrupted_while_mapping_keeps_its_features_and_matches_for_the_next(scene, tmp_path, monkeypatch):
+    """Interrupted at mapping: the next `process` of the same photos extracts and matches nothing again,
+    and says so; then `--overwrite` with other mapping options starts from the project's own database."""
+    from splatcli.sfm import colmap, reconstruct
+
+    src, out = _zoomed(scene, tmp_path / "photos", 1.0, 4), tmp_path / "p"
+    real_map = reconstruct._map
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(reconstruct, "_map", interrupted)
+    notes = []
+    with pytest.raises(KeyboardInterrupt):
+        process(src, out, on_event=notes.append)
+    assert (out / ".sfm-cache" / "database.db").is_file() and not (out / ".process-tmp").exists()
+    assert any("features and matches kept" in n.message for n in notes if isinstance(n, Note))
+    monkeypatch.setattr(reconstruct, "_map", real_map)
+    work = {"extract": 0}  # (matching runs, and COLMAP skips the pairs the database holds: 1.7 s against 0.05 s)
+    real_extract = colmap.extract_features
+    monkeypatch.setattr(colmap, "extract_features", lambda *a, **k: (work.__setitem__("extract", 1), real_extract(*a, **k)))
+    notes = []
+    r = process(src, out, on_event=notes.append)
+    assert r.registered == N_VIEWS and work["extract"] == 0
+    assert any("reusing the features and matches of an interrupted run" in n.message
+               for n in notes if isinstance(n, Note))
+    assert r.sfm_tried[0] == "features and matches reused from an interrupted run"  # in the manifest too
+    assert not (out / ".sfm-cache").exists() and (out / "sfm" / "features.key").is_file()
+    notes = []
+    r = process(src, out, ProcessConfig(overwrite=True, matcher="sequential"), on_event=notes.append)
+    assert r.registered == N_VIEWS and work["extract"] == 0
+    assert any("of the project's last run" in n.message for n in notes if isinstance(n, Note))
+
+
 def test_stale_temp_folder_and_database_do_not_poison_a_rerun(tmp_path):
     """A run killed mid-way leaves PROJECT/.process-tmp and an unfinished manifest."""
     from test_import import make_workspace

@@ -9,7 +9,8 @@ from ..errors import SplatError
 from ..events import Stages
 from ..io.images import IMAGE_EXTS, StagedImage, fit_size, list_folder
 from ..project import Project
-from ..sfm.reconstruct import SfmOptions, run_sfm
+from ..sfm.reconstruct import UPSAMPLED, SfmOptions, octave, run_sfm
+from . import features
 from .cameras import group_cameras
 from .config import MIN_IMAGES, ProcessConfig, sift_max_size
 from .dataset import Dataset, finish_model, refuse_if_strict, stage_images
@@ -117,10 +118,20 @@ def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
     )
     sift_side = min(min(fit_size(w, h, max_size)) for w, h in sizes)  # smallest side SIFT will see
     split = grouping.split() if cfg.cameras == "auto" else None
-    res = run_sfm(work / "input", names, work, sfm_opts, cameras=[g.names for g in grouping.groups],
+    mask_dir = work / MASKS_DIR if mask_source else None
+    cameras = [g.names for g in grouping.groups]
+    key = features.features_key(work / "input", names, mask_dir, {
+        "max_image_size": max_size, "max_features": cfg.max_features, "octave": octave(sfm_opts, sift_side),
+        "camera_model": cfg.camera_model, "cameras": cameras})
+    found = features.reuse(stage.parent, work, key)
+    if found:
+        run.note(f"reusing the features and matches of {found} (the same photos and feature options)")
+    res = run_sfm(work / "input", names, work, sfm_opts, cameras=cameras,
                   split_cameras=[g.names for g in split.groups] if split else None, min_side=sift_side,
-                  where=spec.images_dir or spec.path, on_event=run.sink,
-                  mask_dir=work / MASKS_DIR if mask_source else None)
+                  where=spec.images_dir or spec.path, on_event=run.sink, mask_dir=mask_dir,
+                  features_ready=found is not None, on_features=lambda: features.mark(work, key))
+    if found:
+        res.tried.insert(0, f"features and matches reused from {found}")
     for k, v in res.seconds.items():
         run.seconds[k] = run.seconds.get(k, 0.0) + v
     if split is not None and res.cameras == [g.names for g in split.groups]:
@@ -134,6 +145,9 @@ def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
                  "little or be too blurry", "warning")
     st.sfm_dir.mkdir(parents=True, exist_ok=True)
     os.replace(work / "database.db", st.database_path)
+    if (work / features.KEY_FILE).is_file() and not any(t == UPSAMPLED for t in res.tried):
+        # (a database remade on the upsampled octave is not what the key's options make)
+        os.replace(work / features.KEY_FILE, st.sfm_dir / features.KEY_FILE)
     if mask_source == "alpha" and not any(s.has_alpha for s in staged if s.name in set(model.registered_names())):
         mask_source = None
     undistorted = finish_model(model, st, work, cfg, run, masks=mask_source)

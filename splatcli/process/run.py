@@ -34,9 +34,11 @@ from ..errors import Interrupted, ProjectBusy, SplatError
 from ..events import EventSink, Stages
 from ..project import LOCK_NAME, Project, is_project, writer_lock
 from ..sfm import colmap
+from . import features
 from .capture import from_capture
 from .config import ProcessConfig, ProcessResult, check_config
 from .detect import InputSpec, detect_input
+from .features import CACHE_DIR
 from .llff import from_llff
 from .publish import publish
 from .transforms import from_transforms
@@ -54,7 +56,7 @@ def _check_output(root: Path, spec: InputSpec, overwrite: bool) -> None:
         q = Path(os.path.abspath(p))
         if q == r or r in q.parents:
             raise SplatError(f"{root}: the output folder holds the input ({p}); choose another -o")
-    if not root.is_dir() or not any(p.name not in (STAGE_DIR, LOCK_NAME) for p in root.iterdir()):
+    if not root.is_dir() or not any(p.name not in (STAGE_DIR, LOCK_NAME, CACHE_DIR) for p in root.iterdir()):
         return
     if not is_project(root):
         if not overwrite:
@@ -121,7 +123,7 @@ def _process(spec: InputSpec, root: Path, cfg: ProcessConfig, background: tuple[
     except ProjectBusy:  # another process is writing there: its folder is not ours to remove
         raise
     except BaseException:
-        if created:
+        if created and not (root / CACHE_DIR).is_dir():  # (features kept for the next run stay)
             shutil.rmtree(root, ignore_errors=True)
         raise
 
@@ -142,6 +144,9 @@ def _stage_and_publish(spec: InputSpec, root: Path, stage: Path, cfg: ProcessCon
             ds = from_transforms(spec, stage, cfg, background, run)
         result = publish(root, stage, spec, cfg, ds, run, t_start)
     except BaseException as exc:
+        if isinstance(exc, (Interrupted, KeyboardInterrupt)) and features.keep(root, stage / "work"):
+            run.note(f"features and matches kept in {root / CACHE_DIR}: the next process of these photos "
+                     "starts from them")
         shutil.rmtree(stage, ignore_errors=True)
         if isinstance(exc, OSError):  # disk full, permissions: the user's to fix, not a bug
             raise SplatError(f"{exc.filename or root}: {exc.strerror or exc}") from exc

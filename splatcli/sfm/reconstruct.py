@@ -145,6 +145,7 @@ FOCAL_SPREAD = 1.15
 # mapping left over 10% of the images out (not for a few blurry frames of a video): upsampling
 # larger images costs much and is rarely needed.
 UPSAMPLE_BELOW = 1000
+UPSAMPLED = "SIFT again on the upsampled octave"  # its line in `tried` (" (...: not kept)" added when not kept)
 
 
 def _focal_spread(focals: dict[str, float], cameras: list[list[str]], split: list[list[str]]) -> float:
@@ -163,7 +164,8 @@ def _focal_spread(focals: dict[str, float], cameras: list[list[str]], split: lis
 
 def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions, *,
             cameras: list[list[str]], min_side: int, where: Path, split_cameras: list[list[str]] | None = None,
-            on_event: EventSink | None = None, mask_dir: Path | None = None) -> SfmResult:
+            on_event: EventSink | None = None, mask_dir: Path | None = None, features_ready: bool = False,
+            on_features: Callable[[], None] | None = None) -> SfmResult:
     """Extract, match and map `names` (files in `image_dir`).
 
     `cameras` groups the names into cameras (one camera per group: process/cameras.py);
@@ -172,8 +174,10 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
     come from several);
     `min_side` is the smallest image side SIFT sees (chooses the octave); `mask_dir`
     holds a mask for every image, `<name>.png` (0: no features there); `where`
-    names the input in error messages. Raises SplatError (with the likely
-    cause) when no model comes out."""
+    names the input in error messages; `features_ready`: work_dir/database.db holds every image's
+    features already (an earlier run's, with its matches: only new pairs are matched);
+    `on_features`: called once the database holds every image's features. Raises SplatError
+    (with the likely cause) when no model comes out."""
     clock = Stages(on_event)
     names = sorted(names, key=natural_key)
     work_dir.mkdir(parents=True, exist_ok=True)
@@ -181,8 +185,14 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
     cameras0 = cameras
 
     # -- features
-    kp_median = _extract(db, image_dir, names, opts, min_side, clock, mask_dir,
-                         lambda: colmap.create_database(db, image_dir, cameras, camera_model=opts.camera_model))
+    if features_ready:
+        stats = colmap.database_stats(db)
+        kp_median = float(statistics.median(stats.keypoints.values())) if stats.keypoints else 0.0
+    else:
+        kp_median = _extract(db, image_dir, names, opts, min_side, clock, mask_dir,
+                             lambda: colmap.create_database(db, image_dir, cameras, camera_model=opts.camera_model))
+    if on_features is not None:
+        on_features()
 
     # -- matching
     matcher = _choose_matcher(opts, names)
@@ -260,7 +270,7 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
             emit(on_event, Note(f"a second pass registered {more[0].num_registered - before} more image(s)"))
             models = more
     n_best = models[0].num_registered if models else 0
-    if _octave(opts, min_side) == 0 and min_side < UPSAMPLE_BELOW and (weak_split or n_best < 0.9 * len(names)):
+    if octave(opts, min_side) == 0 and min_side < UPSAMPLE_BELOW and (weak_split or n_best < 0.9 * len(names)):
         # Too few features, perhaps: a camera each needs more to calibrate than a shared one
         # (10 real photos from different cameras, 640x640: it registered 4 where the shared
         # camera bent all 10 to one focal length). SIFT again on COLMAP's upsampled octave.
@@ -273,7 +283,7 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
                             on_event=on_event, mask_dir=mask_dir)
         except SplatError:
             again = None
-        tried.append("SIFT again on the upsampled octave")
+        tried.append(UPSAMPLED)
         if again is not None and again.model.num_registered >= n_best:
             (work_dir / "upsampled" / "database.db").replace(db)
             again.tried[:0] = tried
@@ -343,7 +353,7 @@ def _extract(db: Path, image_dir: Path, names: list[str], opts: SfmOptions, min_
     "extract features" stage; the median keypoint count per image. `min_side`, the smallest
     image side SIFT sees, chooses the octave when `opts` leaves it open."""
     sift = SiftOptions(max_image_size=opts.max_image_size, max_num_features=opts.max_features,
-                       first_octave=_octave(opts, min_side), num_threads=opts.num_threads)
+                       first_octave=octave(opts, min_side), num_threads=opts.num_threads)
     with clock.stage("extract features", len(names)) as st:
         create()
         for i in range(0, len(names), opts.chunk):
@@ -353,7 +363,7 @@ def _extract(db: Path, image_dir: Path, names: list[str], opts: SfmOptions, min_
     return float(statistics.median(stats.keypoints.values())) if stats.keypoints else 0.0
 
 
-def _octave(opts: SfmOptions, min_side: int) -> int:
+def octave(opts: SfmOptions, min_side: int) -> int:
     """SIFT's first octave: the options', else -1 (upsampled) when SIFT's image is under 400 px."""
     if opts.first_octave is not None:
         return opts.first_octave
