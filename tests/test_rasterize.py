@@ -210,3 +210,28 @@ def test_auto_block_follows_screen_size_not_overlap(sigma, many, expected):
         cov2d = torch.tensor([[sigma**2, 0.0, sigma**2]]).repeat(n, 1)
         opac = torch.full((n,), 0.9)
         assert blocks.choose_block(cov2d, opac, 1000, 1000) == expected
+
+
+@pytest.mark.parametrize("keep", [0, 1 << 14, 1 << 30], ids=["none", "some", "all"])
+def test_backward_from_the_forwards_kept_alpha_is_bit_for_bit_the_recomputed_one(monkeypatch, keep):
+    """The forward keeps its segments' alpha and transmittance (up to KEEP_BYTES) for the backward; what it
+    did not keep is computed again. Every gradient is the same bits whichever, also in a second backward
+    (retain_graph), which finds the kept tensors used up and computes them all again."""
+    args = make_scene(1500, 80, 64, dtype=torch.float32, seed=7)
+    cot = torch.rand(64, 80, 3, generator=torch.Generator().manual_seed(2))
+
+    def grads(budget: int, twice: bool = False):
+        monkeypatch.setattr(composite, "KEEP_BYTES", budget)
+        p = [t.clone().requires_grad_(i < 5) for i, t in enumerate(args)]
+        out = rasterize(*p, 80, 64, block=4)
+        (out.image * cot).sum().backward(retain_graph=twice)
+        first = [t.grad.clone() for t in p[:5]]
+        if twice:
+            for t in p[:5]:
+                t.grad = None
+            (out.image * cot).sum().backward()
+            assert all(torch.equal(a, t.grad) for a, t in zip(first, p[:5]))
+        return first
+
+    base = grads(0)
+    assert all(torch.equal(a, b) for a, b in zip(base, grads(keep, twice=True)))

@@ -23,13 +23,13 @@ early termination.
 Per-slot work (coefficients, gradient scatter) happens per segment for active blocks
 only, so pairs behind saturated pixels cost only their planning.
 
-The backward recomputes alpha and T per segment (cheaper than storing them: they are
-the largest tensors, and reading them back costs as much as recomputing) and uses the
-3DGS identity for the colour behind a Gaussian, suffix_i = C_final - prefix_i, so it
+The backward takes alpha and T of each segment from the forward, which keeps them up to
+KEEP_BYTES (about 5-10% of a dense render's time saved; beyond that budget, keeping more made
+the forward slower than it saved), and computes the rest again; either way it uses the 3DGS identity for the colour behind a Gaussian, suffix_i = C_final - prefix_i, so it
 needs no back-to-front pass. The per-slot gradient sums over pixels are again one GEMM
 against the same six pixel features.
 
-Chunks bound memory to O(chunk elements + pairs); nothing here loops over pixels,
+Chunks bound memory to O(chunk elements + pairs) plus what is kept; nothing here loops over pixels,
 Gaussians or blocks individually (the Python loops run over chunks and segments).
 """
 
@@ -54,6 +54,9 @@ CHUNK_ELEMS = 1 << 18  # [blocks, pixels, K] elements per chunk: bounds memory, 
 _DEAD = -1e4  # log-opacity of the padding row: exp() is exactly 0
 _LOG2E = 1.4426950408889634  # exp(x) = exp2(x log2 e); exp2 is the faster vectorised kernel
 SEGMENT = 64  # Gaussians per block processed between early-termination checks
+# The forward keeps alpha and transmittance [blocks, pixels, K] of its segments, up to this many bytes,
+# so that the backward need not compute them again (the rest it does compute again).
+KEEP_BYTES = 128 << 20  # (train/memory.py counts it)
 # On CUDA every early-termination test is a host sync (and every op a kernel launch): chunks 16x
 # larger, segments 4x longer, and the test after every 4th segment only (skipping it is exact: a
 # terminated or finished block only adds zeros). Not tuned on a GPU yet (docs/benchmarks.md).
@@ -311,30 +314,41 @@ def _median_weight(a: Tensor, om: Tensor, U: Tensor) -> Tensor:  # [na, P, k] ea
 
 
 def _seg_forward(geo: Tensor, cz: Tensor, gid: Tensor, centre: Tensor, featsT: Tensor, Tc: Tensor | None,
-                 a_min: float, t_min: float, weight=_blend_weight) -> tuple[Tensor, Tensor]:
+                 a_min: float, t_min: float, weight=_blend_weight, kept: list | None = None) -> tuple[Tensor, Tensor]:
     """One segment of the forward pass: geo [N + 1, 6] and cz [N + 1, 5] (`_Gauss`), gid [na, k]
     slot ids, centre [na, 2], featsT [P, 6], Tc [na, P] transmittance entering (None: 1). Returns
     the sums of weight(alpha, 1 - alpha, T after) times (r, g, b, z, 1) per pixel [na, 5, P]
-    (blending weights for the picture, `_median_weight` for the median depth) and T after [na, P]."""
+    (blending weights for the picture, `_median_weight` for the median depth) and T after [na, P].
+    `kept`: a list that alpha and T after [na, P, k] are appended to, for the backward (blending weights only)."""
     p = geo.index_select(0, gid.reshape(-1)).view(*gid.shape, 6)  # [na, k, 6]
     a = _alpha(_coef(p, centre)[0], featsT, a_min)
     om, U = _transmittance(a, Tc, t_min)
-    w = weight(a, om, U)
+    if kept is not None:
+        w = torch.div(a, om).mul_(U)  # _blend_weight, leaving alpha whole
+        kept.append((a, U))
+    else:
+        w = weight(a, om, U)
     czg = cz.index_select(0, gid.reshape(-1)).view(*gid.shape, 5)
     return torch.bmm(czg.transpose(1, 2), w.transpose(1, 2)), U[:, :, -1]
 
 
 def _seg_backward(geo: Tensor, cz: Tensor, gid: Tensor, centre: Tensor, feats: Tensor, featsT: Tensor,
                   Tc: Tensor | None, g4: Tensor, g4t: Tensor, base: Tensor, pc: Tensor | None, a_min: float,
-                  t_min: float, u_scale: float, a_scale: float) -> tuple[Tensor, Tensor, Tensor]:
+                  t_min: float, u_scale: float, a_scale: float,
+                  saved: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """One segment of the backward pass, alpha and T recomputed: g4 [na, 4, P] and g4t [na, P, 4]
     the image gradient of (r, g, b, z), base [na, P] (see backward), pc [na, P] the prefix sum of
     w v over the earlier segments (None in the first). Returns d(u, v, A, B, C, log o, r, g, b, z) per slot [na, k, 10],
-    T after [na, P] and the prefix sum after [na, P]."""
+    T after [na, P] and the prefix sum after [na, P]. `saved`: the forward's alpha and T after for
+    this segment (used up here), instead of computing them again."""
     p = geo.index_select(0, gid.reshape(-1)).view(*gid.shape, 6)
     coef2, q = _coef(p, centre)
-    a = _alpha(coef2, featsT, a_min)
-    om, U = _transmittance(a, Tc, t_min)
+    if saved is not None:
+        a, U = saved
+        om = torch.rsub(a, 1.0)
+    else:
+        a = _alpha(coef2, featsT, a_min)
+        om, U = _transmittance(a, Tc, t_min)
     r = a / om
     w = r * U
     czt = cz.index_select(0, gid.reshape(-1)).view(*gid.shape, 5)[..., :4].transpose(1, 2)  # [na, 4, k]
@@ -389,10 +403,11 @@ def _terminate(act: Tensor | None, Tc: Tensor, more: Tensor, *carry: Tensor):
 
 
 def _blend(plan: Plan, means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor, depths: Tensor,
-           weight=_blend_weight) -> Tensor:  # [nblocks, 5, P]: sums of weight times (r, g, b, z, 1) per pixel
+           weight=_blend_weight, kept: list | None = None) -> Tensor:  # [nblocks, 5, P]: sums of weight times (r, g, b, z, 1) per pixel
     """The forward pass over the plan's chunks and segments, each slot weighted by
     `weight(alpha, 1 - alpha, T_after)`: blending weights for the picture, the 0.5
-    crossing for the median depth."""
+    crossing for the median depth. `kept`: a list that each segment's alpha and T after are
+    appended to, in order, until they hold KEEP_BYTES (the backward computes the rest again)."""
     dt, dev = means2d.dtype, means2d.device
     N = means2d.shape[0]
     P = plan.block * plan.block
@@ -400,6 +415,7 @@ def _blend(plan: Plan, means2d: Tensor, conics: Tensor, opacities: Tensor, color
     gs = _Gauss(means2d, conics, opacities, colors, depths)
     featsT = _feats(plan.block, dt, dev).T.contiguous()  # [P, 6]
     acc = torch.zeros(plan.nbx * plan.nby, 5, P, dtype=dt, device=dev)  # (r, g, b, depth, sum w)
+    kept_bytes = 0
     for bl, K in plan.chunks:
         gid, centre = _chunk_ids(plan, bl, K, N)
         centre = centre.to(dt)
@@ -409,8 +425,11 @@ def _blend(plan: Plan, means2d: Tensor, conics: Tensor, opacities: Tensor, color
         k0 = nseg = 0
         while k0 < K:
             k1 = _seg_end(plan, k0, K, len(bl) if act is None else len(act))
+            keep = kept if kept is not None and kept_bytes < KEEP_BYTES else None
             o, Tc = _seg_forward(gs.geo, gs.cz, _rowsel(gid, act)[:, k0:k1].contiguous(), _rowsel(centre, act), featsT,
-                                 Tc, c.a_min, c.t_min, weight)
+                                 Tc, c.a_min, c.t_min, weight, keep)
+            if keep is not None:
+                kept_bytes += 2 * kept[-1][0].numel() * kept[-1][0].element_size()
             if out is None:
                 out = o
             elif act is None:
@@ -433,7 +452,8 @@ class _Composite(torch.autograd.Function):
         # planner: a Plan, or a function that builds one. A function is called again in
         # backward instead of keeping the plan alive (memory-bounded banded renders).
         plan = planner() if callable(planner) else planner
-        acc = _blend(plan, means2d, conics, opacities, colors, depths)
+        ctx.kept = [] if any(ctx.needs_input_grad[1:6]) and not callable(planner) else None  # (banded: memory first)
+        acc = _blend(plan, means2d, conics, opacities, colors, depths, kept=ctx.kept)
         ctx.planner = planner
         ctx.save_for_backward(means2d, conics, opacities, colors, depths, background, acc)
         return _unblock(plan, acc, background)
@@ -456,6 +476,8 @@ class _Composite(torch.autograd.Function):
         base_all = (g4 * acc[:, :4]).sum(1) + Tfin * ((g4[:, :3] * background[:, None]).sum(1) - gA)
         g4t_all = g4.transpose(1, 2)  # [nblocks, P, 4]
         dg = torch.zeros(N + 1, 10, dtype=dt, device=dev)  # d(u, v, A, B, C, log o, r, g, b, z)
+        kept, ctx.kept = ctx.kept or [], None  # used up (edited in place): a second backward computes them again
+        iseg = 0
         for bl, K in plan.chunks:
             gid, centre = _chunk_ids(plan, bl, K, N)
             centre = centre.to(dt)
@@ -468,7 +490,11 @@ class _Composite(torch.autograd.Function):
                 k1 = _seg_end(plan, k0, K, len(bl) if act is None else len(act))
                 gid_s = _rowsel(gid, act)[:, k0:k1].contiguous()
                 dgs, Tc, pc = _seg_backward(gs.geo, gs.cz, gid_s, _rowsel(centre, act), feats, featsT, Tc, _rowsel(g4b, act),
-                                   _rowsel(g4tb, act), _rowsel(base, act), pc, c.a_min, c.t_min, c.u_scale, c.a_scale)
+                                   _rowsel(g4tb, act), _rowsel(base, act), pc, c.a_min, c.t_min, c.u_scale, c.a_scale,
+                                   kept[iseg] if iseg < len(kept) else None)
+                if iseg < len(kept):
+                    kept[iseg] = None  # freed as the backward goes
+                iseg += 1
                 dg.index_put_((gid_s.reshape(-1),), dgs.reshape(-1, 10), accumulate=True)  # faster than index_add_ here
                 nseg += 1
                 if k1 < K and nseg % plan.terminate_every == 0:
