@@ -29,7 +29,7 @@ from common import cpu_model, publish
 from splatcli.device import cpu_name
 from splatcli.project import Project
 from splatcli.render import kernels
-from splatcli.render.blocks import choose_block, estimate_pairs
+from splatcli.render.blocks import choose_block, estimate_pairs, extents
 from splatcli.render.composite import composite, make_plan
 from splatcli.render.projection import project
 from splatcli.train.loss import photometric_loss
@@ -51,8 +51,9 @@ def step_times(p: dict, view, bg) -> tuple[dict, int]:
     pr = project(*p.values(), view.viewmat, view.K, W, H, 3)
     lap("project")
     fp = pr.footprint
-    block = choose_block(fp.cov2d, fp.opacities, W, H)
-    estimate_pairs(fp.cov2d, fp.opacities, block)  # rasterize's check for banding
+    ext = extents(fp.cov2d, fp.opacities)
+    block = choose_block(ext, W, H)
+    estimate_pairs(ext, block)  # rasterize's check for banding
     plan = make_plan(fp, W, H, block)
     lap("plan")
     mid = [x.detach().requires_grad_(True) for x in (pr.means2d, pr.conics, pr.opacities, pr.colors, pr.depths)]

@@ -19,10 +19,10 @@ def _small_gaussians(n: int = 500) -> tuple[torch.Tensor, torch.Tensor]:  # cov2
 def _drive(tuner: BlockTuner, seconds_per_cost: dict[int, float], calls: int) -> list[int]:
     """`calls` renders whose measured time is `seconds_per_cost[block]` times the model's cost."""
     cov2d, opac = _small_gaussians()
-    cost = blocks.block_costs(cov2d, opac, 640, 480)
+    cost = blocks.block_costs(blocks.extents(cov2d, opac), 640, 480)
     picked = []
     for _ in range(calls):
-        block, meter = tuner.choose(cov2d, opac, 640, 480)
+        block, meter = tuner.choose(blocks.extents(cov2d, opac), 640, 480)
         picked.append(block)
         if meter is not None:
             meter.add(seconds_per_cost[block] * cost[block], last=True)
@@ -31,8 +31,8 @@ def _drive(tuner: BlockTuner, seconds_per_cost: dict[int, float], calls: int) ->
 
 def test_tuner_keeps_the_block_that_measures_fastest_not_the_models_pick():
     cov2d, opac = _small_gaussians()
-    assert blocks.choose_block(cov2d, opac, 640, 480) == 4
-    cost = blocks.block_costs(cov2d, opac, 640, 480)
+    assert blocks.choose_block(blocks.extents(cov2d, opac), 640, 480) == 4
+    cost = blocks.block_costs(blocks.extents(cov2d, opac), 640, 480)
     # 8 px blocks measure 10% faster in absolute time than the model's 4 px; 16 px slower
     truth = {4: 1.0 / cost[4], 8: 0.9 / cost[8], 16: 1.3 / cost[16]}
     tuner = BlockTuner(every=10)
@@ -49,7 +49,7 @@ def test_tuner_follows_a_change_of_speed():
     """The model's Gaussians change as training goes on: the others are measured again now and then,
     and the last five measurements of each block decide."""
     cov2d, opac = _small_gaussians()
-    cost = blocks.block_costs(cov2d, opac, 640, 480)
+    cost = blocks.block_costs(blocks.extents(cov2d, opac), 640, 480)
     tuner = BlockTuner(every=2)
     _drive(tuner, {4: 1.0 / cost[4], 8: 0.8 / cost[8], 16: 2.0 / cost[16]}, 30)
     late = _drive(tuner, {4: 0.5 / cost[4], 8: 0.8 / cost[8], 16: 2.0 / cost[16]}, 40)
@@ -58,21 +58,21 @@ def test_tuner_follows_a_change_of_speed():
 
 def test_blocks_far_outside_the_model_are_never_tried():
     cov2d, opac = _small_gaussians()
-    cost = blocks.block_costs(cov2d, opac, 640, 480)
+    cost = blocks.block_costs(blocks.extents(cov2d, opac), 640, 480)
     tuner = BlockTuner(spread=1.0 + 1e-9)  # only the model's pick is within range
     assert set(_drive(tuner, {b: 1e-9 for b in cost}, 20)) == {4}
 
 
 def test_nothing_drawn_draws_with_8px_and_measures_nothing():
     tuner = BlockTuner()
-    block, meter = tuner.choose(torch.zeros(3, 3), torch.zeros(3), 64, 64)
+    block, meter = tuner.choose(blocks.extents(torch.zeros(3, 3), torch.zeros(3)), 64, 64)
     assert (block, meter) == (8, None)
 
 
 def test_a_render_that_compiled_a_kernel_is_not_measured(monkeypatch):
     cov2d, opac = _small_gaussians()
     tuner = BlockTuner(warmup=0)
-    block, meter = tuner.choose(cov2d, opac, 640, 480)
+    block, meter = tuner.choose(blocks.extents(cov2d, opac), 640, 480)
     monkeypatch.setattr(kernels.status(), "compile_s", kernels.status().compile_s + 5.0)
     meter.add(5.0, last=True)
     assert not tuner.ratios[block]
@@ -107,6 +107,6 @@ def test_a_tuner_without_gradients_waits_for_no_backward():
         rasterize(*args, 64, 64, block=tuner)
     assert not any(tuner.ratios.values()) and tuner.calls == 0 and not any(tuner.used.values())
     cov2d, opac = _small_gaussians()
-    cost = blocks.block_costs(cov2d, opac, 640, 480)
+    cost = blocks.block_costs(blocks.extents(cov2d, opac), 640, 480)
     _drive(tuner, {4: 1.0 / cost[4], 8: 0.5 / cost[8], 16: 2.0 / cost[16]}, 12)
-    assert tuner.choose(cov2d, opac, 640, 480, measure=False) == (8, None)
+    assert tuner.choose(blocks.extents(cov2d, opac), 640, 480, measure=False) == (8, None)

@@ -209,7 +209,7 @@ def test_auto_block_follows_screen_size_not_overlap(sigma, many, expected):
     for n in (many, 10 * many):
         cov2d = torch.tensor([[sigma**2, 0.0, sigma**2]]).repeat(n, 1)
         opac = torch.full((n,), 0.9)
-        assert blocks.choose_block(cov2d, opac, 1000, 1000) == expected
+        assert blocks.choose_block(blocks.extents(cov2d, opac), 1000, 1000) == expected
 
 
 @pytest.mark.parametrize("keep", [0, 1 << 14, 1 << 30], ids=["none", "some", "all"])

@@ -1,6 +1,7 @@
 """The compositor's block size (4, 8 or 16 px): a speed knob only, the picture does not depend on it.
 
-    choose_block(cov2d, opacities, W, H)   the cost model's pick (no state; any device)
+    ext = extents(cov2d, opacities)        the drawn Gaussians' bounding boxes, once per render
+    choose_block(ext, W, H)                the cost model's pick (no state; any device)
     tuner = BlockTuner()                   the pick measured on this machine, call by call:
     rasterize(..., block=tuner)            (training passes one; CPU only, CUDA syncs would be needed)
 
@@ -33,53 +34,46 @@ BLOCKS = (4, 8, 16)
 _COST_SLOT, _COST_ELEM = 50.0, 12.0
 
 
-def _extents(cov2d: Tensor, opacities: Tensor, width: int, height: int) -> tuple[Tensor, Tensor] | None:
-    """Each Gaussian's alpha >= 1/255 bounding box (w [S], h [S] px, float64), or None if none is drawn."""
+@dataclass(frozen=True)
+class Extents:
+    """The alpha >= 1/255 bounding boxes of the Gaussians that are drawn, px, float64: all that
+    choosing a block and estimating a plan's pairs need, computed once per render."""
+
+    w: Tensor  # [D]
+    h: Tensor  # [D]
+
+
+@torch.no_grad()
+def extents(
+    cov2d: Tensor,  # [S, 3] px^2, of the Gaussians that may be drawn (a Footprint's)
+    opacities: Tensor,  # [S]
+) -> Extents:
     o = opacities.detach().double()
     cv = cov2d.detach().double()
     t2 = 2.0 * torch.log(torch.clamp_min(o * 255.0, 1e-30))
     ok = t2 > 0
-    if not bool(ok.any()):
-        return None
     cv, t2 = cv[ok], t2[ok]
-    return (2 * torch.sqrt(t2 * cv[:, 0])).clamp_max(width), (2 * torch.sqrt(t2 * cv[:, 2])).clamp_max(height)
+    return Extents(2 * torch.sqrt(t2 * cv[:, 0]), 2 * torch.sqrt(t2 * cv[:, 2]))
 
 
-@torch.no_grad()
-def block_costs(
-    cov2d: Tensor,  # [S, 3] px^2, of the Gaussians that may be drawn (a Footprint's)
-    opacities: Tensor,  # [S]
-    width: int,
-    height: int,
-) -> dict[int, float]:
+def block_costs(ext: Extents, width: int, height: int) -> dict[int, float]:
     """The cost model's prediction for each block size (arbitrary units; empty when nothing is drawn)."""
-    ext = _extents(cov2d, opacities, width, height)
-    if ext is None:
+    if ext.w.numel() == 0:
         return {}
-    w, h = ext
+    w, h = ext.w.clamp_max(width), ext.h.clamp_max(height)
     return {b: float(((w / b + 1) * (h / b + 1)).sum()) * (_COST_SLOT + _COST_ELEM * b * b) for b in BLOCKS}
 
 
-def choose_block(cov2d: Tensor, opacities: Tensor, width: int, height: int) -> int:
+def choose_block(ext: Extents, width: int, height: int) -> int:
     """The block side (4, 8 or 16 px) that minimises the cost model: small blocks waste fewer
     pixels on small Gaussians, large blocks make fewer pairs."""
-    cost = block_costs(cov2d, opacities, width, height)
+    cost = block_costs(ext, width, height)
     return min(cost, key=cost.get) if cost else 8
 
 
-@torch.no_grad()
-def estimate_pairs(
-    cov2d: Tensor,  # [S, 3] px^2, of the Gaussians that may be drawn (a Footprint's)
-    opacities: Tensor,  # [S]
-    block: int,
-) -> float:
-    """About how many (Gaussian, block) pairs a plan will hold (from alpha bounding boxes)."""
-    o = opacities.detach().double()
-    cv = cov2d.detach().double()
-    t2 = (2.0 * torch.log(torch.clamp_min(o * 255.0, 1e-30))).clamp_min(0)
-    w = 2 * torch.sqrt(t2 * cv[:, 0])
-    h = 2 * torch.sqrt(t2 * cv[:, 2])
-    return float(((w / block + 1) * (h / block + 1) * (t2 > 0)).sum())
+def estimate_pairs(ext: Extents, block: int) -> float:
+    """About how many (Gaussian, block) pairs a plan will hold (from the bounding boxes, unclipped)."""
+    return float(((ext.w / block + 1) * (ext.h / block + 1)).sum())
 
 
 class Meter:
@@ -88,16 +82,12 @@ class Meter:
 
     def __init__(self, tuner: BlockTuner, block: int, cost: float):
         self.tuner, self.block, self.cost, self.seconds = tuner, block, cost, 0.0
-        self._compile_s = _compile_seconds()
+        self._compile_s = kernels.status().compile_s
 
     def add(self, seconds: float, last: bool) -> None:
         self.seconds += seconds
-        if last and _compile_seconds() == self._compile_s:  # a call that compiled a kernel says nothing
+        if last and kernels.status().compile_s == self._compile_s:  # a call that compiled a kernel says nothing
             self.tuner.record(self.block, self.seconds / self.cost)
-
-
-def _compile_seconds() -> float:
-    return kernels.status().compile_s
 
 
 @dataclass
@@ -113,14 +103,17 @@ class BlockTuner:
     warmup: int = 1  # first renders not measured (one-off allocations)
     ratios: dict[int, deque] = field(default_factory=lambda: {b: deque(maxlen=5) for b in BLOCKS})
     used: dict[int, int] = field(default_factory=lambda: {b: 0 for b in BLOCKS})
-    calls: int = 0
 
-    def choose(self, cov2d: Tensor, opacities: Tensor, width: int, height: int,
-               measure: bool = True) -> tuple[int, Meter | None]:
+    @property
+    def calls(self) -> int:
+        """Renders chosen for so far (those with measure=False are not counted)."""
+        return sum(self.used.values())
+
+    def choose(self, ext: Extents, width: int, height: int, measure: bool = True) -> tuple[int, Meter | None]:
         """The block for this render, and the meter its timed parts report to (None: not measured).
         measure=False (a render that will not be timed, such as an evaluation inside training): the
         best block known so far, counted nowhere."""
-        cost = block_costs(cov2d, opacities, width, height)
+        cost = block_costs(ext, width, height)
         if not cost:
             return 8, None
         best = min(cost.values())
@@ -129,17 +122,17 @@ class BlockTuner:
         ranked = sorted(cand, key=lambda b: self.ratio(b) * cost[b]) if settled else cand
         if not measure:
             return ranked[0], None
-        self.calls += 1
-        if self.calls <= self.warmup:
+        call = self.calls + 1
+        if call <= self.warmup:
             block, meter = cand[0], None
         elif not settled:
             block = next(b for b in cand if len(self.ratios[b]) < self.samples)
             meter = Meter(self, block, cost[block])
         else:
             block = ranked[0]
-            if len(ranked) > 1 and self.calls % self.every == 0:  # the others, in turn, now and then
+            if len(ranked) > 1 and call % self.every == 0:  # the others, in turn, now and then
                 others = ranked[1:]
-                block = others[(self.calls // self.every) % len(others)]
+                block = others[(call // self.every) % len(others)]
             meter = Meter(self, block, cost[block])
         self.used[block] += 1
         return block, meter

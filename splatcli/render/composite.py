@@ -25,8 +25,8 @@ only, so pairs behind saturated pixels cost only their planning.
 
 The backward takes alpha and T of each segment from the forward, which keeps them up to
 KEEP_BYTES (about 5-10% of a dense render's time saved; beyond that budget, keeping more made
-the forward slower than it saved), and computes the rest again; either way it uses the 3DGS identity for the colour behind a Gaussian, suffix_i = C_final - prefix_i, so it
-needs no back-to-front pass. The per-slot gradient sums over pixels are again one GEMM
+the forward slower than it saved), and computes the rest again. It uses the 3DGS identity for
+the colour behind a Gaussian, suffix_i = C_final - prefix_i, so it needs no back-to-front pass. The per-slot gradient sums over pixels are again one GEMM
 against the same six pixel features.
 
 Chunks bound memory to O(chunk elements + pairs) plus what is kept; nothing here loops over pixels,
@@ -35,6 +35,7 @@ Gaussians or blocks individually (the Python loops run over chunks and segments)
 
 from __future__ import annotations
 
+import collections
 import math
 import time
 from dataclasses import dataclass
@@ -305,7 +306,7 @@ def _transmittance(alpha: Tensor, Tc: Tensor | None, t_min: float):
 
 
 def _blend_weight(a: Tensor, om: Tensor, U: Tensor) -> Tensor:  # [na, P, k] each
-    return a.div_(om).mul_(U)  # alpha T_before; 0 where not blended
+    return torch.div(a, om).mul_(U)  # alpha T_before; 0 where not blended (alpha left whole: it may be kept)
 
 
 def _median_weight(a: Tensor, om: Tensor, U: Tensor) -> Tensor:  # [na, P, k] each
@@ -323,11 +324,9 @@ def _seg_forward(geo: Tensor, cz: Tensor, gid: Tensor, centre: Tensor, featsT: T
     p = geo.index_select(0, gid.reshape(-1)).view(*gid.shape, 6)  # [na, k, 6]
     a = _alpha(_coef(p, centre)[0], featsT, a_min)
     om, U = _transmittance(a, Tc, t_min)
+    w = weight(a, om, U)
     if kept is not None:
-        w = torch.div(a, om).mul_(U)  # _blend_weight, leaving alpha whole
         kept.append((a, U))
-    else:
-        w = weight(a, om, U)
     czg = cz.index_select(0, gid.reshape(-1)).view(*gid.shape, 5)
     return torch.bmm(czg.transpose(1, 2), w.transpose(1, 2)), U[:, :, -1]
 
@@ -476,8 +475,7 @@ class _Composite(torch.autograd.Function):
         base_all = (g4 * acc[:, :4]).sum(1) + Tfin * ((g4[:, :3] * background[:, None]).sum(1) - gA)
         g4t_all = g4.transpose(1, 2)  # [nblocks, P, 4]
         dg = torch.zeros(N + 1, 10, dtype=dt, device=dev)  # d(u, v, A, B, C, log o, r, g, b, z)
-        kept, ctx.kept = ctx.kept or [], None  # used up (edited in place): a second backward computes them again
-        iseg = 0
+        kept, ctx.kept = collections.deque(ctx.kept or ()), None  # used up (edited in place): a second backward computes them again
         for bl, K in plan.chunks:
             gid, centre = _chunk_ids(plan, bl, K, N)
             centre = centre.to(dt)
@@ -491,10 +489,7 @@ class _Composite(torch.autograd.Function):
                 gid_s = _rowsel(gid, act)[:, k0:k1].contiguous()
                 dgs, Tc, pc = _seg_backward(gs.geo, gs.cz, gid_s, _rowsel(centre, act), feats, featsT, Tc, _rowsel(g4b, act),
                                    _rowsel(g4tb, act), _rowsel(base, act), pc, c.a_min, c.t_min, c.u_scale, c.a_scale,
-                                   kept[iseg] if iseg < len(kept) else None)
-                if iseg < len(kept):
-                    kept[iseg] = None  # freed as the backward goes
-                iseg += 1
+                                   kept.popleft() if kept else None)  # (freed as the backward goes)
                 dg.index_put_((gid_s.reshape(-1),), dgs.reshape(-1, 10), accumulate=True)  # faster than index_add_ here
                 nseg += 1
                 if k1 < K and nseg % plan.terminate_every == 0:

@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 
 from . import timing
-from .blocks import BlockTuner, choose_block, estimate_pairs
+from .blocks import BlockTuner, choose_block, estimate_pairs, extents
 from .composite import composite, make_plan, median_depth
 from .output import RenderOutput
 from .projection import NEAR, TILE, project
@@ -121,13 +121,13 @@ def rasterize(
     fp = pr.footprint
     t1 = time.perf_counter()
     timing.add("projection", t1 - t0)
-    meter = None
+    meter, ext = None, extents(fp.cov2d, fp.opacities)
     if tuner is not None and means.device.type == "cpu":  # timing CUDA work would need syncs
         timed = not tuner.backward or torch.is_grad_enabled()  # else nothing will report a backward
-        block, meter = tuner.choose(fp.cov2d, fp.opacities, width, height, measure=timed)
+        block, meter = tuner.choose(ext, width, height, measure=timed)
     elif not isinstance(block, int):
-        block = choose_block(fp.cov2d, fp.opacities, width, height)
-    bands = _bands(height, estimate_pairs(fp.cov2d, fp.opacities, block))
+        block = choose_block(ext, width, height)
+    bands = _bands(height, estimate_pairs(ext, block))
     if len(bands) == 1:
         plan = make_plan(fp, width, height, block)
         t2 = time.perf_counter()
@@ -190,10 +190,11 @@ def render_surface(
     d = int(round(math.sqrt(sh.shape[1]))) - 1
     pr = project(means, quats, log_scales, opacity_logits, sh, viewmat, K, width, height, d, NEAR, antialiased)
     fp = pr.footprint
-    block = choose_block(fp.cov2d, fp.opacities, width, height)
+    ext = extents(fp.cov2d, fp.opacities)
+    block = choose_block(ext, width, height)
     black = means.new_zeros(3)
     out = []
-    for y0, y1 in _bands(height, estimate_pairs(fp.cov2d, fp.opacities, block)):
+    for y0, y1 in _bands(height, estimate_pairs(ext, block)):
         plan, m2 = make_plan(fp, width, height, block, (y0, y1)), _shift(pr, y0)
         image, alpha, _ = composite(plan, m2, pr.conics, pr.opacities, pr.colors, pr.depths, black)
         out.append((median_depth(plan, m2, pr.conics, pr.opacities, pr.depths), image, alpha))

@@ -186,8 +186,7 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
 
     # -- features
     if features_ready:
-        stats = colmap.database_stats(db)
-        kp_median = float(statistics.median(stats.keypoints.values())) if stats.keypoints else 0.0
+        kp_median = _keypoint_median(db)
     else:
         kp_median = _extract(db, image_dir, names, opts, min_side, clock, mask_dir,
                              lambda: colmap.create_database(db, image_dir, cameras, camera_model=opts.camera_model))
@@ -359,6 +358,11 @@ def _extract(db: Path, image_dir: Path, names: list[str], opts: SfmOptions, min_
         for i in range(0, len(names), opts.chunk):
             colmap.extract_features(db, image_dir, names[i : i + opts.chunk], sift, mask_dir=mask_dir)
             st.progress(min(i + opts.chunk, len(names)))
+    return _keypoint_median(db)
+
+
+def _keypoint_median(db: Path) -> float:
+    """The median keypoint count per image in the database."""
     stats = colmap.database_stats(db)
     return float(statistics.median(stats.keypoints.values())) if stats.keypoints else 0.0
 
