@@ -24,7 +24,7 @@ def process(
     input_type: str = typer.Option(_D.input_type, "--input-type", help="auto, images, video, colmap, transforms or llff."),
     max_size: Optional[int] = typer.Option(_D.max_size, "--max-size", help="Longest side, pixels, of the images SIFT sees (the dataset keeps full resolution; "
                                            f"default {SFM_MAX_SIZE} for photos and video, {POSED_MAX_SIZE} for the points of posed captures)."),
-    matcher: str = typer.Option(_D.matcher, "--matcher", help="auto, exhaustive (all pairs) or sequential (ordered captures)."),
+    matcher: str = typer.Option(_D.matcher, "--matcher", help="auto, exhaustive (all pairs), sequential (ordered captures) or retrieval (each photo with the 20 most alike; auto takes it above 40 photos whose names give no order)."),
     fps: Optional[float] = typer.Option(_D.fps, "--fps", help="Video: frames to extract per second of video."),
     num_frames: int = typer.Option(_D.num_frames, "--num-frames", help="Video: frames to extract, evenly spaced (without --fps)."),
     background: str = typer.Option("auto", "--background", help="auto (white for RGBA inputs, else black), white, black, gray or R,G,B in [0, 1]."),

@@ -21,7 +21,7 @@ class ProcessConfig:
     input_type: str = "auto"  # auto | images | video | colmap | transforms | llff
     max_size: int | None = None  # longest side, pixels, of the image SIFT sees (the dataset keeps full resolution);
     # None: SFM_MAX_SIZE for photos and video, POSED_MAX_SIZE for posed captures
-    matcher: str = "auto"  # auto | exhaustive | sequential
+    matcher: str = "auto"  # auto | exhaustive | sequential | retrieval
     fps: float | None = None  # video: frames per second of video to extract
     num_frames: int = 100  # video: frames to extract when fps is not given
     background: tuple[float, float, float] | None = None  # RGB in [0, 1]; None: white for RGBA inputs, else black

@@ -218,6 +218,18 @@ def database_stats(db: Path, min_inliers: int = 15) -> DatabaseStats:
     return DatabaseStats(keypoints=kp, verified_pairs=verified)
 
 
+def read_descriptors(db: Path, names: list[str]) -> list[np.ndarray]:
+    """Each named image's SIFT descriptors, [n_i, 128] uint8 (empty where it has none)."""
+    pycolmap = _pc()
+    with pycolmap.Database.open(str(db)) as d:
+        ids = {im.name: im.image_id for im in d.read_all_images()}
+        out = []
+        for n in names:
+            a = np.asarray(d.read_descriptors(ids[n]).data, dtype=np.uint8) if n in ids else None
+            out.append(a.reshape(-1, 128) if a is not None and a.size else np.zeros((0, 128), np.uint8))
+    return out
+
+
 # ---- mapping ----------------------------------------------------------------
 
 

@@ -26,16 +26,18 @@ from ..errors import SplatError
 from ..events import EventSink, Note, Stages, emit
 from . import colmap
 from .colmap import MapperOptions, MatchOptions, Model, SiftOptions
+from .retrieval import retrieval_pairs
 
-MATCHERS = ("auto", "exhaustive", "sequential")
+MATCHERS = ("auto", "exhaustive", "sequential", "retrieval")
 
 
 @dataclass(frozen=True)
 class SfmOptions:
-    matcher: str = "auto"  # auto | exhaustive | sequential
+    matcher: str = "auto"  # auto | exhaustive | sequential | retrieval
     ordered: bool = False  # frames of a video: sequential when auto
     exhaustive_max_images: int = 40  # auto: below this, all pairs are cheap enough
     sequential_overlap: int = 5  # neighbours each image is matched with (plus 2^k further ones)
+    retrieval_neighbours: int = 20  # retrieval: each image is matched with this many most alike (sfm/retrieval.py)
     max_image_size: int = 1600  # pixels: SIFT sees images shrunk to this (keypoints in full-size pixels)
     max_features: int = 4096
     first_octave: int | None = None  # None: 0, or -1 when SIFT's image is under 400 px (too few features otherwise)
@@ -127,14 +129,14 @@ def posed_pairs(cameras: list[Camera], neighbours: int, max_angle_deg: float = 6
     return sorted((names[i], names[j]) for i, j in out)
 
 
-def _choose_matcher(opts: SfmOptions, names: list[str]) -> str:
+def choose_matcher(opts: SfmOptions, names: list[str]) -> str:
     if opts.matcher != "auto":
         return opts.matcher
     if opts.ordered:
         return "sequential"
     if len(names) <= opts.exhaustive_max_images:
         return "exhaustive"
-    return "sequential" if looks_ordered(names) else "exhaustive"
+    return "sequential" if looks_ordered(names) else "retrieval"
 
 
 # One camera each is kept over a shared one when the focal lengths it finds spread by more
@@ -194,10 +196,15 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
         on_features()
 
     # -- matching
-    matcher = _choose_matcher(opts, names)
+    matcher = choose_matcher(opts, names)
     mopts = MatchOptions(num_threads=opts.num_threads, seed=opts.seed)
     if matcher == "sequential":
         pairs = sequential_pairs(names, opts.sequential_overlap)
+    elif matcher == "retrieval":
+        with clock.stage("retrieve pairs", 1) as st:
+            pairs = retrieval_pairs(names, colmap.read_descriptors(db, names), opts.retrieval_neighbours,
+                                    seed=opts.seed)
+            st.progress(1)
     else:
         pairs = exhaustive_pairs(names)
         if len(names) > 200:
@@ -210,15 +217,15 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
     mapper = MapperOptions(seed=opts.seed, min_model_size=min(10, max(2, len(names) // 4)))
     models = _map(db, image_dir, work_dir / "models", mapper, len(names), clock)
     used = matcher
-    if matcher == "sequential" and opts.matcher == "auto" and (not models or models[0].num_registered < len(names)):
+    if matcher != "exhaustive" and opts.matcher == "auto" and (not models or models[0].num_registered < len(names)):
         out = set(names) - set(models[0].registered_names() if models else [])
-        emit(on_event, Note(f"sequential matching left {len(out)} image(s) out; matching them with every image"))
+        emit(on_event, Note(f"{matcher} matching left {len(out)} image(s) out; matching them with every image"))
         # Only pairs touching a left-out image: one bad frame in a long video must not cost N^2 pairs.
         rest = [p for p in exhaustive_pairs(names) if p not in matched and (p[0] in out or p[1] in out)]
         _match(db, rest, work_dir, mopts, clock)
         matched.update(rest)
         models = _map(db, image_dir, work_dir / "models2", mapper, len(names), clock)
-        used = "sequential+exhaustive"
+        used = f"{matcher}+exhaustive"
     tried = [f"{used} matching with COLMAP's thresholds"]
     if not models or models[0].num_registered < 2:
         # Try harder: a starting pair with fewer inliers and less parallax than COLMAP asks for.
