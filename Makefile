@@ -7,10 +7,8 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 DEMO ?= demo-project
 PYTEST_ARGS ?=
-# make bench: an OpenSplat checkout for the same-run peer comparison (skipped when empty),
-# and the earlier commit bench/versus.py trains beside this version.
+# make bench: an OpenSplat checkout for the same-run peer comparison (skipped when empty).
 OPENSPLAT_SOURCE ?=
-BASELINE ?= 333d7bf
 # One torch thread per process unless you say otherwise (docs/guide.md, "Threads").
 export OMP_NUM_THREADS ?= 1
 
@@ -51,13 +49,14 @@ demo: setup
 	@echo "report: $(DEMO)/reports/eval.md ($(DEMO)/reports/eval.json)"
 	@echo "look:   $(BIN)/splatcli view $(DEMO)   (open the URL it prints; Ctrl-C stops it)"
 
+# Each benchmark writes bench/out/<name>.json (command, commit, date, CPU, load, rows) and prints its
+# table; none edits the docs.
 bench: setup
 	$(BIN)/python bench/rasterize.py
 	$(BIN)/python bench/peers.py --source "$(OPENSPLAT_SOURCE)"
 	$(BIN)/python bench/process.py
 	$(BIN)/python bench/train.py
-	$(BIN)/python bench/versus.py --against $(BASELINE) --scenes lego,fox,fox-photos
-	$(BIN)/python bench/step.py bench/out/versus/lego/this_version
+	$(BIN)/python bench/step.py bench/out/train/lego/default
 
 clean:
 	rm -rf $(VENV) $(DEMO) *.egg-info

@@ -1,15 +1,14 @@
 """File formats: size against held-out error on trained scenes, and codec speed and memory at 1M Gaussians.
 
     .venv/bin/python bench/formats.py [PROJECT ...] [--million] [--formats ply,spz,sog,compressed-ply,splat]
-                                      [--no-write]
 
 For each trained PROJECT it runs `splatcli eval PROJECT --formats ...` (each format
 written, read back through splatcli's reader and scored on the held-out views) and
 tabulates bytes, bytes per Gaussian, the ratio to .ply, held-out PSNR and the dB lost.
 With --million it times encode + decode of 1,000,000 synthetic Gaussians (SH degree 3)
 per format, each in a fresh process, and reports its peak memory above the process's
-baseline against the raw parameter size (1M x 59 float32 = 236 MB). Results go to the
-"## formats" section of docs/benchmarks.md, with the load average beside every timing.
+baseline against the raw parameter size (1M x 59 float32 = 236 MB). Results, with the load
+average beside every timing: bench/out/formats.json (common.report), the table printed.
 """
 
 from __future__ import annotations
@@ -20,9 +19,9 @@ import os
 import sys
 from pathlib import Path
 
-from common import REPO, run, splatcli, write_section
+from common import OUT as ALL_OUT, report, run, splatcli
 
-OUT = REPO / "bench" / "out" / "formats"
+OUT = ALL_OUT / "formats"
 FORMATS = "ply,spz,sog,compressed-ply,splat"
 
 CODEC = r"""
@@ -44,7 +43,8 @@ print(json.dumps({"bytes": w.bytes, "encode_s": t1 - t0, "decode_s": t2 - t1, "e
 """
 
 
-def scene_table(projects: list[str], formats: str) -> list[str]:
+def scene_rows(projects: list[str], formats: str) -> list[dict]:
+    """Each format of each trained project, written, read back and scored by `splatcli eval` (one torch thread)."""
     rows = []
     for proj in projects:
         out = OUT / Path(proj).name
@@ -52,17 +52,18 @@ def scene_table(projects: list[str], formats: str) -> list[str]:
         print("splatcli " + " ".join(cmd), flush=True)
         r = splatcli(cmd, OUT / f"{Path(proj).name}.log", cwd=Path.cwd(), env={**os.environ, "OMP_NUM_THREADS": "1"})
         rep = json.loads((out / "eval.json").read_text())
-        load0, load1 = r.load
-        steps = rep.get("train_steps")
-        for f in rep["formats"]:
-            rows.append(f"| `{Path(proj).parent.name}/{Path(proj).name}` ({steps} steps, {rep['width']}x{rep['height']}) "
-                        f"| {rep['num_gaussians']:,} | {f['format']} | {f['bytes'] / 1e6:.2f} MB | "
-                        f"{f['bytes_per_gaussian']:.1f} | {f['ratio']:.1f}x | {f['psnr']:.2f} | {f['db_lost']:.2f} | "
-                        f"{f['encode_s']:.2f} + {f['decode_s']:.2f} | {load0:.2f} → {load1:.2f} |")
+        for f in rep["formats"]:  # ratio: .ply bytes over these; db_lost: below the full-precision model
+            rows.append({"model": f"{Path(proj).parent.name}/{Path(proj).name}", "steps": rep.get("train_steps"),
+                         "size": f"{rep['width']}x{rep['height']}", "gaussians": rep["num_gaussians"],
+                         "format": f["format"], "mb": f["bytes"] / 1e6, "bytes_per_gaussian": f["bytes_per_gaussian"],
+                         "ratio": f["ratio"], "psnr": f["psnr"], "db_lost": f["db_lost"], "encode_s": f["encode_s"],
+                         "decode_s": f["decode_s"], "load_before": r.load[0], "load_after": r.load[1]})
     return rows
 
 
-def million(formats: str, n: int = 1_000_000) -> list[str]:
+def million(formats: str, n: int = 1_000_000) -> list[dict]:
+    """Encode + decode of `n` synthetic Gaussians (SH degree 3), each format in a fresh process; extra_mb
+    is the peak RSS above the process's own once the model exists, against the raw parameters."""
     OUT.mkdir(parents=True, exist_ok=True)
     rows = []
     raw_mb = n * 59 * 4 / 1e6
@@ -75,9 +76,9 @@ def million(formats: str, n: int = 1_000_000) -> list[str]:
             raise SystemExit(f"{fmt}: the codec run failed (exit {r.returncode}); see {log}")
         d = r.summary
         path.unlink(missing_ok=True)
-        rows.append(f"| {fmt} | {d['bytes'] / 1e6:.1f} MB | {d['encode_s']:.1f} | {d['decode_s']:.1f} | "
-                    f"{d['encode_s'] + d['decode_s']:.1f} | {d['extra_mb']:.0f} MB ({d['extra_mb'] / raw_mb:.2f}x) | "
-                    f"{r.load[0]:.2f} → {r.load[1]:.2f} |")
+        rows.append({"model": f"{n:,} synthetic", "format": fmt, "mb": d["bytes"] / 1e6, "encode_s": d["encode_s"],
+                     "decode_s": d["decode_s"], "extra_mb": d["extra_mb"], "extra_x_raw": d["extra_mb"] / raw_mb,
+                     "load_before": r.load[0], "load_after": r.load[1]})
         print(rows[-1], flush=True)
     return rows
 
@@ -87,27 +88,11 @@ def main() -> None:
     ap.add_argument("projects", nargs="*")
     ap.add_argument("--formats", default=FORMATS)
     ap.add_argument("--million", action="store_true")
-    ap.add_argument("--no-write", action="store_true")
     args = ap.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)
-    text = ["## formats", "",
-            "Measured by `python bench/formats.py`: `splatcli eval PROJECT --formats ...` writes the model in each "
-            "format, reads it back through splatcli's reader and scores the held-out views (2 cores, one torch "
-            "thread). *lost* is dB below the full-precision model; *ratio* is .ply bytes over these bytes.", ""]
-    if args.projects:
-        text += ["| model | Gaussians | format | size | bytes/Gaussian | ratio | held-out PSNR | lost (dB) | "
-                 "encode + decode s | load before → after |",
-                 "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |", *scene_table(args.projects, args.formats),
-                 ""]
-    if args.million:
-        text += [f"Encode + decode of 1,000,000 synthetic Gaussians (SH degree 3), each format in a fresh process "
-                 f"with OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', '2')}; *extra memory* is the peak RSS above "
-                 "the process's own after the model exists, against the raw parameters (236 MB).", "",
-                 "| format | size | encode s | decode s | total s | extra memory (x raw) | load before → after |",
-                 "| --- | --- | --- | --- | --- | --- | --- |", *million(args.formats), ""]
-    if not args.no_write:
-        write_section("## formats", "\n".join(text) + "\n")
-    print("\n".join(text))
+    rows = scene_rows(args.projects, args.formats) + (million(args.formats) if args.million else [])
+    report("formats", rows, columns=["model", "format", "mb", "bytes_per_gaussian", "ratio", "psnr", "db_lost",
+                                     "encode_s", "decode_s", "extra_mb", "load_before", "load_after"])
 
 
 if __name__ == "__main__":

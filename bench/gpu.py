@@ -1,11 +1,11 @@
 """splatcli on a GPU: the PyTorch path against gsplat's kernels, and both against gsplat bare.
 
-    .venv/bin/python bench/gpu.py [--steps 30] [--iterations 7000] [--no-train] [--no-write]
+    .venv/bin/python bench/gpu.py [--steps 30] [--iterations 7000] [--compare 500] [--no-train]
 
 Three measurements, one after the other in one run:
 
 - **Host syncs per step**, anywhere (the CPU too): one fwd+bwd of the PyTorch rasterizer as
-  training calls it (50k Gaussians, 480x270, SH 3, as issue 36's profile), counting the calls
+  training calls it (50k Gaussians, 480x270, SH 3: bench/workloads.py), counting the calls
   that make the host wait for a CUDA device (`HostSyncs`), with the compositor's CPU settings
   (what CUDA ran before issue 36) and its CUDA ones (`composite.device_settings`). On the CPU
   this counts what CUDA would do; on a GPU, torch's own sync counter is read beside it.
@@ -15,8 +15,10 @@ Three measurements, one after the other in one run:
 - **Training** (CUDA): fox at 480 px, `--preset fast`: gsplat at the full schedule, then
   `--renderer gsplat` and `torch` at `--compare` steps: train seconds and held-out PSNR.
 
-Results go to the "## GPU: gsplat against the PyTorch path" section of docs/benchmarks.md.
-Without a GPU the CUDA rows say "not measured".
+Results: bench/out/gpu.json (common.report), the tables printed. Without a GPU the CUDA
+measurements are left out. Issue 36's targets: fox at 480 px, fast preset, in at most 120 s with
+gsplat and within 0.3 dB of the PyTorch path; a step at most 1.3x gsplat's bare loop; 3x fewer
+host syncs per step.
 """
 
 from __future__ import annotations
@@ -28,14 +30,13 @@ from collections import Counter
 import torch
 from torch.overrides import TorchFunctionMode
 
-from common import OUT, ensure_processed, fresh_copy, loadavg, publish, splatcli
-from scenes import test_scene
+from common import OUT, ensure_processed, fresh_copy, report, splatcli
 from splatcli.device import describe_device
 from splatcli.render import composite as comp
 from splatcli.render.backends import gsplat_inputs, gsplat_problem, rasterize_gsplat
 from splatcli.render.rasterize import rasterize
+from workloads import benchmark_scene
 
-HEADING = "## GPU: gsplat against the PyTorch path"
 # calls after which the host waits for a CUDA device: a value read back, or an output whose
 # size depends on the data
 SYNCING = {"__bool__", "item", "tolist", "__int__", "__float__", "__index__", "nonzero", "unique", "masked_select",
@@ -67,7 +68,7 @@ class HostSyncs(TorchFunctionMode):
 
 
 def scene(device: torch.device, n: int = 50_000, width: int = 480, height: int = 270) -> tuple[list, int, int]:
-    args = [a.float().to(device) for a in test_scene(n, width, height, sh_degree=3, seed=1)]
+    args = [a.to(device) for a in benchmark_scene(n, width, height, sh_degree=3, seed=1)]
     return args, width, height
 
 
@@ -78,10 +79,11 @@ def fwd_bwd(draw, args, W, H) -> None:
     (out.image.square().mean() + out.alpha.mean()).backward()
 
 
-def syncs(device: torch.device) -> tuple[list[str], list[int]]:
-    """The table's rows, and the counts (before, CUDA settings)."""
+def syncs(device: torch.device) -> list[dict]:
+    """Host syncs per fwd+bwd with the compositor's CPU settings (what CUDA ran before issue 36) and
+    its CUDA ones: counted (`HostSyncs`), and on a GPU the profiler's count beside them."""
     args, W, H = scene(device)
-    rows, counts = [], []
+    rows = []
     for name, settings in (("before (CPU settings)", comp.device_settings(torch.device("cpu"))),
                            ("CUDA settings", comp.device_settings(torch.device("cuda")))):
         old = comp.device_settings
@@ -90,27 +92,26 @@ def syncs(device: torch.device) -> tuple[list[str], list[int]]:
             fwd_bwd(rasterize, args, W, H)  # warm-up
             with HostSyncs() as h:
                 fwd_bwd(rasterize, args, W, H)
-            cuda = "not measured (no GPU)"
+            cuda = None
             if device.type == "cuda":
                 torch.cuda.synchronize()
                 with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CUDA,
                                                         torch.profiler.ProfilerActivity.CPU]) as prof:
                     fwd_bwd(rasterize, args, W, H)
                     torch.cuda.synchronize()
-                cuda = str(sum(e.count for e in prof.key_averages() if "Synchronize" in e.key or "DtoH" in e.key))
+                cuda = int(sum(e.count for e in prof.key_averages() if "Synchronize" in e.key or "DtoH" in e.key))
         finally:
             comp.device_settings = old
-        top = ", ".join(f"{k} {v}" for k, v in h.calls.most_common(4))
-        rows.append(f"| {name} | {h.total} | {cuda} | {top} |")
-        counts.append(h.total)
-    return rows, counts
+        rows.append({"table": "host syncs", "run": name, "counted": h.total, "cuda_syncs": cuda,
+                     "most_frequent": ", ".join(f"{k} {v}" for k, v in h.calls.most_common(4))})
+    return rows
 
 
-def step_rows(device: torch.device, steps: int) -> list[str]:
-    if device.type != "cuda":
-        return ["| all three | not measured (no GPU) | | | |"]
-    if gsplat_problem() is not None:
-        return [f"| all three | not measured ({gsplat_problem()}) | | | |"]
+def step_rows(device: torch.device, steps: int) -> list[dict]:
+    """Fwd+bwd of the same Gaussians and camera through each renderer, mean of `steps` (CUDA)."""
+    if device.type != "cuda" or gsplat_problem() is not None:
+        print(f"step times: not measured ({'no GPU' if device.type != 'cuda' else gsplat_problem()})", flush=True)
+        return []
     from gsplat import rasterization
 
     args, W, H = scene(device)
@@ -135,8 +136,8 @@ def step_rows(device: torch.device, steps: int) -> list[str]:
         wall = (time.perf_counter() - t0) / steps * 1e3
         kernels = [e for e in prof.events() if e.device_type == torch.autograd.DeviceType.CUDA]
         gpu_ms = sum(e.device_time for e in kernels) / 1e3 / steps
-        rows.append(f"| {name} | {wall:.1f} | {gpu_ms:.1f} | {len(kernels) / steps:.0f} | "
-                    f"{describe_device(device)} |")
+        rows.append({"table": "step", "run": name, "wall_ms": wall, "gpu_kernel_ms": gpu_ms,
+                     "launches": len(kernels) / steps})
         print(rows[-1], flush=True)
     return rows
 
@@ -146,12 +147,12 @@ class types_out:  # gsplat's raw results with what fwd_bwd reads (the bare loop 
         self.image, self.alpha, self.means2d = colors[0, ..., :3], alphas[0, ..., 0], meta["means2d"]
 
 
-def train_rows(device: torch.device, iterations: int, compare: int) -> list[str]:
+def train_rows(device: torch.device, iterations: int, compare: int) -> list[dict]:
     """gsplat at the full schedule (issue 36's time target), then both renderers at a short one
     (`compare` steps; the PyTorch path is host-bound on a GPU, too slow for the full schedule in
     a lease): the same settings, so the PSNRs compare the renderers."""
     if device.type != "cuda":
-        return ["| gsplat, torch | fox 480 px, --preset fast | not measured (no GPU) | | | | |"]
+        return []
     rows = []
     for renderer, steps in (("gsplat", iterations), ("gsplat", compare), ("torch", compare)):
         name = f"{renderer}-{steps}"
@@ -159,8 +160,9 @@ def train_rows(device: torch.device, iterations: int, compare: int) -> list[str]
         r = splatcli(["train", str(dest), "--device", "cuda", "--renderer", renderer, "--max-size", "480",
                       "--preset", "fast", "--iterations", str(steps)], OUT / "gpu" / f"{name}.log")
         s = r.summary
-        rows.append(f"| {renderer} ({s['renderer']}) | {steps} | {s['train_seconds']:.0f} | {r.wall_s:.0f} | "
-                    f"{s['psnr']:.2f} | {s['num_gaussians']} | {r.load[0]:.2f} → {r.load[1]:.2f} |")
+        rows.append({"table": "training, fox 480 px, --preset fast", "run": f"{renderer} ({s['renderer']})",
+                     "steps": steps, "train_s": s["train_seconds"], "wall_s": r.wall_s, "psnr": s["psnr"],
+                     "gaussians": s["num_gaussians"], "load_before": r.load[0], "load_after": r.load[1]})
         print(rows[-1], flush=True)
     return rows
 
@@ -171,32 +173,14 @@ def main() -> None:
     ap.add_argument("--iterations", type=int, default=7000, help="gsplat's training steps (the fast preset's 7,000)")
     ap.add_argument("--compare", type=int, default=500, help="steps of the run of each renderer at equal settings")
     ap.add_argument("--no-train", action="store_true", help="skip the training runs")
-    ap.add_argument("--no-write", action="store_true")
     a = ap.parse_args()
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     torch.manual_seed(0)
-    load = loadavg()
-    sync_rows, (before, after) = syncs(device)
-    text = [HEADING, "",
-            f"`python bench/gpu.py` on {describe_device(device)}, torch {torch.__version__} (load average {load:.2f} "
-            "at start). Issue 36's targets: fox at 480 px, fast preset, in at most 120 s with gsplat and within 0.3 dB "
-            "of the PyTorch path; a step at most 1.3x gsplat's bare loop; 3x fewer host syncs per step.", "",
-            "**Host syncs per fwd+bwd** (50k Gaussians, 480×270, SH 3, the PyTorch rasterizer as training calls it; "
-            "counted calls that make the host wait for a CUDA device):", "",
-            "| compositor settings | counted | CUDA syncs (profiler) | most frequent |", "| --- | ---: | ---: | --- |",
-            *sync_rows, "",
-            f"With the CUDA settings the counted calls fall {before / max(after, 1):.1f}x (issue 36 asks 3x fewer "
-            "host syncs per step); the rest come from the planner (`float()` of the pair estimate and the block "
-            "costs, the pair count). Counted on the CPU, this is what the same code makes a CUDA device wait for; "
-            "the profiler column is the count on a GPU.", "",
-            f"**Step time** (the same Gaussians and camera, fwd+bwd, mean of {a.steps}):", "",
-            "| renderer | wall ms | GPU kernel ms | launches | device |", "| --- | ---: | ---: | ---: | --- |",
-            *step_rows(device, a.steps), ""]
-    if not a.no_train:
-        text += ["**Training**, fox at 480 px, `--preset fast`:", "",
-                 "| renderer | steps | train s | wall s | held-out PSNR | Gaussians | load before → after |",
-                 "| --- | ---: | ---: | ---: | ---: | ---: | --- |", *train_rows(device, a.iterations, a.compare), ""]
-    publish(HEADING, "\n".join(text), write=not a.no_write)
+    rows = syncs(device) + step_rows(device, a.steps) + ([] if a.no_train else train_rows(device, a.iterations,
+                                                                                          a.compare))
+    report("gpu", rows, columns=["table", "run", "counted", "cuda_syncs", "most_frequent", "wall_ms", "gpu_kernel_ms",
+                                 "launches", "steps", "train_s", "wall_s", "psnr", "gaussians"],
+           device=describe_device(device))
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """The rasterizer against a peer, in one run: OpenSplat's CPU rasterizer and ours.
 
-    .venv/bin/python bench/peers.py --source PATH/TO/OpenSplat [--threads 1,2] [--reps 5] [--no-write]
+    .venv/bin/python bench/peers.py --source PATH/TO/OpenSplat [--threads 1,2] [--reps 5]
 
 OpenSplat is built from a checkout the user gives (recorded commit: 15b7e80; it is
 AGPL-licensed and never vendored here) into bench/out/peers/build: its CPU
@@ -11,13 +11,14 @@ compiled by torch's own extension builder against the libtorch inside the pip
 torch wheel (g++ and ninja are needed; no OpenCV: the peer's image I/O is not timed).
 Where the peer cannot be built, the script says why and exits 0.
 
-Both sides render the issue-7 workloads (bench/scenes.py, as bench/rasterize.py) forward and backward:
+Both sides render the issue-7 workloads (bench/workloads.py, as bench/rasterize.py) forward and backward:
 the peer as its model.cpp does on CPU (project, SH degree 0 colours, rasterize);
 ours through `splatcli.render.rasterize`. They alternate, rep by rep, at each
 thread count, so both see the same machine; medians are reported with the load
 average. At the recorded commit the peer's CPU path blends in a wrong depth order
 (its projection returns a strided depth view that the rasterizer reads as
 contiguous), so its pictures differ from ours: it is timed as users build it.
+Results: bench/out/peers.json (common.report), the table printed.
 """
 
 from __future__ import annotations
@@ -34,14 +35,13 @@ from pathlib import Path
 
 import torch
 
-from common import REPO, publish
-from scenes import workloads
-from splatcli.device import cpu_name
+from common import OUT as ALL_OUT, report
 from splatcli.gaussians import SH_C0
 from splatcli.render import kernels, rasterize
 from splatcli.render.blocks import BlockTuner
+from workloads import workloads
 
-OUT = REPO / "bench" / "out" / "peers"
+OUT = ALL_OUT / "peers"
 SOURCES = ["project_gaussians.cpp", "rasterize_gaussians.cpp", "rasterizer/gsplat-cpu/gsplat_cpu.cpp"]
 BINDING = r"""
 #include <torch/extension.h>
@@ -155,7 +155,6 @@ def main() -> None:
     ap.add_argument("--compile", choices=("on", "off"), default="off", help="our rasterizer's compiled kernels")
     ap.add_argument("--block", choices=("tuned", "model"), default="tuned",
                     help="our block size: measured as train does (tuned), or the cost model's pick")
-    ap.add_argument("--no-write", action="store_true")
     ap.add_argument("--one", default="", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if not args.source:
@@ -176,9 +175,7 @@ def main() -> None:
         print(json.dumps(time_pair(mod, wl, args.reps, args.block)), flush=True)
         return
     rows = []
-    print(f"{cpu_name()}, {os.cpu_count()} cores; OpenSplat {rev}; ours {args.compile == 'on' and 'compiled' or 'eager'}, "
-          f"block {args.block}",
-          flush=True)
+    print(f"OpenSplat {rev}; ours {'compiled' if args.compile == 'on' else 'eager'}, block {args.block}", flush=True)
     load0 = os.getloadavg()[0]
     for wl in workloads([x for x in args.only.split(",") if x] or None):
         if wl.args[4].shape[1] != 1:  # the peer's path here is SH degree 0
@@ -190,36 +187,19 @@ def main() -> None:
                                 "--threads", str(nt), "--reps", str(args.reps), "--compile", args.compile,
                                 "--block", args.block],
                                capture_output=True, text=True)
+            row = {"workload": wl.name, "threads": nt, "opensplat_ms": None, "splatcli_ms": None, "speedup": None}
             if r.returncode != 0:
-                why = f"crashed (exit {r.returncode})" if r.returncode < 0 or r.returncode > 128 else "failed"
-                print(f"{wl.name:20s} threads {nt}: the peer {why}", flush=True)
-                rows.append((wl.name, nt, None, None, why))
-                continue
-            t = json.loads(r.stdout.strip().splitlines()[-1])
-            rows.append((wl.name, nt, t["peer"], t["ours"], ""))
-            print(f"{wl.name:20s} threads {nt}: OpenSplat {t['peer'] * 1e3:8.1f} ms  splatcli {t['ours'] * 1e3:8.1f} ms  "
-                  f"ratio {t['peer'] / t['ours']:.2f}x  blocks {t.get('used')}", flush=True)
-    load1 = os.getloadavg()[0]
-    out = ["## Rasterizer against OpenSplat (same run)", "",
-           f"Measured by `python bench/peers.py --source OpenSplat` (OpenSplat commit {rev}, its CPU rasterizer "
-           f"built here against the pip wheel's libtorch; torch {torch.__version__}), on {cpu_name()}, "
-           f"{os.cpu_count()} cores, ours {'with its compiled planner' if args.compile == 'on' else 'eager'} and "
-           f"{'the block measured as train does' if args.block == 'tuned' else 'the cost model block'}, "
-           f"load average {load0:.2f} at the start and {load1:.2f} at the end. Forward+backward, medians of "
-           f"{args.reps} reps after a warm-up, the two sides alternating rep by rep. The peer's CPU path blends "
-           "in a wrong depth order at this commit (a strided depth view read as contiguous), so its pictures "
-           "differ from ours; it is timed as users build it.", "",
-           "| workload | threads | OpenSplat ms | splatcli ms | splatcli is faster by |", "| --- | --- | --- | --- | --- |"]
-    out += [f"| {n} | {t} | {p * 1e3:.0f} | {o * 1e3:.0f} | {p / o:.2f}x |" if p else
-            f"| {n} | {t} | the peer {why} | – | – |" for n, t, p, o, why in rows]
-    for nt in sorted({r[1] for r in rows}):
-        timed = [(p / o, n) for n, t, p, o, _ in rows if t == nt and p]
-        if timed:
-            worst = min(timed)
-            out += ["", f"Goals at {nt} thread(s), worst {worst[0]:.2f}x ({worst[1]}): issue 35's at least 2x on "
-                        f"every workload {'met' if worst[0] >= 2 else 'NOT met'}; issue 12's 3x "
-                        f"{'met' if worst[0] >= 3 else 'NOT met'}."]
-    publish("## Rasterizer against OpenSplat (same run)", "\n".join(out) + "\n", write=not args.no_write and bool(rows))
+                row["peer"] = f"crashed (exit {r.returncode})" if r.returncode < 0 or r.returncode > 128 else "failed"
+            else:
+                t = json.loads(r.stdout.strip().splitlines()[-1])
+                row.update(opensplat_ms=t["peer"] * 1e3, splatcli_ms=t["ours"] * 1e3, speedup=t["peer"] / t["ours"],
+                           peer="ran", blocks=t.get("used"))
+            rows.append(row)
+            print(row, flush=True)
+    # goals: at least 2x faster on every workload (issue 35), 3x (issue 12)
+    if rows:
+        report("peers", rows, opensplat_commit=rev, compile=args.compile, block=args.block, reps=args.reps,
+               load_start=round(load0, 2))
 
 
 if __name__ == "__main__":

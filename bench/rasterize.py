@@ -1,6 +1,6 @@
 """Benchmark the rasterizer: forward, forward+backward, peak memory, ns per pair.
 
-    python bench/rasterize.py [--threads 1,2] [--reps 5] [--only NAME ...] [--no-reference] [--no-write]
+    python bench/rasterize.py [--threads 1,2] [--reps 5] [--only NAME ...] [--no-reference] [--flattened]
 
 Workloads (seeded, issue 7): synthetic N = 10k and 100k at 256x256 and 800x600 (camera
 at the origin, f = 0.8 W; means x, y ~ U(-2, 2), z ~ U(3, 7); log scales ~ U(-4, -2);
@@ -19,7 +19,7 @@ the pre-run level (CPU) or peak allocated (CUDA); and ns per pair, where pairs =
 The dense reference runs on the smallest workload in the same run (forward, and
 forward+backward in bands of rows), once, for the side-by-side ratio.
 
-Writes the "## Rasterizer" section of docs/benchmarks.md (other sections kept).
+Results: bench/out/rasterize.json (common.report), the table printed.
 """
 
 from __future__ import annotations
@@ -31,46 +31,14 @@ import statistics
 import threading
 import time
 from dataclasses import dataclass
-from pathlib import Path
 
 import torch
 
-from common import publish
-from scenes import Workload, workloads
-from splatcli.device import cpu_name
+from common import report
 from splatcli.render import rasterize
 from splatcli.render.projection import project
 from splatcli.render.reference import rasterize_reference
-
-SECTION = "## Rasterizer"
-# A peer's time counts only when it ran in the same run, on the same machine: figures from
-# another day are not divided by here (issue 12). The same-run peer comparison is pending.
-
-
-ALTERNATIVES = """### Alternatives tried (chosen by measuring)
-
-Single thread, CPU (process) time unless marked wall, same-run A/B comparisons where noted
-(the 2 cores were shared with other jobs throughout, so absolute numbers drift by up to 50%
-between runs; ratios within one run are the reliable part). fwd / fwd+bwd in ms.
-
-| # | variant | workload | result | kept? |
-|---|---|---|---|---|
-| 1 | first version: dense [blocks, K, pixels] tensors, `exp`, `torch.where` masks, 2^21-element chunks, whole lists (no early termination), bounding-box pairing | 10k, 256^2, block 4 / 8 / 16 | 345/741, 380/1051, 578/1228 (wall) | replaced |
-| 2 | [blocks, pixels, K] layout: scans run along the contiguous K axis (cumprod 0.46 vs 1.76 ns/element), every GEMM in its fast orientation (colour 0.25 vs 2.1 ns/element); `exp2` with log2(e) folded into the coefficients (0.23 vs 1.7 ns/element); `threshold_`/`clamp_` instead of `where`/`masked_fill` (0.1 vs 2.8 / 10 ns/element); K segments with early termination | 10k, 256^2, block 8 | 52/140 | yes |
-| 3 | chunk size 2^16 / 2^18 / 2^20 / 2^21 elements | same | 70/224, 52/140, 54/184, 71/228 | 2^18 (fits L2/L3) |
-| 4 | segment length 32 / 64 / 128 | same | 49/128, 52/140, 45/129 (noise) | 64 |
-| 5 | exact ellipse-vs-block pairing per block row (closed-form x-extent of the alpha ellipse over a row band) instead of bounding boxes | 10k, 256^2 / 800x600 | 19% / 32% fewer pairs (block 8) | yes |
-| 6 | exponent coefficients per pair, gathered per chunk, vs built per padded slot | 10k, 256^2, same run | 191 -> 138 fwd+bwd | yes, then 7 |
-| 7 | lazy slots: coefficients gathered and gradients scattered per segment, for active blocks only (pairs behind saturated pixels cost nothing but planning) | 100k, 800x600, block 8 / 16 | 4219 -> 2340, 2257 -> 1532 (total) | yes |
-| 8 | planning with `index_select`/`repeat_interleave` instead of `x[idx]` gathers (1.6x faster per element) | 100k, 800x600, block 8 | plan 700 -> 283 | yes |
-| 9 | block side 4 / 8 / 16 (total fwd+bwd) | 10k 256^2; 10k 800x600; 100k 800x600; garden; 100k 200^2 | 110/133/169; 1000/433/460; -/1623/1247; 1146/899/936; 351/310/356 | `block="auto"`: cost model picks 8, 8, 16, 8, 8 |
-| 10 | keep alpha and T from the forward for the backward (budget 2^26 elements) instead of recomputing | 10k 256^2 / 800x600, same run | 120 -> 131, 424 -> 399 fwd+bwd (noise), more memory | no |
-| 11 | `torch.compile` (inductor, CPU) of the per-chunk forward kernel | [64, 64, 64] chunk | 7.8 vs 30 ns/element for the same naive eager code, but 45 s to compile and 5.5 s per new shape (dynamic=True); the tuned eager kernel runs at about 2 ns/element in isolation | no |
-| 12 | textbook flattened formulation (see the line above the table) | 10k, 256^2 | see above | no (baseline) |
-| 13 | 2 torch threads while the cores are oversubscribed | 10k, 256^2 | 6x more CPU time than 1 thread (OpenMP workers spin) | measure 1 thread; use 2 on idle cores |
-| 14 | a block also leaves the segment loop when its list has ended, not only when its pixels saturate (before, a chunk padded every block to its longest list, and short lists ran to the end on padding: at 50 px one chunk held 169 blocks padded to K = 4,365 for 89k pairs) | lego checkpoint, 36.6k Gaussians, 12 training views at 50 / 100 / 200 px, block 4, before -> after, consecutive runs | composite fwd 84 -> 34, 61 -> 28, 61 -> 43; backward (loss included) 224 -> 115, 187 -> 102, 192 -> 148; whole fwd+bwd step at 9.1k Gaussians 119 -> 62 (50 px), 122 -> 94 (200 px) | yes (issue 12) |
-| 15 | glibc keeps freed memory (`mallopt`: mmap threshold 32 MB, trim threshold 1 GB) instead of page-faulting each segment's fresh tensors in again | compositor alone, fresh process / whole `train` runs | 1.4x faster compositor in a short microbenchmark; `train --preset fast --iterations 400` on lego: 71.8 and 68.8 s default, 70.2 and 73.5 s tuned (alternating): no gain, since a long run's dynamic mmap threshold already adapts | no |
-"""
+from workloads import Workload, workloads
 
 
 def count_pairs(wl: Workload) -> tuple[int, int]:
@@ -244,9 +212,7 @@ def main() -> None:
     ap.add_argument("--only", nargs="*", help="workload names (default: all)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--no-reference", action="store_true", help="skip the (slow) dense reference run")
-    ap.add_argument("--no-write", action="store_true", help="print only; leave docs/benchmarks.md alone")
     ap.add_argument("--flattened", action="store_true", help="also time the textbook flattened formulation")
-    ap.add_argument("--extra", default="", help="markdown appended to the section (e.g. the alternatives table)")
     args = ap.parse_args()
     device = torch.device(args.device)
     threads = [int(t) for t in args.threads.split(",")]
@@ -258,80 +224,36 @@ def main() -> None:
         for nt in threads:
             torch.set_num_threads(nt)
             r = measure(wl, args.reps, device)
-            ns = r["tot"] / pairs * 1e9
-            rows.append((wl.name, len(wl.args[0]), nvis, pairs, nt, r))
-            print(f"{wl.name:22s} threads {nt}: fwd {r['fwd'] * 1e3:8.1f} ms (cpu {r['fwd_cpu'] * 1e3:8.1f})  "
-                  f"fwd+bwd {r['tot'] * 1e3:8.1f} ms (cpu {r['tot_cpu'] * 1e3:8.1f})  peak {r['mem']:7.1f} MB  "
-                  f"pairs {pairs:>11,d}  fwd {r['fwd'] / pairs * 1e9:5.1f} / fwd+bwd {ns:5.1f} ns/pair", flush=True)
-    ref_line = ""
-    if not args.no_reference and wls:
-        small = min(wls, key=lambda w: len(w.args[0]) * w.width * w.height)
+            rows.append({"workload": wl.name, "N": len(wl.args[0]), "visible": nvis, "pairs": pairs, "threads": nt,
+                         "fwd_ms": r["fwd"] * 1e3, "fwd_cpu_ms": r["fwd_cpu"] * 1e3, "fwd_bwd_ms": r["tot"] * 1e3,
+                         "fwd_bwd_cpu_ms": r["tot_cpu"] * 1e3, "fwd_ns_per_pair": r["fwd"] / pairs * 1e9,
+                         "fwd_bwd_ns_per_pair": r["tot"] / pairs * 1e9, "peak_mb": r["mem"]})
+            print(" ".join(f"{k} {v:.1f}" if isinstance(v, float) else f"{k} {v}" for k, v in rows[-1].items()),
+                  flush=True)
+    small = min(wls, key=lambda w: len(w.args[0]) * w.width * w.height) if wls else None
+    fast = next((r for r in rows if small and r["workload"] == small.name and r["threads"] == threads[-1]), None)
+    extra = {}
+    if not args.no_reference and small:
         torch.set_num_threads(threads[-1])
-        fast = next(r for r in rows if r[0] == small.name and r[4] == threads[-1])[5]
-        ref = reference_once(small)
-        ref_line = (f"Dense reference (`splatcli/render/reference.py`, float32, bands of 2 rows) on {small.name}, "
-                    f"{threads[-1]} thread(s), one run: forward {ref['fwd']:.1f} s, forward+backward {ref['tot']:.1f} s, "
-                    f"i.e. {ref['fwd'] / fast['fwd']:.0f}x and {ref['tot'] / fast['tot']:.0f}x the fast path's time.")
-        print(ref_line, flush=True)
-    flat_line = ""
-    if args.flattened and wls:
-        small = min(wls, key=lambda w: len(w.args[0]) * w.width * w.height)
+        ref = reference_once(small)  # dense, float32, bands of 2 rows, one run
+        extra["reference"] = {"workload": small.name, "threads": threads[-1], "fwd_s": ref["fwd"],
+                              "fwd_bwd_s": ref["tot"],
+                              "times_fast_fwd": ref["fwd"] * 1e3 / fast["fwd_ms"],
+                              "times_fast_fwd_bwd": ref["tot"] * 1e3 / fast["fwd_bwd_ms"]}
+        print(f"dense reference: {extra['reference']}", flush=True)
+    if args.flattened and small:
         torch.set_num_threads(threads[-1])
-        pairs = next(r for r in rows if r[0] == small.name)[3]
-        fast = next(r for r in rows if r[0] == small.name and r[4] == threads[-1])[5]
         with torch.no_grad():
             diff = (flattened(*small.args, small.width, small.height)[0]
                     - rasterize(*small.args, small.width, small.height).image).abs().max().item()
         fl = flattened_measure(small, args.reps)
-        flat_line = (f"Textbook flattened formulation (per-pair alpha, global sort by (pixel, depth), segmented "
-                     f"cumsum of log(1 - alpha), index_add; autograd backward) on {small.name}, {threads[-1]} "
-                     f"thread(s): forward {fl['fwd'] * 1e3:.0f} ms ({fl['fwd'] / pairs * 1e9:.0f} ns/pair, CPU "
-                     f"{fl['fwd_cpu'] * 1e3:.0f} ms), fwd+bwd {fl['tot'] * 1e3:.0f} ms ({fl['tot'] / pairs * 1e9:.0f} "
-                     f"ns/pair, CPU {fl['tot_cpu'] * 1e3:.0f} ms), peak {fl['mem']:.0f} MB; the block compositor "
-                     f"is {fl['tot_cpu'] / fast['tot_cpu']:.1f}x faster (CPU time). Max |difference| of the images "
-                     f"{diff:.1e}.")
-        print(flat_line, flush=True)
-    load1 = os.getloadavg()[0]
-    cpu = cpu_name()
-    out = [
-        SECTION,
-        "",
-        f"Measured by `python bench/rasterize.py --threads {args.threads} --reps {args.reps}` on {cpu}, "
-        f"{os.cpu_count()} cores, torch {torch.__version__}, device {device}. "
-        + (f"The cores were shared with other jobs (load average {load0:.1f} at start, {load1:.1f} at end), so "
-           "wall times are inflated; " if load0 >= 1.0 else
-           f"Nothing else ran (load average {load0:.1f} at the start; {load1:.1f} at the end is the benchmark's "
-           "own threads); ")
-        + "the CPU column is this process's CPU time. Medians of the runs after one warm-up. Pairs: (Gaussian, pixel) "
-        "with the pixel centre in the Gaussian's 3-sigma ellipse; ns/pair = fwd+bwd wall time / pairs.",
-        "",
-        "| workload | N | visible | pairs | threads | fwd ms | fwd ms (CPU) | fwd+bwd ms | fwd+bwd ms (CPU) "
-        "| fwd ns/pair | fwd+bwd ns/pair | peak MB |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
-    ]
-    for name, n, nvis, pairs, nt, r in rows:
-        out.append(
-            f"| {name} | {n:,} | {nvis:,} | {pairs:,} | {nt} | {r['fwd'] * 1e3:.0f} | {r['fwd_cpu'] * 1e3:.0f} | "
-            f"{r['tot'] * 1e3:.0f} | {r['tot_cpu'] * 1e3:.0f} | {r['fwd'] / pairs * 1e9:.1f} | "
-            f"{r['tot'] / pairs * 1e9:.1f} | {r['mem']:.0f} |"
-        )
-    out += ["", "Goal: fwd+bwd <= 40 ns/pair (issue 7), <= 25 (issue 12). No peer column: a ratio counts only "
-            "when both sides ran in the same run.", ""]
-    for nt in sorted({row[4] for row in rows}):
-        mine = [row for row in rows if row[4] == nt]
-        ns, worst = max((row[5]["tot"] / row[3] * 1e9, row[0]) for row in mine)
-        line = (f"Goals with {nt} thread(s): worst fwd+bwd {ns:.1f} ns/pair "
-                f"({worst}; goal <= 40: {'met' if ns <= 40 else 'NOT met'})")
-        fw = max(row[5]["fwd"] / row[3] for row in mine) * 1e9
-        out += [line + f"; worst forward alone {fw:.1f} ns/pair.", ""]
-    if ref_line:
-        out += [ref_line, ""]
-    if flat_line:
-        out += [flat_line, ""]
-    out += [ALTERNATIVES]
-    if args.extra:
-        out += [Path(args.extra).read_text(encoding="utf-8").rstrip("\n"), ""]
-    publish(SECTION, "\n".join(out), write=not args.no_write)
+        extra["flattened"] = {"workload": small.name, "threads": threads[-1], "fwd_ms": fl["fwd"] * 1e3,
+                              "fwd_bwd_ms": fl["tot"] * 1e3, "fwd_bwd_cpu_ms": fl["tot_cpu"] * 1e3,
+                              "peak_mb": fl["mem"],
+                              "times_fast_cpu": fl["tot_cpu"] * 1e3 / fast["fwd_bwd_cpu_ms"], "max_abs_diff": diff}
+        print(f"flattened: {extra['flattened']}", flush=True)
+    # goals: fwd+bwd <= 40 ns/pair (issue 7), <= 25 (issue 12), at every thread count
+    report("rasterize", rows, device=str(device), reps=args.reps, load_start=round(load0, 2), **extra)
 
 
 if __name__ == "__main__":

@@ -1,10 +1,10 @@
 """Where one training step goes: projection, planning, compositing, loss, backward.
 
     .venv/bin/python bench/step.py PROJECT [--max-size 200] [--scales 0.25,0.5,1] [--views 12]
-                                           [--fractions 0.25,0.5,1] [--no-write]
+                                           [--fractions 0.25,0.5,1]
 
 PROJECT is a trained project (its latest checkpoint is the model; e.g. one that
-bench/versus.py or bench/train.py left under bench/out/). For each share of the
+bench/train.py left under bench/out/train/). For each share of the
 Gaussians (a seeded random subset) and each resolution (a fraction of the trained
 size, as coarse-to-fine renders), it times the stages of a training step on the
 first training views, one torch thread, and prints medians in ms. The backward is
@@ -13,25 +13,27 @@ Stages as rasterize() runs them: *project* is the fused projection (cull, screen
 ellipses, SH colour, and the planner's per-Gaussian footprint: tile rects, depth
 order); *plan* is the block choice, the pair estimate and make_plan (per block row and
 per pair).
-Results go to the "## Where a training step goes" section of docs/benchmarks.md.
+Results: bench/out/step.json (common.report), the table printed.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import statistics
 import time
 
 import torch
 
-from common import cpu_model, publish
-from splatcli.device import cpu_name
+from common import report
+from splatcli.io.checkpoint import load_checkpoint
 from splatcli.project import Project
 from splatcli.render import kernels
 from splatcli.render.blocks import choose_block, estimate_pairs, extents
 from splatcli.render.composite import composite, make_plan
 from splatcli.render.projection import project
+from splatcli.train.data import load_train_data
 from splatcli.train.loss import photometric_loss
 
 STAGES = ("project", "plan", "composite", "loss", "loss bwd", "composite bwd", "project bwd")
@@ -48,7 +50,7 @@ def step_times(p: dict, view, bg) -> tuple[dict, int]:
         out[name] = now - t
         t = now
 
-    pr = project(*p.values(), view.viewmat, view.K, W, H, 3)
+    pr = project(*p.values(), view.viewmat, view.K, W, H, math.isqrt(p["sh"].shape[1]) - 1)
     lap("project")
     fp = pr.footprint
     ext = extents(fp.cov2d, fp.opacities)
@@ -79,10 +81,12 @@ def main() -> None:
     ap.add_argument("--fractions", default="0.25,0.5,1", help="shares of the model's Gaussians")
     ap.add_argument("--views", type=int, default=12)
     ap.add_argument("--compile", choices=("on", "off"), default="off", help="the rasterizer's compiled kernels")
-    ap.add_argument("--no-write", action="store_true")
     args = ap.parse_args()
     kernels.set_mode(args.compile)
-    data, full = cpu_model(Project.open(args.project).latest_checkpoint(), args.max_size)
+    torch.set_num_threads(1)
+    proj, cpu = Project.open(args.project), torch.device("cpu")
+    data = load_train_data(proj, 1.0, args.max_size, cpu, 0)  # the training views at --max-size
+    full = load_checkpoint(proj.latest_checkpoint(), cpu).gaussians.detach().as_dict()
     n_all = len(full["means"])
     load0 = os.getloadavg()[0]
     rows = []
@@ -99,25 +103,13 @@ def main() -> None:
                     runs.append(st)
                     pairs.append(m)
             med = {k: 1e3 * statistics.median(r[k] for r in runs) for k in STAGES}
-            rows.append((n, f"{views[0].camera.width}x{views[0].camera.height}", statistics.median(pairs), med))
-            print(f"N {n:7d}  {rows[-1][1]:>9s}  " + "  ".join(f"{k} {med[k]:.1f}" for k in STAGES)
-                  + f"  total {sum(med.values()):.1f} ms", flush=True)
-    load1 = os.getloadavg()[0]
+            size = f"{views[0].camera.width}x{views[0].camera.height}"
+            rows.append({"gaussians": n, "image": size, "pairs": statistics.median(pairs),
+                         **{f"{k} ms": med[k] for k in STAGES}, "total ms": sum(med.values())})
+            print(rows[-1], flush=True)
     st = kernels.status()
-    compiled = (f"compiled planner (first calls {st.compile_s:.1f} s, not in the medians)" if args.compile == "on"
-                else "eager")
-    print(f"{cpu_name()}; {compiled}; load {load0:.2f} -> {load1:.2f}", flush=True)
-    out = ["## Where a training step goes", "",
-           f"Measured by `python bench/step.py {args.project} --max-size {args.max_size} --compile {args.compile}` "
-           f"on {cpu_name()}, {compiled} (one torch thread; medians "
-           f"over {args.views} training views after 2 warm-ups; load average {load0:.2f} at the start, {load1:.2f} at "
-           "the end). Milliseconds per stage of one training step; *pairs* are (Gaussian, block) pairs planned.", "",
-           "| Gaussians | image | pairs | " + " | ".join(STAGES) + " | total |",
-           "| ---: | --- | ---: | " + " | ".join("---:" for _ in STAGES) + " | ---: |"]
-    for n, size, m, med in rows:
-        out.append(f"| {n:,} | {size} | {m:,.0f} | " + " | ".join(f"{med[k]:.1f}" for k in STAGES)
-                   + f" | {sum(med.values()):.1f} |")
-    publish("## Where a training step goes", "\n".join(out) + "\n", write=not args.no_write)
+    report("step", rows, project=args.project, max_size=args.max_size, views=args.views, compile=args.compile,
+           compile_s=st.compile_s if args.compile == "on" else None, load_start=round(load0, 2))
 
 
 if __name__ == "__main__":

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from common import data_dir  # bench/common.py (pyproject's pytest pythonpath): the benchmarks' data too
+from support import data_dir  # tests/support (pyproject's pytest pythonpath names tests/)
 
 
 @pytest.fixture(autouse=True)

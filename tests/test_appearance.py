@@ -30,7 +30,7 @@ from splatcli.train.appearance import Exposure, ExposureConfig, identity, smooth
 from splatcli.train.config import make_config
 from splatcli.train.loop import train
 from splatcli.train.loss import photometric_loss
-from tiny_project import make_tiny_project, run_cli, tiny_gaussians
+from support.tiny_project import make_tiny_project, run_cli, tiny_gaussians
 
 CPU = torch.device("cpu")
 # block="model": the runs here are compared bit for bit, and a measured block (--block auto) follows the clock

@@ -12,7 +12,7 @@ import torch
 from splatcli.errors import SplatError
 from splatcli.train import auto
 from splatcli.train.config import make_config
-from tiny_project import make_tiny_project, run_cli
+from support.tiny_project import make_tiny_project, run_cli
 
 CPU = torch.device("cpu")
 

@@ -11,7 +11,7 @@ the note saying what was skipped.
 Nothing here runs structure from motion: the `process` cases that must get past
 it replace `run_sfm` with a stand-in that poses the staged images on a ring
 (what is under test is how the input is read, not SfM). Projects are the hand-made
-tiny project of bench/tiny_project.py, copied per test.
+tiny project of tests/support/tiny_project.py, copied per test.
 """
 
 from __future__ import annotations
@@ -35,8 +35,8 @@ from splatcli.io.atomic import MAX_JSON_BYTES
 from splatcli.io.checkpoint import CHECKPOINT_SCHEMA
 from splatcli.io.ply import gaussians_to_rows, ply_header, ply_property_names
 from splatcli.project import LOCK_NAME, MANIFEST_NAME, SCHEMA_VERSION, Project
+from support.tiny_project import make_tiny_project, ring_cameras, tiny_gaussians
 from test_sfm import gl_c2w, jpeg_bytes, texture, with_exif_orientation
-from tiny_project import make_tiny_project, ring_cameras, tiny_gaussians
 
 # ---------------------------------------------------------------------------
 # helpers

@@ -6,9 +6,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-from scenes import test_scene as make_scene
 from splatcli.render import blocks, kernels, rasterize
 from splatcli.render.blocks import BlockTuner
+from support.scenes import test_scene as make_scene
 
 
 def _small_gaussians(n: int = 500) -> tuple[torch.Tensor, torch.Tensor]:  # cov2d [n, 3], opacities [n]

@@ -148,7 +148,7 @@ def test_json_failures_are_one_object_with_code_and_hint(monkeypatch, runner, tm
     assert set(d) == {"error", "exit_code", "hint"} and d["exit_code"] == 2
     assert r.stderr.strip() == f"error: {d['error']}"
     # a missing earlier step names the command to run
-    from tiny_project import make_tiny_project
+    from support.tiny_project import make_tiny_project
 
     proj = make_tiny_project(tmp_path / "p", trained=False, photos=False)
     r = runner.invoke(app, ["export", str(proj.root), "--json"])

@@ -12,7 +12,6 @@ import pytest
 import torch
 
 import splatcli.render.composite as composite
-from scenes import test_scene as make_scene
 from splatcli.render import kernels, rasterize
 from splatcli.render.projection import project
 from splatcli.render.reference import rasterize_reference
@@ -20,7 +19,8 @@ from splatcli.train import auto
 from splatcli.train.config import make_config
 from splatcli.train.loop import train
 from splatcli.train.plan import TimePlan
-from tiny_project import make_tiny_project
+from support.scenes import test_scene as make_scene
+from support.tiny_project import make_tiny_project
 
 CPU = torch.device("cpu")
 needs_compiler = pytest.mark.skipif(kernels.compiler() is None, reason="no C++ compiler for torch.compile")

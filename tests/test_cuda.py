@@ -9,9 +9,9 @@ import json
 import pytest
 import torch
 
-from scenes import test_scene as make_scene
 from splatcli import rasterize
 from splatcli.render.reference import rasterize_reference
+from support.scenes import test_scene as make_scene
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 CUDA = torch.device("cuda")
@@ -80,7 +80,7 @@ def test_train_render_eval_on_cuda_and_the_checkpoint_loads_on_cpu(tmp_path):
 
     from splatcli.cli.main import app
     from splatcli.model import load_model
-    from tiny_project import make_tiny_project
+    from support.tiny_project import make_tiny_project
 
     proj = make_tiny_project(tmp_path / "p", trained=False).root
     run = CliRunner().invoke
@@ -143,7 +143,7 @@ def test_train_render_eval_with_gsplat(tmp_path):
     from typer.testing import CliRunner
 
     from splatcli.cli.main import app
-    from tiny_project import make_tiny_project
+    from support.tiny_project import make_tiny_project
 
     proj = make_tiny_project(tmp_path / "p", trained=False).root
     run = CliRunner().invoke

@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 
 from splatcli.cli.main import app
 from splatcli.io.checkpoint import load_checkpoint
-from tiny_project import make_tiny_project
+from support.tiny_project import make_tiny_project
 
 
 @pytest.fixture

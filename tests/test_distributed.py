@@ -24,7 +24,7 @@ from splatcli.io.checkpoint import load_checkpoint
 from splatcli.strategy.default import DefaultStrategyState
 from splatcli.train.config import make_config
 from splatcli.train.distributed import Comm
-from tiny_project import make_tiny_project
+from support.tiny_project import make_tiny_project
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 pytestmark = pytest.mark.skipif(sys.platform == "win32" or not torch.distributed.is_available()

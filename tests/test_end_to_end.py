@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from common import make_scene
 from splatcli.cli.main import app
+from support import make_scene
 
 pytestmark = pytest.mark.slow  # every command in turn on a rendered capture
 

@@ -23,7 +23,7 @@ from splatcli.io.checkpoint import load_gaussians
 from splatcli.io.ply import ply_bytes
 from splatcli.project import Project
 from splatcli.render import rasterize
-from tiny_project import assert_user_error, make_tiny_project, ring_cameras, run_cli, snapshot, tiny_gaussians
+from support.tiny_project import assert_user_error, make_tiny_project, ring_cameras, run_cli, snapshot, tiny_gaussians
 
 AUTO_DEVICE = resolve_device("auto").type  # "cpu", or "cuda" where a GPU is
 

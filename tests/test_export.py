@@ -14,7 +14,7 @@ import torch
 from splatcli.io.checkpoint import load_gaussians
 from splatcli.io.ply import ply_bytes, read_ply
 from splatcli.io.splat import SPLAT_ROW_BYTES, read_splat
-from tiny_project import assert_user_error, make_tiny_project, run_cli, snapshot
+from support.tiny_project import assert_user_error, make_tiny_project, run_cli, snapshot
 
 EXPECTED_SH1 = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(9)]
                 + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
@@ -79,7 +79,7 @@ def test_export_errors(proj, tmp_path: Path) -> None:
 
 def test_export_drops_non_finite_rows(tmp_path: Path) -> None:
     from splatcli.io.checkpoint import save_checkpoint
-    from tiny_project import tiny_gaussians
+    from support.tiny_project import tiny_gaussians
 
     p = make_tiny_project(tmp_path / "p", trained=False, photos=False)
     g = tiny_gaussians(20)

@@ -20,7 +20,7 @@ import torch
 from splatcli.io.checkpoint import load_checkpoint
 from splatcli.project import Project
 from splatcli.train.log import read_log
-from tiny_project import make_tiny_project
+from support.tiny_project import make_tiny_project
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 

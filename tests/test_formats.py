@@ -29,7 +29,7 @@ from splatcli.io.spz import SpzOptions, read_spz, write_spz
 from splatcli.model import load_model
 from splatcli.render import render_camera
 from splatcli.views.paths import look_at
-from tiny_project import assert_user_error, make_tiny_project, run_cli
+from support.tiny_project import assert_user_error, make_tiny_project, run_cli
 
 
 def scene(n: int = 600, seed: int = 0, sh_degree: int = 3) -> Gaussians:

@@ -11,12 +11,12 @@ import types
 import pytest
 import torch
 
-from scenes import test_scene as make_scene
 from splatcli.errors import SplatError
 from splatcli.render import backends
 from splatcli.render.backends import gsplat_inputs, gsplat_output, rasterize_gsplat, resolve_renderer
 from splatcli.render.projection import project
 from splatcli.render.rasterize import rasterize
+from support.scenes import test_scene as make_scene
 
 CPU, CUDA = torch.device("cpu"), torch.device("cuda")  # a device object needs no GPU
 
@@ -148,7 +148,7 @@ def test_training_through_the_adapter_densifies_and_resumes_on_the_other_rendere
     renderer resumes on the other."""
     from splatcli.train.config import make_config
     from splatcli.train.loop import train
-    from tiny_project import make_tiny_project
+    from support.tiny_project import make_tiny_project
 
     small = dict(iterations=30, init_random_points=300, max_gaussians=600, eval_every=15, log_every=10,
                  refine_start=4, refine_every=4, opacity_reset=16, sh_degree_interval=8, checkpoint_every=10,

@@ -24,8 +24,8 @@ from splatcli.process.run import ProcessConfig, process
 from splatcli.project import Project
 from splatcli.sfm import colmap
 from splatcli.sfm.colmap import read_scene
+from support.tiny_project import assert_user_error
 from test_sfm import gl_c2w, orbit, texture, write_text_model
-from tiny_project import assert_user_error
 
 
 def make_workspace(root: Path, *, camera_model: str = "PINHOLE", text: bool = False, num_cameras: int = 1,
@@ -359,7 +359,7 @@ def test_a_model_we_wrote_is_not_walked_again(tmp_path, monkeypatch):
     """The model `process` wrote and recorded (by digest) is read without the file walk;
     a model changed since then is walked again."""
     import splatcli.sfm.colmap as sfm_colmap
-    from tiny_project import make_tiny_project
+    from support.tiny_project import make_tiny_project
 
     proj = make_tiny_project(tmp_path / "p", trained=False)
     scene = proj.manifest()["scene"]

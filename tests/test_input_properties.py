@@ -19,13 +19,13 @@ import pytest
 import torch
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from common import data_dir
 from splatcli.errors import SplatError
 from splatcli.gaussians import Gaussians
 from splatcli.io.checkpoint import load_checkpoint, save_checkpoint
 from splatcli.io.transforms import read_transforms
 from splatcli.project import Project
 from splatcli.sfm.colmap_files import check_model
+from support import data_dir
 
 SETTINGS = settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture],
                     derandomize=True)
@@ -160,7 +160,7 @@ def _llff_bytes() -> bytes:
     import io
 
     from splatcli.io.llff import to_poses_bounds
-    from tiny_project import ring_cameras
+    from support.tiny_project import ring_cameras
 
     cams = ring_cameras(3)
     buf = io.BytesIO()

@@ -17,7 +17,7 @@ from splatcli.io.export import ExportConfig
 from splatcli.model import export_project
 from splatcli.project import writer_lock
 from splatcli.train.log import read_log
-from tiny_project import make_tiny_project
+from support.tiny_project import make_tiny_project
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="flock is POSIX")

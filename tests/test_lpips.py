@@ -18,7 +18,7 @@ import torch
 from splatcli.errors import SplatError
 from splatcli.eval import lpips as lp
 from splatcli.eval.report import ImageScore
-from tiny_project import assert_user_error, make_tiny_project, run_cli
+from support.tiny_project import assert_user_error, make_tiny_project, run_cli
 
 PKG = lp.import_package()
 needs_pkg = pytest.mark.skipif(PKG is None, reason="the lpips package (splatcli[lpips]) is not installed")

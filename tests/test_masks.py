@@ -19,8 +19,8 @@ from splatcli.process.run import ProcessConfig, process
 from splatcli.project import Project
 from splatcli.train.data import load_train_data
 from splatcli.train.loss import photometric_loss
+from support.tiny_project import assert_user_error, make_tiny_project, run_cli
 from test_process import render
-from tiny_project import assert_user_error, make_tiny_project, run_cli
 
 N_VIEWS, W, H = 16, 256, 192
 

@@ -17,7 +17,7 @@ from splatcli.cli.main import app
 from splatcli.io.checkpoint import load_checkpoint
 from splatcli.render.composite import KEEP_BYTES
 from splatcli.train.memory import BYTES_PER_GAUSSIAN, is_out_of_memory, plan_memory
-from tiny_project import make_tiny_project
+from support.tiny_project import make_tiny_project
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -35,7 +35,7 @@ def _one_error_line(stderr: str) -> str:
 
 
 def test_plan_counts_images_and_gaussians():
-    from tiny_project import ring_cameras
+    from support.tiny_project import ring_cameras
 
     cams = ring_cameras()
     p = plan_memory(cams, 300, 5000)

@@ -16,7 +16,7 @@ from splatcli.gaussians import Gaussians
 from splatcli.io.checkpoint import save_checkpoint
 from splatcli.mesh.measure import sample_surface, surface_score
 from splatcli.render.rasterize import render_surface
-from tiny_project import make_tiny_project
+from support.tiny_project import make_tiny_project
 
 pytest.importorskip("skimage", reason="meshing needs scikit-image (the mesh extra)")
 

@@ -19,7 +19,7 @@ from splatcli.render import render_camera
 from splatcli.strategy import MipFilter, Splats, ops
 from splatcli.strategy.mip import MARGIN, VARIANCE, filter_from_rate, sampling_rate
 from splatcli.views.sources import choose_antialias, dataset_views
-from tiny_project import make_tiny_project, ring_cameras, run_cli, tiny_gaussians
+from support.tiny_project import make_tiny_project, ring_cameras, run_cli, tiny_gaussians
 
 CPU = torch.device("cpu")
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from common import make_scene
+from support import make_scene
 
 REPO = Path(__file__).resolve().parents[1]
 

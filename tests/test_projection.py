@@ -15,10 +15,10 @@ import pytest
 import torch
 
 import splatcli.render.projection as P
-from scenes import test_scene as make_scene
 from splatcli import rasterize
 from splatcli.render.reference import project_autograd
 from splatcli.render.sh import sh_basis, sh_basis_rows_backward
+from support.scenes import test_scene as make_scene
 
 W, H = 37, 29
 OUTS = ("means2d", "conics", "opacities", "colors", "depths")

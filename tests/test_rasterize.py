@@ -8,9 +8,9 @@ import torch
 import splatcli
 import splatcli.render.blocks as blocks
 import splatcli.render.composite as composite
-from scenes import test_scene as make_scene
 from splatcli import RenderOutput, rasterize
 from splatcli.render.reference import rasterize_reference
+from support.scenes import test_scene as make_scene
 
 PARAMS = ["means", "quats", "log_scales", "opacity_logits", "sh", "viewmat", "K"]
 

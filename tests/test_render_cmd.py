@@ -18,7 +18,16 @@ from splatcli.io.ply import write_ply
 from splatcli.project import Project
 from splatcli.views.paths import generate_path
 from splatcli.views.sources import transforms_views
-from tiny_project import H, W, assert_user_error, make_tiny_project, ring_cameras, run_cli, snapshot, tiny_gaussians
+from support.tiny_project import (
+    H,
+    W,
+    assert_user_error,
+    make_tiny_project,
+    ring_cameras,
+    run_cli,
+    snapshot,
+    tiny_gaussians,
+)
 
 AUTO_DEVICE = resolve_device("auto").type  # "cpu", or "cuda" where a GPU is
 

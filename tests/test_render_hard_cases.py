@@ -210,7 +210,7 @@ def test_odd_image_sizes(size):
 
 
 def test_float32_vs_float64():
-    from scenes import test_scene
+    from support.scenes import test_scene
 
     args = test_scene(400, 40, 30, sh_degree=2)
     o64 = rasterize(*args, 40, 30)

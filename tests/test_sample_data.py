@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from common import make_scene
+from support import make_scene
 
 REPO = Path(__file__).resolve().parents[1]
 SCENE = REPO / "sample_data" / "scene"

@@ -19,7 +19,7 @@ from splatcli.strategy.base import Splats
 from splatcli.strategy.compact import CompactConfig, CompactState, CompactStep
 from splatcli.train.data import load_train_data
 from splatcli.views.sources import dataset_views
-from tiny_project import make_tiny_project, tiny_gaussians
+from support.tiny_project import make_tiny_project, tiny_gaussians
 
 CPU = torch.device("cpu")
 

@@ -14,7 +14,6 @@ import cv2
 import numpy as np
 import pytest
 
-from align import compare_poses, umeyama
 from splatcli.camera import Camera, focus_point
 from splatcli.errors import SplatError
 from splatcli.io.images import ImageError, check_complete, exif_orientation, fit_size, read_image
@@ -23,7 +22,16 @@ from splatcli.process.bounds import frustum_bounds, points_bounds
 from splatcli.process.detect import detect_input
 from splatcli.process.video import blurry_frames, choose_frames
 from splatcli.sfm.colmap_files import check_model
-from splatcli.sfm.reconstruct import exhaustive_pairs, looks_ordered, natural_key, sequential_pairs
+from splatcli.sfm.reconstruct import (
+    SfmOptions,
+    choose_matcher,
+    exhaustive_pairs,
+    looks_ordered,
+    natural_key,
+    sequential_pairs,
+)
+from splatcli.sfm.retrieval import retrieval_pairs
+from support.align import compare_poses, umeyama
 
 
 def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:  # [4, 4] world-to-camera, OpenCV axes
@@ -137,6 +145,38 @@ def test_ordered_names_and_natural_sort():
     assert not looks_ordered(["a.jpg", "b.jpg", "c.jpg"])
     assert not looks_ordered(["IMG_1.jpg", "DSC_2.jpg", "IMG_3.jpg"])
     assert sorted(["f10.png", "f9.png", "f100.png"], key=natural_key) == ["f9.png", "f10.png", "f100.png"]
+
+
+def test_retrieval_pairs_each_image_with_those_that_share_its_features():
+    """Three places, each photographed 8 times: a photo's features are its place's plus noise. Each
+    image's 7 most alike are the rest of its place, so no pair crosses places, and the count is
+    n k / 2 here, not n (n - 1) / 2."""
+    rng = np.random.default_rng(0)
+    places = [rng.integers(0, 256, size=(300, 128)) for _ in range(3)]
+    names, descs = [], []
+    for p, feats in enumerate(places):
+        for v in range(8):
+            keep = feats[rng.random(len(feats)) < 0.7]
+            descs.append(np.clip(keep + rng.normal(0, 8, keep.shape), 0, 255).astype(np.uint8))
+            names.append(f"{p}-{v}.jpg")
+    order = rng.permutation(len(names))  # the names say nothing about the order
+    names, descs = [names[i] for i in order], [descs[i] for i in order]
+    pairs = retrieval_pairs(names, descs, k=7)
+    assert all(a[0] == b[0] for a, b in pairs), [pq for pq in pairs if pq[0][0] != pq[1][0]]
+    assert len(pairs) == 3 * 8 * 7 // 2 and len(set(pairs)) == len(pairs)
+    assert all(names.index(a) < names.index(b) for a, b in pairs)
+    assert retrieval_pairs(names[:1], descs[:1], k=7) == []
+    empty = [np.zeros((0, 128), np.uint8)] * 3  # no features at all: still pairs, no error
+    assert len(retrieval_pairs(["a", "b", "c"], empty, k=1)) >= 2
+
+
+def test_auto_pairs_unordered_names_above_the_exhaustive_limit_by_retrieval():
+    opts = SfmOptions()
+    few = [f"{c}.jpg" for c in "abcdefghij"]
+    many = [f"photo-{i:x}{i * 7919 % 97}.jpg" for i in range(opts.exhaustive_max_images + 1)]
+    assert choose_matcher(opts, few) == "exhaustive"
+    assert choose_matcher(opts, many) == "retrieval"
+    assert choose_matcher(opts, [f"IMG_{i:04d}.JPG" for i in range(60)]) == "sequential"
 
 
 # ---- video helpers -----------------------------------------------------------------

@@ -1,6 +1,6 @@
 """Soak (issue 17): a 20k-step run on a tiny scene keeps its resident memory and its
 open file descriptors flat once densification stops (checkpoints, logs and
-evaluations come and go all along). bench/soak.py records the same run's figures."""
+evaluations come and go all along)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import sys
 import pytest
 
 from splatcli.train.log import read_log
-from tiny_project import make_tiny_project
+from support.tiny_project import make_tiny_project
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 STEPS = 20_000

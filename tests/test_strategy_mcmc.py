@@ -15,7 +15,7 @@ from torch import nn
 from splatcli.render.output import RenderOutput
 from splatcli.strategy import MCMCStrategy, MCMCStrategyConfig, Splats, StepInfo
 from splatcli.strategy.mcmc import relocation
-from tiny_project import assert_user_error, make_tiny_project, run_cli
+from support.tiny_project import assert_user_error, make_tiny_project, run_cli
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -26,7 +26,7 @@ from splatcli.render import rasterize
 from splatcli.train.config import make_config
 from splatcli.train.log import read_log
 from splatcli.train.loop import train
-from tiny_project import make_tiny_project
+from support.tiny_project import make_tiny_project
 
 CPU = torch.device("cpu")
 # Every feature inside 50 steps: SH growth, refinement, an opacity reset, a
@@ -308,6 +308,21 @@ def test_time_budget_plans_a_compressed_schedule(tmp_path):
     assert cfg["default"]["refine_every"] == max(25, round(100 * ratio))  # never below 25 steps
     assert cfg["default"]["refine_stop"] == max(1, round(2000 * ratio))
     assert cfg["sh_degree_interval"] == max(1, round(600 * ratio))
+
+
+def test_a_finished_planned_run_resumed_with_more_time_trains_on_to_the_new_budget(tmp_path):
+    """`--resume --time-budget S` on a finished planned run: the schedule reopens and is planned to
+    the new total at the speed the run last had; the same budget again has nothing left to do."""
+    proj = tiny(tmp_path)
+    template = {**SMALL, "iterations": 3000, "refine_start": 300, "refine_every": 100, "refine_stop": 2000}
+    first = train(proj.root, make_config(**template, time_budget=2.0), CPU)
+    notes = []
+    more = train(proj.root, make_config(**template, time_budget=4.0), CPU, resume=True,
+                 overrides={"time_budget": 4.0}, on_event=notes.append)
+    assert more.steps > first.steps and 2.0 < more.train_seconds <= 1.25 * 4.0
+    assert any("extending the run to 4 s" in getattr(n, "message", "") for n in notes)
+    again = train(proj.root, make_config(**template, time_budget=4.0), CPU, resume=True, overrides={"time_budget": 4.0})
+    assert again.steps == more.steps
 
 
 def test_a_plan_prices_each_step_by_its_resolution():

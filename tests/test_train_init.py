@@ -24,7 +24,7 @@ from splatcli.train.init import (
     random_points,
     subsample_index,
 )
-from tiny_project import make_tiny_project
+from support.tiny_project import make_tiny_project
 
 CPU = torch.device("cpu")
 
@@ -250,7 +250,7 @@ def test_views_seeing_counts_frustums_and_prune_views_drops_the_rest(tmp_path):
     import json
 
     from splatcli.train.data import TrainView, views_seeing
-    from tiny_project import run_cli
+    from support.tiny_project import run_cli
 
     cam = Camera("a", 64, 48, np.array([[40.0, 0, 32], [0, 40, 24], [0, 0, 1]]), np.eye(4))
     vm, K = cam.torch(CPU)

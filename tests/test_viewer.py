@@ -19,11 +19,11 @@ import numpy as np
 import pytest
 import torch
 
-from browser import browser_problem, capture, open_page, psnr_u8, screenshot
 from splatcli.events import Progress, Snapshot
 from splatcli.io.ply import write_ply
 from splatcli.viewer import LiveSink, SceneStore, ViewerServer, open_scene, server as server_mod
-from tiny_project import assert_user_error, make_tiny_project, run_cli, snapshot, tiny_gaussians
+from support.browser import browser_problem, capture, open_page, psnr_u8, screenshot
+from support.tiny_project import assert_user_error, make_tiny_project, run_cli, snapshot, tiny_gaussians
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -214,7 +214,7 @@ def test_train_with_viewer(tmp_path):
     assert "live viewer at http://127.0.0.1:" in r.stderr
 
 
-# a real browser: headless Chromium on SwiftShader (bench/browser.py), against `splatcli render`
+# a real browser: headless Chromium on SwiftShader (tests/support/browser.py), against `splatcli render`
 
 
 @pytest.mark.skipif(browser_problem() is not None, reason=str(browser_problem()))

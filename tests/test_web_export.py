@@ -15,13 +15,13 @@ from pathlib import Path
 import cv2
 import pytest
 
-from browser import browser_problem, open_page, psnr_u8, screenshot
 from splatcli.errors import SplatError
 from splatcli.io.export import ExportConfig
 from splatcli.io.sog import read_sog
 from splatcli.model import export_project
 from splatcli.viewer import ViewerServer, open_scene, site
-from tiny_project import assert_user_error, make_tiny_project, run_cli, snapshot
+from support.browser import browser_problem, open_page, psnr_u8, screenshot
+from support.tiny_project import assert_user_error, make_tiny_project, run_cli, snapshot
 
 VENDOR = resources.files("splatcli.viewer") / "static" / "vendor"
 RENDERER = ["spark.module.min.js", "three.module.js", "three.core.js", "addons/controls/OrbitControls.js",

@@ -34,7 +34,7 @@ _.minloglevel  # sfm/colmap.py, tests/colmap_models.py: pycolmap's logging
 _.match_list_path  # sfm/colmap.py: pycolmap's matching options
 _.random_seed  # sfm/colmap.py: pycolmap's options
 _.blank_pixels  # sfm/colmap.py: pycolmap's undistortion options
-_.binary_location  # bench/browser.py: selenium's Chromium options
+_.binary_location  # tests/support/browser.py: selenium's Chromium options
 _.num_rigs  # tests/colmap_models.py: pycolmap's synthetic dataset options, the next seven too
 _.num_cameras_per_rig
 _.num_frames_per_rig

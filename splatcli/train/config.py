@@ -288,11 +288,11 @@ PRESETS: dict[str, dict[str, Any]] = {
     # the first 7k steps (the paper reports its 7k numbers for that reason); densifying
     # for the first ~half keeps the paper's grow-then-settle ratio and gives the
     # last 3k steps to refine a fixed set, which is where SSIM improves.
-    # Coarse to fine: the first half renders at a resolution rising from 1/4 (bench/versus.py, lego
+    # Coarse to fine: the first half renders at a resolution rising from 1/4 (measured on lego
     # 200 px, 2k steps: the PSNR-against-time curve above the full-resolution one everywhere,
     # 1.15-1.5x sooner to a given PSNR; docs/benchmarks.md, "time to quality").
     # No opacity reset: with 4k steps of densifying, the reset at 3k leaves too few to win the
-    # model back (bench/overfit.py: held-out 24.4 -> 16.8 dB on the object capture, 23.6 at the
+    # model back (docs/benchmarks.md, "overfitting": held-out 24.4 -> 16.8 dB on the object capture, 23.6 at the
     # end; without it 25.0, its best; fox from its photos ends at 32.21, 0.03 below its best).
     "fast": {"iterations": 7000, "refine_stop": 4000, "opacity_reset": 0, "checkpoint_every": 1000,
              "init_random_points": 10_000, "coarse_scale": 0.25, "coarse_until": 0.5},

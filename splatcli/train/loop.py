@@ -106,6 +106,12 @@ def _train(project: Project, cfg: TrainConfig, device: torch.device, resume: boo
         if ck is not None:
             state = state_from_checkpoint(ck, run, data.extent, device, len(data.train), ctx, comm.world)
             state.plan = time_plan(cfg, ck.extra.get("plan"))
+            more = state.plan.extend(cfg, state.images, state.elapsed_s) if state.plan is not None else None
+            if more is not None:  # a finished planned run given more time
+                cfg, run = more, more.for_world(comm.world)
+                state.strategies = make_strategies(run, data.extent, ctx)
+                emit(on_event, Note(f"extending the run to {state.plan.budget_s:.0f} s of training: "
+                                    f"{more.iterations} steps planned (from step {state.images})"))
             if comm.main:
                 log.trim_log(project.train_log_path, ck.step)
         else:

@@ -90,6 +90,16 @@ class TimePlan:
         """The Gaussian budget at `step` of `cfg`: cap x the resolution's area then."""
         return max(1, round(self.cap * cfg.train_scale(step) ** 2))  # type: ignore[operator]
 
+    def extend(self, cfg: TrainConfig, views: int, elapsed: float) -> TrainConfig | None:
+        """A finished run resumed with a budget that leaves time (`--resume --time-budget S`): its
+        main schedule reopened and planned to the new budget at the speed it last ran (the
+        learning-rate decay laid over the new length, as `--resume --iterations N` does for a
+        stepped run). None while the run is unfinished (the plan goes on by itself) or no
+        time is left."""
+        if views < cfg.iterations or elapsed >= self.budget_s - self.probe_s or not self.history:
+            return None
+        return self.replan(cfg, views, elapsed, self.history[-1].get("stalled_s", 0.0), reopen=True)
+
     def due(self, elapsed: float, stalled: float = 0.0) -> bool:
         """Whether to plan now. The first plan waits for `probe_s` seconds of steps, `stalled` seconds
         (compiling kernels) left out: a compile that filled the probe left a second or less of steps
@@ -98,13 +108,14 @@ class TimePlan:
             return elapsed - stalled >= self.probe_s or elapsed >= self.budget_s
         return elapsed >= self.history[-1]["elapsed_s"] + self.replan_every * self.budget_s or elapsed >= self.budget_s
 
-    def replan(self, cfg: TrainConfig, views: int, elapsed: float, stalled: float = 0.0) -> TrainConfig | None:
+    def replan(self, cfg: TrainConfig, views: int, elapsed: float, stalled: float = 0.0, *,
+               reopen: bool = False) -> TrainConfig | None:
         """The schedule (one process's, in views) that ends the main steps when the budget
         is spent, at the speed of the views since the last plan; at once when it is spent
-        already. None once the main schedule is over (a fine-tune may follow). `stalled`:
-        seconds of `elapsed` that were not steps' own work (compiling kernels, --compile):
-        spent from the budget, but left out of the speed."""
-        if views >= cfg.iterations:
+        already. None once the main schedule is over (a fine-tune may follow), unless `reopen`
+        (`extend`). `stalled`: seconds of `elapsed` that were not steps' own work (compiling
+        kernels, --compile): spent from the budget, but left out of the speed."""
+        if views >= cfg.iterations and not reopen:
             return None
         last = self.history[-1] if self.history else {"step": 0, "elapsed_s": 0.0}
         spent = max(elapsed - last["elapsed_s"] - max(stalled - last.get("stalled_s", 0.0), 0.0), 1e-9)

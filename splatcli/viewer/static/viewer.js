@@ -10,7 +10,7 @@ import { SparkRenderer, SplatMesh } from "@sparkjsdev/spark";
 const $ = (id) => document.getElementById(id);
 const params = new URLSearchParams(location.search);
 if (params.get("hud") === "0") $("hud").style.display = "none";
-// For tests and bench/viewer.py: whether the scene has been drawn, and when (ms since navigation start).
+// For the tests (tests/support/browser.py): whether the scene has been drawn, and when (ms since navigation start).
 window.splatcli = { ready: false, firstFrameMs: null, version: 0, error: null, marks: { script: performance.now() } };
 
 const renderer = new THREE.WebGLRenderer({ antialias: false, preserveDrawingBuffer: true });

@@ -1,4 +1,4 @@
-"""Headless Chromium driven by selenium, for the viewer's tests and bench/viewer.py.
+"""Headless Chromium driven by selenium, for the viewer's and the web export's tests.
 
 WebGL runs on SwiftShader (the CPU), so no GPU is needed. Chromium and chromedriver
 come from Debian's `chromium` and `chromium-driver` (or $CHROMIUM / $CHROMEDRIVER).

@@ -4,7 +4,7 @@ SfM recovers poses up to a similarity (scale, rotation, translation), so poses
 are compared with ground truth only after the best such transform is found.
 The alignment is Umeyama's closed-form least squares on the camera centres.
 
-A helper for tests and bench/process.py (not part of the installed package).
+A helper for the tests, which bench/process.py borrows; not part of the installed package.
 """
 
 from __future__ import annotations
