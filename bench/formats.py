@@ -27,7 +27,7 @@ FORMATS = "ply,spz,sog,compressed-ply,splat"
 CODEC = r"""
 import json, resource, sys, time, torch
 from splatcli.gaussians import Gaussians
-from splatcli.io.formats import read_format, write_format
+from splatcli.formats.registry import read_format, write_format
 fmt, path, n = sys.argv[1], sys.argv[2], int(sys.argv[3])
 g = torch.Generator().manual_seed(0)
 r = lambda *s: torch.randn(*s, generator=g)

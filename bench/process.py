@@ -32,7 +32,7 @@ import numpy as np
 
 from common import REPO, data_dir, report
 from splatcli.camera import Camera
-from splatcli.io.transforms import read_transforms
+from splatcli.inputs.transforms import read_transforms
 from splatcli.process.run import ProcessConfig, ProcessResult, process
 from splatcli.project import Project
 from splatcli.sfm.colmap import read_scene

@@ -27,7 +27,7 @@ import time
 import torch
 
 from common import report
-from splatcli.io.checkpoint import load_checkpoint
+from splatcli.files.checkpoint import load_checkpoint
 from splatcli.project import Project
 from splatcli.render import kernels
 from splatcli.render.blocks import choose_block, estimate_pairs, extents

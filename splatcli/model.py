@@ -3,8 +3,8 @@ checkpoint) or a splat file.
 
 render, eval (`--model`), view, export and `train --init-ply` all load through
 `load_model`, so they accept the same sources and refuse bad ones the same way.
-This module sits above project.py (it opens projects) and io/ (it reads files):
-io/ reads and writes files and knows no project.
+This module sits above project.py (it opens projects) and formats/ and files/ (it reads
+files): those read and write files and know no project.
 """
 
 from __future__ import annotations
@@ -18,18 +18,25 @@ import torch
 
 from .errors import SplatError
 from .events import EventSink
+from .files.checkpoint import load_checkpoint
+from .formats.compressed_ply import is_compressed_ply
+from .formats.export import (
+    EXPORT_FORMATS,
+    ExportConfig,
+    ExportResult,
+    check_export_config,
+    export_gaussians,
+    path_beside,
+)
+from .formats.registry import SUFFIXES, check_format, format_of, read_format
 from .gaussians import Gaussians
-from .io.checkpoint import load_checkpoint
-from .io.compressed_ply import is_compressed_ply
-from .io.export import EXPORT_FORMATS, ExportConfig, ExportResult, check_export_config, export_gaussians, path_beside
-from .io.formats import SUFFIXES, check_format, format_of, read_format
 from .project import Project, is_project, writer_lock
 
 
 @dataclass
 class LoadedModel:
     gaussians: Gaussians  # truncated to the active SH degree
-    kind: str  # "checkpoint", or the file's format (io/formats.py)
+    kind: str  # "checkpoint", or the file's format (formats/registry.py)
     path: Path  # the checkpoint or file read
     project: Project | None  # the project, when the source is one
     step: int | None = None  # training step of the checkpoint
@@ -44,7 +51,7 @@ class LoadedModel:
 
 def load_model(source: str | os.PathLike, device: torch.device) -> LoadedModel:
     """A project directory (its latest checkpoint) or a splat file of any format
-    io/formats.py reads (.ply, .compressed.ply, .spz, .splat)."""
+    formats/registry.py reads (.ply, .compressed.ply, .spz, .splat)."""
     source = Path(source)
     fmt = format_of(source) if not source.is_dir() else None
     if source.is_dir() and source.suffix.lower() == ".ply" and not is_project(source):
@@ -82,9 +89,9 @@ Writer = Callable[[LoadedModel, Path, ExportConfig, EventSink | None], ExportRes
 def export_project(root: str | os.PathLike, config: ExportConfig, *, on_event: EventSink | None = None,
                    write: Writer | None = None) -> ExportResult:
     """Write the latest checkpoint of the project at `root`, or the splat file `root`,
-    in `config.format` (io/export.py): a project's to PROJECT/exports/ under its lock
+    in `config.format` (formats/export.py): a project's to PROJECT/exports/ under its lock
     (shared), a file's beside it. `write`: what writes the loaded model instead of
-    io/export.py (--format web: viewer/site.py's export_site, a layer above this one)."""
+    formats/export.py (--format web: viewer/site.py's export_site, a layer above this one)."""
     config = ExportConfig(check_format(config.format, allowed=EXPORT_FORMATS), config.out, config.spz, config.sog)
     check_export_config(config)
     root = Path(root)

@@ -5,7 +5,9 @@ text, the range or choices it must lie in, and, when it is on the command line, 
 `--help` heading it goes under. A nested config is a `section`. `table(ConfigClass)`
 flattens such a tree into named options; `apply`, `value` and `check` use it, `load`
 reads a stored (nested) config back, and the CLI builds its Typer options from the same
-table (cli/options.py). Nothing else lists the options.
+table (cli/options.py). Nothing else lists the options. Setting options by name (`apply`)
+is the command line's edge alone (cli/train_config.py): the code past it edits the typed
+fields.
 
 Names: an option is named after its field, after the section's `prefix` when it has one
 (`compact_keep`, `mcmc_shrink`); the command line writes it as `--compact-keep`. A section
@@ -82,7 +84,7 @@ def override(base: type, name: str, default: Any) -> Any:
 
 @dataclass(frozen=True)
 class Option:
-    name: str  # make_config's keyword; on the command line `--` + name with dashes
+    name: str  # cli/train_config.py make_config's keyword; on the command line `--` + name with dashes
     path: tuple[str, ...]  # attribute path from the root config
     types: tuple[type, ...]  # what a value may be (None included when optional)
     default: Any
@@ -213,23 +215,11 @@ def _set(obj: Any, edits: dict[tuple[str, ...], Any]) -> Any:
     return replace(obj, **top) if top else obj
 
 
-def scaled(cfg: Any, names: tuple[str, ...] | list[str], f: Callable[[str, Any], Any]) -> Any:
-    """`cfg` with each named option that applies to it replaced by f(name, value)."""
-    return apply(cfg, {n: f(n, value(cfg, n)) for n in names if resolve(cfg, n) is not None})
-
-
 def steps_options(root: type, kind: str | None = None) -> tuple[str, ...]:
-    """The options counted in optimiser steps (of one kind: "schedule" or "cadence")."""
+    """The options counted in optimiser steps (of one kind: "schedule" or "cadence"); the
+    typed code that scales them (TrainConfig.for_world, the time plan's Schedule) is held to
+    this list by tests/test_options.py."""
     return tuple(n for n, alts in table(root).items() if alts[0].spec.steps and kind in (None, alts[0].spec.steps))
-
-
-def as_argv(root: type, given: dict[str, Any]) -> list[str]:
-    """Command-line words that give these options (for the processes of `train --nproc`)."""
-    out: list[str] = []
-    for name, v in given.items():
-        flag = table(root)[name][0].flag
-        out += [flag if v else f"--no-{flag[2:]}"] if isinstance(v, bool) else [flag, str(v)]
-    return out
 
 
 # ---- checking -------------------------------------------------------------------

@@ -35,7 +35,7 @@ except ImportError:  # Windows: no advisory locks; writer_lock is a no-op there
 
 from . import __version__
 from .errors import NotReadyError, ProjectBusy, SplatError
-from .io.atomic import atomic_write_json, read_json_file
+from .files.atomic import atomic_write_json, read_json_file
 
 SCHEMA_VERSION = 1
 MANIFEST_NAME = "splatcli.json"

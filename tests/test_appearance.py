@@ -20,14 +20,14 @@ import numpy as np
 import pytest
 import torch
 
+from splatcli.cli.train_config import make_config, resume_overrides
 from splatcli.errors import Interrupted, SplatError
 from splatcli.eval.metrics import color_fit, psnr, psnr_color_fit
 from splatcli.events import Progress
-from splatcli.io.checkpoint import load_checkpoint, save_checkpoint
-from splatcli.io.formats import write_format
-from splatcli.io.ply import write_ply
+from splatcli.files.checkpoint import load_checkpoint, save_checkpoint
+from splatcli.formats.ply import write_ply
+from splatcli.formats.registry import write_format
 from splatcli.train.appearance import Exposure, ExposureConfig, identity, smooth_basis
-from splatcli.train.config import make_config
 from splatcli.train.loop import train
 from splatcli.train.loss import photometric_loss
 from support.tiny_project import make_tiny_project, run_cli, tiny_gaussians
@@ -225,7 +225,7 @@ def test_a_checkpoint_without_transforms_resumes_with_them_from_the_identity(tmp
     train(proj.root, make_config(**{**SMALL, "appearance": "none", "iterations": 6}), CPU)
     assert load_checkpoint(proj.latest_checkpoint()).appearance == {}
     s = train(proj.root, make_config(**SMALL), CPU, resume=True,
-              overrides={"appearance": "exposure", "iterations": 10})
+              overrides=resume_overrides({"appearance": "exposure", "iterations": 10}))
     assert s.resumed_from == 6 and s.steps == 10
     t = load_checkpoint(proj.latest_checkpoint()).appearance["transforms"]
     assert t.shape == (8, 3, 4) and not torch.equal(t, identity(8, CPU))
@@ -312,6 +312,22 @@ def test_eval_reports_the_colour_fit_psnr(tmp_path):
     assert report["psnr_color_fit"] >= report["psnr"]
     assert all(s["psnr_color_fit"] >= s["psnr"] - 1e-9 for s in report["per_image"])
     assert "PSNR after a per-view colour fit" in (proj.reports_dir / "eval.md").read_text()
+    # one camera, one light: raw leads; the compensated protocol is named beside it
+    assert report["headline"] == "raw" and "left half" in report["compensated_protocol"]
+    assert report["compensated_psnr"] > 0 and all(s["compensated_psnr"] is not None for s in report["per_image"])
+
+
+def test_eval_of_a_run_that_learnt_each_photos_light_leads_with_the_compensated_score(tmp_path):
+    """Trained with --appearance exposure: the held-out photo's light is unknowable, so eval's
+    headline (eval.json, eval.md, the printed line) is the appearance-compensated score."""
+    proj = _tiny(tmp_path, gains=GAINS)
+    train(proj.root, make_config(**{**SMALL, "iterations": 10}), CPU)
+    r = run_cli("eval", proj.root, "--budgets", "1", "--no-plots", "--device", "cpu")
+    assert r.exit_code == 0, r.output
+    report = json.loads((proj.reports_dir / "eval.json").read_text())
+    assert report["headline"] == "compensated" and report["compensated_psnr"] > report["psnr"]
+    assert "appearance compensated" in r.output and "Headline: the appearance-compensated score" in (
+        proj.reports_dir / "eval.md").read_text()
 
 
 def test_training_view_scores_go_through_each_photos_transform(monkeypatch):

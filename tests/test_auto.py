@@ -1,6 +1,7 @@
 """What `train` chooses when it is not told (splatcli/train/auto.py): on a CPU with no
 schedule given, a time-budgeted run sized to the capture and the machine; every choice
-yields to its option; on CUDA and with a step schedule, nothing is chosen."""
+yields to its option; on CUDA and with a step schedule, nothing is chosen. The choices are
+typed, applied to the config's fields; the processes of `train --nproc` are sent the config."""
 
 from __future__ import annotations
 
@@ -9,9 +10,9 @@ import json
 import pytest
 import torch
 
+from splatcli.cli.train_config import asked, make_config
 from splatcli.errors import SplatError
 from splatcli.train import auto
-from splatcli.train.config import make_config
 from support.tiny_project import make_tiny_project, run_cli
 
 CPU = torch.device("cpu")
@@ -26,15 +27,21 @@ def _chosen(c: auto.Chosen) -> dict:
     return {x.option: x.value for x in c.choices}
 
 
+def _choose(proj, given: dict, nproc=None, device=CPU, resume=False) -> auto.Chosen:
+    return auto.choose(proj, asked(given), nproc, device, resume)
+
+
 def test_a_default_cpu_run_is_planned_into_minutes(proj, monkeypatch):
     monkeypatch.setattr(auto, "free_cores", lambda: 1)
-    c = auto.choose(proj, {}, None, CPU)
+    c = _choose(proj, {})
     got = _chosen(c)
     assert got["preset"] == "fast" and got["time_budget"] == auto.BUDGET_S and got["strategy"] == "mcmc"
     assert got["max_gaussians"] == auto.MIN_GAUSSIANS  # 48x40 px: the smallest budget
     assert "max_size" not in got  # the images are smaller than 480 px already
     assert c.nproc is None and all(x.why for x in c.choices)
-    cfg = make_config(**c.options)  # the choices make a valid config
+    assert (c.preset, c.time_budget, c.strategy, c.max_gaussians) == ("fast", auto.BUDGET_S, "mcmc",
+                                                                       auto.MIN_GAUSSIANS)  # typed, as recorded
+    cfg = make_config(chosen=c)  # the choices make a valid config
     assert cfg.time_budget == auto.BUDGET_S and cfg.mcmc.max_gaussians == auto.MIN_GAUSSIANS
     line = auto.summary_line(c, cfg.time_budget)
     assert "trains for 10 min" in line and "--time-budget" in line
@@ -42,20 +49,23 @@ def test_a_default_cpu_run_is_planned_into_minutes(proj, monkeypatch):
 
 def test_every_choice_yields_to_its_option(proj, monkeypatch):
     monkeypatch.setattr(auto, "free_cores", lambda: 1)
-    c = auto.choose(proj, {"strategy": "default", "max_size": 300}, None, CPU)
+    given = {"strategy": "default", "max_size": 300}
+    c = _choose(proj, given)
     got = _chosen(c)
     assert "strategy" not in got and "max_gaussians" not in got and "max_size" not in got
-    assert c.options["strategy"] == "default" and c.options["max_size"] == 300
+    assert c.strategy is None and c.max_size is None and c.preset == "fast"
+    cfg = make_config(**given, chosen=c)
+    assert cfg.strategy == "default" and cfg.max_size == 300 and cfg.iterations == 7000
     # A step schedule is the user's: nothing is chosen, one process.
-    c = auto.choose(proj, {"iterations": 50}, None, CPU)
-    assert c.choices == [] and c.nproc is None and c.options == {"iterations": 50}
+    c = _choose(proj, {"iterations": 50})
+    assert c.choices == [] and c.nproc is None and c == auto.Chosen()
     # An option of the default strategy keeps it: mcmc is not chosen over what was asked.
-    got = _chosen(auto.choose(proj, {"opacity_reset": 500}, None, CPU))
+    got = _chosen(_choose(proj, {"opacity_reset": 500}))
     assert "strategy" not in got and "max_gaussians" not in got and got["time_budget"] == auto.BUDGET_S
     with pytest.raises(SplatError, match="--max-size 0"):  # what was given is checked first
-        auto.choose(proj, {"max_size": 0}, None, CPU)
+        _choose(proj, {"max_size": 0})
     # A time budget alone gets the rest of a planned run (the photos are smaller than any size it picks).
-    got = _chosen(auto.choose(proj, {"time_budget": 30.0}, None, CPU))
+    got = _chosen(_choose(proj, {"time_budget": 30.0}))
     assert set(got) == {"preset", "strategy", "max_gaussians"}
 
 
@@ -71,29 +81,37 @@ def test_the_training_size_follows_the_time_budget(proj, monkeypatch):
     monkeypatch.setattr(auto, "free_cores", lambda: 1)
     for budget, size in ((180.0, 480), (2400.0, 960), (None, 480)):
         given = {} if budget is None else {"time_budget": budget}
-        got = _chosen(auto.choose(proj, given, None, CPU))
+        got = _chosen(_choose(proj, given))
         assert got["max_size"] == size, (budget, got)
 
 
 def test_cuda_and_resume_choose_nothing(proj):
-    assert auto.choose(proj, {}, None, torch.device("cuda")).choices == []  # the paper's schedule
-    assert auto.choose(proj, {}, None, CPU, resume=True).choices == []  # the stored run's settings
+    assert _choose(proj, {}, device=torch.device("cuda")).choices == []  # the paper's schedule
+    assert _choose(proj, {}, resume=True).choices == []  # the stored run's settings
 
 
-def test_free_cores_become_processes_and_words_for_them(proj, monkeypatch):
+def test_free_cores_become_processes_sent_the_config(proj, monkeypatch):
     monkeypatch.setattr(auto, "free_cores", lambda: 4)
-    c = auto.choose(proj, {}, None, CPU)
+    c = _choose(proj, {})
     assert c.nproc == 1 or c.nproc is None  # 10 views: one process per 8 views at most
     monkeypatch.setattr(auto, "MAX_PROCESSES", 8)
-    c = auto.choose(proj, {}, 3, CPU)
+    c = _choose(proj, {}, 3)
     assert c.nproc == 3 and "nproc" not in _chosen(c)  # --nproc given
-    words = c.words()
-    assert words[:2] == ["--preset", "fast"] and "--max-gaussians" in words
-    assert "nproc" not in " ".join(words)
-    back = auto.inherited({"preset": "fast"})  # a launched process reads the launcher's record
-    assert back.choices == [] and back.nproc is None
-    monkeypatch.setenv(auto.CHOSEN_ENV, c.env()[auto.CHOSEN_ENV])
-    assert [x.option for x in auto.inherited({}).choices] == [x.option for x in c.choices]
+    monkeypatch.delenv(auto.CHOSEN_ENV, raising=False)
+    monkeypatch.delenv(auto.CONFIG_ENV, raising=False)
+    back, cfg = auto.inherited()  # under a plain torchrun: nothing sent, each process builds its own
+    assert back.choices == [] and back.nproc is None and cfg is None
+    sent = make_config(chosen=c, device="cpu")
+    env = c.env(sent)
+    assert "nproc" not in env[auto.CONFIG_ENV] and "OMP_NUM_THREADS" not in env
+    for k in (auto.CHOSEN_ENV, auto.CONFIG_ENV):
+        monkeypatch.setenv(k, env[k])
+    back, cfg = auto.inherited()  # a launched process: the launcher's record, and the config it trains
+    assert [x.option for x in back.choices] == [x.option for x in c.choices] and back.record() == c.record()
+    assert cfg == sent and cfg.mcmc.max_gaussians == c.max_gaussians and cfg.preset == "fast"
+    monkeypatch.setenv(auto.CONFIG_ENV, json.dumps({**sent.to_dict(), "iterations": 0}))
+    with pytest.raises(SplatError, match="SPLATCLI_CONFIG: --iterations 0"):
+        auto.inherited()
 
 
 def test_cores_left_over_become_threads_of_the_processes(proj, monkeypatch):
@@ -105,14 +123,15 @@ def test_cores_left_over_become_threads_of_the_processes(proj, monkeypatch):
     monkeypatch.setattr(auto.torch, "get_num_threads", lambda: 1)
     for free, k, threads in ((2, 2, None), (4, 4, None), (11, 6, None), (12, 6, 2), (16, 6, 2), (64, 6, 2)):
         monkeypatch.setattr(auto, "free_cores", lambda free=free: free)
-        c = auto.choose(proj, {}, None, CPU)
-        assert c.nproc == k and _chosen(c).get("threads") == threads, (free, _chosen(c))
-        assert c.env().get("OMP_NUM_THREADS") == (threads and str(threads))  # what the processes inherit
-        assert "thread" not in " ".join(c.words())  # not a train option
+        c = _choose(proj, {})
+        assert c.nproc == k and _chosen(c).get("threads") == threads == c.threads, (free, _chosen(c))
+        env = c.env(make_config(chosen=c))
+        assert env.get("OMP_NUM_THREADS") == (threads and str(threads))  # what the processes inherit
+        assert "thread" not in env[auto.CONFIG_ENV]  # not a train option
     assert "threads 2" in auto.summary_line(c, 600.0)
-    assert "threads" not in _chosen(auto.choose(proj, {}, 3, CPU))  # --nproc given: its processes as asked
+    assert "threads" not in _chosen(_choose(proj, {}, 3))  # --nproc given: its processes as asked
     monkeypatch.setattr(auto.torch, "get_num_threads", lambda: 3)  # OMP_NUM_THREADS=3 given
-    assert "threads" not in _chosen(auto.choose(proj, {}, None, CPU))
+    assert "threads" not in _chosen(_choose(proj, {}))
 
 
 def test_free_cores_leave_busy_cores_alone(monkeypatch):

@@ -31,9 +31,9 @@ import torch
 from typer.testing import CliRunner
 
 from splatcli.cli.main import app
-from splatcli.io.atomic import MAX_JSON_BYTES
-from splatcli.io.checkpoint import CHECKPOINT_SCHEMA
-from splatcli.io.ply import gaussians_to_rows, ply_header, ply_property_names
+from splatcli.files.atomic import MAX_JSON_BYTES
+from splatcli.files.checkpoint import CHECKPOINT_SCHEMA
+from splatcli.formats.ply import gaussians_to_rows, ply_header, ply_property_names
 from splatcli.project import LOCK_NAME, MANIFEST_NAME, SCHEMA_VERSION, Project
 from support.tiny_project import make_tiny_project, ring_cameras, tiny_gaussians
 from test_sfm import gl_c2w, jpeg_bytes, texture, with_exif_orientation
@@ -706,7 +706,7 @@ def test_process_bad_transforms(case: str, tmp_path: Path, proj: Path) -> None:
 
 def test_process_huge_transforms_is_refused_by_its_size(tmp_path: Path, proj: Path) -> None:
     """The JSON reader bounds what it reads by the file's size (a sparse file: no disk used)."""
-    from splatcli.io.transforms import MAX_TRANSFORMS_BYTES
+    from splatcli.inputs.transforms import MAX_TRANSFORMS_BYTES
 
     tf, _ = transforms_input(tmp_path / "in", "not_json")
     os.truncate(tf, MAX_TRANSFORMS_BYTES + 1)
@@ -741,7 +741,7 @@ def test_transforms_with_some_files_missing_or_truncated_imports_the_rest(tmp_pa
 
 def llff_input(root: Path, case: str) -> tuple[Path, list[str]]:
     """An LLFF capture broken in one way: (the file at fault, message fragments)."""
-    from splatcli.io.llff import to_poses_bounds
+    from splatcli.inputs.llff import to_poses_bounds
 
     (root / "images").mkdir(parents=True)
     cams = ring_cameras(3)
@@ -806,7 +806,7 @@ def test_process_bad_llff(case: str, tmp_path: Path, proj: Path) -> None:
 
 
 def test_process_huge_llff_file_is_refused_by_its_size(tmp_path: Path, proj: Path) -> None:
-    from splatcli.io.llff import MAX_POSES_BYTES
+    from splatcli.inputs.llff import MAX_POSES_BYTES
 
     pb, _ = llff_input(tmp_path / "in", "not_npy")
     os.truncate(pb, MAX_POSES_BYTES + 1)

@@ -11,8 +11,8 @@ import pytest
 from PIL import Image
 
 from splatcli.errors import SplatError
-from splatcli.io.exif import read_exif_camera
-from splatcli.io.images import StagedImage
+from splatcli.inputs.exif import read_exif_camera
+from splatcli.inputs.images import StagedImage
 from splatcli.process.cameras import group_cameras
 
 _MAKE, _MODEL, _EXIF_IFD, _FOCAL, _FOCAL_35 = 0x010F, 0x0110, 0x8769, 0x920A, 0xA405

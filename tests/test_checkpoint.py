@@ -11,13 +11,13 @@ import pytest
 import torch
 
 from splatcli.errors import SplatError
-from splatcli.gaussians import Gaussians
-from splatcli.io.checkpoint import (
+from splatcli.files.checkpoint import (
     CHECKPOINT_SCHEMA,
     load_checkpoint,
     load_gaussians,
     save_checkpoint,
 )
+from splatcli.gaussians import Gaussians
 
 
 def _gaussians(n: int = 7, degree: int = 3) -> Gaussians:

@@ -12,11 +12,11 @@ import pytest
 import torch
 
 import splatcli.render.composite as composite
+from splatcli.cli.train_config import make_config
 from splatcli.render import kernels, rasterize
 from splatcli.render.projection import project
 from splatcli.render.reference import rasterize_reference
 from splatcli.train import auto
-from splatcli.train.config import make_config
 from splatcli.train.loop import train
 from splatcli.train.plan import TimePlan
 from support.scenes import test_scene as make_scene

@@ -12,7 +12,7 @@ import pytest
 from typer.testing import CliRunner
 
 from splatcli.cli.main import app
-from splatcli.io.checkpoint import load_checkpoint
+from splatcli.files.checkpoint import load_checkpoint
 from support.tiny_project import make_tiny_project
 
 

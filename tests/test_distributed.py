@@ -19,10 +19,10 @@ import pytest
 import torch
 import torch.multiprocessing as mp
 
+from splatcli.cli.train_config import make_config
 from splatcli.eval.curve import read_log
-from splatcli.io.checkpoint import load_checkpoint
+from splatcli.files.checkpoint import load_checkpoint
 from splatcli.strategy.default import DefaultStrategyState
-from splatcli.train.config import make_config
 from splatcli.train.distributed import Comm
 from support.tiny_project import make_tiny_project
 

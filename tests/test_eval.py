@@ -18,9 +18,9 @@ from splatcli.errors import SplatError
 from splatcli.eval.budgets import contributions, prune_to
 from splatcli.eval.evaluate import EvalConfig, check_eval_config
 from splatcli.eval.report import used_sh_degree
+from splatcli.files.checkpoint import load_gaussians
+from splatcli.formats.ply import ply_bytes
 from splatcli.gaussians import SH_C0
-from splatcli.io.checkpoint import load_gaussians
-from splatcli.io.ply import ply_bytes
 from splatcli.project import Project
 from splatcli.render import rasterize
 from support.tiny_project import assert_user_error, make_tiny_project, ring_cameras, run_cli, snapshot, tiny_gaussians

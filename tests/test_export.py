@@ -11,9 +11,9 @@ import plyfile
 import pytest
 import torch
 
-from splatcli.io.checkpoint import load_gaussians
-from splatcli.io.ply import ply_bytes, read_ply
-from splatcli.io.splat import SPLAT_ROW_BYTES, read_splat
+from splatcli.files.checkpoint import load_gaussians
+from splatcli.formats.ply import ply_bytes, read_ply
+from splatcli.formats.splat import SPLAT_ROW_BYTES, read_splat
 from support.tiny_project import assert_user_error, make_tiny_project, run_cli, snapshot
 
 EXPECTED_SH1 = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(9)]
@@ -78,7 +78,7 @@ def test_export_errors(proj, tmp_path: Path) -> None:
 
 
 def test_export_drops_non_finite_rows(tmp_path: Path) -> None:
-    from splatcli.io.checkpoint import save_checkpoint
+    from splatcli.files.checkpoint import save_checkpoint
     from support.tiny_project import tiny_gaussians
 
     p = make_tiny_project(tmp_path / "p", trained=False, photos=False)

@@ -17,7 +17,7 @@ import time
 import pytest
 import torch
 
-from splatcli.io.checkpoint import load_checkpoint
+from splatcli.files.checkpoint import load_checkpoint
 from splatcli.project import Project
 from splatcli.train.log import read_log
 from support.tiny_project import make_tiny_project

@@ -19,13 +19,13 @@ import torch
 
 from splatcli.camera import Camera
 from splatcli.errors import SplatError
+from splatcli.formats.codec import Arrays
+from splatcli.formats.compressed_ply import read_compressed_ply, write_compressed_ply
+from splatcli.formats.ply import write_ply
+from splatcli.formats.registry import FORMATS, format_of, read_format, write_format
+from splatcli.formats.sog import SogOptions, encode_sog, kmeans_1d, read_sog, write_sog
+from splatcli.formats.spz import SpzOptions, read_spz, write_spz
 from splatcli.gaussians import Gaussians, morton_order
-from splatcli.io.codec import Arrays
-from splatcli.io.compressed_ply import read_compressed_ply, write_compressed_ply
-from splatcli.io.formats import FORMATS, format_of, read_format, write_format
-from splatcli.io.ply import write_ply
-from splatcli.io.sog import SogOptions, encode_sog, kmeans_1d, read_sog, write_sog
-from splatcli.io.spz import SpzOptions, read_spz, write_spz
 from splatcli.model import load_model
 from splatcli.render import render_camera
 from splatcli.views.paths import look_at

@@ -382,7 +382,7 @@ def llff_capture(root: Path, *, n: int = 5, factor: int = 1, size: tuple[int, in
                  bounds: tuple[float, float] = (2.0, 6.0)) -> list:
     """root/images[_factor]/NNN.png (random textures) + poses_bounds.npy written from an
     orbit's cameras, its (h, w, f) at `factor` x the images' size as LLFF stores them."""
-    from splatcli.io.llff import to_poses_bounds
+    from splatcli.inputs.llff import to_poses_bounds
 
     cams = orbit(n, w=size[0], h=size[1])
     folder = root / ("images" if factor == 1 else f"images_{factor}")

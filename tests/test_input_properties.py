@@ -20,9 +20,9 @@ import torch
 from hypothesis import HealthCheck, given, settings, strategies as st
 
 from splatcli.errors import SplatError
+from splatcli.files.checkpoint import load_checkpoint, save_checkpoint
 from splatcli.gaussians import Gaussians
-from splatcli.io.checkpoint import load_checkpoint, save_checkpoint
-from splatcli.io.transforms import read_transforms
+from splatcli.inputs.transforms import read_transforms
 from splatcli.project import Project
 from splatcli.sfm.colmap_files import check_model
 from support import data_dir
@@ -159,7 +159,7 @@ def _llff_bytes() -> bytes:
     """A valid poses_bounds.npy of 3 cameras (the ring of tests/tiny_project.py)."""
     import io
 
-    from splatcli.io.llff import to_poses_bounds
+    from splatcli.inputs.llff import to_poses_bounds
     from support.tiny_project import ring_cameras
 
     cams = ring_cameras(3)
@@ -173,7 +173,7 @@ LLFF = _llff_bytes()
 
 
 def _read_llff(data: bytes) -> None:
-    from splatcli.io.llff import read_llff
+    from splatcli.inputs.llff import read_llff
 
     with tempfile.TemporaryDirectory() as d:
         root = Path(d)
@@ -253,7 +253,7 @@ EXIF_JPEG = _exif_jpeg()
 
 
 def _read_exif(data: bytes) -> None:
-    from splatcli.io.exif import MAX_FOCAL_MM, MAX_NAME, MIN_FOCAL_MM, read_exif_camera
+    from splatcli.inputs.exif import MAX_FOCAL_MM, MAX_NAME, MIN_FOCAL_MM, read_exif_camera
 
     with tempfile.TemporaryDirectory() as d:
         p = Path(d) / "a.jpg"
@@ -419,14 +419,14 @@ def test_stored_train_config_random_values(d: dict) -> None:
     assert cfg.train_scale(1) > 0  # the schedule evaluates
 
 
-# ---- images (train, eval and render read photos through io.images.load_rgb) -----------
+# ---- images (train, eval and render read photos through inputs.images.load_rgb) -----------
 
 import resource  # noqa: E402
 import time  # noqa: E402
 
 import cv2  # noqa: E402
 
-from splatcli.io.images import load_rgb  # noqa: E402
+from splatcli.inputs.images import load_rgb  # noqa: E402
 
 
 def _image_corpus() -> dict[str, bytes]:

@@ -13,7 +13,7 @@ import time
 import pytest
 
 from splatcli.errors import ProjectBusy
-from splatcli.io.export import ExportConfig
+from splatcli.formats.export import ExportConfig
 from splatcli.model import export_project
 from splatcli.project import writer_lock
 from splatcli.train.log import read_log

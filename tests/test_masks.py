@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from splatcli.eval.metrics import psnr, ssim
-from splatcli.io.images import load_mask
+from splatcli.inputs.images import load_mask
 from splatcli.process.run import ProcessConfig, process
 from splatcli.project import Project
 from splatcli.train.data import load_train_data
@@ -110,7 +110,7 @@ def test_a_mask_of_the_wrong_size_is_one_line_naming_it(scene, tmp_path):
 def test_images_without_a_mask_are_kept_whole_with_a_warning(scene, tmp_path):
     """Checked on the staging step alone (no SfM): a missing mask is all-keep."""
     from splatcli.events import Stages
-    from splatcli.io.images import StagedImage
+    from splatcli.inputs.images import StagedImage
     from splatcli.process.masks import stage_all, staged_mask
 
     notes = []

@@ -12,9 +12,9 @@ import sys
 import pytest
 from typer.testing import CliRunner
 
-import splatcli.train.loop as loop
+import splatcli.train.trainer as trainer
 from splatcli.cli.main import app
-from splatcli.io.checkpoint import load_checkpoint
+from splatcli.files.checkpoint import load_checkpoint
 from splatcli.render.composite import KEEP_BYTES
 from splatcli.train.memory import BYTES_PER_GAUSSIAN, is_out_of_memory, plan_memory
 from support.tiny_project import make_tiny_project
@@ -81,7 +81,7 @@ def test_under_rlimit_as_the_limit_is_named(tmp_path):
 
 def test_out_of_memory_mid_run_keeps_the_last_whole_step(tmp_path, monkeypatch):
     proj = _project(tmp_path)
-    real, calls = loop.render_view, []
+    real, calls = trainer.render_view, []
 
     def render(*a, **k):
         calls.append(1)
@@ -89,7 +89,7 @@ def test_out_of_memory_mid_run_keeps_the_last_whole_step(tmp_path, monkeypatch):
             raise RuntimeError("DefaultCPUAllocator: can't allocate memory: you tried to allocate 123456789 bytes")
         return real(*a, **k)
 
-    monkeypatch.setattr(loop, "render_view", render)
+    monkeypatch.setattr(trainer, "render_view", render)  # the training step's render
     r = CliRunner().invoke(app, ["train", str(proj.root), "--iterations", "50", "--max-gaussians", "150",
                                  "--eval-every", "0", "--quiet", "--device", "cpu"])
     assert r.exit_code == 2

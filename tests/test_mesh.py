@@ -12,8 +12,8 @@ import torch
 from typer.testing import CliRunner
 
 from splatcli.cli.main import app
+from splatcli.files.checkpoint import save_checkpoint
 from splatcli.gaussians import Gaussians
-from splatcli.io.checkpoint import save_checkpoint
 from splatcli.mesh.measure import sample_surface, surface_score
 from splatcli.render.rasterize import render_surface
 from support.tiny_project import make_tiny_project

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import torch
 
+from splatcli.files.checkpoint import load_checkpoint, save_checkpoint
 from splatcli.gaussians import Gaussians, smooth_3d
-from splatcli.io.checkpoint import load_checkpoint, save_checkpoint
 from splatcli.model import load_model
 from splatcli.render import render_camera
 from splatcli.strategy import MipFilter, Splats, ops
@@ -213,9 +213,9 @@ def test_auto_antialias_follows_the_zoom_of_a_plain_model(tmp_path):
 def test_the_filters_lower_the_growth_threshold_and_plain_training_keeps_it():
     """Under --mip-filter the default strategy grows at GROW_GRAD2D x grow_grad2d (the filters
     lower small Gaussians' view-space gradients), a user-set threshold included."""
+    from splatcli.cli.train_config import make_config
     from splatcli.strategy import Context, DefaultStrategy
     from splatcli.strategy.mip import GROW_GRAD2D
-    from splatcli.train.config import make_config
     from splatcli.train.state import make_strategies
 
     ctx = Context(score=lambda *a: None, weights=lambda: torch.zeros(0), note=lambda m: None, cameras=lambda: [])

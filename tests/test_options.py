@@ -1,5 +1,6 @@
 """Train options are declared once, at the config's fields (splatcli/options.py): the
-command line, make_config, stored configs and the schedule scalers all read that table."""
+command line, make_config and stored configs read that table; the typed code that scales
+the schedule is held to it here."""
 
 from __future__ import annotations
 
@@ -11,9 +12,11 @@ import pytest
 from typer.testing import CliRunner
 
 from splatcli.cli.main import app
+from splatcli.cli.train_config import make_config, preset_options
 from splatcli.errors import SplatError
-from splatcli.options import GROUPS, table
-from splatcli.train.config import PRESETS, TrainConfig, make_config
+from splatcli.options import GROUPS, check, resolve, steps_options, table, value
+from splatcli.train.config import PRESETS, TrainConfig, preset_config
+from splatcli.train.plan import Schedule
 from splatcli.train.state import make_strategies
 
 REPO = Path(__file__).resolve().parents[1]
@@ -51,7 +54,8 @@ def test_shared_options_go_to_the_chosen_strategy():
     assert m.mcmc.max_gaussians == 500 and m.mcmc.opacity_reg == 0.02 and m.default.max_gaussians is None
     assert m.mcmc.refine_stop == 4000  # the preset's schedule, in mcmc's own section
     assert m.default.opacity_reg == 0.0  # no second penalty on top of mcmc's
-    assert m.value("refine_stop") == 4000 and m.refine is m.mcmc
+    assert value(m, "refine_stop") == 4000 and m.refine is m.mcmc
+    assert m.with_refine(max_gaussians=7).mcmc.max_gaussians == 7 and d.with_refine(max_gaussians=7).default.max_gaussians == 7
 
 
 def test_an_option_of_the_other_strategy_is_a_one_line_error():
@@ -98,8 +102,42 @@ def test_every_field_has_its_option():
     for f in fields(TrainConfig):
         if "section" not in f.metadata and f.name not in ("device", "renderer"):
             assert (f.name,) in names, f.name
-    for preset in PRESETS.values():
+    for preset in preset_options().values():
         assert set(preset) <= set(table(TrainConfig))
+
+
+@pytest.mark.parametrize("strategy", ["default", "mcmc"])
+def test_the_typed_schedule_code_covers_every_count_of_steps(strategy):
+    """TrainConfig.for_world and the time plan's Schedule name their fields in code (no option
+    names past the command line): each count of steps an option declares (`steps=`) is in
+    them, scaled as the table would scale it, in the chosen strategy's section alone."""
+    cfg = make_config("demo", strategy=strategy, compact=True, eval_every=300, log_every=7)
+    names = [n for n in steps_options(TrainConfig, "schedule") if resolve(cfg, n) is not None]
+    assert list(Schedule.of(cfg).record()) == names
+    assert Schedule.of(cfg).record() == {n: value(cfg, n) for n in names}
+    for k in (2, 3):
+        world = cfg.for_world(k)
+        for n in steps_options(TrainConfig):
+            if resolve(cfg, n) is None:
+                continue
+            v = value(cfg, n)
+            assert value(world, n) == (round(v / k) if n == "refine_stop" else max(1, round(v / k)) if v > 0 else v), n
+        other = "mcmc" if strategy == "default" else "default"
+        assert getattr(world, other) == getattr(cfg, other)  # the strategy not chosen is left as it is
+    # a template stored by a run of the other strategy sets what the chosen one has
+    stored = Schedule.of(make_config("fast", strategy="default" if strategy == "mcmc" else "mcmc", max_gaussians=9))
+    planned = stored.scaled(0.5).applied(cfg)
+    assert planned.refine.refine_stop == 2000 and planned.iterations == 3500
+    assert planned.default.opacity_reset == cfg.default.opacity_reset  # not in the template, or not this strategy's
+
+
+def test_presets_are_typed_and_leave_out_what_the_strategy_lacks():
+    for name, preset in PRESETS.items():
+        for strategy in ("default", "mcmc"):
+            check(preset(TrainConfig(preset=name, strategy=strategy)))
+    assert preset_config("fast", "mcmc").default == TrainConfig().default  # the opacity reset is the default strategy's
+    assert preset_config("fast", "mcmc").mcmc.refine_stop == 4000 == preset_config("fast").default.refine_stop
+    assert preset_options()["demo"]["max_gaussians"] == 20_000 and "coarse_until" not in preset_options()["fast"]
 
 
 def _ctx():

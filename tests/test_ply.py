@@ -10,8 +10,8 @@ import plyfile
 import pytest
 import torch
 
+from splatcli.formats.ply import PlyError, ply_bytes, ply_header, ply_property_names, read_ply, write_ply
 from splatcli.gaussians import Gaussians, num_sh_bases
-from splatcli.io.ply import PlyError, ply_bytes, ply_header, ply_property_names, read_ply, write_ply
 
 
 def random_gaussians(n: int, d: int, seed: int = 0) -> Gaussians:

@@ -9,8 +9,8 @@ from pathlib import Path
 import torch
 from hypothesis import HealthCheck, given, settings, strategies as st
 
+from splatcli.formats.ply import PlyError, read_ply, write_ply
 from splatcli.gaussians import Gaussians
-from splatcli.io.ply import PlyError, read_ply, write_ply
 
 
 def _valid_ply_bytes() -> bytes:

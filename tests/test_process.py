@@ -404,7 +404,7 @@ def test_llff_capture_agrees_with_sfm_on_the_same_photos(processed, scene, tmp_p
     """poses_bounds.npy written from the scene's cameras in LLFF's conventions ([down,
     right, back] camera-to-world, h w f, near far): imported, its poses agree with what
     structure from motion found on the same photos (issue 38's target: 1 degree, 1%)."""
-    from splatcli.io.llff import to_poses_bounds
+    from splatcli.inputs.llff import to_poses_bounds
 
     gt = ground_truth(scene)
     cap = tmp_path / "llff"

@@ -14,7 +14,7 @@ import pytest
 
 from splatcli.device import resolve_device
 from splatcli.errors import SplatError
-from splatcli.io.ply import write_ply
+from splatcli.formats.ply import write_ply
 from splatcli.project import Project
 from splatcli.views.paths import generate_path
 from splatcli.views.sources import transforms_views

@@ -12,7 +12,7 @@ from skimage.metrics import structural_similarity
 from splatcli.eval.budgets import prune_to
 from splatcli.eval.score import load_target, quantise, score_image
 from splatcli.gaussians import kept_count, top_by_weight
-from splatcli.io.images import composite, paint_masked
+from splatcli.inputs.images import composite, paint_masked
 from splatcli.project import holdout_split
 from splatcli.strategy import Context
 from splatcli.strategy.base import Splats
@@ -86,6 +86,32 @@ def test_score_image_masks_and_extras() -> None:
     assert torch.equal(seen[1][keep], quantise(render, "8-bit")[keep])
     full = score_image(render, photo, quantisation="8-bit")
     assert a.psnr != full.psnr
+
+
+def test_compensated_scores_fit_the_light_on_the_left_half_and_judge_the_right() -> None:
+    """The photo-collection protocol (metrics.half_fit): a render that is the photo under another
+    light (an affine colour change, what --appearance exposure learns) scores near perfectly once
+    compensated, far below raw; an error in the right half is all it sees, one in the left half
+    only spoils the fit. The colour fit on the whole view (psnr_color_fit) sees the pixels it is
+    judged on."""
+    g = torch.Generator().manual_seed(0)
+    photo = torch.rand(40, 64, 3, generator=g, dtype=torch.float64) * 0.6 + 0.2  # [H, W, 3]
+    m = torch.tensor([[0.8, 0.1, 0.0], [0.0, 0.9, 0.05], [0.1, 0.0, 0.7]], dtype=torch.float64)
+    lit = (photo @ m + 0.05).clamp(0, 1)  # the render: the same scene under another light
+    s = score_image(lit, photo, quantisation="none", compensated=True)
+    assert s.psnr < 25 and s.compensated.psnr > 60 and s.compensated.ssim > 0.999
+    wrong_right = lit.clone()
+    wrong_right[:, 40:] = torch.rand(40, 24, 3, generator=g, dtype=torch.float64)
+    r = score_image(wrong_right, photo, quantisation="none", compensated=True, color_fit=True)
+    assert r.compensated.psnr < 20  # the right half is what is judged
+    wrong_left = lit.clone()
+    wrong_left[:, :8] = torch.rand(40, 8, 3, generator=g, dtype=torch.float64)
+    left = score_image(wrong_left, photo, quantisation="none", compensated=True)
+    assert left.compensated.psnr < s.compensated.psnr and left.compensated.psnr > r.compensated.psnr
+    keep = torch.ones(40, 64, dtype=torch.bool)
+    keep[:, :8] = False  # the spoilt columns masked out: the fit is exact again
+    masked = score_image(wrong_left, photo, keep, quantisation="none", compensated=True)
+    assert masked.compensated.psnr > 60
 
 
 def test_paint_masked_rounds_as_alpha_compositing() -> None:

@@ -16,8 +16,8 @@ import pytest
 
 from splatcli.camera import Camera, focus_point
 from splatcli.errors import SplatError
-from splatcli.io.images import ImageError, check_complete, exif_orientation, fit_size, read_image
-from splatcli.io.transforms import read_transforms
+from splatcli.inputs.images import ImageError, check_complete, exif_orientation, fit_size, read_image
+from splatcli.inputs.transforms import read_transforms
 from splatcli.process.bounds import frustum_bounds, points_bounds
 from splatcli.process.detect import detect_input
 from splatcli.process.video import blurry_frames, choose_frames

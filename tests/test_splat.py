@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from splatcli.formats.splat import SPLAT_ROW_BYTES, read_splat, write_splat
 from splatcli.gaussians import SH_C0, Gaussians
-from splatcli.io.splat import SPLAT_ROW_BYTES, read_splat, write_splat
 
 
 def _gaussians(n: int, seed: int = 0) -> Gaussians:

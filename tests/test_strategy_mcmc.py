@@ -216,7 +216,7 @@ def test_mcmc_options_are_checked(tmp_path):
     assert_user_error(run_cli("train", proj.root, "--strategy", "mcmc", "--max-gaussians", "9", "--opacity-reset", "9",
                               "--iterations", "9"),
                       "--opacity-reset does not apply to --strategy mcmc")
-    from splatcli.train.config import make_config
+    from splatcli.cli.train_config import make_config
 
     mcmc = {"strategy": "mcmc", "max_gaussians": 1000}
     for name, bad in (("mcmc_min_opacity", 0.0), ("mcmc_relocate_until", 1.5), ("mcmc_spread", -1.0),
@@ -243,8 +243,8 @@ def test_a_config_stored_before_mcmc_shrink_resumes_without_shrinking():
 def test_opacity_and_scale_reg_are_a_step_of_their_own_for_the_default_strategy():
     """--opacity-reg / --scale-reg add the same penalties to a default-strategy run (a
     RegularizeStep after density control), and none when they are 0 (the default)."""
+    from splatcli.cli.train_config import make_config
     from splatcli.strategy import Context, RegularizeStep
-    from splatcli.train.config import make_config
     from splatcli.train.state import make_strategies
 
     ctx = Context(score=lambda *a: None, weights=lambda: torch.zeros(0), note=lambda m: None)

@@ -15,15 +15,15 @@ from typer.testing import CliRunner
 
 import splatcli.train.loop as train_mod
 from splatcli.cli.main import app
+from splatcli.cli.train_config import make_config, resume_overrides
 from splatcli.errors import Interrupted, SplatError, TrainingDiverged
 from splatcli.eval.evaluate import EvalConfig, plan_eval, run_eval
 from splatcli.eval.score import REPORTED
 from splatcli.events import Progress
-from splatcli.io.checkpoint import load_checkpoint, load_gaussians
-from splatcli.io.ply import ply_bytes
+from splatcli.files.checkpoint import load_checkpoint, load_gaussians
+from splatcli.formats.ply import ply_bytes
 from splatcli.project import Project
 from splatcli.render import rasterize
-from splatcli.train.config import make_config
 from splatcli.train.log import read_log
 from splatcli.train.loop import train
 from support.tiny_project import make_tiny_project
@@ -224,7 +224,7 @@ def test_finished_run_resumed_with_compact_equals_a_compact_run(tmp_path, uninte
     # --compact given on resume brings the resuming invocation's setting (8) with it.
     assert make_config(**SMALL).compact.finetune != 8
     sb = train(b.root, make_config(**SMALL, compact_finetune=8), CPU, resume=True,
-               overrides={"compact": True, "sh_degree": "auto"})
+               overrides=resume_overrides({"compact": True, "sh_degree": "auto"}))
     assert sb.steps == sa.steps and sb.compact.before_count == sa.compact.before_count
     _, pa = _params(a.latest_checkpoint())
     _, pb = _params(b.latest_checkpoint())
@@ -318,10 +318,11 @@ def test_a_finished_planned_run_resumed_with_more_time_trains_on_to_the_new_budg
     first = train(proj.root, make_config(**template, time_budget=2.0), CPU)
     notes = []
     more = train(proj.root, make_config(**template, time_budget=4.0), CPU, resume=True,
-                 overrides={"time_budget": 4.0}, on_event=notes.append)
+                 overrides=resume_overrides({"time_budget": 4.0}), on_event=notes.append)
     assert more.steps > first.steps and 2.0 < more.train_seconds <= 1.25 * 4.0
     assert any("extending the run to 4 s" in getattr(n, "message", "") for n in notes)
-    again = train(proj.root, make_config(**template, time_budget=4.0), CPU, resume=True, overrides={"time_budget": 4.0})
+    again = train(proj.root, make_config(**template, time_budget=4.0), CPU, resume=True,
+                  overrides=resume_overrides({"time_budget": 4.0}))
     assert again.steps == more.steps
 
 
@@ -409,7 +410,7 @@ def test_plan_keeps_a_switched_off_reset_off():
                                        ("checkpoint_every", -1), ("lr_means", float("nan"))])
 def test_resume_from_a_checkpoint_with_a_garbled_config_is_one_line(tmp_path, key, value):
     """The stored train config is read like any other input: exit 2 naming the file and key."""
-    from splatcli.io.checkpoint import save_checkpoint
+    from splatcli.files.checkpoint import save_checkpoint
 
     proj = make_tiny_project(tmp_path / "p", trained=False, photos=False)
     proj.update_manifest(scene={**proj.manifest()["scene"], "bounds_min": [-1.0] * 3, "bounds_max": [1.0] * 3})

@@ -11,11 +11,11 @@ import pytest
 import torch
 
 from splatcli.camera import Camera
+from splatcli.cli.train_config import make_config
 from splatcli.errors import SplatError
+from splatcli.formats.ply import write_ply
 from splatcli.gaussians import SH_C0, Gaussians
-from splatcli.io.images import load_rgb
-from splatcli.io.ply import write_ply
-from splatcli.train.config import make_config
+from splatcli.inputs.images import load_rgb
 from splatcli.train.data import load_train_data
 from splatcli.train.init import (
     gaussians_from_points,

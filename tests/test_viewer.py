@@ -20,7 +20,7 @@ import pytest
 import torch
 
 from splatcli.events import Progress, Snapshot
-from splatcli.io.ply import write_ply
+from splatcli.formats.ply import write_ply
 from splatcli.viewer import LiveSink, SceneStore, ViewerServer, open_scene, server as server_mod
 from support.browser import browser_problem, capture, open_page, psnr_u8, screenshot
 from support.tiny_project import assert_user_error, make_tiny_project, run_cli, snapshot, tiny_gaussians

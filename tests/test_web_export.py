@@ -16,8 +16,8 @@ import cv2
 import pytest
 
 from splatcli.errors import SplatError
-from splatcli.io.export import ExportConfig
-from splatcli.io.sog import read_sog
+from splatcli.formats.export import ExportConfig
+from splatcli.formats.sog import read_sog
 from splatcli.model import export_project
 from splatcli.viewer import ViewerServer, open_scene, site
 from support.browser import browser_problem, open_page, psnr_u8, screenshot

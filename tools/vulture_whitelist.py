@@ -53,6 +53,6 @@ _.comm_seconds
 _.rank_checks
 _.scale_hist  # train/config.py TrainReport: reports/train.json
 _.has_prior_focal_length  # sfm/colmap.py: a pycolmap camera's flag, read by COLMAP's two-view verification
-_.external_attr  # io/sog.py: a zip member's permissions, read by unzip
+_.external_attr  # formats/sog.py: a zip member's permissions, read by unzip
 # render/kernels.py sets torch's own config flag (read inside torch.compile)
 _.use_duck_shape

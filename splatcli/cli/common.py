@@ -33,7 +33,7 @@ from rich.text import Text
 from ..device import resolve_device
 from ..errors import SplatError
 from ..events import Event, EventSink, Note, Progress, Stage, StageDone
-from ..io.atomic import json_default
+from ..files.atomic import json_default
 from ..render import Renderer, resolve_renderer
 from ..render.backends import gsplat_will_compile
 

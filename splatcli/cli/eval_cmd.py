@@ -81,8 +81,14 @@ def evaluate(
     with ui.progress() as sink:
         r = run_eval(plan, on_event=sink)
     geo = score_mesh(project, mesh) if mesh is not None else None  # mesh/measure.py
-    ui.summary(r.summary() | ({"mesh": geo.to_json()} if geo else {}), title=f"{r.split} split: PSNR {r.psnr:.2f} dB, SSIM {r.ssim:.4f}{_lpips(r.lpips)} over {len(r.per_image)} views",
+    raw = f"PSNR {r.psnr:.2f} dB, SSIM {r.ssim:.4f}{_lpips(r.lpips)}"
+    comp = f"PSNR {r.compensated_psnr:.2f} dB, SSIM {r.compensated_ssim:.4f}{_lpips(r.compensated_lpips)}"
+    title = (f"{r.split} split, appearance compensated: {comp} over {len(r.per_image)} views (raw: {raw})"
+             if r.headline == "compensated" else f"{r.split} split: {raw} over {len(r.per_image)} views")
+    ui.summary(r.summary() | ({"mesh": geo.to_json()} if geo else {}), title=title,
                lines=[f"PSNR after a per-view colour fit (exposure and white balance removed): {r.psnr_color_fit:.2f} dB",
+                      f"{'raw' if r.headline == 'compensated' else 'appearance compensated'} (colour fitted on each "
+                      f"view's left half, scored on its right half): {raw if r.headline == 'compensated' else comp}",
                       f"{r.num_gaussians:,} Gaussians (SH {r.sh_degree}, {r.ply_bytes / 1e6:.2f} MB): "
                       f"{r.render_fps:.2f} frames/s at {r.width}x{r.height} on {r.device} ({r.renderer})"]
                + ([f"masks: scored on {r.masks}"] if r.masks else [])

@@ -9,9 +9,9 @@ from typing import Optional
 import typer
 
 from ..events import Note
-from ..io.export import ExportConfig
-from ..io.sog import SogOptions
-from ..io.spz import SpzOptions
+from ..formats.export import ExportConfig
+from ..formats.sog import SogOptions
+from ..formats.spz import SpzOptions
 from ..mesh.fuse import MeshConfig, export_mesh
 from ..model import export_project
 from ..viewer.site import export_site

@@ -2,10 +2,11 @@
 command line shows, under its heading, with its help, and its default as the config and
 the presets give it. A command written as
 
-    @config_options(TrainConfig, PRESETS)
+    @config_options(TrainConfig, preset_options())
     def train(project: Path = typer.Argument(...), ..., given: dict[str, Any] = GIVEN) -> None:
 
-gets the options the user gave as `given` (by option name, as `make_config` takes them);
+gets the options the user gave as `given` (by option name, as cli/train_config.py's
+`make_config` takes them, the presets' by name for `--help`);
 the config checks their values, so the command line and a stored config are held to the
 same ranges with the same messages.
 """

@@ -10,17 +10,18 @@ import typer
 
 from ..options import RUN
 from ..project import Project
-from ..train.auto import choose, inherited, summary_line
-from ..train.config import PRESETS, TrainConfig, make_config
+from ..train.auto import summary_line
+from ..train.config import TrainConfig
 from ..train.distributed import in_worker, join
 from ..train.launch import launch
 from ..train.loop import train as run_train
 from .common import DebugOpt, DeviceOpt, JsonOpt, QuietOpt, RendererOpt, Ui, resolve
 from .options import GIVEN, config_options
+from .train_config import configure, preset_options, resume_overrides
 from .view_cmd import live_viewer
 
 
-@config_options(TrainConfig, PRESETS)
+@config_options(TrainConfig, preset_options())
 def train(
     project: Path = typer.Argument(..., help="The project directory made by `splatcli process`."),
     resume: bool = typer.Option(False, "--resume", rich_help_panel=RUN, help="Continue from the latest checkpoint (its settings; options given here override)."),
@@ -39,20 +40,18 @@ def train(
     """Fit 3D Gaussians to the training views; checkpoints go to PROJECT/checkpoints, the speed/error log to PROJECT/reports/train_log.jsonl. Ctrl-C saves a checkpoint (exit 130)."""
     dev, drawer = resolve(device, renderer, quiet)
     (proj := Project.open(project)).require_processed()  # input errors before the progress display starts
-    chosen = inherited(given) if in_worker() else choose(proj, given, nproc, dev, resume)  # train/auto.py
-    cfg = make_config(**chosen.options, device=str(dev), renderer=drawer.name)
-    overrides = {k: cfg.value(k) for k in chosen.options if k not in ("preset", "seed")}  # what a --resume changes
+    cfg, chosen = configure(proj, given, nproc, dev, drawer.name, resume)  # train/auto.py chooses; given options win
     for line, level in ((drawer.note, "warning"), (chosen.choices and summary_line(chosen, cfg.time_budget), "note")):
         if line and not in_worker():
             Ui(quiet=quiet).note(line, level)
-    if chosen.nproc is not None and not in_worker():  # K copies of this command, the choices as words; rank 0 reports
-        return launch(sys.argv[1:] + chosen.words(), chosen.nproc, port, project, dev, chosen.env())
+    if chosen.nproc is not None and not in_worker():  # K copies of this command, sent the config; rank 0 reports
+        return launch(sys.argv[1:], chosen.nproc, port, project, dev, chosen.env(cfg))
     comm = join(dev)  # under torchrun: this process's rank (else a single process)
     ui = Ui(quiet=quiet or not comm.main, json_out=json_out and comm.main)
     try:
         with ui.progress() as sink, live_viewer(ui, project, viewer and comm.main, viewer_host, viewer_port, sink) as sink:
-            s = run_train(project, cfg, dev, resume=resume, overrides=overrides, on_event=sink, comm=comm,
-                          chosen=chosen.record())
+            s = run_train(project, cfg, dev, resume=resume, overrides=resume_overrides(given), on_event=sink,
+                          comm=comm, chosen=chosen.record())
     finally:
         comm.close()  # on every path: gloo's threads must be gone before the interpreter exits
     psnr = f", held-out PSNR {s.psnr:.2f} dB" if s.psnr is not None else ""

@@ -46,11 +46,11 @@ from torch import Tensor
 from ..device import describe_device, synchronize
 from ..errors import SplatError
 from ..events import EventSink, Note, Progress, Stage, StageDone, emit
+from ..files.atomic import atomic_write_json, atomic_write_text
+from ..formats.ply import ply_bytes
+from ..formats.registry import check_format, default_name, read_format, write_format
 from ..gaussians import Gaussians
-from ..io.atomic import atomic_write_json, atomic_write_text
-from ..io.formats import check_format, default_name, read_format, write_format
-from ..io.images import load_rgb
-from ..io.ply import ply_bytes
+from ..inputs.images import load_rgb
 from ..model import load_model
 from ..project import Project, writer_lock
 from ..render import Renderer, render_camera, resolve_renderer
@@ -103,7 +103,7 @@ class FolderReport:
     pred_dir: Path
     gt_dir: Path
     missing: list[str]  # predictions with no ground truth of the same name
-    quantisation: str = REPORTED  # the files are 8-bit as read (io/images.load_rgb), so this changes nothing
+    quantisation: str = REPORTED  # the files are 8-bit as read (inputs/images.load_rgb), so this changes nothing
 
     def summary(self) -> dict[str, Any]:
         return {"psnr": self.psnr, "ssim": self.ssim, "lpips": self.lpips, "num_images": len(self.per_image),
@@ -113,15 +113,18 @@ class FolderReport:
 
 def load_image(path: Path, background: Sequence[float] = (0.0, 0.0, 0.0),
                size: tuple[int, int] | None = None) -> Tensor:  # -> [H, W, 3] float64 in [0, 1]
-    """A photograph or render to score, through the one image loader (io/images.py)."""
+    """A photograph or render to score, through the one image loader (inputs/images.py)."""
     return torch.from_numpy(load_rgb(path, size, tuple(background))).to(torch.float64) / 255.0
 
 
 def score(name: str, pred: Tensor, gt: Tensor, lp: Lpips | None = None, keep: Tensor | None = None,
           quantisation: str = REPORTED) -> ImageScore:  # [H, W, 3] each, keep [H, W]
     """PSNR, SSIM, the colour-fit PSNR (and LPIPS) of one view (score.score_image)."""
-    s = score_image(pred, gt, keep, quantisation=quantisation, color_fit=True, lpips=lp)
-    return ImageScore(name=name, psnr=s.psnr, ssim=s.ssim, lpips=s.lpips, psnr_color_fit=s.psnr_color_fit)
+    s = score_image(pred, gt, keep, quantisation=quantisation, color_fit=True, compensated=True, lpips=lp)
+    c = s.compensated
+    return ImageScore(name=name, psnr=s.psnr, ssim=s.ssim, lpips=s.lpips, psnr_color_fit=s.psnr_color_fit,
+                      compensated_psnr=c.psnr if c else None, compensated_ssim=c.ssim if c else None,
+                      compensated_lpips=c.lpips if c else None)
 
 
 MASKED_SCORING = {  # eval's `masks` line, by the mode training used
@@ -196,6 +199,11 @@ def _score_formats(g: Gaussians, formats: Sequence[str], views: Sequence[View], 
 def _mean_psnr(scores: Sequence[ImageScore]) -> float:
     """Mean of per-image PSNR (the 3DGS convention), dB."""
     return float(np.mean([s.psnr for s in scores]))
+
+
+def _learnt_appearance(project: Project) -> bool:
+    """Whether the project's training learnt each photo's appearance (an image model)."""
+    return ((project.step("train") or {}).get("config") or {}).get("appearance", "none") != "none"
 
 
 def _mean_lpips(scores: Sequence[ImageScore]) -> float | None:
@@ -374,6 +382,11 @@ def _run_eval(plan: EvalPlan, on_event: EventSink | None) -> EvalReport:
         step=step,
         model=model_name,
         psnr_color_fit=float(np.mean([s.psnr_color_fit for s in per_image])),
+        compensated_psnr=float(np.mean([s.compensated_psnr for s in per_image])),
+        compensated_ssim=float(np.mean([s.compensated_ssim for s in per_image])),
+        compensated_lpips=(None if any(s.compensated_lpips is None for s in per_image)
+                           else float(np.mean([s.compensated_lpips for s in per_image]))),
+        headline="compensated" if _learnt_appearance(project) and config.model is None else "raw",
         budgets=budgets,
         formats=formats,
         training_curve=curve,

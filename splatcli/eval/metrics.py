@@ -81,6 +81,18 @@ def ssim(pred: Tensor, gt: Tensor, keep: Tensor | None = None) -> Tensor:  # [H,
     return (m * w).sum() / (w.sum() * m.shape[0]).clamp_min(1)
 
 
+def _affine_fit(x: Tensor, y: Tensor) -> Tensor:  # [P, 3] float64 each -> [4, 3]
+    """The affine colour transform (3x3 matrix and offset, as rows of [x, 1] @ w) that brings
+    `x` closest to `y` in least squares (gelsd: the minimum-norm solution, also for a flat
+    render, a rank-deficient system)."""
+    a = torch.cat([x, torch.ones_like(x[:, :1])], dim=1)  # [P, 4]
+    return torch.linalg.lstsq(a.cpu(), y.cpu(), driver="gelsd").solution.to(x.device)
+
+
+def _apply_affine(x: Tensor, w: Tensor) -> Tensor:  # [..., 3] float64, [4, 3] -> [..., 3] in [0, 1]
+    return (x @ w[:3] + w[3]).clamp(0, 1)
+
+
 def color_fit(pred: Tensor, gt: Tensor, keep: Tensor | None = None) -> Tensor:  # [H, W, 3] each, keep [H, W]
     """`pred` through the affine colour transform (3x3 matrix and offset) that brings it
     closest to `gt` in least squares over the image's (kept) pixels (solved in float64),
@@ -88,11 +100,26 @@ def color_fit(pred: Tensor, gt: Tensor, keep: Tensor | None = None) -> Tensor:  
     white balance), so what error is left comes from the geometry and the colours."""
     x = pred.detach().to(torch.float64).reshape(-1, 3)
     y = gt.detach().to(torch.float64).reshape(-1, 3)
-    a = torch.cat([x, torch.ones_like(x[:, :1])], dim=1)  # [P, 4]
-    # gelsd: the minimum-norm solution, also for a flat render (a rank-deficient system)
-    rows = slice(None) if keep is None else keep.reshape(-1).to(a.device)
-    w = torch.linalg.lstsq(a[rows].cpu(), y[rows].cpu(), driver="gelsd").solution.to(a.device)  # [4, 3]
-    return (a @ w).clamp(0, 1).reshape(pred.shape)
+    rows = slice(None) if keep is None else keep.reshape(-1).to(x.device)
+    return _apply_affine(x, _affine_fit(x[rows], y[rows])).reshape(pred.shape)
+
+
+def half_fit(pred: Tensor, gt: Tensor, keep: Tensor | None = None
+             ) -> tuple[Tensor, Tensor, Tensor | None]:  # [H, W, 3] each, keep [H, W] -> right halves
+    """The appearance-compensated protocol for photo collections (NeRF-W's): the affine colour
+    transform (what --appearance exposure learns per photo) is fitted on the view's left half
+    (columns below W // 2; kept pixels only) and applied to its right half, which is scored:
+    the fit sees none of the pixels it is judged on. Returns the fitted right half of `pred`
+    (float64), and the right halves of `gt` and `keep`."""
+    c = pred.shape[1] // 2
+    x = pred.detach().to(torch.float64)
+    y = gt.detach().to(torch.float64)
+    xl, yl = x[:, :c].reshape(-1, 3), y[:, :c].reshape(-1, 3)
+    if keep is not None:
+        rows = keep[:, :c].reshape(-1).to(x.device)
+        xl, yl = xl[rows], yl[rows]
+    w = _affine_fit(xl, yl)
+    return _apply_affine(x[:, c:], w), y[:, c:], None if keep is None else keep[:, c:]
 
 
 def psnr_color_fit(pred: Tensor, gt: Tensor, keep: Tensor | None = None) -> float:  # [H, W, 3] each -> dB

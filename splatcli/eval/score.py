@@ -28,9 +28,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..io.images import load_mask, load_rgb, paint_masked
+from ..inputs.images import load_mask, load_rgb, paint_masked
 from ..project import Project
-from .metrics import psnr, psnr_color_fit, ssim
+from .metrics import half_fit, psnr, psnr_color_fit, ssim
 
 QUANTISATIONS = ("8-bit", "none")
 REPORTED = "8-bit"  # what train.json (held-out log) and eval.json score
@@ -42,6 +42,16 @@ class Scores:
     ssim: float
     lpips: float | None = None  # when an LPIPS scorer was given (None also below its size)
     psnr_color_fit: float | None = None  # dB after the view's least-squares colour fit (metrics.color_fit)
+    compensated: HalfScores | None = None  # appearance fitted on the left half, scored on the right (metrics.half_fit)
+
+
+@dataclass(frozen=True)
+class HalfScores:
+    """A view's scores under the appearance-compensated protocol (metrics.half_fit): its right half."""
+
+    psnr: float  # dB
+    ssim: float
+    lpips: float | None = None
 
 
 def check_quantisation(quantisation: str) -> None:
@@ -66,7 +76,7 @@ def unit(target: Tensor) -> Tensor:  # [H, W, C] uint8 or float -> float64 in [0
 
 
 def score_image(pred: Tensor, target: Tensor, keep: Tensor | None = None, *, quantisation: str,
-                color_fit: bool = False,
+                color_fit: bool = False, compensated: bool = False,
                 lpips: Callable[[Tensor, Tensor], float | None] | None = None) -> Scores:
     """Score one render. pred [H, W, 3] in [0, 1] (any float dtype, any device); target
     [H, W, 3], uint8 or in [0, 1]; keep [H, W] bool, False = masked out (None: every pixel).
@@ -80,16 +90,21 @@ def score_image(pred: Tensor, target: Tensor, keep: Tensor | None = None, *, qua
     lp = None
     if lpips is not None:
         lp = lpips(torch.where(keep[..., None], p, t) if keep is not None else p, t)
+    half = None
+    if compensated:  # (its 8-bit render fitted in float64: the fit is part of the protocol, not of the image)
+        hp, ht, hk = half_fit(p, t, keep)
+        hl = lpips(torch.where(hk[..., None], hp, ht) if hk is not None else hp, ht) if lpips is not None else None
+        half = HalfScores(psnr=float(psnr(hp, ht, hk)), ssim=float(ssim(hp, ht, hk)), lpips=hl)
     return Scores(psnr=float(psnr(p, t, keep)), ssim=float(ssim(p, t, keep)), lpips=lp,
-                  psnr_color_fit=psnr_color_fit(p, t, keep) if color_fit else None)
+                  psnr_color_fit=psnr_color_fit(p, t, keep) if color_fit else None, compensated=half)
 
 
 def load_target(project: Project, name: str, size: tuple[int, int], background: tuple[float, float, float],
                 mask_mode: str) -> tuple[np.ndarray, np.ndarray | None]:  # -> [H, W, 3] uint8, [H, W] bool
     """Image `name` as training fits it and the scores compare against it: the photograph
-    (io/images.load_rgb) at `size` = (width, height) and its kept pixels, by `mask_mode`
+    (inputs/images.load_rgb) at `size` = (width, height) and its kept pixels, by `mask_mode`
     (resolved: Project.mask_mode): "ignore": the mask beside it; "background": mask files'
-    masked pixels painted in `background` (io/images.paint_masked; with alpha masks the
+    masked pixels painted in `background` (inputs/images.paint_masked; with alpha masks the
     photograph already is composited over it) and no mask; "off": the photograph alone."""
     rgb = load_rgb(project.images_dir / name, size, background)
     if mask_mode == "ignore" or (mask_mode == "background" and project.mask_source() == "files"):

@@ -30,8 +30,8 @@ from ..camera import Camera, focus_point
 from ..errors import SplatError
 from ..eval.score import load_target
 from ..events import EventSink, Progress, Stage, StageDone, emit
+from ..files.atomic import atomic_write_bytes
 from ..gaussians import Gaussians
-from ..io.atomic import atomic_write_bytes
 from ..model import load_model
 from ..project import Project, writer_lock
 from ..render.rasterize import render_surface

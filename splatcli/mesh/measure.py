@@ -20,7 +20,7 @@ import torch
 from plyfile import PlyData
 
 from ..errors import SplatError
-from ..io.atomic import atomic_write_json
+from ..files.atomic import atomic_write_json
 from ..model import load_model
 from ..project import Project
 from ..views.sources import dataset_views

@@ -21,8 +21,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..errors import SplatError
-from ..io.exif import ExifCamera, read_exif_camera
-from ..io.images import StagedImage
+from ..inputs.exif import ExifCamera, read_exif_camera
+from ..inputs.images import StagedImage
 
 CAMERA_MODES = ("auto", "single", "per-image")
 # COLMAP camera models SfM may fit (the dataset is always undistorted to PINHOLE).

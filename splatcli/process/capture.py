@@ -7,7 +7,7 @@ from pathlib import Path
 
 from ..errors import SplatError
 from ..events import Stages
-from ..io.images import IMAGE_EXTS, StagedImage, fit_size, list_folder
+from ..inputs.images import IMAGE_EXTS, StagedImage, fit_size, list_folder
 from ..project import Project
 from ..sfm.reconstruct import UPSAMPLED, SfmOptions, octave, run_sfm
 from . import features

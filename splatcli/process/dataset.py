@@ -11,7 +11,7 @@ import numpy as np
 
 from ..errors import SplatError
 from ..events import Stages
-from ..io.images import MASK_KEEP, ImageError, StagedImage, read_mask, stage_image, write_image
+from ..inputs.images import MASK_KEEP, ImageError, StagedImage, read_mask, stage_image, write_image
 from ..project import Project
 from ..sfm import colmap
 from ..sfm.colmap import Model

@@ -15,9 +15,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..errors import SplatError
-from ..io.images import is_image_name
-from ..io.llff import POSES_NAME, find_poses
-from ..io.transforms import find_transforms
+from ..inputs.images import is_image_name
+from ..inputs.llff import POSES_NAME, find_poses
+from ..inputs.transforms import find_transforms
 from ..sfm.colmap_files import model_format
 from .video import is_video_name
 

@@ -1,5 +1,5 @@
 """An LLFF capture (poses_bounds.npy beside images/): poses imported through the one
-reader io/llff.py, points triangulated from the photos (posed.py), the scene box
+reader inputs/llff.py, points triangulated from the photos (posed.py), the scene box
 from the near and far bounds when no points come out."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..events import Stages
-from ..io.llff import read_llff, scaled_focal
+from ..inputs.llff import read_llff, scaled_focal
 from ..project import Project
 from ..sfm import colmap
 from ..sfm.colmap import CameraSpec

@@ -4,9 +4,9 @@ against their images, and staged in the project's convention.
 Conventions read (as COLMAP and nerfstudio write them): a `masks/` folder beside the
 images folder (or inside it), holding `<image name>.png` (COLMAP's `name.jpg.png`) or
 `<image stem>.png`; nerfstudio's per-frame `mask_path`. Black (0) is masked out, white
-(255) kept; `--invert-masks` flips them. Grey levels are cut at io/images.MASK_KEEP, so
+(255) kept; `--invert-masks` flips them. Grey levels are cut at inputs/images.MASK_KEEP, so
 the project's masks are 0 or 255. An image's alpha channel is the third source
-(io/images.stage_image); when files are given too, the files are the masks.
+(inputs/images.stage_image); when files are given too, the files are the masks.
 
 Staged masks are PNG files at work/masks/<image name>.png (COLMAP's naming, so that
 feature extraction reads them as they are).
@@ -20,7 +20,7 @@ import numpy as np
 
 from ..errors import SplatError
 from ..events import Stages
-from ..io.images import MASK_KEEP, ImageError, StagedImage, read_mask, write_image
+from ..inputs.images import MASK_KEEP, ImageError, StagedImage, read_mask, write_image
 
 MASKS_DIR = "masks"
 

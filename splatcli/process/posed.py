@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from ..events import Stages
-from ..io.images import StagedImage, fit_size
+from ..inputs.images import StagedImage, fit_size
 from ..project import Project
 from ..sfm.colmap import Model
 from ..sfm.reconstruct import SfmOptions, triangulate_posed
@@ -72,7 +72,7 @@ def add_points(model: Model, staged: list[StagedImage], work: Path, st: Project,
 
 def stage_frames(frames: list[Any], work: Path, run: Stages, cfg: ProcessConfig, *, where: Path, what: str,
                  background: tuple[float, float, float] | None) -> tuple[list[StagedImage], list[Any], list[str]]:
-    """stage_posed for the frames of a posed capture (io/llff.py's or io/transforms.py's: an image
+    """stage_posed for the frames of a posed capture (inputs/llff.py's or inputs/transforms.py's: an image
     `source` and its `name`): the images staged, the frame of each, and the skipped ones."""
     staged, bad = stage_posed([(f.source, f.name) for f in frames], work, run, cfg, where=where, what=what,
                               background=background)

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..events import Stages
-from ..io.atomic import atomic_write_json
+from ..files.atomic import atomic_write_json
 from ..project import Project, holdout_split
 from ..sfm.colmap import model_digest, read_scene
 from .bounds import frustum_bounds, points_bounds

@@ -1,5 +1,5 @@
 """A transforms.json (nerfstudio, instant-ngp, Blender): poses imported as they are,
-through the one reader io/transforms.py."""
+through the one reader inputs/transforms.py."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from ..events import Stages
-from ..io.transforms import read_transforms
+from ..inputs.transforms import read_transforms
 from ..project import Project
 from ..sfm import colmap
 from ..sfm.colmap import CameraSpec

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 
 from ..errors import SplatError
-from ..io.images import sharpness, write_image
+from ..inputs.images import sharpness, write_image
 
 VIDEO_EXTS = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv", ".flv", ".3gp", ".mts")
 

@@ -14,8 +14,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from ..formats.ply import ply_bytes
 from ..gaussians import kept_count, sh_degree_from_bases, top_by_weight
-from ..io.ply import ply_bytes
 from ..options import MODEL, opt
 from . import ops
 from .base import ModelStep, RefineStats, RowState, Splats, StepInfo

@@ -71,7 +71,7 @@ def filter_from_rate(
 
 @dataclass
 class MipFilterState(RowState):
-    # `filter3d` is the name Checkpoint.model() folds (io/checkpoint.py).
+    # `filter3d` is the name Checkpoint.model() folds (files/checkpoint.py).
     ROWS: ClassVar[tuple[str, ...]] = ("filter3d", "known")
 
     filter3d: Tensor  # [N] world units

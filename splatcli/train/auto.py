@@ -8,6 +8,11 @@ process per free core. A run given only a --time-budget gets the same but the ap
 model, at a training size that grows with the budget beyond the default one
 (`train_size`). Every choice yields to the option given for it; each is recorded with
 its reason (train.json's `chosen`). On CUDA nothing is chosen: the paper's schedule.
+
+What was given comes in typed (`Asked`, which cli/train_config.py builds from the command
+line), and what is chosen goes out typed (`Chosen`: the preset and strategy a config starts
+from, and values `Chosen.applied` sets with `replace`). The processes of `train --nproc`
+are sent the config itself (`Chosen.env`), not the choices as words to parse again.
 """
 
 from __future__ import annotations
@@ -15,12 +20,11 @@ from __future__ import annotations
 import json
 import os
 import time
-from dataclasses import asdict, dataclass, field
-from typing import Any
+from dataclasses import asdict, dataclass, field, replace
+from typing import Any, TypeVar
 
 import torch
 
-from .. import options
 from ..project import Project
 from ..render import kernels
 from ..sfm.colmap import read_project_scene
@@ -36,47 +40,80 @@ MAX_PROCESSES = 8  # data-parallel processes at most (2 measured here, 16 on a l
 # 2,124 (docs/benchmarks.md, "every core on 16 cores")
 MAX_THREADS = 2
 CHOSEN_ENV = "SPLATCLI_CHOSEN"  # the launcher's choices, for the record its processes write
+CONFIG_ENV = "SPLATCLI_CONFIG"  # the launcher's config (TrainConfig.to_dict as JSON), which its processes train
+
+T = TypeVar("T")
+
+
+@dataclass(frozen=True)
+class Asked:
+    """What the command line gave, as `choose` reads it (cli/train_config.py builds it)."""
+
+    config: TrainConfig  # the options given, on the defaults (no preset applied), checked
+    names: frozenset[str]  # the options given, by name (a choice yields to its option)
+    mcmc_fits: bool = True  # every option given applies to --strategy mcmc (none is the default strategy's alone)
 
 
 @dataclass(frozen=True)
 class Choice:
-    option: str  # the option's name (make_config's), or "nproc"
+    option: str  # the option's name (as the command line's, with underscores), "nproc" or "threads"
     value: Any
     why: str
 
 
 @dataclass
 class Chosen:
-    options: dict[str, Any]  # what make_config gets: the options given and the ones chosen
-    nproc: int | None  # data-parallel processes (None: one, in this process)
+    """What `choose` chose for options not given (None: not chosen), typed; the processes to
+    run; and each choice with its reason, in the order made (train.json's `chosen`). A config
+    starts from the preset and strategy chosen (config.preset_config) and takes the rest
+    from `applied`; the options given go on top (cli/train_config.py)."""
+
+    nproc: int | None = None  # data-parallel processes, given or chosen (None: one, in this process)
+    preset: str | None = None
+    time_budget: float | None = None
+    max_size: int | None = None
+    appearance: str | None = None
+    strategy: str | None = None
+    max_gaussians: int | None = None  # MCMC's budget (chosen with --strategy mcmc alone)
+    threads: int | None = None  # torch threads of each process
     choices: list[Choice] = field(default_factory=list)
+
+    def applied(self, cfg: TrainConfig) -> TrainConfig:
+        """`cfg` (of the preset and strategy chosen) with the other values chosen."""
+        if self.time_budget is not None:
+            cfg = replace(cfg, time_budget=self.time_budget)
+        if self.max_size is not None:
+            cfg = replace(cfg, max_size=self.max_size)
+        if self.appearance is not None:
+            cfg = replace(cfg, appearance=self.appearance)
+        if self.max_gaussians is not None:
+            cfg = replace(cfg, mcmc=replace(cfg.mcmc, max_gaussians=self.max_gaussians))
+        return cfg
 
     def record(self) -> list[dict[str, Any]]:
         return [asdict(c) for c in self.choices]
 
-    def words(self) -> list[str]:
-        """The chosen options as command-line words (the processes of `train --nproc`)."""
-        return options.as_argv(TrainConfig, {c.option: c.value for c in self.choices
-                                             if c.option not in ("nproc", "threads")})
-
-    def env(self) -> dict[str, str]:
-        """What the processes of `train --nproc` inherit (they get the options as words):
-        the record, and their torch threads where they were chosen."""
-        env = {CHOSEN_ENV: json.dumps(self.record())}
-        for c in self.choices:
-            if c.option == "threads":
-                env["OMP_NUM_THREADS"] = str(c.value)
+    def env(self, cfg: TrainConfig) -> dict[str, str]:
+        """What the processes of `train --nproc` inherit: the config they train (built here,
+        from the options given and the choices), the record, and their torch threads where
+        they were chosen."""
+        env = {CONFIG_ENV: json.dumps(cfg.to_dict()), CHOSEN_ENV: json.dumps(self.record())}
+        if self.threads is not None:
+            env["OMP_NUM_THREADS"] = str(self.threads)
         return env
 
 
-def inherited(given: dict[str, Any]) -> Chosen:
-    """In a process the launcher started: its options (the launcher's choices among
-    them, as words) and the launcher's record of what it chose and why."""
+def inherited() -> tuple[Chosen, TrainConfig | None]:
+    """In a process the launcher started: the launcher's record of what it chose and why
+    (its values are in the config), and the config it sent (None where none came: under a
+    plain torchrun each process builds its own from its options)."""
     try:
         choices = [Choice(**c) for c in json.loads(os.environ.get(CHOSEN_ENV) or "[]")]
     except (ValueError, TypeError):
         choices = []
-    return Chosen(dict(given), None, choices)
+    sent = os.environ.get(CONFIG_ENV)
+    cfg = TrainConfig.from_dict(json.loads(sent), where=f"${CONFIG_ENV}") if sent else None
+    return Chosen(choices=choices), cfg
 
 
 def free_cores(window_s: float = 0.5) -> int:
@@ -122,44 +159,48 @@ def train_size(budget_s: float) -> int:
     return int(round(MAX_SIZE * max(1.0, (budget_s / BUDGET_S) ** 0.5), -1))
 
 
-def choose(project: Project, given: dict[str, Any], nproc: int | None, device: torch.device,
+def choose(project: Project, asked: Asked, nproc: int | None, device: torch.device,
            resume: bool = False) -> Chosen:
-    """The options for a run of `project` on `device`: `given` (the user's), plus what
-    this module chooses for the rest (module docstring)."""
-    options.check(options.apply(TrainConfig(), given))  # what was given is checked before anything is chosen
-    out = Chosen(dict(given), nproc)
+    """What to choose for a run of `project` on `device` beside the options `asked`
+    (module docstring); `nproc` as given."""
+    given, out = asked.names, Chosen(nproc)
     if device.type != "cpu" or resume:
         return out
-    default_run = not any(k in given for k in ("preset", "iterations", "time_budget"))
+    default_run = not given & {"preset", "iterations", "time_budget"}
     if not default_run and "time_budget" not in given:
         return out  # a step schedule: what was asked, in one process unless --nproc
 
-    def pick(option: str, value: Any, why: str) -> None:
-        if option not in given:
-            out.options[option] = value
-            out.choices.append(Choice(option, value, why))
+    def pick(option: str, value: T, why: str) -> T | None:
+        """`value`, recorded with `why`, unless the option was given (None: its value is the given one)."""
+        if option in given:
+            return None
+        out.choices.append(Choice(option, value, why))
+        return value
 
     cams = read_project_scene(project).cameras
     longest = max(max(c.width, c.height) for c in cams)
-    pick("preset", "fast", "the fast preset's shape (coarse to fine; grow, then refine a fixed set), planned into "
-         "the time")
-    pick("time_budget", BUDGET_S, f"{BUDGET_S / 60:.0f} minutes of training on a CPU; more time, more quality")
-    budget = float(out.options["time_budget"])
+    out.preset = pick("preset", "fast", "the fast preset's shape (coarse to fine; grow, then refine a fixed set), "
+                      "planned into the time")
+    out.time_budget = pick("time_budget", BUDGET_S, f"{BUDGET_S / 60:.0f} minutes of training on a CPU; more time, "
+                           "more quality")
+    budget = float(asked.config.time_budget if out.time_budget is None else out.time_budget)  # type: ignore[arg-type]
     size = train_size(budget)
-    if longest / float(given.get("downscale", 1.0)) > size:
-        pick("max_size", size, f"the photos are {longest} px across; {size} px fits {budget / 60:.0f} min on a CPU")
+    downscale = float(asked.config.downscale)
+    if longest / downscale > size:
+        out.max_size = pick("max_size", size, f"the photos are {longest} px across; {size} px fits {budget / 60:.0f} "
+                            "min on a CPU")
     photos = project.mask_source() != "alpha"  # alpha: a rendered (synthetic) scene, one exposure
     if default_run and photos and len(cams) >= 8:  # (a --time-budget run keeps the appearance it was measured with)
-        pick("appearance", "exposure", "photographs: their exposure and white balance vary from shot to shot")
-    max_size = int(out.options.get("max_size", 1600))
-    downscale = float(out.options.get("downscale", 1.0))
+        out.appearance = pick("appearance", "exposure", "photographs: their exposure and white balance vary from "
+                              "shot to shot")
+    max_size = int(asked.config.max_size if out.max_size is None else out.max_size)
     train_px = sorted(c.at_resolution(downscale, max_size).width * c.at_resolution(downscale, max_size).height
                       for c in cams)[len(cams) // 2]
-    mcmc = options.apply(TrainConfig(), {"strategy": "mcmc"})
-    if out.options.get("strategy", "mcmc") == "mcmc" and all(options.resolve(mcmc, k) for k in given):
-        pick("strategy", "mcmc", "a fixed Gaussian budget, grown on a curve planned to the time")
-        pick("max_gaussians", int(min(MAX_GAUSSIANS, max(MIN_GAUSSIANS, round(GAUSSIANS_PER_PIXEL * train_px, -3)))),
-             f"{GAUSSIANS_PER_PIXEL} per pixel of a {train_px:,}-pixel training view")
+    if ("strategy" not in given or asked.config.strategy == "mcmc") and asked.mcmc_fits:
+        out.strategy = pick("strategy", "mcmc", "a fixed Gaussian budget, grown on a curve planned to the time")
+        out.max_gaussians = pick("max_gaussians", int(min(MAX_GAUSSIANS, max(MIN_GAUSSIANS, round(
+            GAUSSIANS_PER_PIXEL * train_px, -3)))), f"{GAUSSIANS_PER_PIXEL} per pixel of a {train_px:,}-pixel "
+            "training view")
     if nproc is None:
         free = free_cores()
         k = min(free, MAX_PROCESSES, max(1, len(cams) // 8))
@@ -168,6 +209,7 @@ def choose(project: Project, given: dict[str, Any], nproc: int | None, device: t
             out.choices.append(Choice("nproc", k, f"{free} free cores: {k} training processes (--nproc 1 for one)"))
             threads = min(MAX_THREADS, free // k)
             if threads > 1 and torch.get_num_threads() == 1:  # OMP_NUM_THREADS above 1 is the user's: kept
+                out.threads = threads
                 out.choices.append(Choice("threads", threads, f"{free} free cores for {k} processes: "
                                           f"{threads} torch threads each (OMP_NUM_THREADS to choose)"))
     return out

@@ -5,13 +5,18 @@ the `--help` heading when the command line shows it (options.py; cli/options.py 
 Typer options from it). Defaults are named after the 3DGS paper (Kerbl et al. 2023) where
 they come from one. The chosen strategy's hyperparameters, its schedule and its budget are
 its own section (`default` or `mcmc`, declared in strategy/). Presets override a few
-options; explicit options override the preset. `TrainSummary` is the contract other
-commands read from the manifest (`steps.train.summary`).
+options; explicit options override the preset. Everything here is typed: a preset is a
+function of the config (`replace` on its fields and sections), and the chosen strategy's
+section is `refine` / `with_refine`; options by name (`--max-gaussians` for whichever
+strategy is chosen) are set at the command line's edge alone (cli/train_config.py, through
+options.py). `TrainSummary` is the contract other commands read from the manifest
+(`steps.train.summary`).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
@@ -201,15 +206,17 @@ class TrainConfig:
         """Optimiser steps including the compaction fine-tune."""
         return self.iterations + (self.compact.finetune if self.compact.enabled else 0)
 
-    def with_options(self, given: dict[str, Any], *, strict: bool = True) -> TrainConfig:
-        """This config with named options set (options.apply), checked."""
-        cfg = options.apply(self, given, strict=strict)
-        _check(cfg)
-        return cfg
+    def with_refine(self, **changes: Any) -> TrainConfig:
+        """This config with fields of the chosen strategy's section (`refine`) replaced."""
+        if self.strategy == "mcmc":
+            return replace(self, mcmc=replace(self.mcmc, **changes))
+        return replace(self, default=replace(self.default, **changes))
 
-    def value(self, name: str) -> Any:
-        """The value of a named option."""
-        return options.value(self, name)
+    def checked(self) -> TrainConfig:
+        """This config, once every option is of its type and in its range and --strategy mcmc
+        has its budget (else a one-line SplatError)."""
+        _check(self)
+        return self
 
     def for_world(self, k: int) -> TrainConfig:
         """The schedule K data-parallel ranks run so as to see the same images as one
@@ -221,16 +228,27 @@ class TrainConfig:
         if k == 1:
             return self
 
-        def per_rank(name: str, v: int) -> int:
-            return round(v / k) if name == "refine_stop" else max(1, round(v / k)) if v > 0 else v
+        def per_rank(v: int) -> int:  # (0 stays off)
+            return max(1, round(v / k)) if v > 0 else v
 
-        cfg = options.scaled(self, options.steps_options(TrainConfig), per_rank)
+        # Every count of steps (the fields whose option has `steps`: tests/test_options.py holds
+        # this list to them), the chosen strategy's alone.
         r = math.sqrt(k)
-        # (not exposure_lr: the transforms' Adam steps a view's row once per time the view is
-        # trained, however many ranks share a step; appearance.py)
-        lrs = ("lr_means", "lr_means_final", "lr_sh0", "lr_opacity", "lr_scales", "lr_quats")
-        cfg = options.scaled(cfg, lrs, lambda name, v: v * r)
-        return replace(cfg, adam_eps=self.adam_eps / r, adam_beta1=self.adam_beta1 ** k, adam_beta2=self.adam_beta2 ** k)
+        cfg = replace(self, iterations=per_rank(self.iterations), sh_degree_interval=per_rank(self.sh_degree_interval),
+                      compact=replace(self.compact, finetune=per_rank(self.compact.finetune)),
+                      eval_every=per_rank(self.eval_every), log_every=per_rank(self.log_every),
+                      checkpoint_every=per_rank(self.checkpoint_every),
+                      # (not exposure.lr: the transforms' Adam steps a view's row once per time the view is
+                      # trained, however many ranks share a step; appearance.py)
+                      lr_means=self.lr_means * r, lr_means_final=self.lr_means_final * r, lr_sh0=self.lr_sh0 * r,
+                      lr_opacity=self.lr_opacity * r, lr_scales=self.lr_scales * r, lr_quats=self.lr_quats * r,
+                      adam_eps=self.adam_eps / r, adam_beta1=self.adam_beta1 ** k, adam_beta2=self.adam_beta2 ** k)
+        refine = self.refine
+        cfg = cfg.with_refine(refine_start=per_rank(refine.refine_start), refine_stop=round(refine.refine_stop / k),
+                              refine_every=per_rank(refine.refine_every))
+        if isinstance(refine, DefaultStrategyConfig):
+            cfg = cfg.with_refine(opacity_reset=per_rank(refine.opacity_reset))
+        return cfg
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -247,6 +265,9 @@ class TrainConfig:
         except SplatError as exc:
             raise SplatError(f"{where}: {exc}") from None
         return cfg
+
+
+Overrides = Callable[[TrainConfig], TrainConfig]  # what `train --resume` changes in the stored config (cli/train_config.py)
 
 
 def _upgrade(d: dict[str, Any]) -> dict[str, Any]:
@@ -280,45 +301,54 @@ def _upgrade(d: dict[str, Any]) -> dict[str, Any]:
 
 
 # Presets override the defaults above; explicit options override the preset. A preset's
-# option that does not apply to the chosen strategy is left out.
-PRESETS: dict[str, dict[str, Any]] = {
-    # The paper: 30k steps, densify 500..15k.
-    "default": {},
-    # A CPU preset with the same shape in fewer steps. Most of the PSNR arrives in
-    # the first 7k steps (the paper reports its 7k numbers for that reason); densifying
-    # for the first ~half keeps the paper's grow-then-settle ratio and gives the
-    # last 3k steps to refine a fixed set, which is where SSIM improves.
-    # Coarse to fine: the first half renders at a resolution rising from 1/4 (measured on lego
-    # 200 px, 2k steps: the PSNR-against-time curve above the full-resolution one everywhere,
-    # 1.15-1.5x sooner to a given PSNR; docs/benchmarks.md, "time to quality").
-    # No opacity reset: with 4k steps of densifying, the reset at 3k leaves too few to win the
-    # model back (docs/benchmarks.md, "overfitting": held-out 24.4 -> 16.8 dB on the object capture, 23.6 at the
-    # end; without it 25.0, its best; fox from its photos ends at 32.21, 0.03 below its best).
-    "fast": {"iterations": 7000, "refine_stop": 4000, "opacity_reset": 0, "checkpoint_every": 1000,
-             "init_random_points": 10_000, "coarse_scale": 0.25, "coarse_until": 0.5},
-    # `make demo` on sample_data (320x240, ~2k SfM points): a few minutes on 2 cores.
-    # Everything 3DGS does, compressed: densify 300..900, SH every 300 steps, and a
-    # budget of 20k Gaussians (unbudgeted it reaches ~30k for +0.3 dB at ~1.5x the time).
-    "demo": {"iterations": 1500, "refine_start": 300, "refine_stop": 900, "opacity_reset": 0,
-             "sh_degree_interval": 300, "eval_every": 500, "checkpoint_every": 500,
-             "max_size": 256, "init_random_points": 20_000, "max_gaussians": 20_000,
-             "block": "model"},  # the demo gives the same figure on every run
-}
+# option that does not apply to the chosen strategy is left out (the opacity reset is the
+# default strategy's alone).
+def _default(cfg: TrainConfig) -> TrainConfig:
+    """The paper: 30k steps, densify 500..15k (the defaults)."""
+    return cfg
+
+
+def _fast(cfg: TrainConfig) -> TrainConfig:
+    """A CPU preset with the same shape in fewer steps. Most of the PSNR arrives in the first
+    7k steps (the paper reports its 7k numbers for that reason); densifying for the first
+    ~half keeps the paper's grow-then-settle ratio and gives the last 3k steps to refine a
+    fixed set, which is where SSIM improves.
+
+    Coarse to fine: the first half renders at a resolution rising from 1/4 (measured on lego
+    200 px, 2k steps: the PSNR-against-time curve above the full-resolution one everywhere,
+    1.15-1.5x sooner to a given PSNR; docs/benchmarks.md, "time to quality").
+    No opacity reset: with 4k steps of densifying, the reset at 3k leaves too few to win the
+    model back (docs/benchmarks.md, "overfitting": held-out 24.4 -> 16.8 dB on the object capture, 23.6 at the
+    end; without it 25.0, its best; fox from its photos ends at 32.21, 0.03 below its best)."""
+    cfg = replace(cfg, iterations=7000, checkpoint_every=1000, init_random_points=10_000, coarse_scale=0.25,
+                  coarse_until=0.5)
+    return _no_opacity_reset(cfg.with_refine(refine_stop=4000))
+
+
+def _demo(cfg: TrainConfig) -> TrainConfig:
+    """`make demo` on sample_data (320x240, ~2k SfM points): a few minutes on 2 cores.
+    Everything 3DGS does, compressed: densify 300..900, SH every 300 steps, and a budget of
+    20k Gaussians (unbudgeted it reaches ~30k for +0.3 dB at ~1.5x the time); the block of
+    the cost model, so that the demo gives the same figure on every run."""
+    cfg = replace(cfg, iterations=1500, sh_degree_interval=300, eval_every=500, checkpoint_every=500, max_size=256,
+                  init_random_points=20_000, block="model")
+    return _no_opacity_reset(cfg.with_refine(refine_start=300, refine_stop=900, max_gaussians=20_000))
+
+
+def _no_opacity_reset(cfg: TrainConfig) -> TrainConfig:
+    return cfg.with_refine(opacity_reset=0) if isinstance(cfg.refine, DefaultStrategyConfig) else cfg
+
+
+PRESETS: dict[str, Callable[[TrainConfig], TrainConfig]] = {"default": _default, "fast": _fast, "demo": _demo}
 assert tuple(PRESETS) == PRESET_NAMES
 
 
-def make_config(preset: str = "default", *, device: str = "cpu", renderer: str = "torch", **given: Any) -> TrainConfig:
-    """The preset, then every option given that is not None (text is parsed as on the
-    command line), for `device` and `renderer` (resolved). Checks types and ranges; an option of a strategy not
-    chosen is an error."""
-    given = {k: v for k, v in given.items() if v is not None}
-    preset = options.apply(TrainConfig(), {"preset": preset}).preset
-    if preset not in PRESETS:
-        raise SplatError(f"--preset {preset!r} is not known; choose one of {', '.join(PRESETS)}")
-    choice = {k: given[k] for k in ("strategy",) if k in given}  # the preset's options go to the chosen strategy
-    cfg = options.apply(TrainConfig(preset=preset, device=device, renderer=renderer), choice)
-    cfg = options.apply(cfg, PRESETS[preset], strict=False)
-    return cfg.with_options(given)
+def preset_config(preset: str = "default", strategy: str = "default", *, device: str = "cpu",
+                  renderer: str = "torch") -> TrainConfig:
+    """The preset's config for `strategy`, before any option is given, for `device` and
+    `renderer` (resolved). The command line's builder, options by name on top, is
+    cli/train_config.py's make_config."""
+    return PRESETS[preset](TrainConfig(preset=preset, strategy=strategy, device=device, renderer=renderer))
 
 
 def _check(cfg: TrainConfig) -> None:

@@ -15,9 +15,9 @@ import torch
 from ..eval.curve import TrainLogLine, read_log
 from ..eval.score import REPORTED
 from ..events import EventSink, Note, emit
+from ..files.atomic import append_line, atomic_write_json, atomic_write_text
+from ..formats.ply import ply_bytes
 from ..gaussians import histogram
-from ..io.atomic import append_line, atomic_write_json, atomic_write_text
-from ..io.ply import ply_bytes
 from ..project import Project
 from ..render.blocks import BlockTuner
 from ..strategy import RefineStats

@@ -1,7 +1,9 @@
-"""The training loop: sample a view, render, loss, step, let the strategies refine.
+"""The training run around the step: setup, signals, out-of-memory failures, checkpoints,
+the time plan, ranks, events, the log and held-out measurement.
 
-`train()` sets up (fresh or `--resume`), runs `_loop`, and hands the result to
-`log.finish`. Setup lives in state.py (parameters, optimisers, strategies,
+`train()` sets up (fresh or `--resume`), runs a `_Run` and hands the result to
+`log.finish`. One step (render, loss, backward, optimiser, the strategies' hooks) is
+trainer.py's `Trainer`; setup lives in state.py (parameters, optimisers, strategies,
 checkpoints), data.py (cached images) and init.py (first Gaussians); density and
 model control in strategy/.
 """
@@ -15,7 +17,7 @@ import time
 from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 import torch
@@ -24,23 +26,23 @@ from torch import Tensor
 from ..errors import Interrupted, SplatError, TrainingDiverged
 from ..eval.score import REPORTED, score_image
 from ..events import EventSink, Note, Progress, Snapshot, Stage, StageDone, emit
-from ..io.checkpoint import load_checkpoint
+from ..files.checkpoint import Checkpoint, load_checkpoint
 from ..project import Project, writer_lock
-from ..render import RenderOutput, kernels
+from ..render import kernels
 from ..render.backends import rasterizer
 from ..render.blocks import BlockTuner
 from ..render.weights import blending_weights
 from ..sfm.colmap import read_project_scene
 from ..strategy import Context, StepInfo
 from . import auto, log
-from .config import TrainConfig, TrainSummary
+from .config import Overrides, TrainConfig, TrainSummary
 from .data import TrainData, TrainView, load_train_data, subset, views_seeing
 from .distributed import Comm
 from .init import initial_gaussians
-from .loss import photometric_loss
 from .memory import check_memory, is_out_of_memory, plan_memory
 from .profile import StepProfile
-from .state import TrainState, make_strategies, means_lr, new_state, save_state, state_from_checkpoint, time_plan
+from .state import TrainState, new_state, save_state, state_from_checkpoint, time_plan
+from .trainer import Trainer, render_view
 
 STAGE = "train"
 
@@ -51,14 +53,14 @@ def train(
     device: torch.device,
     *,
     resume: bool = False,
-    overrides: dict[str, Any] | None = None,
+    overrides: Overrides | None = None,
     on_event: EventSink | None = None,
     comm: Comm | None = None,
     chosen: list[dict[str, Any]] | None = None,
 ) -> TrainSummary:
     """Train (or resume) the project's model; return the summary also recorded in
-    the manifest. `overrides` are the options given explicitly (flat names, as
-    `make_config` takes them), applied on top of a resumed run's stored config.
+    the manifest. `overrides`: what a --resume changes in the run's stored config (the
+    options given explicitly; cli/train_config.py's resume_overrides), checked after.
     `comm`: this process's rank in a data-parallel run (distributed.py); rank 0
     alone writes the project. `chosen`: what train/auto.py chose and why, for the record.
     SIGINT/SIGTERM: checkpoint, raise Interrupted."""
@@ -69,64 +71,49 @@ def train(
 
 
 def _train(project: Project, cfg: TrainConfig, device: torch.device, resume: bool,
-           overrides: dict[str, Any] | None, on_event: EventSink | None, comm: Comm,
+           overrides: Overrides | None, on_event: EventSink | None, comm: Comm,
            chosen: list[dict[str, Any]] | None) -> TrainSummary:
     project.require_processed()
-    resumed_from = None
-    ck = None
-    if resume:
-        path = project.latest_checkpoint()
-        if path is None:
-            emit(on_event, Note("--resume: no checkpoint yet; starting a new run", "warning"))
-        else:
-            ck = load_checkpoint(path, device)
-            stored = TrainConfig.from_dict(ck.config, where=f"{path}: stored train config")
-            new = stored.with_options(overrides or {})
-            if new.compact.enabled and not stored.compact.enabled:
-                # --compact added on resume brings its own settings (this version's),
-                # not the ones stored unused with the run.
-                new = replace(new, compact=replace(cfg.compact, enabled=True))
-            cfg = replace(new, device=str(device), renderer=cfg.renderer)  # either renderer resumes either's run
-            resumed_from = ck.step
-    run = cfg.for_world(comm.world)  # the schedule K ranks follow (config.py)
+    ck, cfg = _resumed(project, cfg, device, overrides, on_event) if resume else (None, cfg)
     # Reading the scene imports pycolmap, whose glog installs its own SIGTERM handler:
     # ours goes in after it.
     if device.type == "cpu":  # a run that cannot fit stops here, before loading anything
-        cams = [c.at_resolution(cfg.downscale, cfg.max_size) for c in read_project_scene(project).cameras]
-        facts = project.manifest().get("scene") or {}
-        init = len(ck.gaussians) if ck is not None else int(facts.get("num_points") or cfg.init_random_points)
-        check_memory(plan_memory(cams, init, cfg.refine.max_gaussians, copies=comm.local_world), cfg.max_size)
+        _check_fits(project, cfg, ck, comm)
     data = load_train_data(project, cfg.downscale, cfg.max_size, device, cfg.eval_max_views, cfg.mask_mode)
     if cfg.mask_mode in ("ignore", "background") and data.mask_mode == "off":
         emit(on_event, Note(f"--mask-mode {cfg.mask_mode}: the project has no masks; training on whole images",
                             "warning"))
-    box: list[TrainState] = []
-    ctx = _context(data, box, on_event, comm)
     with _stop_on_signal() as stop:  # from here on a signal means: checkpoint, exit 130
-        if ck is not None:
-            state = state_from_checkpoint(ck, run, data.extent, device, len(data.train), ctx, comm.world)
-            state.plan = time_plan(cfg, ck.extra.get("plan"))
-            more = state.plan.extend(cfg, state.images, state.elapsed_s) if state.plan is not None else None
-            if more is not None:  # a finished planned run given more time
-                cfg, run = more, more.for_world(comm.world)
-                state.strategies = make_strategies(run, data.extent, ctx)
-                emit(on_event, Note(f"extending the run to {state.plan.budget_s:.0f} s of training: "
-                                    f"{more.iterations} steps planned (from step {state.images})"))
-            if comm.main:
-                log.trim_log(project.train_log_path, ck.step)
-        else:
-            state = new_state(initial_gaussians(cfg, data, device), run, data.extent, device, len(data.train), ctx,
-                              comm.world)
-            state.plan = time_plan(cfg)
-            if comm.main:
-                log.start_fresh(project, on_event)
-        state.draw = rasterizer(cfg.renderer)
-        state.block = BlockTuner() if cfg.block == "auto" else ("auto" if cfg.block == "model" else int(cfg.block))
-        state.compiled = _compile(cfg, device, on_event if comm.main else None)
-        comm.broadcast_params(state.trainable())  # identical from the first step, whatever each rank computed
-        box.append(state)
-        cfg = _loop(project, cfg, run, data, state, ctx, stop, on_event, comm)
-    return log.finish(project, cfg, state, resumed_from, comm, chosen)
+        run = _Run(project, cfg, data, comm, stop, on_event)
+        run.start(ck, device)
+        run.loop()
+    return log.finish(project, run.base, run.trainer.state, ck.step if ck is not None else None, comm, chosen)
+
+
+def _resumed(project: Project, cfg: TrainConfig, device: torch.device, overrides: Overrides | None,
+             on_event: EventSink | None) -> tuple[Checkpoint | None, TrainConfig]:
+    """--resume: the latest checkpoint and the config it goes on with (the stored one, the
+    options given explicitly on top); without a checkpoint yet, a new run of `cfg`."""
+    path = project.latest_checkpoint()
+    if path is None:
+        emit(on_event, Note("--resume: no checkpoint yet; starting a new run", "warning"))
+        return None, cfg
+    ck = load_checkpoint(path, device)
+    stored = TrainConfig.from_dict(ck.config, where=f"{path}: stored train config")
+    new = overrides(stored).checked() if overrides is not None else stored
+    if new.compact.enabled and not stored.compact.enabled:
+        # --compact added on resume brings its own settings (this version's),
+        # not the ones stored unused with the run.
+        new = replace(new, compact=replace(cfg.compact, enabled=True))
+    return ck, replace(new, device=str(device), renderer=cfg.renderer)  # either renderer resumes either's run
+
+
+def _check_fits(project: Project, cfg: TrainConfig, ck: Checkpoint | None, comm: Comm) -> None:
+    """Stop a CPU run whose model cannot fit in memory (memory.py), before loading the images."""
+    cams = [c.at_resolution(cfg.downscale, cfg.max_size) for c in read_project_scene(project).cameras]
+    facts = project.manifest().get("scene") or {}
+    init = len(ck.gaussians) if ck is not None else int(facts.get("num_points") or cfg.init_random_points)
+    check_memory(plan_memory(cams, init, cfg.refine.max_gaussians, copies=comm.local_world), cfg.max_size)
 
 
 def _compile(cfg: TrainConfig, device: torch.device, on_event: EventSink | None) -> dict[str, Any]:
@@ -152,130 +139,209 @@ def _compiled_record(state: TrainState, on_event: EventSink | None) -> None:
     rec.update(failed=st.failed, seconds=round(st.compile_s, 2), graphs=st.graphs, kept=dict(st.chosen))
 
 
-def render_view(state: TrainState, view: TrainView, bg: Tensor, sh_degree: int) -> RenderOutput:  # bg [3]
-    """The current Gaussians seen from `view` at the training resolution."""
-    g = state.drawn()
-    return state.draw(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh, view.viewmat, view.K,
-                      view.camera.width, view.camera.height, bg, sh_degree=sh_degree, antialiased=state.antialiased,
-                      block=state.block, check=False)  # the loop checks every gradient for non-finite values
+class _Run:
+    """One process's run around its `Trainer`: setup, the steps in order, and what follows
+    each (log, held-out measurement, refinement, the time plan, events, signals,
+    out-of-memory failures, checkpoints). `base`: the run's config as given, for one
+    process (what checkpoints record); the trainer's is `base.for_world(K)` for K ranks."""
 
+    trainer: Trainer  # (start)
+    writer: log.LogWriter  # (loop)
+    eta: log.Eta  # (loop)
 
-def _loop(project: Project, base: TrainConfig, cfg: TrainConfig, data: TrainData, state: TrainState, ctx: Context,
-          stop: threading.Event, on_event: EventSink | None, comm: Comm) -> TrainConfig:
-    """Run the steps of `cfg` (`base` as given, scaled for the ranks: TrainConfig.for_world);
-    returns the config in force at the end (a --time-budget plan changes it)."""
-    total = cfg.total_steps
-    k = comm.world
-    emit(on_event, Stage(STAGE, total * k))
-    writer = log.LogWriter(project.train_log_path, state, enabled=comm.main)
-    eta = log.Eta(state, cfg)
-    prof = StepProfile(cfg.profile)
-    for strategy, st in zip(state.strategies, state.splats.states):  # a resumed run: what is due now
-        writer.refined(strategy.catch_up(state.splats, st, state.step))
-    if _agreed_stop(comm, stop):  # signalled during setup: keep what there is (a resume starts here)
-        _interrupt(project, base, state, comm)
-    # seconds of training spent compiling kernels (spent from a --time-budget, but not a step's speed)
-    stalled = state.plan.history[-1].get("stalled_s", 0.0) if state.plan is not None and state.plan.history else 0.0
-    while state.step < total:
-        step = state.step + 1
-        t0, c0 = time.perf_counter(), kernels.status().compile_s
-        state.optimizers["means"].param_groups[0]["lr"] = means_lr(cfg, step, data.extent)
-        views = [state.next_view(len(data.train)) for _ in range(k)]  # the one-process stream, dealt out
-        with prof.stage("data"):
-            view = data.train[views[comm.rank]].at_scale(cfg.train_scale(step))
-            target = view.target()
-        with _out_of_memory(project, base, state, step, save=True, comm=comm):  # nothing is updated yet: save this state
-            with prof.stage("render"):
-                out = render_view(state, view, data.background, state.active_sh_degree(step, cfg.sh_degree_interval))
-            info = StepInfo(out, view.camera.width, view.camera.height, combine=comm.combine_rows)
-            with prof.stage("densification"):
-                for strategy, st in zip(state.strategies, state.splats.states):
-                    strategy.step_pre_backward(state.splats, st, step, info)
-            with prof.stage("loss"):
-                image, penalty = state.image_model.shade(out.image, views[comm.rank], step, cfg.iterations)
-                loss = photometric_loss(image, target, cfg.lambda_dssim, view.keep) + penalty
-            with prof.stage("backward"):
-                loss.backward()
-        with prof.stage("optimiser"):
-            loss, stopping = comm.reduce_step(state.trainable(), loss, stop.is_set())
-            info.finite = _all_finite(loss, state)
-            _optimise(state, info.finite)
-        state.step = step
-        state.elapsed_s += time.perf_counter() - t0
-        stalled += kernels.status().compile_s - c0  # (not evaluation's compiles: evaluation is not training time)
-        writer.add(loss.detach() if info.finite else None)
-        _compiled_record(state, on_event if comm.main else None)
-        if state.bad_run >= cfg.max_bad_steps:
-            path = _save(project, base, state, comm)
-            raise TrainingDiverged(
-                f"training diverged: {state.bad_run} consecutive steps with a non-finite loss or gradient "
-                f"(step {state.images}); the last good parameters are in {path}; try a lower learning rate or --resume"
-            )
-        # Measure what this step's update produced, before its refinement or opacity
-        # reset (right after a reset every view is nearly transparent); the end of the
-        # main schedule is measured before a fine-tune starts, the final model after
-        # its last refinement. Evaluation is not training time.
-        info.heldout = _measure(cfg, data, state, step, total, comm, force=step == cfg.iterations < total)
-        fitted = _measure_fit(cfg, data, state, step, comm) if info.heldout is not None else None
-        t1 = time.perf_counter()
-        with _out_of_memory(project, base, state, step, save=False, comm=comm), prof.stage("densification"):
-            for strategy, st in zip(state.strategies, state.splats.states):  # may be half edited: keep the last checkpoint
-                writer.refined(strategy.step_post_backward(state.splats, st, step, info))
-        state.elapsed_s += time.perf_counter() - t1
-        prof.step_done()
-        if state.plan is not None:
-            if k > 1:  # every rank plans from the same clock
-                state.elapsed_s, stalled = comm.mean(torch.tensor([state.elapsed_s, stalled, 1.0], dtype=torch.float64)).tolist()
-            planned = (state.plan.replan(base, state.images, state.elapsed_s, stalled)
-                       if state.plan.due(state.elapsed_s, stalled) else None)
-            if planned is not None:  # the strategies' schedules follow the new plan
-                base, cfg = planned, planned.for_world(k)
-                state.strategies = make_strategies(cfg, data.extent, ctx)
-                total = cfg.total_steps
-        evaluated = info.heldout
-        if step == total:
-            evaluated = _measure(cfg, data, state, step, total, comm, force=True)
-            fitted = _measure_fit(cfg, data, state, step, comm) if evaluated is not None else None
-        writer.line(step, state, evaluated, fitted, cfg.log_every, force=step == total)
-        emit(on_event, Progress(STAGE, state.images, total * k, writer.info(state)))
-        if comm.main and state.plan is None:
-            eta.tell(state, on_event)
+    def __init__(self, project: Project, base: TrainConfig, data: TrainData, comm: Comm, stop: threading.Event,
+                 on_event: EventSink | None) -> None:
+        self.project, self.base, self.data, self.comm, self.stop = project, base, data, comm, stop
+        self.on_event = on_event
+        self.prof = StepProfile(base.profile)
+        self.ctx = self._context()  # (its measurements read the trainer's state once there is one)
+        self.stalled = 0.0  # seconds of training spent compiling kernels (spent from a --time-budget, not a step's speed)
+
+    def start(self, ck: Checkpoint | None, device: torch.device) -> None:
+        """The trainer of a new run, or of `ck`'s; a finished planned run given more time
+        reopened; every rank starting from rank 0's parameters."""
+        data, comm, run = self.data, self.comm, self.base.for_world(self.comm.world)  # the schedule K ranks follow
+        if ck is None:
+            state = new_state(initial_gaussians(self.base, data, device), run, data.extent, device, len(data.train),
+                              self.ctx, comm.world)
+        else:
+            state = state_from_checkpoint(ck, run, data.extent, device, len(data.train), self.ctx, comm.world)
+        state.plan = time_plan(self.base, ck.extra.get("plan") if ck is not None else None)
+        self.trainer = Trainer(state, run, data, self.ctx, comm, self.prof)
+        if ck is not None:
+            self._extend()
+            if comm.main:
+                log.trim_log(self.project.train_log_path, ck.step)
+        elif comm.main:
+            log.start_fresh(self.project, self.on_event)
+        state.draw = rasterizer(self.base.renderer)
+        state.block = BlockTuner() if self.base.block == "auto" else (
+            "auto" if self.base.block == "model" else int(self.base.block))
+        state.compiled = _compile(self.base, device, self.on_event if comm.main else None)
+        comm.broadcast_params(state.trainable())  # identical from the first step, whatever each rank computed
+
+    def _extend(self) -> None:
+        """A finished planned run resumed with more time (--resume --time-budget) plans on."""
+        state = self.trainer.state
+        more = state.plan.extend(self.base, state.images, state.elapsed_s) if state.plan is not None else None
+        if more is not None:
+            self.base = more
+            self.trainer.reschedule(more.for_world(self.comm.world))
+            emit(self.on_event, Note(f"extending the run to {state.plan.budget_s:.0f} s of training: "
+                                     f"{more.iterations} steps planned (from step {state.images})"))
+
+    def loop(self) -> None:
+        """Run the trainer's schedule to its end (a --time-budget plan changes it on the way)."""
+        t, comm = self.trainer, self.comm
+        emit(self.on_event, Stage(STAGE, t.cfg.total_steps * comm.world))
+        self.writer = log.LogWriter(self.project.train_log_path, t.state, enabled=comm.main)
+        self.eta = log.Eta(t.state, t.cfg)
+        for stats in t.catch_up():  # a resumed run: what is due now
+            self.writer.refined(stats)
+        if _agreed_stop(comm, self.stop):  # signalled during setup: keep what there is (a resume starts here)
+            self._interrupt()
+        plan = t.state.plan
+        self.stalled = plan.history[-1].get("stalled_s", 0.0) if plan is not None and plan.history else 0.0
+        while t.state.step < t.cfg.total_steps:
+            self._step(t.state.step + 1)
+        emit(self.on_event, StageDone(STAGE, t.state.elapsed_s))
         if comm.main:
-            emit(on_event, Snapshot(state.images, state.model))  # for live displays (train --viewer)
-        if stopping or (k == 1 and stop.is_set()):
-            _interrupt(project, base, state, comm)
-        if step % cfg.checkpoint_every == 0 or step == total:
-            _save(project, base, state, comm)
-    emit(on_event, StageDone(STAGE, state.elapsed_s))
-    if comm.main:
-        prof.write(project, {"nproc": k, "compile": (state.compiled or {}).get("mode", "off")})
-    return base
+            self.prof.write(self.project, {"nproc": comm.world, "compile": (t.state.compiled or {}).get("mode", "off")})
 
+    def _step(self, step: int) -> None:
+        """Step `step` and what follows it."""
+        t, state = self.trainer, self.trainer.state
+        t0, c0 = time.perf_counter(), kernels.status().compile_s
+        batch = t.next_batch(step)
+        with self._out_of_memory(step, save=True):  # until the update, the state is the last whole step's
+            stats = t.step(step, batch, self.stop.is_set())
+        state.elapsed_s += time.perf_counter() - t0
+        self.stalled += kernels.status().compile_s - c0  # (not evaluation's compiles: evaluation is not training time)
+        self.writer.add(stats.loss if stats.finite else None)
+        _compiled_record(state, self.on_event if self.comm.main else None)
+        if state.bad_run >= t.cfg.max_bad_steps:
+            self._diverged()
+        fitted = self._measure_update(step, stats.info)
+        self._refine(step, stats.info)
+        self._replan()
+        self._report(step, stats.info.heldout, fitted)
+        if stats.stopping or (self.comm.world == 1 and self.stop.is_set()):
+            self._interrupt()
+        if step % t.cfg.checkpoint_every == 0 or step == t.cfg.total_steps:
+            self._save()
 
-def _optimise(state: TrainState, finite: bool) -> None:
-    """Adam's step on every parameter when the loss and gradients are finite (else the step is
-    skipped and counted: NaN or Inf never reaches the parameters or the moments), then no gradients."""
-    if finite:
-        for opt in state.all_optimizers():
-            opt.step()
-        state.bad_run = 0
-    else:
-        state.bad_steps += 1
-        state.bad_run += 1
-    for opt in state.all_optimizers():
-        opt.zero_grad(set_to_none=True)
+    def _measure_update(self, step: int, info: StepInfo) -> tuple[float, float] | None:
+        """Measure what this step's update produced (into `info.heldout`; the training views'
+        figures returned), before its refinement or opacity reset (right after a reset every
+        view is nearly transparent); the end of the main schedule is measured before a
+        fine-tune starts, the final model after its last refinement. Evaluation is not
+        training time."""
+        cfg, state, total = self.trainer.cfg, self.trainer.state, self.trainer.cfg.total_steps
+        info.heldout = _measure(cfg, self.data, state, step, total, self.comm, force=step == cfg.iterations < total)
+        return _measure_fit(cfg, self.data, state, step, self.comm) if info.heldout is not None else None
 
+    def _refine(self, step: int, info: StepInfo) -> None:
+        t1 = time.perf_counter()
+        with self._out_of_memory(step, save=False):  # may be half edited: keep the last checkpoint
+            for stats in self.trainer.refine(step, info):
+                self.writer.refined(stats)
+        self.trainer.state.elapsed_s += time.perf_counter() - t1
+        self.prof.step_done()
 
-def _save(project: Project, cfg: TrainConfig, state: TrainState, comm: Comm) -> Path:
-    """A checkpoint of the run as one process would have written it: every rank folds its
-    accumulators into rank 0's and confirms its parameters equal rank 0's; rank 0 writes."""
-    comm.fold_rows(state.splats.states)
-    comm.check_agree(state.trainable())
-    path = project.checkpoint_path(state.images)
-    if comm.main:
-        save_state(path, state, cfg)
-        log.prune_checkpoints(project, cfg.keep_checkpoints)
-    return path
+    def _replan(self) -> None:
+        """--time-budget: plan again when due; the trainer follows the new schedule."""
+        state, k = self.trainer.state, self.comm.world
+        if state.plan is None:
+            return
+        if k > 1:  # every rank plans from the same clock
+            state.elapsed_s, self.stalled = self.comm.mean(
+                torch.tensor([state.elapsed_s, self.stalled, 1.0], dtype=torch.float64)).tolist()
+        planned = (state.plan.replan(self.base, state.images, state.elapsed_s, self.stalled)
+                   if state.plan.due(state.elapsed_s, self.stalled) else None)
+        if planned is not None:
+            self.base = planned
+            self.trainer.reschedule(planned.for_world(k))
+
+    def _report(self, step: int, heldout: tuple[float, float] | None, fitted: tuple[float, float] | None) -> None:
+        """The log line (the final model measured at the last step), progress, the ETA, the live model."""
+        t, comm = self.trainer, self.comm
+        state, total = t.state, t.cfg.total_steps
+        evaluated = heldout
+        if step == total:
+            evaluated = _measure(t.cfg, self.data, state, step, total, comm, force=True)
+            fitted = _measure_fit(t.cfg, self.data, state, step, comm) if evaluated is not None else None
+        self.writer.line(step, state, evaluated, fitted, t.cfg.log_every, force=step == total)
+        emit(self.on_event, Progress(STAGE, state.images, total * comm.world, self.writer.info(state)))
+        if comm.main and state.plan is None:
+            self.eta.tell(state, self.on_event)
+        if comm.main:
+            emit(self.on_event, Snapshot(state.images, state.model))  # for live displays (train --viewer)
+
+    def _save(self) -> Path:
+        """A checkpoint of the run as one process would have written it: every rank folds its
+        accumulators into rank 0's and confirms its parameters equal rank 0's; rank 0 writes."""
+        state, comm = self.trainer.state, self.comm
+        comm.fold_rows(state.splats.states)
+        comm.check_agree(state.trainable())
+        path = self.project.checkpoint_path(state.images)
+        if comm.main:
+            save_state(path, state, self.base)
+            log.prune_checkpoints(self.project, self.base.keep_checkpoints)
+        return path
+
+    def _interrupt(self) -> NoReturn:
+        """Checkpoint the last whole step and stop (the CLI exits 130)."""
+        path = self._save()
+        raise Interrupted(f"interrupted at step {self.trainer.state.images}; saved {path}; "
+                          f"continue with `splatcli train {self.project.root} --resume`")
+
+    def _diverged(self) -> NoReturn:
+        state = self.trainer.state
+        path = self._save()
+        raise TrainingDiverged(
+            f"training diverged: {state.bad_run} consecutive steps with a non-finite loss or gradient "
+            f"(step {state.images}); the last good parameters are in {path}; try a lower learning rate or --resume"
+        )
+
+    @contextlib.contextmanager
+    def _out_of_memory(self, step: int, save: bool) -> Iterator[None]:
+        """An allocation failure inside becomes a one-line SplatError (exit 2) naming the last
+        good checkpoint, written now from the state when `save` and no update had begun (the
+        state is a whole step; one process only: the other ranks are not at a point where
+        they could agree)."""
+        try:
+            yield
+        except Exception as exc:
+            if not is_out_of_memory(exc):
+                raise
+            whole = save and not self.trainer.updating and self.comm.world == 1
+            raise _out_of_memory_error(self.project, self.base, self.trainer.state, step, exc, whole) from None
+
+    def _context(self) -> Context:
+        """What the strategies may ask of this run; the ranks share the views and combine
+        the answers, so every rank gets the same one."""
+        data = self.data
+        center = torch.as_tensor(data.center, dtype=torch.float32, device=data.background.device)
+        return Context(score=self._score, weights=self._weights, note=lambda m: emit(self.on_event, Note(m)),
+                       center=center, views_seeing=lambda means: views_seeing(data.train, means),
+                       cameras=lambda: [(v.viewmat, v.K, v.camera.width, v.camera.height) for v in data.train],
+                       centres=lambda: torch.from_numpy(np.stack([v.camera.center for v in data.train])))
+
+    def _score(self, which: str, sh_degree: int) -> tuple[float, float] | None:
+        """Context.score: "test", or "val:K": K evenly spaced training views, each through its own colour transform."""
+        data = self.data
+        if which == "test":
+            return evaluate_views(self.trainer.state, data.test, data.background, sh_degree, self.comm) if data.test else None
+        idx = subset(list(range(len(data.train))), int(which.split(":")[1]))
+        return evaluate_views(self.trainer.state, [data.train[i] for i in idx], data.background, sh_degree, self.comm,
+                              idx)
+
+    def _weights(self) -> Tensor:  # [N]
+        """Context.weights: each Gaussian's blending weight summed over the training views."""
+        p = self.trainer.state.params
+        return self.comm.total(blending_weights(p["means"], p["quats"], p["log_scales"], p["opacity_logits"],
+                                                ((v.viewmat, v.K, v.camera.width, v.camera.height)
+                                                 for v in self.comm.share(self.data.train))))
 
 
 def _agreed_stop(comm: Comm, stop: threading.Event) -> bool:
@@ -283,51 +349,6 @@ def _agreed_stop(comm: Comm, stop: threading.Event) -> bool:
     if comm.world == 1:
         return stop.is_set()
     return bool(comm.total(torch.tensor([float(stop.is_set())])) > 0)
-
-
-def _context(data: TrainData, box: list[TrainState], on_event: EventSink | None, comm: Comm) -> Context:
-    """What the strategies may ask of this run (`box` holds the state once it exists);
-    the ranks share the views and combine the answers, so every rank gets the same one."""
-
-    def score(which: str, sh_degree: int) -> tuple[float, float] | None:
-        if which == "test":
-            return evaluate_views(box[0], data.test, data.background, sh_degree, comm) if data.test else None
-        # "val:K": K evenly spaced training views, each through its own colour transform
-        idx = subset(list(range(len(data.train))), int(which.split(":")[1]))
-        return evaluate_views(box[0], [data.train[i] for i in idx], data.background, sh_degree, comm, idx)
-
-    def weights() -> Tensor:  # [N]
-        p = box[0].params
-        return comm.total(blending_weights(p["means"], p["quats"], p["log_scales"], p["opacity_logits"],
-                                           ((v.viewmat, v.K, v.camera.width, v.camera.height)
-                                            for v in comm.share(data.train))))
-
-    center = torch.as_tensor(data.center, dtype=torch.float32, device=data.background.device)
-    return Context(score=score, weights=weights, note=lambda m: emit(on_event, Note(m)), center=center,
-                   views_seeing=lambda means: views_seeing(data.train, means),
-                   cameras=lambda: [(v.viewmat, v.K, v.camera.width, v.camera.height) for v in data.train],
-                   centres=lambda: torch.from_numpy(np.stack([v.camera.center for v in data.train])))
-
-
-def _interrupt(project: Project, cfg: TrainConfig, state: TrainState, comm: Comm) -> None:
-    """Checkpoint the last whole step and stop (the CLI exits 130)."""
-    path = _save(project, cfg, state, comm)
-    raise Interrupted(f"interrupted at step {state.images}; saved {path}; "
-                      f"continue with `splatcli train {project.root} --resume`")
-
-
-@contextlib.contextmanager
-def _out_of_memory(project: Project, cfg: TrainConfig, state: TrainState, step: int, save: bool,
-                   comm: Comm) -> Iterator[None]:
-    """An allocation failure inside becomes a one-line SplatError (exit 2) naming the last
-    good checkpoint, written now from `state` when `save` (the state is a whole step;
-    one process only: the other ranks are not at a point where they could agree)."""
-    try:
-        yield
-    except Exception as exc:
-        if not is_out_of_memory(exc):
-            raise
-        raise _out_of_memory_error(project, cfg, state, step, exc, save and comm.world == 1) from None
 
 
 def _out_of_memory_error(project: Project, cfg: TrainConfig, state: TrainState, step: int, exc: BaseException,
@@ -345,13 +366,6 @@ def _out_of_memory_error(project: Project, cfg: TrainConfig, state: TrainState, 
     return SplatError(f"out of memory at step {step * state.world} with {len(state.splats):,} Gaussians "
                       f"({type(exc).__name__}); {kept}",
                       hint=f"lower --max-size or set --max-gaussians, then `splatcli train {project.root} --resume`")
-
-
-def _all_finite(loss: Tensor, state: TrainState) -> bool:  # loss: [] scalar
-    """One reduction over the loss and every gradient (a single host sync)."""
-    checks = [torch.isfinite(loss).reshape(1)]
-    checks += [torch.isfinite(p.grad).all().reshape(1) for p in state.trainable().values() if p.grad is not None]
-    return bool(torch.cat(checks).all())
 
 
 def _measure(cfg: TrainConfig, data: TrainData, state: TrainState, step: int, total: int, comm: Comm,

@@ -31,16 +31,14 @@ recorded in train.json.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
-from .. import options
+from ..strategy import DefaultStrategyConfig
 from .config import TrainConfig
 
-# Step counts of the schedule, scaled together (options counted in steps="schedule").
-SCHEDULE = options.steps_options(TrainConfig, "schedule")
 MIN_ITERATIONS = 30  # a plan never shrinks the run below this
 MIN_REFINE_EVERY = 25  # steps between refinements, at least (or the template's, when smaller)
 LR_HOLD = 0.6  # the fraction of a planned run the means' learning rate stays at its initial value
@@ -55,10 +53,74 @@ def step_costs(cfg: TrainConfig, iterations: int, start: int, stop: int) -> np.n
     return OVERHEAD + cfg.train_scales(np.arange(start, stop), iterations) ** 2
 
 
+@dataclass(frozen=True)
+class Schedule:
+    """A run's step counts that a plan scales together (those whose option is counted in
+    steps="schedule"; tests/test_options.py holds this list to them): the config's own, its
+    strategy's and the compaction fine-tune's. None: not in a stored template (the opacity
+    reset of a run of the other strategy), so left as the config has it."""
+
+    iterations: int
+    refine_every: int
+    sh_degree_interval: int | None = None
+    refine_start: int | None = None
+    refine_stop: int | None = None
+    opacity_reset: int | None = None  # the default strategy's alone
+    compact_finetune: int | None = None
+
+    @staticmethod
+    def of(cfg: TrainConfig) -> Schedule:
+        r = cfg.refine
+        return Schedule(iterations=int(cfg.iterations), refine_every=int(r.refine_every),
+                        sh_degree_interval=int(cfg.sh_degree_interval), refine_start=int(r.refine_start),
+                        refine_stop=int(r.refine_stop),
+                        opacity_reset=int(r.opacity_reset) if isinstance(r, DefaultStrategyConfig) else None,
+                        compact_finetune=int(cfg.compact.finetune))
+
+    def scaled(self, f: float) -> Schedule:
+        """Every count times `f`, at least 1 (0 stays off)."""
+
+        def s(v: int | None) -> Any:
+            return None if v is None else max(1, round(v * f)) if v else 0
+
+        return Schedule(s(self.iterations), s(self.refine_every), s(self.sh_degree_interval), s(self.refine_start),
+                        s(self.refine_stop), s(self.opacity_reset), s(self.compact_finetune))
+
+    def applied(self, cfg: TrainConfig) -> TrainConfig:
+        """`cfg` with these counts (those that are not None; the opacity reset only where the
+        chosen strategy has one)."""
+
+        def kept(v: int | None, old: int) -> int:
+            return old if v is None else v
+
+        r = cfg.refine
+        cfg = replace(cfg, iterations=self.iterations, sh_degree_interval=kept(self.sh_degree_interval,
+                                                                              cfg.sh_degree_interval),
+                      compact=replace(cfg.compact, finetune=kept(self.compact_finetune, cfg.compact.finetune)))
+        cfg = cfg.with_refine(refine_start=kept(self.refine_start, r.refine_start),
+                              refine_stop=kept(self.refine_stop, r.refine_stop), refine_every=self.refine_every)
+        if isinstance(r, DefaultStrategyConfig) and self.opacity_reset is not None:
+            cfg = cfg.with_refine(opacity_reset=self.opacity_reset)
+        return cfg
+
+    def record(self) -> dict[str, int]:
+        """The stored form (train.json's plan.template; checkpoints): by option name."""
+        named = {"iterations": self.iterations, "sh_degree_interval": self.sh_degree_interval,
+                 "refine_start": self.refine_start, "refine_stop": self.refine_stop, "refine_every": self.refine_every,
+                 "opacity_reset": self.opacity_reset, "compact_finetune": self.compact_finetune}
+        return {k: v for k, v in named.items() if v is not None}
+
+    @staticmethod
+    def from_record(d: dict[str, Any]) -> Schedule:
+        d = {"opacity_reset" if k == "reset_every" else k: int(v) for k, v in d.items()}  # (its name before the option's)
+        return Schedule(d["iterations"], d["refine_every"], d.get("sh_degree_interval"), d.get("refine_start"),
+                        d.get("refine_stop"), d.get("opacity_reset"), d.get("compact_finetune"))
+
+
 @dataclass
 class TimePlan:
     budget_s: float
-    template: dict[str, int]  # the preset's schedule, unscaled
+    template: Schedule  # the preset's schedule, unscaled
     probe_s: float = 0.0  # training seconds measured before the first plan
     replan_every: float = 0.1  # fraction of the budget between plans
     cap: int | None = None  # the strategy's Gaussian budget at the end (None: no curve)
@@ -66,8 +128,7 @@ class TimePlan:
 
     @staticmethod
     def start(cfg: TrainConfig) -> TimePlan:
-        template = {k: int(cfg.value(k)) for k in SCHEDULE if options.resolve(cfg, k) is not None}
-        return TimePlan(budget_s=float(cfg.time_budget), template=template,
+        return TimePlan(budget_s=float(cfg.time_budget), template=Schedule.of(cfg),
                         probe_s=min(5.0, 0.05 * float(cfg.time_budget)), cap=cfg.refine.max_gaussians)
 
     def scaled(self, cfg: TrainConfig, iterations: int, at: int = 0) -> TrainConfig:
@@ -76,14 +137,12 @@ class TimePlan:
         least MIN_REFINE_EVERY steps between decisions: gradients averaged over fewer
         views are noise, and growth that fast outruns a short budget (fox at 480 px, 120 s:
         refining every 2 steps grew 10k Gaussians to 72k in 167 steps)."""
-        f = iterations / self.template["iterations"]
-        out: dict[str, Any] = {k: max(1, round(v * f)) if v else 0 for k, v in self.template.items()}  # 0 stays off
-        out["iterations"] = iterations
-        out["refine_every"] = max(out["refine_every"], min(MIN_REFINE_EVERY, self.template["refine_every"]))
-        out["lr_hold"] = max(cfg.lr_hold, LR_HOLD)
-        cfg = options.apply(cfg, out, strict=False)  # (a stored template may name the other strategy's options)
+        out = self.template.scaled(iterations / self.template.iterations)
+        out = replace(out, iterations=iterations,
+                      refine_every=max(out.refine_every, min(MIN_REFINE_EVERY, self.template.refine_every)))
+        cfg = out.applied(replace(cfg, lr_hold=max(cfg.lr_hold, LR_HOLD)))
         if self.cap is not None:
-            cfg = options.apply(cfg, {"max_gaussians": self.curve(cfg, at)})
+            cfg = cfg.with_refine(max_gaussians=self.curve(cfg, at))
         return cfg
 
     def curve(self, cfg: TrainConfig, step: int) -> int:
@@ -123,8 +182,8 @@ class TimePlan:
         # Seconds per unit of cost, from the steps since the last plan as they ran.
         unit = spent / max(float(step_costs(cfg, cfg.iterations, last["step"], views).sum()), 1e-9)
         # The compaction fine-tune (if any) runs after the main steps at about the same speed.
-        share = self.template["iterations"] / (self.template["iterations"] + (
-            self.template.get("compact_finetune", 0) if cfg.compact.enabled else 0))
+        share = self.template.iterations / (self.template.iterations + (
+            (self.template.compact_finetune or 0) if cfg.compact.enabled else 0))
         left = max(self.budget_s - elapsed, 0.0) * share / unit  # cost units the budget still holds
         # The longest run whose remaining steps fit (the total grows with the run's length);
         # at least one more step: this step's post-processing hooks have run already.
@@ -135,7 +194,7 @@ class TimePlan:
                 lo = mid
             else:
                 hi = mid - 1
-        iterations = max(lo, min(MIN_ITERATIONS, self.template["iterations"]))
+        iterations = max(lo, min(MIN_ITERATIONS, self.template.iterations))
         # The budget until the next plan: where the run will be then, at the planned speeds.
         until_next = self.replan_every * self.budget_s / unit
         ahead = views + int(np.searchsorted(np.cumsum(step_costs(cfg, iterations, views, iterations)), until_next))
@@ -148,12 +207,10 @@ class TimePlan:
         return planned
 
     def record(self) -> dict[str, Any]:
-        return {"budget_s": self.budget_s, "template": self.template, "probe_s": self.probe_s, "cap": self.cap,
+        return {"budget_s": self.budget_s, "template": self.template.record(), "probe_s": self.probe_s, "cap": self.cap,
                 "history": list(self.history)}
 
     @staticmethod
     def from_record(d: dict[str, Any]) -> TimePlan:
-        renamed = {"reset_every": "opacity_reset"}  # as stored before the option took its command-line name
-        template = {renamed.get(k, k): int(v) for k, v in d["template"].items()}
-        return TimePlan(budget_s=float(d["budget_s"]), template=template, probe_s=float(d["probe_s"]),
-                        cap=d.get("cap"), history=list(d["history"]))
+        return TimePlan(budget_s=float(d["budget_s"]), template=Schedule.from_record(d["template"]),
+                        probe_s=float(d["probe_s"]), cap=d.get("cap"), history=list(d["history"]))

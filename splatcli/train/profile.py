@@ -15,7 +15,7 @@ from collections.abc import Iterator
 from typing import Any
 
 from ..device import cpu_name
-from ..io.atomic import atomic_write_json, atomic_write_text
+from ..files.atomic import atomic_write_json, atomic_write_text
 from ..project import Project
 from ..render import timing
 

@@ -17,8 +17,8 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from ..files.checkpoint import Checkpoint, save_checkpoint
 from ..gaussians import Gaussians
-from ..io.checkpoint import Checkpoint, save_checkpoint
 from ..render import rasterize
 from ..render.backends import Rasterizer
 from ..render.blocks import BlockTuner

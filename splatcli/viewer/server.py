@@ -34,8 +34,8 @@ import numpy as np
 import torch
 
 from ..errors import SplatError
+from ..formats.ply import gaussians_to_rows, ply_bytes, ply_header
 from ..gaussians import SH_C0, Gaussians
-from ..io.ply import gaussians_to_rows, ply_bytes, ply_header
 from ..render.projection import NEAR
 
 DEFAULT_PORT = 7007  # nerfstudio's viewer port: what users of the field try first

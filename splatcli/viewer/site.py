@@ -21,8 +21,8 @@ from pathlib import Path
 
 from ..errors import SplatError
 from ..events import EventSink
-from ..io.atomic import UMASK, atomic_write_bytes
-from ..io.export import ExportConfig, ExportResult, check_web_folder, export_gaussians
+from ..files.atomic import UMASK, atomic_write_bytes
+from ..formats.export import ExportConfig, ExportResult, check_web_folder, export_gaussians
 from ..model import LoadedModel
 from . import project_scene
 from .server import SceneStore, assets

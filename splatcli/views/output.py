@@ -1,4 +1,4 @@
-"""The `render` command's core: a model (io/model.py) seen from a list of views,
+"""The `render` command's core: a model (model.py) seen from a list of views,
 written to PNGs and a video.
 
 `plan_render` checks options, loads the model and picks the views; `render_views`
@@ -23,8 +23,8 @@ from torch import Tensor
 from ..device import describe_device, synchronize
 from ..errors import SplatError
 from ..events import EventSink, Note, Progress, Stage, StageDone, emit
+from ..files.atomic import atomic_write_bytes
 from ..gaussians import Gaussians
-from ..io.atomic import atomic_write_bytes
 from ..model import LoadedModel, load_model
 from ..project import Project
 from ..render import Renderer, render_camera, resolve_renderer

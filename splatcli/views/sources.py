@@ -1,6 +1,6 @@
 """Where render and eval look from: the project's dataset cameras per split
 (`dataset_views`), or the cameras of a `transforms.json` (`transforms_views`, through
-the one reader io/transforms.py); `resize_views` applies --width/--height/--downscale.
+the one reader inputs/transforms.py); `resize_views` applies --width/--height/--downscale.
 
 Every camera is returned in the project's convention: OpenCV axes (x right,
 y down, z forward), `viewmat` world-to-camera, pixel centres at +0.5.
@@ -16,8 +16,8 @@ import numpy as np
 
 from ..camera import Camera
 from ..errors import SplatError
-from ..io.images import ImageError, read_image
-from ..io.transforms import read_transforms
+from ..inputs.images import ImageError, read_image
+from ..inputs.transforms import read_transforms
 from ..project import Project
 from ..sfm.colmap import read_project_scene
 

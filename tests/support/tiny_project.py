@@ -16,9 +16,9 @@ import numpy as np
 import torch
 
 from splatcli.camera import Camera
+from splatcli.files.checkpoint import save_checkpoint
+from splatcli.formats.ply import ply_bytes
 from splatcli.gaussians import Gaussians
-from splatcli.io.checkpoint import save_checkpoint
-from splatcli.io.ply import ply_bytes
 from splatcli.project import LOCK_NAME, Project
 from splatcli.render import rasterize
 from splatcli.views.paths import look_at

@@ -57,8 +57,8 @@ import numpy as np
 import torch
 import zstandard
 
+from ..files.atomic import atomic_write_bytes
 from ..gaussians import Gaussians
-from .atomic import atomic_write_bytes
 from .codec import (
     Arrays,
     blocks,

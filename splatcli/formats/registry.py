@@ -1,10 +1,10 @@
 """Every splat file format splatcli writes and reads, in one table.
 
-    ply             the original 3DGS layout, lossless (io/ply.py)
-    compressed-ply  SuperSplat's chunked 8-11-bit layout, PlayCanvas viewers (io/compressed_ply.py)
-    spz             Niantic's fixed-point layout, zstd (v4) or gzip (v3) packed (io/spz.py)
-    sog             PlayCanvas's WebP images with codebooks, zipped (io/sog.py)
-    splat           the 32-byte rows of the antimatter15 web viewers, SH degree 0 (io/splat.py)
+    ply             the original 3DGS layout, lossless (formats/ply.py)
+    compressed-ply  SuperSplat's chunked 8-11-bit layout, PlayCanvas viewers (formats/compressed_ply.py)
+    spz             Niantic's fixed-point layout, zstd (v4) or gzip (v3) packed (formats/spz.py)
+    sog             PlayCanvas's WebP images with codebooks, zipped (formats/sog.py)
+    splat           the 32-byte rows of the antimatter15 web viewers, SH degree 0 (formats/splat.py)
 
 `format_of` names a file's format from its name (and, for `.ply`, its header);
 `write_format` / `read_format` are the one writer and reader per format that

@@ -5,7 +5,7 @@ orientation, 16-bit, grey, alpha); `load_rgb` is what train, eval and render rea
 through: RGB uint8, alpha composited over the background, resized by one rule.
 The header checks are hand-written because OpenCV decodes a truncated JPEG or PNG
 without complaint (padding it with grey) and reads no EXIF orientation tag without
-decoding twice (Pillow only reads EXIF camera facts, io/exif.py).
+decoding twice (Pillow only reads EXIF camera facts, inputs/exif.py).
 
 Staging writes the image the rest of the pipeline sees: oriented (EXIF) when
 asked, 8-bit, 3 channels (RGBA composited over the background, the alpha kept
@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 
 from ..errors import SplatError
-from .atomic import atomic_path
+from ..files.atomic import atomic_path
 
 IMAGE_EXTS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
 JPEG_QUALITY = 95

@@ -27,8 +27,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..files.atomic import atomic_write_bytes
 from ..gaussians import SH_C0, Gaussians, morton_order
-from .atomic import atomic_write_bytes
 from .codec import Arrays, blocks, logit, pack_smallest_three, refuse, sigmoid, unpack_smallest_three
 
 CHUNK = 256

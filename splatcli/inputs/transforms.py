@@ -23,8 +23,8 @@ from typing import Any
 import numpy as np
 
 from ..errors import SplatError
-from .atomic import read_json_file
-from .safepath import safe_join
+from ..files.atomic import read_json_file
+from ..files.safepath import safe_join
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG", ".tif", ".tiff", ".bmp", ".webp")
 # A transforms file is kilobytes per frame; 256 MiB covers ~500k frames.

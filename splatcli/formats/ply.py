@@ -39,8 +39,8 @@ import plyfile
 import torch
 
 from ..errors import SplatError
+from ..files.atomic import atomic_path
 from ..gaussians import Gaussians, num_sh_bases
-from .atomic import atomic_path
 
 MAX_SH_DEGREE = 3
 MAX_HEADER_BYTES = 1 << 20  # a 3DGS header is ~1.5 KB; anything past 1 MiB is not a splat

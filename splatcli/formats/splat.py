@@ -26,8 +26,8 @@ import numpy as np
 import torch
 
 from ..errors import SplatError
+from ..files.atomic import atomic_write_bytes
 from ..gaussians import SH_C0, Gaussians
-from .atomic import atomic_write_bytes
 
 SPLAT_ROW_BYTES = 32
 SPLAT_DTYPE = np.dtype([("position", "<f4", (3,)), ("scale", "<f4", (3,)), ("rgba", "u1", (4,)), ("rot", "u1", (4,))])
@@ -92,7 +92,7 @@ def read_splat(path: str | os.PathLike) -> np.ndarray:
 
 
 def splat_gaussians(rows: np.ndarray, device: torch.device | str = "cpu") -> Gaussians:
-    """.splat rows (io/splat.SPLAT_DTYPE) back as Gaussians (SH degree 0)."""
+    """.splat rows (formats/splat.SPLAT_DTYPE) back as Gaussians (SH degree 0)."""
     scale = rows["scale"].astype(np.float64)
     if not np.isfinite(rows["position"]).all() or not (np.isfinite(scale).all() and (scale > 0).all()):
         raise SplatError("a .splat row holds a non-finite position or a scale that is not positive")

@@ -2,18 +2,18 @@
 
 splatcli/model.py's export_project picks the source (a project's latest checkpoint, or a
 splat file of any format splatcli reads, so `export` also converts between formats) and
-the output; this module checks the options and writes. Formats (io/formats.py):
+the output; this module checks the options and writes. Formats (formats/registry.py):
 
-* `ply`: the original 3DGS layout, byte-compatible with its writer (io/ply.py);
+* `ply`: the original 3DGS layout, byte-compatible with its writer (formats/ply.py);
   every 3DGS viewer and tool reads it. Lossless.
 * `spz`: Niantic's SPZ, about 10x smaller: positions in 24-bit fixed point,
   colour, opacity and scale in 8 bits, rotations in 32, SH in 6/5 bits; version 4
-  (zstd) or 3 (gzip) (io/spz.py).
+  (zstd) or 3 (gzip) (formats/spz.py).
 * `compressed-ply`: SuperSplat's chunked layout for the PlayCanvas viewers, about
-  4x smaller (io/compressed_ply.py).
+  4x smaller (formats/compressed_ply.py).
 * `sog`: PlayCanvas's SOG, 15-20x smaller: lossless WebP images of 8-16-bit values
-  and k-means codebooks, the SH as a palette of SH vectors (io/sog.py).
-* `splat`: the 32-byte-per-Gaussian web-viewer format (io/splat.py). SH bands above
+  and k-means codebooks, the SH as a palette of SH vectors (formats/sog.py).
+* `splat`: the 32-byte-per-Gaussian web-viewer format (formats/splat.py). SH bands above
   degree 0 are dropped and colour, opacity and rotation are 8-bit.
 * `web`: a folder, not a file: `view`'s page with the scene as .sog, for any static web
   server (viewer/site.py, passed to model.export_project as its writer by the CLI).
@@ -30,7 +30,7 @@ from pathlib import Path
 from ..errors import SplatError
 from ..events import EventSink, Note, Stage, StageDone, emit
 from ..gaussians import Gaussians
-from .formats import FORMATS, LOSSLESS, SUFFIXES, check_format, default_name, write_format
+from .registry import FORMATS, LOSSLESS, SUFFIXES, check_format, default_name, write_format
 from .sog import SogOptions
 from .spz import SpzOptions
 

@@ -33,8 +33,8 @@ import numpy as np
 import torch
 
 from .. import __version__
+from ..files.atomic import atomic_write_bytes
 from ..gaussians import Gaussians, morton_order
-from .atomic import atomic_write_bytes
 from .codec import Arrays, logit, pack_smallest_three, refuse, sigmoid, unpack_smallest_three
 
 WXYZ = (0, 1, 2, 3)
