@@ -145,7 +145,7 @@ def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
                  "little or be too blurry", "warning")
     st.sfm_dir.mkdir(parents=True, exist_ok=True)
     os.replace(work / "database.db", st.database_path)
-    if (work / features.KEY_FILE).is_file() and not any(t == UPSAMPLED for t in res.tried):
+    if (work / features.KEY_FILE).is_file() and not any(t.startswith(UPSAMPLED) for t in res.tried):
         # (a database remade on the upsampled octave is not what the key's options make)
         os.replace(work / features.KEY_FILE, st.sfm_dir / features.KEY_FILE)
     if mask_source == "alpha" and not any(s.has_alpha for s in staged if s.name in set(model.registered_names())):

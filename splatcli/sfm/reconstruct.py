@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import re
 import statistics
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -147,7 +148,7 @@ FOCAL_SPREAD = 1.15
 # mapping left over 10% of the images out (not for a few blurry frames of a video): upsampling
 # larger images costs much and is rarely needed.
 UPSAMPLE_BELOW = 1000
-UPSAMPLED = "SIFT again on the upsampled octave"  # its line in `tried` (" (...: not kept)" added when not kept)
+UPSAMPLED = "SIFT again on the upsampled octave"  # its line in `tried` starts so (what it gave, "not kept" after)
 
 
 def _focal_spread(focals: dict[str, float], cameras: list[list[str]], split: list[list[str]]) -> float:
@@ -231,9 +232,10 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
         # Try harder: a starting pair with fewer inliers and less parallax than COLMAP asks for.
         mapper = replace(mapper, **RELAXED_INIT)
         emit(on_event, Note("no model with COLMAP's thresholds; mapping again with relaxed initial-pair thresholds"))
+        t0 = time.perf_counter()
         models = _map(db, image_dir, work_dir / "models_relaxed", mapper, len(names), clock)
         tried.append(f"relaxed initial-pair thresholds ({RELAXED_INIT['init_min_num_inliers']} inliers, "
-                     f"{RELAXED_INIT['init_min_tri_angle']:g} degrees)")
+                     f"{RELAXED_INIT['init_min_tri_angle']:g} degrees){_outcome(models, t0, on_event, 'relaxed initial-pair thresholds')}")
     weak_split = False
     if split_cameras is not None and used == "sequential" and models and models[0].num_registered == len(names):
         # Frames in shooting order that all registered on one camera come from one camera (a video,
@@ -254,10 +256,12 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
         else:
             emit(on_event, Note(f"photos without EXIF camera data may come from several cameras: mapping again with "
                                 f"{len(split_cameras)}, one each, to compare"))
+        t0 = time.perf_counter()
         split_db = work_dir / "database_split.db"
         colmap.regroup_database(db, split_db, image_dir, split_cameras, camera_model=opts.camera_model)
         split = _map(split_db, image_dir, work_dir / "models_split", mapper, len(names), clock)
-        tried.append(f"{len(split_cameras)} cameras instead of {len(cameras)} (the photos without EXIF apart)")
+        tried.append(f"{len(split_cameras)} cameras instead of {len(cameras)} (the photos without EXIF apart)"
+                     f"{_outcome(split, t0, on_event, f'{len(split_cameras)} cameras')}")
         weak_split = (split[0].num_registered if split else 0) < 0.9 * n0
         spread = _focal_spread(split[0].focal_lengths(), cameras, split_cameras) if split else 1.0
         if split and (split[0].num_registered > n0
@@ -268,10 +272,11 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
     if models and 2 <= models[0].num_registered < len(names):
         # A second pass over the images left out: the largest model goes on, registering
         # with relaxed pose thresholds (what COLMAP's defaults refused may fit it now).
-        before = models[0].num_registered
+        before, t0 = models[0].num_registered, time.perf_counter()
         more = _map(db, image_dir, work_dir / "models_more", replace(mapper, **RELAXED_REGISTRATION), len(names),
                     clock, start=models[0])
-        tried.append("a second pass over the images left out, with relaxed registration thresholds")
+        tried.append("a second pass over the images left out, with relaxed registration thresholds"
+                     f"{_outcome(more, t0, None)}")
         if more and more[0].num_registered > before:
             emit(on_event, Note(f"a second pass registered {more[0].num_registered - before} more image(s)"))
             models = more
@@ -283,13 +288,14 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
         emit(on_event, Note(f"{n_best} of {len(names)} images registered"
                             + (" (fewer with a camera each)" if weak_split else "")
                             + "; extracting more features (SIFT on the upsampled octave) and mapping again"))
+        t0 = time.perf_counter()
         try:
             again = run_sfm(image_dir, names, work_dir / "upsampled", replace(opts, first_octave=-1),
                             cameras=cameras0, min_side=min_side, where=where, split_cameras=split_cameras,
                             on_event=on_event, mask_dir=mask_dir)
         except SplatError:
             again = None
-        tried.append(UPSAMPLED)
+        tried.append(UPSAMPLED + _outcome([again.model] if again else [], t0, on_event, 'more features'))
         if again is not None and again.model.num_registered >= n_best:
             (work_dir / "upsampled" / "database.db").replace(db)
             again.tried[:0] = tried
@@ -391,6 +397,15 @@ def _match(db: Path, pairs: list[tuple[str, str]], work_dir: Path, mopts: MatchO
         for i in range(0, len(pairs), step):
             colmap.match_pairs(db, pairs[i : i + step], work_dir / "pairs.txt", mopts)
             st.progress(min(i + step, len(pairs)))
+
+
+def _outcome(models: list[Model], t0: float, on_event: EventSink | None, label: str = "") -> str:
+    """What an attempt gave, for its line in `tried`; also one line of output, `label` first,
+    when `on_event`."""
+    n = models[0].num_registered if models else 0
+    out = f": {n} registered in {time.perf_counter() - t0:.0f} s"
+    emit(on_event, Note(f"{label}{out}"))
+    return out
 
 
 def _map(db: Path, image_dir: Path, out: Path, mapper: MapperOptions, n: int, clock: Stages,
