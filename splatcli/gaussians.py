@@ -71,6 +71,19 @@ class Gaussians:
             sh = torch.cat([sh, pad], dim=1)
         return Gaussians(self.means, self.quats, self.log_scales, self.opacity_logits, sh.contiguous())
 
+    def recoloured(self, transform: Tensor) -> Gaussians:  # transform [3, 4]: [A | b]
+        """The model seen through a colour transform (colour -> A colour + b, what train
+        --appearance exposure learns per photo), baked into the SH: every band times A, and the
+        DC shifted so that the constant 0.5 maps too. Over any background it renders what the
+        original renders through the transform when the background goes through it as well
+        (the blending weights and what shows through sum to 1); only colours that the render
+        clamps at 0 differ."""
+        t = transform.to(self.sh)
+        a, b = t[:, :3], t[:, 3]  # [3, 3], [3]
+        sh = self.sh @ a.T  # [N, K, 3]
+        sh[:, 0] += (0.5 * a.sum(1) + b - 0.5) / SH_C0  # A (0.5, 0.5, 0.5) + b - 0.5, in DC units
+        return Gaussians(self.means, self.quats, self.log_scales, self.opacity_logits, sh)
+
     def smoothed(self, filter3d: Tensor) -> Gaussians:  # filter3d [N] world units
         """The model with a 3D smoothing filter folded in (`smooth_3d`): what it renders as."""
         ls, op = smooth_3d(self.log_scales, self.opacity_logits, filter3d)

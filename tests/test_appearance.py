@@ -25,12 +25,15 @@ from splatcli.errors import Interrupted, SplatError
 from splatcli.eval.metrics import color_fit, psnr, psnr_color_fit
 from splatcli.events import Progress
 from splatcli.files.checkpoint import load_checkpoint, save_checkpoint
-from splatcli.formats.ply import write_ply
+from splatcli.formats.ply import read_ply, write_ply
 from splatcli.formats.registry import write_format
+from splatcli.gaussians import Gaussians
+from splatcli.model import load_model
+from splatcli.render import rasterize
 from splatcli.train.appearance import Exposure, ExposureConfig, identity, smooth_basis
 from splatcli.train.loop import train
 from splatcli.train.loss import photometric_loss
-from support.tiny_project import make_tiny_project, run_cli, tiny_gaussians
+from support.tiny_project import assert_user_error, make_tiny_project, ring_cameras, run_cli, tiny_gaussians
 
 CPU = torch.device("cpu")
 # block="model": the runs here are compared bit for bit, and a measured block (--block auto) follows the clock
@@ -241,6 +244,50 @@ def test_transforms_for_another_number_of_photos_are_one_line(tmp_path):
     r = run_cli("train", proj.root, "--resume", "--iterations", "8", "--device", "cpu")
     assert r.exit_code == 2 and str(ck.path) in r.stderr and "(5, 3, 4)" in r.stderr
     assert len(r.stderr.strip().splitlines()) == 1
+
+
+def test_a_transform_baked_into_the_sh_renders_what_the_render_through_it_shows():
+    """Gaussians.recoloured: the model with [A | b] folded into its SH, over the background
+    through the same transform, draws the picture the plain model draws and the transform then
+    maps (up to colours clamped at 0, none here: every colour is well inside [0, 1])."""
+    g0 = tiny_gaussians(300, seed=0)
+    g = Gaussians(g0.means, g0.quats, g0.log_scales, g0.opacity_logits, 0.15 * g0.sh)  # colours inside (0, 1)
+    t = torch.tensor([[0.8, 0.1, 0.0, 0.05], [0.0, 1.1, 0.05, -0.02], [0.1, 0.0, 0.7, 0.1]])
+    cam = ring_cameras(2)[0]
+    vm, K = torch.as_tensor(cam.viewmat, dtype=torch.float32), torch.as_tensor(cam.K, dtype=torch.float32)
+    bg = torch.tensor([0.2, 0.4, 0.6])
+
+    def draw(g, bg):
+        return rasterize(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh, vm, K, cam.width, cam.height,
+                         bg).image  # [H, W, 3]
+
+    through = draw(g, bg) @ t[:, :3].T + t[:, 3]
+    baked = draw(g.recoloured(t), bg @ t[:, :3].T + t[:, 3])
+    # float32 rounding of two different sums of the same terms
+    assert torch.allclose(baked, through, atol=2e-5), float((baked - through).abs().max())
+    assert float((through - draw(g, bg)).abs().max()) > 0.05  # the transform changed the picture
+
+
+def test_render_and_export_take_one_training_photos_light(tmp_path):
+    """--appearance-of NAME: the model with that photo's learnt transform baked in, in render and
+    export alike; a name that is not a training photo, or a run without transforms, is one line."""
+    proj = _tiny(tmp_path, gains=GAINS)
+    train(proj.root, make_config(**{**SMALL, "iterations": 10}), CPU)
+    name = proj.splits()["train"][1]
+    t = load_checkpoint(proj.latest_checkpoint()).appearance["transforms"][1]
+    ck = load_checkpoint(proj.latest_checkpoint())
+    assert float((t - torch.eye(3, 4)).abs().max()) > 1e-3  # a light of its own, not the identity
+    m = load_model(proj.root, CPU, appearance_of=name)
+    assert torch.equal(m.light, t.float()) and torch.allclose(m.gaussians.sh, ck.model().recoloured(t).sh)
+    r = run_cli("export", proj.root, "--appearance-of", name, "-o", str(tmp_path / "lit.ply"))
+    assert r.exit_code == 0, r.output
+    assert torch.allclose(read_ply(tmp_path / "lit.ply").gaussians.sh, m.gaussians.sh, atol=1e-6)
+    r = run_cli("render", proj.root, "--appearance-of", name, "--split", "train", "-o", str(tmp_path / "lit"))
+    assert r.exit_code == 0, r.output
+    assert_user_error(run_cli("render", proj.root, "--appearance-of", "nope.png"), "not a training photo")
+    plain = _tiny(tmp_path, name="plain")
+    train(plain.root, make_config(**{**SMALL, "iterations": 4, "appearance": "none"}), CPU)
+    assert_user_error(run_cli("export", plain.root, "--appearance-of", name), "trained without --appearance")
 
 
 def test_exported_files_never_hold_the_transforms(tmp_path):

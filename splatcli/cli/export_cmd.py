@@ -43,6 +43,9 @@ def export(
     sog_palette: Optional[int] = typer.Option(None, "--sog-palette", help="SOG: entries of the SH palette (k-means of the "
                                               "Gaussians' SH; default a power of two near N/16, 256 to 4096; more: larger, "
                                               "closer view-dependent colour)."),
+    appearance_of: Optional[str] = typer.Option(None, "--appearance-of", help="A training photo's name: export with "
+                                                "its light (what --appearance exposure learnt for it) baked into the "
+                                                "colours, instead of the scene's, the average of the training photos'."),
     voxel_size: Optional[float] = typer.Option(_M.voxel_size, "--voxel-size", help="mesh: voxel size in world units "
                                                "(default: 1/256 of the scene's longest side)."),
     depth_trunc: Optional[float] = typer.Option(_M.depth_trunc, "--depth-trunc", help="mesh: fuse no depth beyond "
@@ -68,7 +71,8 @@ def export(
                        sog=SogOptions(palette=sog_palette))
     # notes only: an export takes seconds, and errors must stay the only line
     sink = lambda ev: ui.note(ev.message, ev.level) if isinstance(ev, Note) else None  # noqa: E731
-    r = export_project(source, cfg, on_event=sink, write=export_site if cfg.format == "web" else None)
+    r = export_project(source, cfg, on_event=sink, write=export_site if cfg.format == "web" else None,
+                       appearance_of=appearance_of)
     origin = f"checkpoint step {r.step}" if r.step is not None else str(r.checkpoint)
     ui.summary(
         {"path": r.path, "format": r.format, "num_gaussians": r.num_gaussians, "num_dropped": r.num_dropped,

@@ -10,10 +10,8 @@ from __future__ import annotations
 import os
 
 # Before torch loads its OpenMP runtime: one CPU thread unless OMP_NUM_THREADS says
-# otherwise. Measured on the 2-core machine, 300 demo steps: alone, 1 thread 14.3 s,
-# 2 threads 11.6 s (spinning workers) or 22.5 s (OMP_WAIT_POLICY=PASSIVE: every op
-# wakes them); two jobs at once, 16.5 s each with 1 thread, 110-138 s with 2. One
-# thread is never far from the best and never collapses when jobs share the cores.
+# otherwise. A second thread is a little faster alone on the machine and many times slower
+# when jobs share the cores (docs/guide.md, "Threads"): one is never far from the best.
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 import json
 import sys

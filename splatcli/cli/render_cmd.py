@@ -28,6 +28,9 @@ def render(
     antialias: str = typer.Option(_D.antialias, "--antialias", help="auto | on | off: draw with the 2D antialiasing filter "
                                   "against aliasing). auto: on for a model trained with --mip-filter "
                                   "or drawn smaller than trained (zoomed in it only blurs)."),
+    appearance_of: Optional[str] = typer.Option(None, "--appearance-of", help="A training photo's name: render with "
+                                                "its light (what --appearance exposure learnt for it) instead of the "
+                                                "scene's, the average of the training photos'."),
     depth: bool = typer.Option(False, "--depth", help="Also write depth/<name>.png (colour-mapped)."),
     alpha: bool = typer.Option(False, "--alpha", help="Also write alpha/<name>.png."),
     video: Optional[Path] = typer.Option(None, "--video", help="Also encode the frames into this video (.mp4, .avi)."),
@@ -51,6 +54,7 @@ def render(
         split=split, cameras=cameras, path=path, frames=frames, project=project, width=width, height=height,
         downscale=downscale, out=out, background=parse_background(background),
         depth=depth, alpha=alpha, video=video, video_fps=fps, antialias=antialias.strip().lower(), renderer=renderer,
+        appearance_of=appearance_of,
     )
     plan = plan_render(source, cfg, resolve(device, renderer, quiet)[0])  # input errors surface before any output
     with ui.progress() as sink:

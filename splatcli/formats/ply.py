@@ -21,9 +21,8 @@ ASCII PLY and list properties.
 
 Parsing is plyfile's (`PlyData.read(mmap="r")`): it checks each element's claimed
 size against the file before memory-mapping it, so nothing is allocated for a
-lying count; reading a 100-byte file whose header claims 10^12 vertices peaks at
-8 KiB of Python allocations (tracemalloc) with no growth in max RSS, and is
-refused in about 1 ms. `_check_head` keeps the cases plyfile does not bound.
+lying count: a tiny file whose header claims 10^12 vertices is refused at once,
+with no growth in max RSS. `_check_head` keeps the cases plyfile does not bound.
 """
 
 from __future__ import annotations
@@ -156,13 +155,13 @@ class PlyRead:
 def _check_head(path: Path, head: bytes) -> None:
     """Refuse, from the file's first MAX_HEADER_BYTES (`head`) only, what plyfile would read unbounded.
 
-    Hand-written because plyfile does not bound these (measured, plyfile 1.1.5):
-    it reads the header one byte at a time until `end_header`, so a 64 MiB file
-    without one took 102 s and 560 MiB before failing; and it reads ASCII
-    elements and elements with list properties with `np.empty(claimed count)`
-    then a Python loop per row, so a 419-byte file claiming 10^8 list rows took
-    5.5 s and 763 MiB of RSS. Only binary files without list properties reach
-    plyfile, which then memory-maps every element after checking its size.
+    Hand-written because plyfile (1.1.5) does not bound these: it reads the header
+    one byte at a time until `end_header`, so a large file without one is read slowly,
+    its memory growing, to the end before failing; and it reads ASCII elements and
+    elements with list properties with `np.empty(claimed count)` then a Python loop per
+    row, so a tiny file's claimed row count alone sets the time and memory spent. Only
+    binary files without list properties reach plyfile, which then memory-maps every
+    element after checking its size.
     The lines are split and tokenised as plyfile does (on the newline after
     `ply`, with str.split), so the checks see the header plyfile would parse.
     """

@@ -50,10 +50,9 @@ class SogOptions:
 
 
 def palette_size(n: int) -> int:
-    """The default SH palette: a power of two near N/16, from 256 to 4096. On lego (74k
-    Gaussians) 2048 entries lose 0.58 dB at 16x smaller than .ply, 4096 0.43 dB at 15x,
-    8192 0.33 dB at 13x; k-means of N rows against K entries costs N K 45 multiply-adds
-    (at 1M and 4096, about 15 s on 2 cores): docs/benchmarks.md, "formats"."""
+    """The default SH palette: a power of two near N/16, from 256 to 4096. More entries lose
+    less PSNR for a larger file, and k-means of N rows against K entries costs N K 45
+    multiply-adds, which the cap bounds (docs/benchmarks.md, "formats")."""
     return int(min(4096, max(256, 2 ** math.floor(math.log2(max(n, 1) / 16))))) if n else 0
 
 
@@ -112,7 +111,7 @@ def _webp(rgba: np.ndarray) -> bytes:  # [H, W, 4] uint8
     from PIL import Image
 
     b = io.BytesIO()
-    Image.fromarray(rgba, "RGBA").save(b, "WEBP", lossless=True, quality=100, method=2, exact=True)  # method 2: 13% smaller than 0, as fast
+    Image.fromarray(rgba, "RGBA").save(b, "WEBP", lossless=True, quality=100, method=2, exact=True)  # method 2: smaller than 0, as fast
     return b.getvalue()
 
 

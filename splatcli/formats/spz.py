@@ -23,7 +23,7 @@ plaintext header, extension records, a table of contents and one zstd stream per
     SH           per Gaussian, per coefficient (degrees 1-3, 3DGS order), R, G, B:
                  u8 round(c * 128 + 128), rounded to multiples of 2^(8 - bits)
                  (SpzOptions: 6 bits for degree 1 and 5 above by default; the reference
-                 encoder's 5 and 4 lose twice as much; any readers decode either)
+                 encoder's 5 and 4 lose more; any readers decode either)
 
 The frame. Niantic's README says SPZ stores right-up-back (RUB) unless a writer says
 otherwise, but the tools that write it today store the .ply's right-down-front (RDF)
@@ -81,15 +81,15 @@ RUB, RDF = 4, 6  # CoordinateSystem (spz src/cc/splat-types.h): 1-8 are LDB, RDB
 ZSTD_LEVEL = 12  # the reference encoder's
 COLOR_SCALE = 0.15
 XYZW = (1, 2, 3, 0)  # positions of x, y, z, w in (w, x, y, z)
-COMPRESS_LEVEL = 6  # zlib default; 9 is many times slower on quantised SH runs for <1% smaller files
+COMPRESS_LEVEL = 6  # zlib default; 9 is many times slower on quantised SH runs for barely smaller files
 MAX_RATIO = 1100  # deflate expands at most ~1032x: a larger claimed payload is a lie
 
 
 @dataclass(frozen=True)
 class SpzOptions:
-    # Bits per SH coefficient of degree 1, and of degrees 2-3. The reference encoder's 5 and 4
-    # cost 0.54 dB on the demo scene (12.4x smaller than .ply); 6 and 5 cost 0.23 dB (9.9x),
-    # 7 and 6 0.11 dB (8.0x), 8 and 8 0.01 dB (6.3x): docs/benchmarks.md, "formats".
+    # Bits per SH coefficient of degree 1, and of degrees 2-3: 6 and 5 lose much less than the
+    # reference encoder's 5 and 4 for a somewhat larger file; more bits cost size for little
+    # gain (docs/benchmarks.md, "formats").
     sh1_bits: int = 6
     sh_rest_bits: int = 5
     fractional_bits: int | None = None  # None: the most the scene's extent allows (at most 16; the reference uses 12)

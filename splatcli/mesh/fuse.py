@@ -44,9 +44,9 @@ BYTES_PER_VOXEL = 20  # float32 distance, weight and colour (3)
 CHUNK = 1 << 21  # voxels fused at a time
 FOCUS_REACH = 0.6  # the volume's half side at most, in median camera distances from the focus point
 MIN_VIEWS = 5  # a surface needs voxels fused from at least this many views (a quarter of them when fewer than 20):
-# the sample scene at its demo preset, F-score at 1%: 0.73 with 1, 0.92 with 5. (Also tried: not fusing depth
-# edges, 0.73 -> 0.78 alone, nothing beside 5 views, and holes in lego; 20% of the views, holes in lego's 87; no
-# free-space carving beyond the band, 0.92 -> 0.91.)
+# on the sample scene 5 scored a far higher F-score than 1 (docs/benchmarks.md, "Meshes"). Also tried: not fusing
+# depth edges (a smaller gain alone, none beside 5 views, and holes in lego); 20% of the views (holes in lego); no
+# free-space carving beyond the band (slightly lower).
 
 
 @dataclass(frozen=True)

@@ -24,7 +24,7 @@ Per-slot work (coefficients, gradient scatter) happens per segment for active bl
 only, so pairs behind saturated pixels cost only their planning.
 
 The backward takes alpha and T of each segment from the forward, which keeps them up to
-KEEP_BYTES (about 5-10% of a dense render's time saved; beyond that budget, keeping more made
+KEEP_BYTES (a small share of a dense render's time saved; beyond that budget, keeping more made
 the forward slower than it saved), and computes the rest again. It uses the 3DGS identity for
 the colour behind a Gaussian, suffix_i = C_final - prefix_i, so it needs no back-to-front pass. The per-slot gradient sums over pixels are again one GEMM
 against the same six pixel features.

@@ -115,7 +115,7 @@ def _graphs() -> int:
 
 # Calls of each compiled function timed eager and compiled, taking turns, before the faster one is
 # kept for the rest of the process: whether compiling pays depends on the CPU and on torch's version
-# (a 16-core Xeon with torch 2.11 ran the compiled planner slower than the eager one; docs/benchmarks.md).
+# (a 16-core Xeon with torch 2.11 ran the compiled planner slower than eager; docs/benchmarks.md, "Compiled kernels").
 TRIALS = 5
 
 

@@ -262,7 +262,7 @@ def _full(x: Tensor, idx: Tensor | None, n: int) -> Tensor:  # [S, ...] -> [N, .
 
 def _depth_order(z: Tensor) -> Tensor:  # [S] > 0 -> [S] int64
     """Stable argsort of positive depths. The IEEE bits of positive floats sort as integers,
-    and integer sorts are far faster on CPU (measured 0.3 against 6 ms for 36k float32)."""
+    and integer sorts are far faster on CPU."""
     bits = {torch.float32: torch.int32, torch.float64: torch.int64}.get(z.dtype)
     return torch.argsort(z if bits is None else z.view(bits), stable=True)
 

@@ -151,7 +151,7 @@ def regroup_database(src: Path, dst: Path, image_dir: Path, cameras: list[list[s
 class SiftOptions:
     max_image_size: int = 1600  # pixels, longest side SIFT sees; keypoints are scaled back to full size
     max_num_features: int = 4096
-    first_octave: int = 0  # -1 upsamples the image twice: ~4x slower, finds small features
+    first_octave: int = 0  # -1 upsamples the image twice: much slower, finds small features
     peak_threshold: float = 0.02 / 3  # COLMAP's default
     num_threads: int = -1
 
@@ -236,8 +236,8 @@ def read_descriptors(db: Path, names: list[str]) -> list[np.ndarray]:
 @dataclass(frozen=True)
 class MapperOptions:
     seed: int = 0
-    # One thread: COLMAP's mapper with several is not repeatable (the sample scene under load gave 2,166 or 2,167
-    # points from one seed), with one it is (8 of 8), and on 2 cores no slower (fox's 50 photos: 26.8 s against 28.7)
+    # One thread: COLMAP's mapper with several is not repeatable (one seed under load gave different point counts),
+    # with one it is, and on 2 cores it is no slower (docs/guide.md, "Threads")
     num_threads: int = 1
     min_model_size: int = 3
     ba_local_max_num_iterations: int = 25  # COLMAP's default is 25 (via -1 = Ceres default)

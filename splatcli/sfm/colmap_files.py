@@ -2,11 +2,11 @@
 
 pycolmap trusts the counts written in `.bin` files, so a library read does not
 serve here: with the point count of a 30-point points3D.bin set to 2^40, pycolmap
-4.2 ran 109 s and peaked at 16.9 GB of memory before failing (measured on the
-2-core, 24 GB machine); a larger file or a smaller machine is killed instead. So we walk every
-file first, with each count bounded by the bytes actually left in the file,
-and check that the three files agree (camera ids, image ids, point indices).
-Every problem becomes a one-line `SplatError` naming the file.
+4.2 ran for minutes and took gigabytes of memory before failing; a larger file or a
+smaller machine is killed instead. So we walk every file first, with each count
+bounded by the bytes actually left in the file, and check that the three files
+agree (camera ids, image ids, point indices). Every problem becomes a one-line
+`SplatError` naming the file.
 
 Only `cameras`, `images` and `points3D` are read; COLMAP >= 3.12 `rigs` and
 `frames` files are ignored (we import each image with its own pose).

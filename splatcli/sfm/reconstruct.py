@@ -1,9 +1,8 @@
 """Images to a COLMAP model: SIFT, pair selection, matching, incremental mapping.
 
-Speed on a CPU comes from three choices (measured on the fox capture, 50
-images at 400x711, docs/benchmarks.md):
+Speed on a CPU comes from three choices (measured on fox: docs/benchmarks.md, "process"):
   * SIFT at the image's own resolution (`first_octave = 0`) instead of COLMAP's
-    default upsampled octave: about 5x faster extraction, still hundreds of
+    default upsampled octave: much faster extraction, still hundreds of
     well-localised features per image, which is what matching needs;
   * at most 4096 features per image, which bounds brute-force matching;
   * sequential pairs (each image with its next 5, plus exponentially spaced
@@ -141,8 +140,8 @@ def choose_matcher(opts: SfmOptions, names: list[str]) -> str:
 
 
 # One camera each is kept over a shared one when the focal lengths it finds spread by more
-# than this (90th over 10th percentile): 1.04 on fox's 50 photos from one camera, 2.0 on
-# the same photos cropped as four zooms (docs/benchmarks.md, "several cameras, simulated").
+# than this (90th over 10th percentile): far less on fox's photos from one camera, far more on
+# the same photos cropped as four zooms (docs/benchmarks.md, "process").
 FOCAL_SPREAD = 1.15
 # SIFT goes again to the upsampled octave when its image's short side is under this and the
 # mapping left over 10% of the images out (not for a few blurry frames of a video): upsampling
@@ -283,8 +282,8 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
     n_best = models[0].num_registered if models else 0
     if octave(opts, min_side) == 0 and min_side < UPSAMPLE_BELOW and (weak_split or n_best < 0.9 * len(names)):
         # Too few features, perhaps: a camera each needs more to calibrate than a shared one
-        # (10 real photos from different cameras, 640x640: it registered 4 where the shared
-        # camera bent all 10 to one focal length). SIFT again on COLMAP's upsampled octave.
+        # (on small real photos from different cameras it registered fewer than the shared camera,
+        # which bent all to one focal length). SIFT again on COLMAP's upsampled octave.
         emit(on_event, Note(f"{n_best} of {len(names)} images registered"
                             + (" (fewer with a camera each)" if weak_split else "")
                             + "; extracting more features (SIFT on the upsampled octave) and mapping again"))
@@ -391,8 +390,8 @@ def _match(db: Path, pairs: list[tuple[str, str]], work_dir: Path, mopts: MatchO
     if not pairs:
         return
     with clock.stage("match", len(pairs)) as st:
-        # Each call reloads descriptors and restarts threads (~0.1 s), so calls
-        # carry at least 100 pairs: ~10 progress updates, under 5% overhead.
+        # Each call reloads descriptors and restarts threads, so calls carry
+        # at least 100 pairs: ~10 progress updates at a small overhead.
         step = max(100, -(-len(pairs) // 10))
         for i in range(0, len(pairs), step):
             colmap.match_pairs(db, pairs[i : i + step], work_dir / "pairs.txt", mopts)

@@ -7,7 +7,7 @@ opacity. A Gaussian drawn k times becomes k + 1 Gaussians whose opacity and scal
 set so that their sum renders like the one did (the paper's relocation, eq. 9); the
 copies are then placed at draws from their source Gaussian, as 3DGS places a split's
 halves (the paper leaves them on its centre, where identical copies get nearly the same
-gradients and separate slowly: on lego at 2k steps +1.46 dB), and, like those halves,
+gradients and separate slowly, which cost held-out PSNR on lego), and, like those halves,
 they and their source shrink by 1.6: at full size the spread copies cover more than
 their source did, and the larger Gaussians cost render time. Growth ends with the
 refinement window, relocation goes on to `relocate_until` of the run, so that
@@ -17,8 +17,8 @@ gated to the nearly transparent ones (so the sampler explores where the scene is
 empty). L1 penalties on opacity and scale are added to the gradients before the
 loss's backward (they accumulate into the same `.grad`), which keeps Gaussians small
 and lets the unneeded ones die and be reused. They stop at `reg_until` of the run: after
-growth they only hold opacities down (on lego at the end, 83 Gaussians above opacity
-0.975 against the default strategy's 5,457), and the fixed set then fits the photos
+growth they only hold opacities down (on lego at the end, far fewer nearly opaque
+Gaussians than the default strategy's), and the fixed set then fits the photos
 alone. Every edit goes through `ops`.
 """
 

@@ -33,9 +33,9 @@ MARGIN = 0.15  # a centre this fraction of the image size outside it still count
 EVERY = 100  # steps between full recomputations (their code)
 # The default strategy's growth threshold is this fraction of grow_grad2d under the filters:
 # they lower small Gaussians' view-space gradients (the 2D filter's opacity compensation,
-# the 3D filter's smoothing), so fewer crossed it. lego at 200 px, 2,000 steps: at 1x 29,907
-# Gaussians against plain training's 36,616 and -0.21 dB at 200 px; at 0.8x 39,737 and
-# +0.05 dB, with +3.36 dB at 800 px (docs/benchmarks.md, "zoom").
+# the 3D filter's smoothing), so fewer crossed it: at 1x lego grew fewer Gaussians than plain
+# training and scored lower at the size trained; at 0.8x it matched it there and gained zoomed
+# in (docs/guide.md, "Rendering at other resolutions"; docs/benchmarks.md, "Options, measured").
 GROW_GRAD2D = 0.8
 
 CameraList = Iterable[tuple[Tensor, Tensor, int, int]]  # (viewmat [4, 4], K [3, 3], width, height)

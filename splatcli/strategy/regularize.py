@@ -1,7 +1,7 @@
 """Opacity and scale penalties on the whole model (as MCMC uses them, Kheradmand et al. 2024):
 they keep Gaussians small and let the unneeded ones fade, so that densification does not
 fill what the training views leave unconstrained with floaters (issue 15's overfitting
-study, docs/benchmarks.md "overfitting").
+study, docs/guide.md "Held-out quality over time").
 
 Their gradients are accumulated into `.grad` before the photometric loss's backward (the
 two add up), so the loop does not change.

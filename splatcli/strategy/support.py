@@ -1,7 +1,7 @@
 """Prune what too few training views see: a Gaussian whose centre lies in the frustum of
 fewer than `prune_views` training cameras can only explain those few photos, and shows
-up as a floater in every other view (issue 15's overfitting study, docs/benchmarks.md
-"overfitting"). Runs on the density strategy's refinement schedule."""
+up as a floater in every other view (issue 15's overfitting study, docs/guide.md
+"Held-out quality over time"). Runs on the density strategy's refinement schedule."""
 
 from __future__ import annotations
 

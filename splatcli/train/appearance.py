@@ -27,7 +27,8 @@ exponentially, 3DGS's 0.01 -> 0.001) that steps only the transforms of the views
   error). Beyond the mean, an exposure that drifts slowly along the capture path (a phone
   sweep) is left to the scene's view-dependent colour, which carries it to the held-out
   views between the training ones; the transforms keep what changes from shot to shot
-  (fox at 2,000 steps: the mean alone -1.97 dB against no transforms, 6 of 43 modes +0.57);
+  (on fox, taking out the mean alone scored below no transforms, the smoothest few modes above:
+  docs/guide.md, "Photos whose exposure varies: `--appearance exposure`");
 * each step adds `reg * mean((T_i - [I | 0])^2)` for the view seen: a pull towards the
   identity, so a transform explains a photo's colour shift, not its view-dependent
   content.
@@ -197,8 +198,9 @@ class _CentredAdam(torch.optim.Optimizer):
     Adam's do). torch's Adam would keep moving every row on its decaying momentum for the
     ~20 steps after its view was seen: with views coming back only every n_train steps, a
     transform then lands about 9 learning rates past where its one gradient pointed, jumps
-    that far again at every visit, and the scene is fitted through the jitter (on lego at
-    2,000 steps the training loss ran 60% higher than without --appearance)."""
+    that far again at every visit, and the scene is fitted through the jitter (on lego the
+    training loss ran well above plain training's: docs/guide.md, "Photos whose exposure
+    varies: `--appearance exposure`")."""
 
     def __init__(self, params: Any, lr: float, eps: float, betas: tuple[float, float],
                  basis: Tensor) -> None:  # basis [n, m]: orthonormal modes removed after each step

@@ -34,10 +34,9 @@ BUDGET_S = 600.0  # training seconds of a default CPU run: with loading and the 
 MAX_SIZE = 480  # px, the longest side a default CPU run trains at
 GAUSSIANS_PER_PIXEL = 0.45  # the MCMC budget per training pixel (fox at 480 px: 58k; lego at 200 px: 18k)
 MIN_GAUSSIANS, MAX_GAUSSIANS = 5_000, 400_000
-MAX_PROCESSES = 8  # data-parallel processes at most (2 measured here, 16 on a lent machine: 54% efficient at 8; docs/benchmarks.md)
-# torch threads per chosen process at most, where cores are left over: on 16 cores (fox, 480 px, 150 s), 6 processes
-# with 2 threads each took 27% more steps than with 1 (30.81 against 30.59 dB); 1 process with 16, 943 steps against
-# 2,124 (docs/benchmarks.md, "every core on 16 cores")
+MAX_PROCESSES = 8  # data-parallel processes at most: each one added gains less (docs/benchmarks.md, "Many processes")
+# torch threads per chosen process at most, where cores are left over: on 16 cores 6 processes with 2 threads each took
+# more steps to a higher PSNR than with 1, and 1 process with 16 far fewer (docs/benchmarks.md, "Many processes")
 MAX_THREADS = 2
 CHOSEN_ENV = "SPLATCLI_CHOSEN"  # the launcher's choices, for the record its processes write
 CONFIG_ENV = "SPLATCLI_CONFIG"  # the launcher's config (TrainConfig.to_dict as JSON), which its processes train
@@ -153,7 +152,7 @@ def _idle_share(window_s: float) -> float | None:
 
 def train_size(budget_s: float) -> int:
     """The longest side (px) a planned CPU run of `budget_s` trains at: MAX_SIZE up to the
-    default budget (where the planned runs were measured: fox 30.3 dB in 300 s, 30.9 in 600 s),
+    default budget (where the planned runs were measured: docs/benchmarks.md, "Time budgets"),
     then growing with the square root of the time, so a longer run keeps the default's number
     of steps, spent on views with proportionally more pixels."""
     return int(round(MAX_SIZE * max(1.0, (budget_s / BUDGET_S) ** 0.5), -1))

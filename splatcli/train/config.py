@@ -314,21 +314,20 @@ def _fast(cfg: TrainConfig) -> TrainConfig:
     ~half keeps the paper's grow-then-settle ratio and gives the last 3k steps to refine a
     fixed set, which is where SSIM improves.
 
-    Coarse to fine: the first half renders at a resolution rising from 1/4 (measured on lego
-    200 px, 2k steps: the PSNR-against-time curve above the full-resolution one everywhere,
-    1.15-1.5x sooner to a given PSNR; docs/benchmarks.md, "time to quality").
+    Coarse to fine: the first half renders at a resolution rising from 1/4 (on lego its
+    PSNR-against-time curve stayed above the full-resolution one throughout).
     No opacity reset: with 4k steps of densifying, the reset at 3k leaves too few to win the
-    model back (docs/benchmarks.md, "overfitting": held-out 24.4 -> 16.8 dB on the object capture, 23.6 at the
-    end; without it 25.0, its best; fox from its photos ends at 32.21, 0.03 below its best)."""
+    model back (an object capture's held-out PSNR fell at the reset and never recovered; without
+    it, it ends at its best: docs/benchmarks.md, "Options, measured")."""
     cfg = replace(cfg, iterations=7000, checkpoint_every=1000, init_random_points=10_000, coarse_scale=0.25,
                   coarse_until=0.5)
     return _no_opacity_reset(cfg.with_refine(refine_stop=4000))
 
 
 def _demo(cfg: TrainConfig) -> TrainConfig:
-    """`make demo` on sample_data (320x240, ~2k SfM points): a few minutes on 2 cores.
+    """`make demo` on sample_data (320x240): a few minutes on 2 cores (docs/benchmarks.md, "demo").
     Everything 3DGS does, compressed: densify 300..900, SH every 300 steps, and a budget of
-    20k Gaussians (unbudgeted it reaches ~30k for +0.3 dB at ~1.5x the time); the block of
+    20k Gaussians (unbudgeted it grows more for a little PSNR at much more time); the block of
     the cost model, so that the demo gives the same figure on every run."""
     cfg = replace(cfg, iterations=1500, sh_degree_interval=300, eval_every=500, checkpoint_every=500, max_size=256,
                   init_random_points=20_000, block="model")

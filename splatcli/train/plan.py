@@ -8,8 +8,8 @@ Once the budget is spent the main schedule ends at that step. A step's cost is t
 OVERHEAD + scale^2 (its pixels; the Gaussian curve below follows the same area): the
 seconds per unit come from the steps since the last plan, and the plan is the longest run
 whose remaining steps, at their own resolutions, fit the budget. Extrapolating the
-coarse steps' speed instead planned fox at 480 px for 20k steps at its first plans and
-5.5k at its last, and the refinement window closed before the count reached its cap.
+coarse steps' speed instead planned fox for several times the steps its last plans did,
+and the refinement window closed before the count reached its cap.
 What a plan sets:
 
 * the preset's schedule in proportion (refinement window, SH growth, fine-tune), with
@@ -42,8 +42,8 @@ from .config import TrainConfig
 MIN_ITERATIONS = 30  # a plan never shrinks the run below this
 MIN_REFINE_EVERY = 25  # steps between refinements, at least (or the template's, when smaller)
 LR_HOLD = 0.6  # the fraction of a planned run the means' learning rate stays at its initial value
-# A step's cost that does not grow with its pixels, as a share of a full-size step's: fox at
-# 480 px, 2 processes, trained 31.6 steps/s at 1/4 of the size and 4.0 at full ((a + 1) / (a + 1/16) = 7.9).
+# A step's cost that does not grow with its pixels, as a share of a full-size step's: fitted so that
+# (a + 1) / (a + 1/16) is fox's speed at 1/4 of the size over its speed at full (480 px, 2 processes).
 OVERHEAD = 0.07
 
 
@@ -135,8 +135,8 @@ class TimePlan:
         """`cfg` with the template schedule scaled to `iterations` main steps, the learning
         rate held, and the Gaussian budget of the curve at step `at`. Refinement keeps at
         least MIN_REFINE_EVERY steps between decisions: gradients averaged over fewer
-        views are noise, and growth that fast outruns a short budget (fox at 480 px, 120 s:
-        refining every 2 steps grew 10k Gaussians to 72k in 167 steps)."""
+        views are noise, and growth that fast outruns a short budget (on fox, refining every 2
+        steps multiplied the count within a few hundred steps)."""
         out = self.template.scaled(iterations / self.template.iterations)
         out = replace(out, iterations=iterations,
                       refine_every=max(out.refine_every, min(MIN_REFINE_EVERY, self.template.refine_every)))
@@ -162,7 +162,7 @@ class TimePlan:
     def due(self, elapsed: float, stalled: float = 0.0) -> bool:
         """Whether to plan now. The first plan waits for `probe_s` seconds of steps, `stalled` seconds
         (compiling kernels) left out: a compile that filled the probe left a second or less of steps
-        to measure, and a 90 s lego run on a warm cache planned 78 steps from them."""
+        to measure, and a short lego run planned far too few steps from them."""
         if not self.history:
             return elapsed - stalled >= self.probe_s or elapsed >= self.budget_s
         return elapsed >= self.history[-1]["elapsed_s"] + self.replan_every * self.budget_s or elapsed >= self.budget_s

@@ -57,6 +57,7 @@ class RenderConfig:
     sh_degree: int | None = None  # None: every band the model holds
     antialias: str = "auto"  # auto | on | off: the 2D filter (views/sources.choose_antialias)
     renderer: str = "auto"  # auto | torch | gsplat (render/backends.resolve_renderer)
+    appearance_of: str | None = None  # a training photo's light instead of the scene's (model.load_model)
 
 
 @dataclass
@@ -322,10 +323,13 @@ def plan_render(source: str | os.PathLike, config: RenderConfig, device: torch.d
     """Check options, load the model, choose the views and the output folder."""
     check_config(config)
     renderer = resolve_renderer(config.renderer, device)
-    model = load_model(source, device)
+    model = load_model(source, device, config.appearance_of)
     notes = list(model.notes)
     views, name, project = select_views(model, config, notes)
     background = config.background if config.background is not None else (project.background() if project else None)
+    if model.light is not None:  # what shows through goes through the photo's light too (Gaussians.recoloured)
+        bg = torch.tensor(background or (0.0, 0.0, 0.0)) @ model.light[:, :3].T.cpu() + model.light[:, 3].cpu()
+        background = tuple(float(v) for v in bg.clamp(0, 1))
     if config.out is not None:
         out_dir = Path(config.out)
     elif model.project is not None:

@@ -153,8 +153,8 @@ def choose_antialias(mode: str, trained_with: bool | None, zoom: float | None) -
     None when unknown. auto: on for a model trained with it (`train --mip-filter`),
     or when drawing smaller than trained, where the 0.3-pixel dilation alone would
     thicken fine detail into aliasing. Drawn larger it stays off: the filter is a
-    box filter for one screen pixel, and a plain model loses 0.72 dB with it at 4x
-    (docs/benchmarks.md, "zoom"); what zooming in needs is the 3D filter."""
+    box filter for one screen pixel, and a plain model zoomed in scores lower with it
+    (docs/guide.md, "Rendering at other resolutions"); what zooming in needs is the 3D filter."""
     if mode not in ANTIALIAS:
         raise SplatError(f"--antialias {mode!r} is not known; allowed values: {', '.join(ANTIALIAS)}")
     if mode != "auto":
