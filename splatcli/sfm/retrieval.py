@@ -30,9 +30,10 @@ def _nearest(x: np.ndarray, centers: np.ndarray) -> np.ndarray:  # [n, D], [K, D
 
 
 def vocabulary(descs: list[np.ndarray], words: int = WORDS, seed: int = 0) -> np.ndarray:
-    """k-means centres [K, 128] learnt from a seeded sample of every image's RootSIFT features."""
+    """k-means centres [K, 128] learnt from a seeded sample of every image's RootSIFT features
+    (`descs`: each image's SIFT descriptors, uint8)."""
     rng = np.random.default_rng(seed)
-    sample = [d[rng.choice(len(d), min(len(d), SAMPLE_PER_IMAGE), replace=False)] for d in descs if len(d)]
+    sample = [root_sift(d[rng.choice(len(d), min(len(d), SAMPLE_PER_IMAGE), replace=False)]) for d in descs if len(d)]
     x = np.concatenate(sample) if sample else np.zeros((0, 128), np.float32)
     k = min(words, len(x))
     if k == 0:
@@ -68,9 +69,8 @@ def retrieval_pairs(names: list[str], descs: list[np.ndarray], k: int, seed: int
     n = len(names)
     if n < 2:
         return []
-    root = [root_sift(d) for d in descs]
-    centers = vocabulary(root, seed=seed)
-    g = np.stack([vlad(d, centers) for d in root])  # [n, K * 128]
+    centers = vocabulary(descs, seed=seed)
+    g = np.stack([vlad(root_sift(d), centers) for d in descs])  # [n, K * 128]; one image's floats at a time
     sim = g @ g.T  # [n, n] cosine
     np.fill_diagonal(sim, -np.inf)
     k = min(k, n - 1)
