@@ -33,6 +33,7 @@ from splatcli.render import rasterize
 from splatcli.train.appearance import Exposure, ExposureConfig, identity, smooth_basis
 from splatcli.train.loop import train
 from splatcli.train.loss import photometric_loss
+from splatcli.viewer import open_scene
 from support.tiny_project import assert_user_error, make_tiny_project, ring_cameras, run_cli, tiny_gaussians
 
 CPU = torch.device("cpu")
@@ -284,6 +285,9 @@ def test_render_and_export_take_one_training_photos_light(tmp_path):
     assert torch.allclose(read_ply(tmp_path / "lit.ply").gaussians.sh, m.gaussians.sh, atol=1e-6)
     r = run_cli("render", proj.root, "--appearance-of", name, "--split", "train", "-o", str(tmp_path / "lit"))
     assert r.exit_code == 0, r.output
+    store = open_scene(proj.root, appearance_of=name)  # the viewer: the same light, the background through it
+    bg = torch.tensor(proj.background() or (0.0, 0.0, 0.0)) @ t[:, :3].T.float() + t[:, 3].float()
+    assert torch.allclose(torch.tensor(store.background), bg.clamp(0, 1))
     assert_user_error(run_cli("render", proj.root, "--appearance-of", "nope.png"), "not a training photo")
     plain = _tiny(tmp_path, name="plain")
     train(plain.root, make_config(**{**SMALL, "iterations": 4, "appearance": "none"}), CPU)

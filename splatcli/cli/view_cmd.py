@@ -46,6 +46,9 @@ def view(
     host: str = HostOpt,
     port: Optional[int] = PortOpt,
     open_browser: bool = typer.Option(False, "--open", help="Open the viewer in this machine's web browser."),
+    appearance_of: Optional[str] = typer.Option(None, "--appearance-of", help="A training photo's name: show the "
+                                                "scene in its light (what --appearance exposure learnt for it) "
+                                                "instead of the scene's, the average of the training photos'."),
     quiet: bool = QuietOpt,
     json_out: bool = JsonOpt,
     debug: bool = DebugOpt,
@@ -53,7 +56,7 @@ def view(
     """Serve a web viewer of the scene (orbit, pan, zoom, the project's cameras) until Ctrl-C.
     Everything it loads ships with splatcli: it works offline."""
     ui = Ui(quiet=quiet, json_out=json_out)
-    store = open_scene(source)
+    store = open_scene(source, appearance_of)
     warn_host(ui, host)
     with ViewerServer(store, host, port) as server:
         s = store.state()

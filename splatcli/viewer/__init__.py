@@ -37,11 +37,15 @@ def project_scene(project: Project, source: str) -> SceneStore:
     return store
 
 
-def open_scene(source: str | Path) -> SceneStore:
-    """The store for `splatcli view SOURCE`: a project (latest checkpoint) or any splat file."""
-    m = load_model(source, torch.device("cpu"))
+def open_scene(source: str | Path, appearance_of: str | None = None) -> SceneStore:
+    """The store for `splatcli view SOURCE`: a project (latest checkpoint) or any splat file;
+    `appearance_of`: a training photo's light instead of the scene's (model.load_model)."""
+    m = load_model(source, torch.device("cpu"), appearance_of)
     if m.project is not None:
         store = project_scene(m.project, str(source))
+        if m.light is not None:  # what shows through goes through the photo's light too (Gaussians.recoloured)
+            bg = torch.tensor(store.background) @ m.light[:, :3].T + m.light[:, 3]
+            store.background = tuple(float(v) for v in bg.clamp(0, 1))
     else:
         store = SceneStore(source=str(source), file_bytes=m.path.stat().st_size)
     store.publish(m.gaussians, {"step": m.step} if m.step is not None else {})
