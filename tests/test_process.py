@@ -342,11 +342,27 @@ def test_images_left_out_by_sequential_matching_are_matched_with_every_image(sce
     monkeypatch.setattr(rec, "sequential_pairs", lambda n, k: [p for p in real(n, k) if set(p) <= first])
     notes = []
     res = rec.run_sfm(scene / "images", names, tmp_path / "work",
-                      rec.SfmOptions(exhaustive_max_images=0, num_threads=1), cameras=[names], min_side=H,
-                      where=scene, on_event=notes.append)
+                      rec.SfmOptions(exhaustive_max_images=0, num_threads=1, loop_neighbours=0), cameras=[names],
+                      min_side=H, where=scene, on_event=notes.append)
     assert res.matcher == "sequential+exhaustive" and res.unregistered == []
     assert any("left 8 image(s) out" in n.message for n in notes if isinstance(n, Note))
     assert res.num_pairs < len(names) * (len(names) - 1) // 2  # never all pairs
+
+
+def test_loop_pairs_by_retrieval_join_what_sequential_pairs_miss(scene, tmp_path, monkeypatch):
+    """The same broken order as above, with the default loop pairs: each frame is also matched
+    with its most alike (sfm/retrieval.py), which reach past the break, so every view registers
+    without the fallback to all pairs."""
+    import splatcli.sfm.reconstruct as rec
+
+    names = sorted(p.name for p in (scene / "images").glob("*.jpg"))
+    first = set(names[:8])
+    real = rec.sequential_pairs
+    monkeypatch.setattr(rec, "sequential_pairs", lambda n, k: [p for p in real(n, k) if set(p) <= first])
+    res = rec.run_sfm(scene / "images", names, tmp_path / "work", rec.SfmOptions(exhaustive_max_images=0, num_threads=1),
+                      cameras=[names], min_side=H, where=scene)
+    assert res.matcher == "sequential" and res.unregistered == []
+    assert res.num_pairs < len(names) * (len(names) - 1) // 2
 
 
 def test_photos_whose_names_give_no_order_are_paired_by_retrieval_and_register(scene, tmp_path):

@@ -38,6 +38,7 @@ class SfmOptions:
     exhaustive_max_images: int = 40  # auto: below this, all pairs are cheap enough
     sequential_overlap: int = 5  # neighbours each image is matched with (plus 2^k further ones)
     retrieval_neighbours: int = 20  # retrieval: each image is matched with this many most alike (sfm/retrieval.py)
+    loop_neighbours: int = 5  # sequential: each image also with this many most alike, to close loops (0: none)
     max_image_size: int = 1600  # pixels: SIFT sees images shrunk to this (keypoints in full-size pixels)
     max_features: int = 4096
     first_octave: int | None = None  # None: 0, or -1 when SIFT's image is under 400 px (too few features otherwise)
@@ -200,11 +201,13 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
     mopts = MatchOptions(num_threads=opts.num_threads, seed=opts.seed)
     if matcher == "sequential":
         pairs = sequential_pairs(names, opts.sequential_overlap)
+        if opts.loop_neighbours and len(names) > 2 * opts.sequential_overlap:
+            # A walk that comes back to where it started meets its own first frames far apart in
+            # time: those pairs come from retrieval.
+            known = set(pairs)
+            pairs += [q for q in _retrieve(db, names, opts.loop_neighbours, opts.seed, clock) if q not in known]
     elif matcher == "retrieval":
-        with clock.stage("retrieve pairs", 1) as st:
-            pairs = retrieval_pairs(names, colmap.read_descriptors(db, names), opts.retrieval_neighbours,
-                                    seed=opts.seed)
-            st.progress(1)
+        pairs = _retrieve(db, names, opts.retrieval_neighbours, opts.seed, clock)
     else:
         pairs = exhaustive_pairs(names)
         if len(names) > 200:
@@ -396,6 +399,14 @@ def _match(db: Path, pairs: list[tuple[str, str]], work_dir: Path, mopts: MatchO
         for i in range(0, len(pairs), step):
             colmap.match_pairs(db, pairs[i : i + step], work_dir / "pairs.txt", mopts)
             st.progress(min(i + step, len(pairs)))
+
+
+def _retrieve(db: Path, names: list[str], k: int, seed: int, clock: Stages) -> list[tuple[str, str]]:
+    """Each image with its `k` most alike (sfm/retrieval.py), from the database's descriptors."""
+    with clock.stage("retrieve pairs", 1) as st:
+        pairs = retrieval_pairs(names, colmap.read_descriptors(db, names), k, seed=seed)
+        st.progress(1)
+    return pairs
 
 
 def _outcome(models: list[Model], t0: float, on_event: EventSink | None, label: str = "") -> str:
