@@ -6,8 +6,9 @@ Speed on a CPU comes from three choices (measured on fox: docs/benchmarks.md, "p
     well-localised features per image, which is what matching needs;
   * at most 4096 features per image, which bounds brute-force matching;
   * sequential pairs (each image with its next 5, plus exponentially spaced
-    ones for loop closure) for video and numbered captures, instead of all
-    N(N-1)/2 pairs; images that this leaves out are then matched with every image.
+    ones and its 5 most alike for loop closure) for video and numbered captures,
+    and pairs by retrieval (sfm/retrieval.py) for larger unordered sets, instead of
+    all N(N-1)/2 pairs; images that this leaves out are then matched with every image.
 """
 
 from __future__ import annotations
