@@ -44,6 +44,15 @@ class LoadedModel:
     antialiased: bool | None = None  # trained with the 2D filter (checkpoint of train --mip-filter); None: unknown
     light: torch.Tensor | None = None  # [3, 4] the training photo's colour transform baked in (--appearance-of)
 
+    def lit(self, background: tuple[float, float, float]) -> tuple[float, float, float]:
+        """A background as this model shows it: through its light (--appearance-of), as the
+        colours baked into it went (Gaussians.recoloured); unchanged without one."""
+        if self.light is None:
+            return background
+        t = self.light.cpu()
+        bg = (torch.tensor(background, dtype=t.dtype) @ t[:, :3].T + t[:, 3]).clamp(0, 1)
+        return (float(bg[0]), float(bg[1]), float(bg[2]))
+
     @property
     def name(self) -> str:
         """What was loaded, in words: "checkpoint step 7000" or the file's path."""

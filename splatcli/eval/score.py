@@ -89,14 +89,20 @@ def score_image(pred: Tensor, target: Tensor, keep: Tensor | None = None, *, qua
         keep = keep.to(t.device)
     lp = None
     if lpips is not None:
-        lp = lpips(torch.where(keep[..., None], p, t) if keep is not None else p, t)
+        lp = _lpips_kept(lpips, p, t, keep)
     half = None
     if compensated:  # (its 8-bit render fitted in float64: the fit is part of the protocol, not of the image)
         hp, ht, hk = half_fit(p, t, keep)
-        hl = lpips(torch.where(hk[..., None], hp, ht) if hk is not None else hp, ht) if lpips is not None else None
+        hl = _lpips_kept(lpips, hp, ht, hk) if lpips is not None else None
         half = HalfScores(psnr=float(psnr(hp, ht, hk)), ssim=float(ssim(hp, ht, hk)), lpips=hl)
     return Scores(psnr=float(psnr(p, t, keep)), ssim=float(ssim(p, t, keep)), lpips=lp,
                   psnr_color_fit=psnr_color_fit(p, t, keep) if color_fit else None, compensated=half)
+
+
+def _lpips_kept(lpips: Callable[[Tensor, Tensor], float | None], pred: Tensor, target: Tensor,
+                keep: Tensor | None) -> float | None:  # [H, W, 3] each, keep [H, W]
+    """LPIPS with the photograph's own pixels where masked, so they add nothing."""
+    return lpips(torch.where(keep[..., None], pred, target) if keep is not None else pred, target)
 
 
 def load_target(project: Project, name: str, size: tuple[int, int], background: tuple[float, float, float],

@@ -31,7 +31,7 @@ recorded in train.json.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 import numpy as np
@@ -83,8 +83,7 @@ class Schedule:
         def s(v: int | None) -> Any:
             return None if v is None else max(1, round(v * f)) if v else 0
 
-        return Schedule(s(self.iterations), s(self.refine_every), s(self.sh_degree_interval), s(self.refine_start),
-                        s(self.refine_stop), s(self.opacity_reset), s(self.compact_finetune))
+        return Schedule(**{f.name: s(getattr(self, f.name)) for f in fields(self)})
 
     def applied(self, cfg: TrainConfig) -> TrainConfig:
         """`cfg` with these counts (those that are not None; the opacity reset only where the
@@ -104,7 +103,8 @@ class Schedule:
         return cfg
 
     def record(self) -> dict[str, int]:
-        """The stored form (train.json's plan.template; checkpoints): by option name."""
+        """The stored form (train.json's plan.template; checkpoints): by option name, in the
+        options' order."""
         named = {"iterations": self.iterations, "sh_degree_interval": self.sh_degree_interval,
                  "refine_start": self.refine_start, "refine_stop": self.refine_stop, "refine_every": self.refine_every,
                  "opacity_reset": self.opacity_reset, "compact_finetune": self.compact_finetune}
@@ -113,8 +113,7 @@ class Schedule:
     @staticmethod
     def from_record(d: dict[str, Any]) -> Schedule:
         d = {"opacity_reset" if k == "reset_every" else k: int(v) for k, v in d.items()}  # (its name before the option's)
-        return Schedule(d["iterations"], d["refine_every"], d.get("sh_degree_interval"), d.get("refine_start"),
-                        d.get("refine_stop"), d.get("opacity_reset"), d.get("compact_finetune"))
+        return Schedule(**{f.name: d[f.name] for f in fields(Schedule) if f.name in d})
 
 
 @dataclass

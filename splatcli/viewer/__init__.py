@@ -43,9 +43,7 @@ def open_scene(source: str | Path, appearance_of: str | None = None) -> SceneSto
     m = load_model(source, torch.device("cpu"), appearance_of)
     if m.project is not None:
         store = project_scene(m.project, str(source))
-        if m.light is not None:  # what shows through goes through the photo's light too (Gaussians.recoloured)
-            bg = torch.tensor(store.background) @ m.light[:, :3].T + m.light[:, 3]
-            store.background = tuple(float(v) for v in bg.clamp(0, 1))
+        store.background = m.lit(store.background)  # what shows through goes through the photo's light too
     else:
         store = SceneStore(source=str(source), file_bytes=m.path.stat().st_size)
     store.publish(m.gaussians, {"step": m.step} if m.step is not None else {})

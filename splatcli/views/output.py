@@ -327,9 +327,8 @@ def plan_render(source: str | os.PathLike, config: RenderConfig, device: torch.d
     notes = list(model.notes)
     views, name, project = select_views(model, config, notes)
     background = config.background if config.background is not None else (project.background() if project else None)
-    if model.light is not None:  # what shows through goes through the photo's light too (Gaussians.recoloured)
-        bg = torch.tensor(background or (0.0, 0.0, 0.0)) @ model.light[:, :3].T.cpu() + model.light[:, 3].cpu()
-        background = tuple(float(v) for v in bg.clamp(0, 1))
+    if model.light is not None:  # what shows through goes through the photo's light too
+        background = model.lit(background or (0.0, 0.0, 0.0))
     if config.out is not None:
         out_dir = Path(config.out)
     elif model.project is not None:
