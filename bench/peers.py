@@ -38,7 +38,7 @@ import torch
 from common import OUT as ALL_OUT, report
 from splatcli.gaussians import SH_C0
 from splatcli.render import kernels, rasterize
-from splatcli.render.blocks import BlockTuner
+from splatcli.render.blocks import BLOCKS, BlockTuner
 from workloads import workloads
 
 OUT = ALL_OUT / "peers"
@@ -127,10 +127,10 @@ def ours_step(args, width: int, height: int, block) -> None:
 def time_pair(mod, wl, reps: int, block: str) -> dict:
     """Medians of `reps` forward+backward passes of each side, alternating, after a warm-up. Ours draws
     as `train` does (block "tuned": a BlockTuner, warmed up until it has measured every candidate
-    block) or with the cost model's block ("model")."""
+    block and chunk size) or with the cost model's block ("model")."""
     ours = BlockTuner() if block == "tuned" else "auto"
     peer_step(mod, wl.args, wl.width, wl.height)
-    for _ in range(1 + 3 * ours.samples if block == "tuned" else 1):
+    for _ in range(1 + ours.samples * len(BLOCKS) * len(ours.chunks) if block == "tuned" else 1):
         ours_step(wl.args, wl.width, wl.height, ours)
     tp, to = [], []
     for _ in range(reps):
@@ -140,8 +140,9 @@ def time_pair(mod, wl, reps: int, block: str) -> dict:
         t = time.perf_counter()
         ours_step(wl.args, wl.width, wl.height, ours)
         to.append(time.perf_counter() - t)
-    used = ours.summary()["used"] if block == "tuned" else {}
-    return {"peer": statistics.median(tp), "ours": statistics.median(to), "used": used}
+    tuned = ours.summary() if block == "tuned" else {}
+    return {"peer": statistics.median(tp), "ours": statistics.median(to), "used": tuned.get("used", {}),
+            "chunk": tuned.get("chunk", {})}
 
 
 def main() -> None:
@@ -193,10 +194,9 @@ def main() -> None:
             else:
                 t = json.loads(r.stdout.strip().splitlines()[-1])
                 row.update(opensplat_ms=t["peer"] * 1e3, splatcli_ms=t["ours"] * 1e3, speedup=t["peer"] / t["ours"],
-                           peer="ran", blocks=t.get("used"))
+                           peer="ran", blocks=t.get("used"), chunk=t.get("chunk"))
             rows.append(row)
             print(row, flush=True)
-    # goals: at least 2x faster on every workload (issue 35), 3x (issue 12)
     if rows:
         report("peers", rows, opensplat_commit=rev, compile=args.compile, block=args.block, reps=args.reps,
                load_start=round(load0, 2))

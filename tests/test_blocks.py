@@ -16,17 +16,25 @@ def _small_gaussians(n: int = 500) -> tuple[torch.Tensor, torch.Tensor]:  # cov2
     return torch.tensor([[9.0, 0.0, 9.0]]).repeat(n, 1), torch.full((n,), 0.9)
 
 
-def _drive(tuner: BlockTuner, seconds_per_cost: dict[int, float], calls: int) -> list[int]:
-    """`calls` renders whose measured time is `seconds_per_cost[block]` times the model's cost."""
+def _drive(tuner: BlockTuner, seconds_per_cost: dict, calls: int) -> list:
+    """`calls` renders whose measured time is `seconds_per_cost[block]` (or [(block, chunk)]) times
+    the model's cost; the blocks picked (or the layouts, when keyed by them)."""
     cov2d, opac = _small_gaussians()
     cost = blocks.block_costs(blocks.extents(cov2d, opac), 640, 480)
+    by_layout = isinstance(next(iter(seconds_per_cost)), tuple)
     picked = []
     for _ in range(calls):
-        block, meter = tuner.choose(blocks.extents(cov2d, opac), 640, 480)
-        picked.append(block)
+        layout, meter = tuner.choose(blocks.extents(cov2d, opac), 640, 480)
+        key = tuple(layout) if by_layout else layout.block
+        picked.append(key)
         if meter is not None:
-            meter.add(seconds_per_cost[block] * cost[block], last=True)
+            meter.add(seconds_per_cost[key] * cost[layout.block], last=True)
     return picked
+
+
+def _one_chunk(**kw) -> BlockTuner:
+    """A tuner of the block alone (one chunk size: the device's default)."""
+    return BlockTuner(chunks=(None,), **kw)
 
 
 def test_tuner_keeps_the_block_that_measures_fastest_not_the_models_pick():
@@ -35,7 +43,7 @@ def test_tuner_keeps_the_block_that_measures_fastest_not_the_models_pick():
     cost = blocks.block_costs(blocks.extents(cov2d, opac), 640, 480)
     # 8 px blocks measure 10% faster in absolute time than the model's 4 px; 16 px slower
     truth = {4: 1.0 / cost[4], 8: 0.9 / cost[8], 16: 1.3 / cost[16]}
-    tuner = BlockTuner(every=10)
+    tuner = _one_chunk(every=10)
     picked = _drive(tuner, truth, 60)
     assert picked[0] == 4  # the warm-up render: the model's pick, not measured
     assert picked[1:4] == [4, 4, 4]  # then each candidate, best predicted first
@@ -50,7 +58,7 @@ def test_tuner_follows_a_change_of_speed():
     and the last five measurements of each block decide."""
     cov2d, opac = _small_gaussians()
     cost = blocks.block_costs(blocks.extents(cov2d, opac), 640, 480)
-    tuner = BlockTuner(every=2)
+    tuner = _one_chunk(every=2)
     _drive(tuner, {4: 1.0 / cost[4], 8: 0.8 / cost[8], 16: 2.0 / cost[16]}, 30)
     late = _drive(tuner, {4: 0.5 / cost[4], 8: 0.8 / cost[8], 16: 2.0 / cost[16]}, 40)
     assert late[-10:].count(4) >= 5
@@ -59,30 +67,30 @@ def test_tuner_follows_a_change_of_speed():
 def test_blocks_far_outside_the_model_are_never_tried():
     cov2d, opac = _small_gaussians()
     cost = blocks.block_costs(blocks.extents(cov2d, opac), 640, 480)
-    tuner = BlockTuner(spread=1.0 + 1e-9)  # only the model's pick is within range
+    tuner = _one_chunk(spread=1.0 + 1e-9)  # only the model's pick is within range
     assert set(_drive(tuner, {b: 1e-9 for b in cost}, 20)) == {4}
 
 
 def test_nothing_drawn_draws_with_8px_and_measures_nothing():
     tuner = BlockTuner()
-    block, meter = tuner.choose(blocks.extents(torch.zeros(3, 3), torch.zeros(3)), 64, 64)
-    assert (block, meter) == (8, None)
+    layout, meter = tuner.choose(blocks.extents(torch.zeros(3, 3), torch.zeros(3)), 64, 64)
+    assert (layout.block, meter) == (8, None)
 
 
 def test_a_render_that_compiled_a_kernel_is_not_measured(monkeypatch):
     cov2d, opac = _small_gaussians()
     tuner = BlockTuner(warmup=0)
-    block, meter = tuner.choose(blocks.extents(cov2d, opac), 640, 480)
+    layout, meter = tuner.choose(blocks.extents(cov2d, opac), 640, 480)
     monkeypatch.setattr(kernels.status(), "compile_s", kernels.status().compile_s + 5.0)
     meter.add(5.0, last=True)
-    assert not tuner.ratios[block]
+    assert not tuner.ratios.get(layout)
 
 
 @pytest.mark.parametrize("backward", [True, False])
 def test_rasterize_with_a_tuner_measures_each_render_and_draws_the_same_picture(backward):
     torch.manual_seed(0)
     args = make_scene(300, 96, 64, dtype=torch.float32, seed=3)
-    tuner = BlockTuner(backward=backward, warmup=0)
+    tuner = _one_chunk(backward=backward, warmup=0)
     recorded = []
     keep = tuner.record
     tuner.record = lambda block, ratio: (recorded.append(block), keep(block, ratio))  # type: ignore[method-assign]
@@ -102,11 +110,29 @@ def test_a_tuner_without_gradients_waits_for_no_backward():
     """Rendering under no_grad with a training tuner (evaluation mid-run) measures nothing, counts
     nothing, and draws with the best block measured so far."""
     args = make_scene(100, 64, 64, dtype=torch.float32, seed=1)
-    tuner = BlockTuner(warmup=0)
+    tuner = _one_chunk(warmup=0)
     with torch.no_grad():
         rasterize(*args, 64, 64, block=tuner)
     assert not any(tuner.ratios.values()) and tuner.calls == 0 and not any(tuner.used.values())
     cov2d, opac = _small_gaussians()
     cost = blocks.block_costs(blocks.extents(cov2d, opac), 640, 480)
     _drive(tuner, {4: 1.0 / cost[4], 8: 0.5 / cost[8], 16: 2.0 / cost[16]}, 12)
-    assert tuner.choose(blocks.extents(cov2d, opac), 640, 480, measure=False) == (8, None)
+    assert tuner.choose(blocks.extents(cov2d, opac), 640, 480, measure=False) == ((8, None), None)
+
+
+def test_tuner_measures_each_chunk_size_with_each_block_and_keeps_the_fastest_pair():
+    cov2d, opac = _small_gaussians()
+    cost = blocks.block_costs(blocks.extents(cov2d, opac), 640, 480)
+    small, large = blocks.CHUNKS[0], blocks.CHUNKS[-1]
+    # 8 px is fastest, and with the smallest chunk; 4 px is fastest with the largest
+    truth = {(b, c): (1.0 if b == 4 else 1.3 if b == 16 else 0.9) / cost[b] for b in blocks.BLOCKS for c in blocks.CHUNKS}
+    truth[(8, small)] *= 0.8
+    truth[(4, large)] *= 0.95
+    tuner = BlockTuner(every=10)
+    n = len(blocks.BLOCKS) * len(blocks.CHUNKS) * tuner.samples
+    picked = _drive(tuner, truth, 1 + n + 40)
+    assert sorted(set(picked[1 : 1 + n])) == sorted(truth)  # every pair measured while settling
+    settled = picked[1 + n:]
+    assert settled.count((8, small)) >= len(settled) - 5
+    s = tuner.summary()
+    assert s["chunk"] == {"4": large, "8": small, "16": s["chunk"]["16"]} and sum(s["used"].values()) == len(picked)

@@ -13,12 +13,18 @@ and compositing backward took, divided by the model's predicted cost for the blo
 tuner picks the block whose median ratio times its predicted cost is least. It first measures
 each block the model does not rule out a few times, then keeps measuring the others now and
 then, since the model's Gaussians change as training goes on.
+
+The tuner measures the compositor's chunk size (dense elements per chunk: CHUNKS) the same way,
+each block with each chunk size: small images and small models run faster in smaller chunks
+(less to keep in cache), large ones in larger (fewer tensor operations), and where the turn
+comes depends on the CPU's caches.
 """
 
 from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -26,6 +32,7 @@ from torch import Tensor
 from . import kernels
 
 BLOCKS = (4, 8, 16)
+CHUNKS = (1 << 17, 1 << 18, 1 << 19)  # the compositor's chunk sizes a tuner tries (composite.CHUNK_ELEMS is the default)
 
 # Cost model (ns per (Gaussian, block) pair and per dense [pixel, pair] element, forward +
 # backward, one CPU thread), fitted to the fastest block of 111 training views on one machine
@@ -76,76 +83,95 @@ def estimate_pairs(ext: Extents, block: int) -> float:
     return float(((ext.w / block + 1) * (ext.h / block + 1)).sum())
 
 
+class Layout(NamedTuple):
+    """How the compositor lays a render out: the block side (px) and the dense elements per chunk
+    (None: the device's default)."""
+
+    block: int
+    chunk: int | None = None
+
+
 class Meter:
     """One render's block-dependent seconds (planning, compositing, and its backward when the
     tuner waits for it), handed to the tuner when the render is complete."""
 
-    def __init__(self, tuner: BlockTuner, block: int, cost: float):
-        self.tuner, self.block, self.cost, self.seconds = tuner, block, cost, 0.0
+    def __init__(self, tuner: BlockTuner, layout: Layout, cost: float):
+        self.tuner, self.layout, self.cost, self.seconds = tuner, layout, cost, 0.0
         self._compile_s = kernels.status().compile_s
 
     def add(self, seconds: float, last: bool) -> None:
         self.seconds += seconds
         if last and kernels.status().compile_s == self._compile_s:  # a call that compiled a kernel says nothing
-            self.tuner.record(self.block, self.seconds / self.cost)
+            self.tuner.record(self.layout, self.seconds / self.cost)
 
 
 @dataclass
 class BlockTuner:
-    """The block size measured on this machine (module docstring). One per training run (or per
-    process); not thread-safe. `backward`: whether each render is back-propagated (training): its
-    time is then counted only once the backward has run."""
+    """The block size and chunk size measured on this machine (module docstring). One per training
+    run (or per process); not thread-safe. `backward`: whether each render is back-propagated
+    (training): its time is then counted only once the backward has run."""
 
     backward: bool = True
-    samples: int = 3  # measurements of each candidate block before the ratios are trusted
+    samples: int = 3  # measurements of each candidate layout before the ratios are trusted
     every: int = 25  # once settled, one render in `every` measures another candidate
     spread: float = 2.5  # blocks predicted this many times costlier than the model's pick are never tried
     warmup: int = 1  # first renders not measured (one-off allocations)
-    ratios: dict[int, deque] = field(default_factory=lambda: {b: deque(maxlen=5) for b in BLOCKS})
-    used: dict[int, int] = field(default_factory=lambda: {b: 0 for b in BLOCKS})
+    chunks: tuple[int, ...] = CHUNKS  # chunk sizes tried with each block
+    ratios: dict[Layout, deque] = field(default_factory=dict)
+    used: dict[Layout, int] = field(default_factory=dict)
 
     @property
     def calls(self) -> int:
         """Renders chosen for so far (those with measure=False are not counted)."""
         return sum(self.used.values())
 
-    def choose(self, ext: Extents, width: int, height: int, measure: bool = True) -> tuple[int, Meter | None]:
-        """The block for this render, and the meter its timed parts report to (None: not measured).
+    def choose(self, ext: Extents, width: int, height: int, measure: bool = True) -> tuple[Layout, Meter | None]:
+        """The layout for this render, and the meter its timed parts report to (None: not measured).
         measure=False (a render that will not be timed, such as an evaluation inside training): the
-        best block known so far, counted nowhere."""
+        best layout known so far, counted nowhere."""
         cost = block_costs(ext, width, height)
         if not cost:
-            return 8, None
+            return Layout(8), None
         best = min(cost.values())
-        cand = [b for b in sorted(cost, key=cost.get) if cost[b] <= self.spread * best]
-        settled = all(len(self.ratios[b]) >= self.samples for b in cand)
-        ranked = sorted(cand, key=lambda b: self.ratio(b) * cost[b]) if settled else cand
+        blocks = [b for b in sorted(cost, key=cost.get) if cost[b] <= self.spread * best]
+        cand = [Layout(b, c) for b in blocks for c in self.chunks]
+        settled = all(len(self.ratios.get(x, ())) >= self.samples for x in cand)
+        ranked = sorted(cand, key=lambda x: self.ratio(x) * cost[x.block]) if settled else cand
         if not measure:
             return ranked[0], None
         call = self.calls + 1
         if call <= self.warmup:
-            block, meter = cand[0], None
+            layout, meter = cand[0], None
         elif not settled:
-            block = next(b for b in cand if len(self.ratios[b]) < self.samples)
-            meter = Meter(self, block, cost[block])
+            layout = next(x for x in cand if len(self.ratios.get(x, ())) < self.samples)
+            meter = Meter(self, layout, cost[layout.block])
         else:
-            block = ranked[0]
+            layout = ranked[0]
             if len(ranked) > 1 and call % self.every == 0:  # the others, in turn, now and then
                 others = ranked[1:]
-                block = others[(call // self.every) % len(others)]
-            meter = Meter(self, block, cost[block])
-        self.used[block] += 1
-        return block, meter
+                layout = others[(call // self.every) % len(others)]
+            meter = Meter(self, layout, cost[layout.block])
+        self.used[layout] = self.used.get(layout, 0) + 1
+        return layout, meter
 
-    def ratio(self, block: int) -> float:
-        """Median measured seconds per unit of predicted cost for `block`."""
-        r = sorted(self.ratios[block])
+    def ratio(self, layout: Layout) -> float:
+        """Median measured seconds per unit of predicted cost for `layout`."""
+        r = sorted(self.ratios[layout])
         return r[len(r) // 2]
 
-    def record(self, block: int, ratio: float) -> None:
-        self.ratios[block].append(ratio)
+    def record(self, layout: Layout, ratio: float) -> None:
+        self.ratios.setdefault(layout, deque(maxlen=5)).append(ratio)
 
     def summary(self) -> dict:
-        """What train.json keeps: renders per block, and the measured ns per unit of predicted cost."""
-        return {"used": {str(b): n for b, n in self.used.items() if n},
-                "ns_per_cost": {str(b): round(1e9 * self.ratio(b), 4) for b in BLOCKS if self.ratios[b]}}
+        """What train.json keeps: renders per block, the measured ns per unit of predicted cost of
+        each block at its best chunk size, and that chunk size."""
+        used: dict[str, int] = {}
+        for x, n in self.used.items():
+            used[str(x.block)] = used.get(str(x.block), 0) + n
+        best = {}
+        for x in self.ratios:
+            if self.ratios[x] and (x.block not in best or self.ratio(x) < self.ratio(best[x.block])):
+                best[x.block] = x
+        return {"used": {k: n for k, n in used.items() if n},
+                "ns_per_cost": {str(b): round(1e9 * self.ratio(x), 4) for b, x in sorted(best.items())},
+                "chunk": {str(b): x.chunk for b, x in sorted(best.items())}}

@@ -150,12 +150,13 @@ def _block_rows(means2d: Tensor, cov2d: Tensor, vx: Tensor, opacities: Tensor, r
     # What each row of a Gaussian needs, one column per Gaussian (gathered once per row):
     # the mean (v in band coordinates), x | y's slope b / c and variance, the dy of the
     # ellipse's rightmost point, t2, c, the pixel rows and the tile columns.
-    per = torch.stack([u, v - y0, b / c, vx, torch.sqrt(t2 / a) * b, t2, c, py0.to(f64), py1.to(f64),
-                       rc[:, 0].to(f64), (rc[:, 2] - 1).to(f64)])
+    per = [u, v - y0, b / c, vx, torch.sqrt(t2 / a) * b, t2, c, py0.to(f64), py1.to(f64), rc[:, 0].to(f64),
+           (rc[:, 2] - 1).to(f64)]
     rg = torch.repeat_interleave(torch.arange(u.numel(), device=dev), nrow)
     R = rg.numel()
     by = (by0 - (torch.cumsum(nrow, 0) - nrow)).index_select(0, rg) + torch.arange(R, device=dev)
-    ur, vr, kr, vxr, dys, t2r, cr, py0r, py1r, rx0, rx1 = per.index_select(1, rg)
+    # (gathered column by column: one gather along dim 1 of an [11, N] tensor took 3x longer)
+    ur, vr, kr, vxr, dys, t2r, cr, py0r, py1r, rx0, rx1 = (x.index_select(0, rg) for x in per)
     top = (by * block).to(f64)
     ylo = torch.maximum(top, py0r) + 0.5 - vr
     yhi = torch.minimum(top + (block - 1), py1r) + 0.5 - vr

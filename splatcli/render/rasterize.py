@@ -121,15 +121,15 @@ def rasterize(
     fp = pr.footprint
     t1 = time.perf_counter()
     timing.add("projection", t1 - t0)
-    meter, ext = None, extents(fp.cov2d, fp.opacities)
+    meter, ext, chunk = None, extents(fp.cov2d, fp.opacities), None
     if tuner is not None and means.device.type == "cpu":  # timing CUDA work would need syncs
         timed = not tuner.backward or torch.is_grad_enabled()  # else nothing will report a backward
-        block, meter = tuner.choose(ext, width, height, measure=timed)
+        (block, chunk), meter = tuner.choose(ext, width, height, measure=timed)
     elif not isinstance(block, int):
         block = choose_block(ext, width, height)
     bands = _bands(height, estimate_pairs(ext, block))
     if len(bands) == 1:
-        plan = make_plan(fp, width, height, block)
+        plan = make_plan(fp, width, height, block, chunk_elems=chunk)
         t2 = time.perf_counter()
         timing.add("planning", t2 - t1)
         timing.add("pairs", plan.n_pairs)
