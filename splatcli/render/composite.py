@@ -230,10 +230,19 @@ class _Consts:
     def __init__(self, dtype: torch.dtype):
         self.a_min = _below(ALPHA_MIN, dtype)
         self.t_min = _below(T_MIN, dtype)
-        # Indicator scales: U >= 1e-4 (or 0) times 2e4 is >= 2 (or 0); 0.99 - alpha is at
-        # least one ulp of 0.99 unless alpha was clamped (then exactly 0).
+        # Indicator scales: U >= 1e-4 (or 0) times 2e4 is >= 2 (or 0). r = alpha / (1 - alpha) is
+        # r_max exactly where alpha was clamped to 0.99, and at most r_below (alpha one ulp under
+        # 0.99) elsewhere (1 - alpha is exact there, and the quotient grows with alpha), so
+        # (r_max - r) times r_scale is 0 where clamped and >= 2 elsewhere.
         self.u_scale = 2.0 / T_MIN
-        self.a_scale = 2.0 / (ALPHA_MAX - _below(ALPHA_MAX, dtype))
+        self.r_max = _ratio(ALPHA_MAX, dtype)
+        self.r_scale = 2.0 / (self.r_max - _ratio(_below(ALPHA_MAX, dtype), dtype))
+
+
+def _ratio(alpha: float, dtype: torch.dtype) -> float:
+    """alpha / (1 - alpha) as the compositor computes it in `dtype`."""
+    a = torch.tensor(alpha, dtype=dtype)
+    return float(a / torch.rsub(a, 1.0))
 
 
 class _Gauss:
@@ -307,7 +316,7 @@ def _transmittance(alpha: Tensor, Tc: Tensor | None, t_min: float):
 
 
 def _blend_weight(a: Tensor, om: Tensor, U: Tensor) -> Tensor:  # [na, P, k] each
-    return torch.div(a, om).mul_(U)  # alpha T_before; 0 where not blended (alpha left whole: it may be kept)
+    return torch.div(a, om).mul_(U)  # alpha T_before; 0 where not blended
 
 
 def _median_weight(a: Tensor, om: Tensor, U: Tensor) -> Tensor:  # [na, P, k] each
@@ -321,48 +330,51 @@ def _seg_forward(geo: Tensor, cz: Tensor, gid: Tensor, centre: Tensor, featsT: T
     slot ids, centre [na, 2], featsT [P, 6], Tc [na, P] transmittance entering (None: 1). Returns
     the sums of weight(alpha, 1 - alpha, T after) times (r, g, b, z, 1) per pixel [na, 5, P]
     (blending weights for the picture, `_median_weight` for the median depth) and T after [na, P].
-    `kept`: a list that alpha and T after [na, P, k] are appended to, for the backward (blending weights only)."""
+    `kept`: a list that r = alpha / (1 - alpha) and T after [na, P, k] are appended to, for the
+    backward (blending weights only)."""
     p = geo.index_select(0, gid.reshape(-1)).view(*gid.shape, 6)  # [na, k, 6]
     a = _alpha(_coef(p, centre)[0], featsT, a_min)
     om, U = _transmittance(a, Tc, t_min)
-    w = weight(a, om, U)
-    if kept is not None:
-        kept.append((a, U))
+    if kept is None:
+        w = weight(a, om, U)
+    else:
+        r = torch.div(a, om)
+        w = r * U  # (_blend_weight)
+        kept.append((r, U))
     czg = cz.index_select(0, gid.reshape(-1)).view(*gid.shape, 5)
     return torch.bmm(czg.transpose(1, 2), w.transpose(1, 2)), U[:, :, -1]
 
 
 def _seg_backward(geo: Tensor, cz: Tensor, gid: Tensor, centre: Tensor, feats: Tensor, featsT: Tensor,
-                  Tc: Tensor | None, g4: Tensor, g4t: Tensor, base: Tensor, pc: Tensor | None, a_min: float,
-                  t_min: float, u_scale: float, a_scale: float,
+                  Tc: Tensor | None, g4: Tensor, g4t: Tensor, base: Tensor, pc: Tensor | None, c: _Consts,
                   saved: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """One segment of the backward pass, alpha and T recomputed: g4 [na, 4, P] and g4t [na, P, 4]
     the image gradient of (r, g, b, z), base [na, P] (see backward), pc [na, P] the prefix sum of
     w v over the earlier segments (None in the first). Returns d(u, v, A, B, C, log o, r, g, b, z) per slot [na, k, 10],
-    T after [na, P] and the prefix sum after [na, P]. `saved`: the forward's alpha and T after for
-    this segment (used up here), instead of computing them again."""
+    T after [na, P] and the prefix sum after [na, P]. `saved`: the forward's alpha / (1 - alpha) and T
+    after for this segment (used up here), instead of computing them again."""
     p = geo.index_select(0, gid.reshape(-1)).view(*gid.shape, 6)
     coef2, q = _coef(p, centre)
     if saved is not None:
-        a, U = saved
-        om = torch.rsub(a, 1.0)
+        r, U = saved
     else:
-        a = _alpha(coef2, featsT, a_min)
-        om, U = _transmittance(a, Tc, t_min)
-    r = a / om
+        a = _alpha(coef2, featsT, c.a_min)
+        om, U = _transmittance(a, Tc, c.t_min)
+        r = a.div_(om)
     w = r * U
     czt = cz.index_select(0, gid.reshape(-1)).view(*gid.shape, 5)[..., :4].transpose(1, 2)  # [na, 4, k]
     v = torch.bmm(g4t, czt)  # [na, P, k]: g . (rgb, z) per slot
-    t = torch.mul(w, v).cumsum_(2)  # prefix sums of w v (this segment)
-    off = -base if pc is None else pc - base  # [na, P]: earlier segments' prefix - base
-    pc = t[:, :, -1].clone() if pc is None else t[:, :, -1] + pc  # (t is edited in place below)
+    t = torch.mul(w, v)
+    t[:, :, 0] += -base if pc is None else pc - base  # earlier segments' prefix - base, carried by the sums:
+    t.cumsum_(2)  # (earlier segments' prefix + this one's prefix sums of w v) - base
+    pc = t[:, :, -1] + base  # the prefix after this segment (t is edited in place below)
     # d loss / d power = alpha d loss / d alpha = r (U v - (base - prefix)) for
     # blended, unclamped alpha; 0 otherwise (indicators built without branches).
-    t += off[..., None]
     t.addcmul_(U, v)
     Tlast = U[:, :, -1].clone()
-    ind = torch.minimum(U.mul_(u_scale), a.sub_(ALPHA_MAX).mul_(-a_scale)).clamp_(max=1.0)
-    dpow = t.mul_(r).mul_(ind)
+    t.mul_(r)
+    ind = torch.minimum(U.mul_(c.u_scale), r.sub_(c.r_max).mul_(-c.r_scale)).clamp_(max=1.0)
+    dpow = t.mul_(ind)
     Rs = torch.matmul(feats, dpow)  # [na, 6, k]: sums of dpow * pixel features
     ds = torch.bmm(g4, w)  # [na, 4, k]
     return _slot_grads(q, Rs, ds), Tlast, pc
@@ -406,7 +418,7 @@ def _blend(plan: Plan, means2d: Tensor, conics: Tensor, opacities: Tensor, color
            weight=_blend_weight, kept: list | None = None) -> Tensor:  # [nblocks, 5, P]: sums of weight times (r, g, b, z, 1) per pixel
     """The forward pass over the plan's chunks and segments, each slot weighted by
     `weight(alpha, 1 - alpha, T_after)`: blending weights for the picture, the 0.5
-    crossing for the median depth. `kept`: a list that each segment's alpha and T after are
+    crossing for the median depth. `kept`: a list that each segment's alpha / (1 - alpha) and T after are
     appended to, in order, until they hold KEEP_BYTES (the backward computes the rest again)."""
     dt, dev = means2d.dtype, means2d.device
     N = means2d.shape[0]
@@ -489,7 +501,7 @@ class _Composite(torch.autograd.Function):
                 k1 = _seg_end(plan, k0, K, len(bl) if act is None else len(act))
                 gid_s = _rowsel(gid, act)[:, k0:k1].contiguous()
                 dgs, Tc, pc = _seg_backward(gs.geo, gs.cz, gid_s, _rowsel(centre, act), feats, featsT, Tc, _rowsel(g4b, act),
-                                   _rowsel(g4tb, act), _rowsel(base, act), pc, c.a_min, c.t_min, c.u_scale, c.a_scale,
+                                   _rowsel(g4tb, act), _rowsel(base, act), pc, c,
                                    kept.popleft() if kept else None)  # (freed as the backward goes)
                 dg.index_put_((gid_s.reshape(-1),), dgs.reshape(-1, 10), accumulate=True)  # faster than index_add_ here
                 nseg += 1
