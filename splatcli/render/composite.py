@@ -304,6 +304,18 @@ def _alpha(coef2: Tensor, featsT: Tensor, a_min: float) -> Tensor:  # [nb, P, k]
     return a.clamp_max_(ALPHA_MAX)
 
 
+def _ratio_transmittance(alpha: Tensor, Tc: Tensor | None, t_min: float) -> tuple[Tensor, Tensor]:
+    """r = alpha / (1 - alpha), and U as `_transmittance`'s (alpha is left whole). T entering is
+    carried in the scan's first factor, which saves a pass over U."""
+    om = torch.rsub(alpha, 1.0)
+    r = torch.div(alpha, om)
+    if Tc is not None:
+        om[:, :, 0] *= Tc
+    U = om.cumprod_(2)
+    F.threshold_(U, t_min, 0.0)
+    return r, U
+
+
 def _transmittance(alpha: Tensor, Tc: Tensor | None, t_min: float):
     """om = 1 - alpha; U = T after each Gaussian (Tc [na, P] the T entering, None: 1), zero
     from the first one that would bring T below 1e-4 (that one and all behind it are not blended)."""
@@ -315,32 +327,30 @@ def _transmittance(alpha: Tensor, Tc: Tensor | None, t_min: float):
     return om, U
 
 
-def _blend_weight(a: Tensor, om: Tensor, U: Tensor) -> Tensor:  # [na, P, k] each
-    return torch.div(a, om).mul_(U)  # alpha T_before; 0 where not blended
-
-
 def _median_weight(a: Tensor, om: Tensor, U: Tensor) -> Tensor:  # [na, P, k] each
     """1 at the slot where transmittance crosses 0.5 (T_before > 0.5 >= T_after), else 0."""
     return ((U > 0.5 * om) & (U <= 0.5)).to(a.dtype)
 
 
 def _seg_forward(geo: Tensor, cz: Tensor, gid: Tensor, centre: Tensor, featsT: Tensor, Tc: Tensor | None,
-                 a_min: float, t_min: float, weight=_blend_weight, kept: list | None = None) -> tuple[Tensor, Tensor]:
+                 a_min: float, t_min: float, weight=None, kept: list | None = None) -> tuple[Tensor, Tensor]:
     """One segment of the forward pass: geo [N + 1, 6] and cz [N + 1, 5] (`_Gauss`), gid [na, k]
     slot ids, centre [na, 2], featsT [P, 6], Tc [na, P] transmittance entering (None: 1). Returns
-    the sums of weight(alpha, 1 - alpha, T after) times (r, g, b, z, 1) per pixel [na, 5, P]
-    (blending weights for the picture, `_median_weight` for the median depth) and T after [na, P].
+    the sums of a weight times (r, g, b, z, 1) per pixel [na, 5, P] and T after [na, P]: the blending
+    weight alpha T_before (weight None: the picture), or weight(alpha, 1 - alpha, T after)
+    (`_median_weight`: the median depth).
     `kept`: a list that r = alpha / (1 - alpha) and T after [na, P, k] are appended to, for the
     backward (blending weights only)."""
     p = geo.index_select(0, gid.reshape(-1)).view(*gid.shape, 6)  # [na, k, 6]
     a = _alpha(_coef(p, centre)[0], featsT, a_min)
-    om, U = _transmittance(a, Tc, t_min)
-    if kept is None:
+    if weight is not None:
+        om, U = _transmittance(a, Tc, t_min)
         w = weight(a, om, U)
     else:
-        r = torch.div(a, om)
-        w = r * U  # (_blend_weight)
-        kept.append((r, U))
+        r, U = _ratio_transmittance(a, Tc, t_min)
+        w = r.mul_(U) if kept is None else r * U  # alpha T_before; 0 where not blended
+        if kept is not None:
+            kept.append((r, U))
     czg = cz.index_select(0, gid.reshape(-1)).view(*gid.shape, 5)
     return torch.bmm(czg.transpose(1, 2), w.transpose(1, 2)), U[:, :, -1]
 
@@ -358,9 +368,7 @@ def _seg_backward(geo: Tensor, cz: Tensor, gid: Tensor, centre: Tensor, feats: T
     if saved is not None:
         r, U = saved
     else:
-        a = _alpha(coef2, featsT, c.a_min)
-        om, U = _transmittance(a, Tc, c.t_min)
-        r = a.div_(om)
+        r, U = _ratio_transmittance(_alpha(coef2, featsT, c.a_min), Tc, c.t_min)
     w = r * U
     czt = cz.index_select(0, gid.reshape(-1)).view(*gid.shape, 5)[..., :4].transpose(1, 2)  # [na, 4, k]
     v = torch.bmm(g4t, czt)  # [na, P, k]: g . (rgb, z) per slot
@@ -415,10 +423,10 @@ def _terminate(act: Tensor | None, Tc: Tensor, more: Tensor, *carry: Tensor):
 
 
 def _blend(plan: Plan, means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor, depths: Tensor,
-           weight=_blend_weight, kept: list | None = None) -> Tensor:  # [nblocks, 5, P]: sums of weight times (r, g, b, z, 1) per pixel
-    """The forward pass over the plan's chunks and segments, each slot weighted by
-    `weight(alpha, 1 - alpha, T_after)`: blending weights for the picture, the 0.5
-    crossing for the median depth. `kept`: a list that each segment's alpha / (1 - alpha) and T after are
+           weight=None, kept: list | None = None) -> Tensor:  # [nblocks, 5, P]: sums of weight times (r, g, b, z, 1) per pixel
+    """The forward pass over the plan's chunks and segments, each slot weighted by its blending
+    weight (weight None: the picture) or `weight(alpha, 1 - alpha, T_after)` (the 0.5 crossing
+    for the median depth). `kept`: a list that each segment's alpha / (1 - alpha) and T after are
     appended to, in order, until they hold KEEP_BYTES (the backward computes the rest again)."""
     dt, dev = means2d.dtype, means2d.device
     N = means2d.shape[0]
