@@ -305,10 +305,11 @@ def _alpha(coef2: Tensor, featsT: Tensor, a_min: float) -> Tensor:  # [nb, P, k]
 
 
 def _ratio_transmittance(alpha: Tensor, Tc: Tensor | None, t_min: float) -> tuple[Tensor, Tensor]:
-    """r = alpha / (1 - alpha), and U as `_transmittance`'s (alpha is left whole). T entering is
-    carried in the scan's first factor, which saves a pass over U."""
+    """r = alpha / (1 - alpha), and U as `_transmittance`'s. T entering is carried in the scan's
+    first factor, which saves a pass over U. alpha becomes r (in place: a dense tensor written where
+    it was read costs far less than a new one)."""
     om = torch.rsub(alpha, 1.0)
-    r = torch.div(alpha, om)
+    r = alpha.div_(om)
     if Tc is not None:
         om[:, :, 0] *= Tc
     U = om.cumprod_(2)
@@ -381,7 +382,7 @@ def _seg_backward(geo: Tensor, cz: Tensor, gid: Tensor, centre: Tensor, feats: T
     t.addcmul_(U, v)
     Tlast = U[:, :, -1].clone()
     t.mul_(r)
-    ind = torch.minimum(U.mul_(c.u_scale), r.sub_(c.r_max).mul_(-c.r_scale)).clamp_(max=1.0)
+    ind = torch.minimum(U.mul_(c.u_scale), r.sub_(c.r_max).mul_(-c.r_scale), out=U).clamp_(max=1.0)
     dpow = t.mul_(ind)
     Rs = torch.matmul(feats, dpow)  # [na, 6, k]: sums of dpow * pixel features
     ds = torch.bmm(g4, w)  # [na, 4, k]
