@@ -373,7 +373,8 @@ def _seg_backward(geo: Tensor, cz: Tensor, gid: Tensor, centre: Tensor, feats: T
     w = r * U
     czt = cz.index_select(0, gid.reshape(-1)).view(*gid.shape, 5)[..., :4].transpose(1, 2)  # [na, 4, k]
     v = torch.bmm(g4t, czt)  # [na, P, k]: g . (rgb, z) per slot
-    t = torch.mul(w, v)
+    ds = torch.bmm(g4, w)  # [na, 4, k]
+    t = w.mul_(v)  # (w is not needed again)
     t[:, :, 0] += -base if pc is None else pc - base  # earlier segments' prefix - base, carried by the sums:
     t.cumsum_(2)  # (earlier segments' prefix + this one's prefix sums of w v) - base
     pc = t[:, :, -1] + base  # the prefix after this segment (t is edited in place below)
@@ -385,7 +386,6 @@ def _seg_backward(geo: Tensor, cz: Tensor, gid: Tensor, centre: Tensor, feats: T
     ind = torch.minimum(U.mul_(c.u_scale), r.sub_(c.r_max).mul_(-c.r_scale), out=U).clamp_(max=1.0)
     dpow = t.mul_(ind)
     Rs = torch.matmul(feats, dpow)  # [na, 6, k]: sums of dpow * pixel features
-    ds = torch.bmm(g4, w)  # [na, 4, k]
     return _slot_grads(q, Rs, ds), Tlast, pc
 
 
