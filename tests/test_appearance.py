@@ -379,6 +379,7 @@ def test_eval_of_a_run_that_learnt_each_photos_light_leads_with_the_compensated_
     assert report["headline"] == "compensated" and report["compensated_psnr"] > report["psnr"]
     assert "appearance compensated" in r.output and "Headline: the appearance-compensated score" in (
         proj.reports_dir / "eval.md").read_text()
+    assert "raw (colour fitted" not in " ".join(r.output.split())  # the raw score is not labelled with the other's protocol
 
 
 def test_training_view_scores_go_through_each_photos_transform(monkeypatch):

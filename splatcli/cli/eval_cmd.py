@@ -87,8 +87,9 @@ def evaluate(
              if r.headline == "compensated" else f"{r.split} split: {raw} over {len(r.per_image)} views")
     ui.summary(r.summary() | ({"mesh": geo.to_json()} if geo else {}), title=title,
                lines=[f"PSNR after a per-view colour fit (exposure and white balance removed): {r.psnr_color_fit:.2f} dB",
-                      f"{'raw' if r.headline == 'compensated' else 'appearance compensated'} (colour fitted on each "
-                      f"view's left half, scored on its right half): {raw if r.headline == 'compensated' else comp}",
+                      ("appearance compensated: each view's colour fitted on its left half, scored on its right half; "
+                       "raw: every pixel as rendered" if r.headline == "compensated" else
+                       f"appearance compensated (colour fitted on each view's left half, scored on its right half): {comp}"),
                       f"{r.num_gaussians:,} Gaussians (SH {r.sh_degree}, {r.ply_bytes / 1e6:.2f} MB): "
                       f"{r.render_fps:.2f} frames/s at {r.width}x{r.height} on {r.device} ({r.renderer})"]
                + ([f"masks: scored on {r.masks}"] if r.masks else [])
