@@ -304,10 +304,11 @@ def _alpha(coef2: Tensor, featsT: Tensor, a_min: float) -> Tensor:  # [nb, P, k]
     return a.clamp_max_(ALPHA_MAX)
 
 
-def _ratio_transmittance(alpha: Tensor, Tc: Tensor | None, t_min: float) -> tuple[Tensor, Tensor]:
-    """r = alpha / (1 - alpha), and U as `_transmittance`'s. T entering is carried in the scan's
-    first factor, which saves a pass over U. alpha becomes r (in place: a dense tensor written where
-    it was read costs far less than a new one)."""
+def _transmittance(alpha: Tensor, Tc: Tensor | None, t_min: float) -> tuple[Tensor, Tensor]:  # [na, P, k] each
+    """r = alpha / (1 - alpha), and U = T after each Gaussian (Tc [na, P] the T entering, None: 1),
+    zero from the first one that would bring T below 1e-4 (that one and all behind it are not
+    blended). T entering is carried in the scan's first factor, which saves a pass over U. alpha
+    becomes r (in place: a dense tensor written where it was read costs far less than a new one)."""
     om = torch.rsub(alpha, 1.0)
     r = alpha.div_(om)
     if Tc is not None:
@@ -317,20 +318,9 @@ def _ratio_transmittance(alpha: Tensor, Tc: Tensor | None, t_min: float) -> tupl
     return r, U
 
 
-def _transmittance(alpha: Tensor, Tc: Tensor | None, t_min: float):
-    """om = 1 - alpha; U = T after each Gaussian (Tc [na, P] the T entering, None: 1), zero
-    from the first one that would bring T below 1e-4 (that one and all behind it are not blended)."""
-    om = torch.rsub(alpha, 1.0)
-    U = torch.cumprod(om, 2)
-    if Tc is not None:
-        U.mul_(Tc[..., None])
-    F.threshold_(U, t_min, 0.0)
-    return om, U
-
-
-def _median_weight(a: Tensor, om: Tensor, U: Tensor) -> Tensor:  # [na, P, k] each
-    """1 at the slot where transmittance crosses 0.5 (T_before > 0.5 >= T_after), else 0."""
-    return ((U > 0.5 * om) & (U <= 0.5)).to(a.dtype)
+def _median_weight(r: Tensor, U: Tensor) -> Tensor:  # [na, P, k] each
+    """1 at the slot where transmittance crosses 0.5 (T_before = U (1 + r) > 0.5 >= T_after), else 0."""
+    return ((torch.addcmul(U, U, r) > 0.5) & (U <= 0.5)).to(U.dtype)
 
 
 def _seg_forward(geo: Tensor, cz: Tensor, gid: Tensor, centre: Tensor, featsT: Tensor, Tc: Tensor | None,
@@ -338,17 +328,16 @@ def _seg_forward(geo: Tensor, cz: Tensor, gid: Tensor, centre: Tensor, featsT: T
     """One segment of the forward pass: geo [N + 1, 6] and cz [N + 1, 5] (`_Gauss`), gid [na, k]
     slot ids, centre [na, 2], featsT [P, 6], Tc [na, P] transmittance entering (None: 1). Returns
     the sums of a weight times (r, g, b, z, 1) per pixel [na, 5, P] and T after [na, P]: the blending
-    weight alpha T_before (weight None: the picture), or weight(alpha, 1 - alpha, T after)
+    weight alpha T_before (weight None: the picture), or weight(alpha / (1 - alpha), T after)
     (`_median_weight`: the median depth).
     `kept`: a list that r = alpha / (1 - alpha) and T after [na, P, k] are appended to, for the
     backward (blending weights only)."""
     p = geo.index_select(0, gid.reshape(-1)).view(*gid.shape, 6)  # [na, k, 6]
     a = _alpha(_coef(p, centre)[0], featsT, a_min)
+    r, U = _transmittance(a, Tc, t_min)
     if weight is not None:
-        om, U = _transmittance(a, Tc, t_min)
-        w = weight(a, om, U)
+        w = weight(r, U)
     else:
-        r, U = _ratio_transmittance(a, Tc, t_min)
         w = r.mul_(U) if kept is None else r * U  # alpha T_before; 0 where not blended
         if kept is not None:
             kept.append((r, U))
@@ -369,7 +358,7 @@ def _seg_backward(geo: Tensor, cz: Tensor, gid: Tensor, centre: Tensor, feats: T
     if saved is not None:
         r, U = saved
     else:
-        r, U = _ratio_transmittance(_alpha(coef2, featsT, c.a_min), Tc, c.t_min)
+        r, U = _transmittance(_alpha(coef2, featsT, c.a_min), Tc, c.t_min)
     w = r * U
     czt = cz.index_select(0, gid.reshape(-1)).view(*gid.shape, 5)[..., :4].transpose(1, 2)  # [na, 4, k]
     v = torch.bmm(g4t, czt)  # [na, P, k]: g . (rgb, z) per slot
@@ -426,7 +415,7 @@ def _terminate(act: Tensor | None, Tc: Tensor, more: Tensor, *carry: Tensor):
 def _blend(plan: Plan, means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor, depths: Tensor,
            weight=None, kept: list | None = None) -> Tensor:  # [nblocks, 5, P]: sums of weight times (r, g, b, z, 1) per pixel
     """The forward pass over the plan's chunks and segments, each slot weighted by its blending
-    weight (weight None: the picture) or `weight(alpha, 1 - alpha, T_after)` (the 0.5 crossing
+    weight (weight None: the picture) or `weight(alpha / (1 - alpha), T_after)` (the 0.5 crossing
     for the median depth). `kept`: a list that each segment's alpha / (1 - alpha) and T after are
     appended to, in order, until they hold KEEP_BYTES (the backward computes the rest again)."""
     dt, dev = means2d.dtype, means2d.device
