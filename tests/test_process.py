@@ -349,6 +349,28 @@ def test_images_left_out_by_sequential_matching_are_matched_with_every_image(sce
     assert res.num_pairs < len(names) * (len(names) - 1) // 2  # never all pairs
 
 
+def test_many_images_left_out_are_matched_with_those_most_like_them_not_with_every_image(scene, tmp_path,
+                                                                                         monkeypatch):
+    """The broken capture order above, where matching the 8 left out with every image would take more
+    pairs than the first matching had: each is matched with its 4 most alike (retrieval) instead."""
+    import splatcli.sfm.reconstruct as rec
+
+    names = sorted(p.name for p in (scene / "images").glob("*.jpg"))
+    first = set(names[:8])
+    real = rec.sequential_pairs
+    monkeypatch.setattr(rec, "sequential_pairs", lambda n, k: [p for p in real(n, k) if set(p) <= first])
+    monkeypatch.setattr(rec, "EVERY_PAIR_MIN", 0)
+    notes = []
+    res = rec.run_sfm(scene / "images", names, tmp_path / "work",
+                      rec.SfmOptions(exhaustive_max_images=0, num_threads=1, loop_neighbours=0, retrieval_neighbours=4),
+                      cameras=[names], min_side=H, where=scene, on_event=notes.append)
+    assert res.matcher == "sequential+retrieval" and res.unregistered == []
+    said = [n.message for n in notes if isinstance(n, Note)]
+    assert any("left 8 image(s) out; matching each with the 4 images most like it" in m for m in said), said
+    every = len([p for p in rec.exhaustive_pairs(names) if not set(p) <= first])
+    assert res.num_pairs < len(real(names[:8], 5)) + every
+
+
 def test_loop_pairs_by_retrieval_join_what_sequential_pairs_miss(scene, tmp_path, monkeypatch):
     """The same broken order as above, with the default loop pairs: each frame is also matched
     with its most alike (sfm/retrieval.py), which reach past the break, so every view registers
@@ -534,22 +556,18 @@ def test_photos_without_exif_from_two_cameras_that_all_register_together_still_g
     assert e.max_rotation_deg < 1.0 and e.max_center_error_rel < 0.01
 
 
-def test_photos_without_exif_from_one_camera_keep_one_shared_camera(scene, tmp_path):
-    """The scene's own views, no EXIF: a camera each finds one focal length, so the shared camera stays."""
-    r = process(_zoomed(scene, tmp_path / "plain", 1.0, 4), tmp_path / "p")
-    assert len(r.cameras) == 1 and r.registered == N_VIEWS
-    assert any("cameras instead of 1" in t for t in r.sfm_tried)  # compared, and not kept
-    assert not any("kept one camera each" in t for t in r.sfm_tried)
-
-
-def test_frames_in_shooting_order_that_all_register_are_not_mapped_again_a_camera_each(scene, tmp_path):
-    """Sequential matching (frames in order) registered every image on one camera: the comparison with a
-    camera each is skipped, and the manifest's attempts say why."""
+@pytest.mark.parametrize("matcher", ["auto", "sequential"])
+def test_photos_without_exif_from_one_camera_that_all_register_are_not_mapped_again_a_camera_each(scene, tmp_path,
+                                                                                                  matcher):
+    """The scene's own views, no EXIF, all pairs or in shooting order: every view registers on one shared
+    camera, and the focal length found for each view alone is the same, so SfM does not map them again
+    with a camera each; the manifest's attempts and a note say why."""
     notes = []
-    r = process(_zoomed(scene, tmp_path / "plain", 1.0, 4), tmp_path / "p", ProcessConfig(matcher="sequential"),
+    r = process(_zoomed(scene, tmp_path / "plain", 1.0, 4), tmp_path / "p", ProcessConfig(matcher=matcher),
                 on_event=notes.append)
     assert len(r.cameras) == 1 and r.registered == N_VIEWS
-    assert any("every image registered in shooting order" in t for t in r.sfm_tried), r.sfm_tried
+    assert any("every image registered, and the focal lengths found one image at a time spread 1.0" in t
+               for t in r.sfm_tried), r.sfm_tried
     assert not any("cameras instead of 1" in t for t in r.sfm_tried)
     assert any("not mapping again with a camera each" in n.message for n in notes if isinstance(n, Note))
 

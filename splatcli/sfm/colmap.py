@@ -281,6 +281,34 @@ class Model:
         return {im.name: float(self._rec.cameras[im.camera_id].mean_focal_length())
                 for im in self._rec.images.values() if im.has_pose}
 
+    def estimated_focals(self, min_points: int = 50) -> dict[str, float]:
+        """Registered image name -> a focal length (px) found for that image alone: its absolute pose
+        with the focal length unknown, from its 2D-3D matches in this model (images with fewer than
+        `min_points`, or where no pose is found, are left out). Photos that fit one shared camera give
+        about the same value each; photos from several cameras forced onto one do not."""
+        pycolmap = _pc()
+        est = pycolmap.AbsolutePoseEstimationOptions()
+        est.estimate_focal_length = True
+        est.ransac.max_error = 4.0
+        est.ransac.random_seed = 0
+        ref = pycolmap.AbsolutePoseRefinementOptions()
+        ref.refine_focal_length = True
+        out = {}
+        for im in self._rec.images.values():
+            if not im.has_pose:
+                continue
+            obs = [(p.xy, self._rec.points3D[p.point3D_id].xyz) for p in im.points2D if p.has_point3D()]
+            if len(obs) < min_points:
+                continue
+            cam = self._rec.cameras[im.camera_id]
+            guess = pycolmap.Camera(model="SIMPLE_PINHOLE", width=cam.width, height=cam.height,
+                                    params=[cam.mean_focal_length(), cam.width / 2, cam.height / 2])
+            found = pycolmap.estimate_and_refine_absolute_pose(np.array([o[0] for o in obs], np.float64),
+                                                               np.array([o[1] for o in obs], np.float64), guess, est, ref)
+            if found is not None:
+                out[im.name] = float(guess.mean_focal_length())
+        return out
+
     def camera_models(self) -> set[str]:
         return {_model_name(c) for c in self._rec.cameras.values()}
 

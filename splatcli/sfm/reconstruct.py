@@ -27,7 +27,7 @@ from ..errors import SplatError
 from ..events import EventSink, Note, Stages, emit
 from . import colmap
 from .colmap import MapperOptions, MatchOptions, Model, SiftOptions
-from .retrieval import retrieval_pairs
+from .retrieval import nearest_pairs, similarity
 
 MATCHERS = ("auto", "exhaustive", "sequential", "retrieval")
 
@@ -141,10 +141,19 @@ def choose_matcher(opts: SfmOptions, names: list[str]) -> str:
     return "sequential" if looks_ordered(names) else "retrieval"
 
 
+# Images a mapping left out are matched again with every image when that is at most this many pairs,
+# or as many as the first matching had (a bounded retry); beyond, with the images most like each.
+EVERY_PAIR_MIN = 2000
 # One camera each is kept over a shared one when the focal lengths it finds spread by more
 # than this (90th over 10th percentile): far less on fox's photos from one camera, far more on
 # the same photos cropped as four zooms (docs/benchmarks.md, "process").
 FOCAL_SPREAD = 1.15
+# Every image registered on a shared camera: the focal lengths found for each image alone (its pose
+# with the focal length unknown, from its matches in that model) under this spread (90th over 10th
+# percentile) mean one camera fits them, and no mapping with a camera each is tried. A shared camera
+# bends the model towards itself, so photos from several cameras spread far less here than their true
+# focal lengths do (docs/guide.md, "Cameras"): 1.11x for a quarter of the sample's views zoomed 1.5x.
+ONE_CAMERA_SPREAD = 1.05
 # SIFT goes again to the upsampled octave when its image's short side is under this and the
 # mapping left over 10% of the images out (not for a few blurry frames of a video): upsampling
 # larger images costs much and is rarely needed.
@@ -200,15 +209,24 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
     # -- matching
     matcher = choose_matcher(opts, names)
     mopts = MatchOptions(num_threads=opts.num_threads, seed=opts.seed)
+    sim: list[np.ndarray] = []  # the images' likeness (retrieval), computed once when first asked for
+
+    def alike(k: int, of: set[str] | None = None) -> list[tuple[str, str]]:
+        if not sim:
+            with clock.stage("retrieve pairs", 1) as st:
+                sim.append(similarity(colmap.read_descriptors(db, names), seed=opts.seed))
+                st.progress(1)
+        return nearest_pairs(names, sim[0], k, of)
+
     if matcher == "sequential":
         pairs = sequential_pairs(names, opts.sequential_overlap)
         if opts.loop_neighbours and len(names) > 2 * opts.sequential_overlap:
             # A walk that comes back to where it started meets its own first frames far apart in
             # time: those pairs come from retrieval.
             known = set(pairs)
-            pairs += [q for q in _retrieve(db, names, opts.loop_neighbours, opts.seed, clock) if q not in known]
+            pairs += [q for q in alike(opts.loop_neighbours) if q not in known]
     elif matcher == "retrieval":
-        pairs = _retrieve(db, names, opts.retrieval_neighbours, opts.seed, clock)
+        pairs = alike(opts.retrieval_neighbours)
     else:
         pairs = exhaustive_pairs(names)
         if len(names) > 200:
@@ -223,13 +241,22 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
     used = matcher
     if matcher != "exhaustive" and opts.matcher == "auto" and (not models or models[0].num_registered < len(names)):
         out = set(names) - set(models[0].registered_names() if models else [])
-        emit(on_event, Note(f"{matcher} matching left {len(out)} image(s) out; matching them with every image"))
         # Only pairs touching a left-out image: one bad frame in a long video must not cost N^2 pairs.
+        # And no more of them than the first matching had: where many are left out, each is matched
+        # with the images most like it (retrieval) instead of with every image.
         rest = [p for p in exhaustive_pairs(names) if p not in matched and (p[0] in out or p[1] in out)]
+        if len(rest) <= max(len(matched), EVERY_PAIR_MIN):
+            emit(on_event, Note(f"{matcher} matching left {len(out)} image(s) out; matching them with every image"))
+            used = f"{matcher}+exhaustive"
+        else:
+            every, rest = len(rest), [p for p in alike(opts.retrieval_neighbours, out) if p not in matched]
+            emit(on_event, Note(f"{matcher} matching left {len(out)} image(s) out; matching each with the "
+                                f"{opts.retrieval_neighbours} images most like it ({len(rest):,} pairs, not the "
+                                f"{every:,} with every image)"))
+            used = f"{matcher}+retrieval"
         _match(db, rest, work_dir, mopts, clock)
         matched.update(rest)
         models = _map(db, image_dir, work_dir / "models2", mapper, len(names), clock)
-        used = f"{matcher}+exhaustive"
     tried = [f"{used} matching with COLMAP's thresholds"]
     if not models or models[0].num_registered < 2:
         # Try harder: a starting pair with fewer inliers and less parallax than COLMAP asks for.
@@ -240,25 +267,33 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
         tried.append(f"relaxed initial-pair thresholds ({RELAXED_INIT['init_min_num_inliers']} inliers, "
                      f"{RELAXED_INIT['init_min_tri_angle']:g} degrees){_outcome(models, t0, on_event, 'relaxed initial-pair thresholds')}")
     weak_split = False
-    if split_cameras is not None and used == "sequential" and models and models[0].num_registered == len(names):
-        # Frames in shooting order that all registered on one camera come from one camera (a video,
-        # a walk around with one phone): a second mapping with a camera each would only confirm it.
-        emit(on_event, Note(f"all {len(names)} images registered in shooting order with one camera; not mapping "
-                            "again with a camera each (--per-image-cameras asks for that)"))
-        tried.append(f"no mapping with {len(split_cameras)} cameras: every image registered in shooting order")
-        split_cameras = None
+    if split_cameras is not None and models and models[0].num_registered == len(names):
+        # Every image registered: a second mapping with a camera each pays only where one shared
+        # camera does not fit them. Each image's focal length found on its own (from its matches in
+        # the model) tells that at once: about the same for photos from one camera, far apart for
+        # photos from several forced onto one (which register, with bent poses).
+        t0 = time.perf_counter()
+        spread = _focal_spread(models[0].estimated_focals(), cameras, split_cameras)
+        if spread <= ONE_CAMERA_SPREAD:
+            emit(on_event, Note(f"all {len(names)} images registered, and the focal lengths found for each alone "
+                                f"agree (spread {spread:.2f}x): one camera fits them; not mapping again with a "
+                                "camera each (--per-image-cameras asks for that)"))
+            tried.append(f"no mapping with {len(split_cameras)} cameras: every image registered, and the focal "
+                         f"lengths found one image at a time spread {spread:.2f}x ({time.perf_counter() - t0:.1f} s)")
+            split_cameras = None
     if split_cameras is not None:
         # Photos grouped by size alone may come from several cameras. One shared camera then
         # registers badly, or (worse) registers them all with poses bent to fit one focal
         # length. So they are also mapped with one camera each, and that model is kept when it
         # registers more, or nearly as many with focal lengths that differ (several cameras).
         n0 = models[0].num_registered if models else 0
-        if n0 < len(names) / 2:
+        if n0 < len(names):
             emit(on_event, Note(f"{n0} of {len(names)} images registered with {len(cameras)} camera(s); mapping again "
-                                f"with {len(split_cameras)}"))
+                                f"with {len(split_cameras)} (the photos without EXIF camera data one each)"))
         else:
-            emit(on_event, Note(f"photos without EXIF camera data may come from several cameras: mapping again with "
-                                f"{len(split_cameras)}, one each, to compare"))
+            emit(on_event, Note(f"the focal lengths found for each image alone spread {spread:.2f}x: the photos "
+                                f"without EXIF camera data may come from several cameras; mapping again with "
+                                f"{len(split_cameras)}, one each"))
         t0 = time.perf_counter()
         split_db = work_dir / "database_split.db"
         colmap.regroup_database(db, split_db, image_dir, split_cameras, camera_model=opts.camera_model)
@@ -400,14 +435,6 @@ def _match(db: Path, pairs: list[tuple[str, str]], work_dir: Path, mopts: MatchO
         for i in range(0, len(pairs), step):
             colmap.match_pairs(db, pairs[i : i + step], work_dir / "pairs.txt", mopts)
             st.progress(min(i + step, len(pairs)))
-
-
-def _retrieve(db: Path, names: list[str], k: int, seed: int, clock: Stages) -> list[tuple[str, str]]:
-    """Each image with its `k` most alike (sfm/retrieval.py), from the database's descriptors."""
-    with clock.stage("retrieve pairs", 1) as st:
-        pairs = retrieval_pairs(names, colmap.read_descriptors(db, names), k, seed=seed)
-        st.progress(1)
-    return pairs
 
 
 def _outcome(models: list[Model], t0: float, on_event: EventSink | None, label: str = "") -> str:

@@ -63,19 +63,33 @@ def vlad(desc: np.ndarray, centers: np.ndarray) -> np.ndarray:  # [n, 128] RootS
     return flat / max(float(np.linalg.norm(flat)), 1e-12)
 
 
-def retrieval_pairs(names: list[str], descs: list[np.ndarray], k: int, seed: int = 0) -> list[tuple[str, str]]:
-    """Each image with the `k` images most alike (VLAD, module docstring); pairs in `names`' order,
-    each once. `descs[i]` holds image i's SIFT descriptors, [n_i, 128] uint8."""
-    n = len(names)
-    if n < 2:
-        return []
+def similarity(descs: list[np.ndarray], seed: int = 0) -> np.ndarray:  # -> [n, n]
+    """Cosine similarity of the images' VLAD descriptors (module docstring), -inf on the diagonal.
+    `descs[i]` holds image i's SIFT descriptors, [n_i, 128] uint8."""
     centers = vocabulary(descs, seed=seed)
-    g = np.stack([vlad(root_sift(d), centers) for d in descs])  # [n, K * 128]; one image's floats at a time
+    g = np.stack([vlad(root_sift(d), centers) for d in descs]) if descs else np.zeros((0, 0), np.float32)  # [n, K * 128]; one image's floats at a time
     sim = g @ g.T  # [n, n] cosine
     np.fill_diagonal(sim, -np.inf)
+    return sim
+
+
+def nearest_pairs(names: list[str], sim: np.ndarray, k: int, of: set[str] | None = None) -> list[tuple[str, str]]:
+    """Each image (each of `of`, None: all) with the `k` images most alike by `sim` [n, n]; pairs in
+    `names`' order, each once."""
+    n = len(names)
     k = min(k, n - 1)
     out = set()
     for i in range(n):
+        if k <= 0 or (of is not None and names[i] not in of):
+            continue
         for j in np.argsort(-sim[i], kind="stable")[:k]:
             out.add((min(i, int(j)), max(i, int(j))))
     return [(names[i], names[j]) for i, j in sorted(out)]
+
+
+def retrieval_pairs(names: list[str], descs: list[np.ndarray], k: int, seed: int = 0) -> list[tuple[str, str]]:
+    """Each image with the `k` images most alike (VLAD, module docstring); pairs in `names`' order,
+    each once. `descs[i]` holds image i's SIFT descriptors, [n_i, 128] uint8."""
+    if len(names) < 2:
+        return []
+    return nearest_pairs(names, similarity(descs, seed), k)
