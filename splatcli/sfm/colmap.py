@@ -287,12 +287,9 @@ class Model:
         `min_points`, or where no pose is found, are left out). Photos that fit one shared camera give
         about the same value each; photos from several cameras forced onto one do not."""
         pycolmap = _pc()
-        est = pycolmap.AbsolutePoseEstimationOptions()
-        est.estimate_focal_length = True
-        est.ransac.max_error = 4.0
-        est.ransac.random_seed = 0
-        ref = pycolmap.AbsolutePoseRefinementOptions()
-        ref.refine_focal_length = True
+        est = pycolmap.AbsolutePoseEstimationOptions(estimate_focal_length=True)
+        est.mergedict({"ransac": {"max_error": 4.0, "random_seed": 0}})  # (COLMAP's other RANSAC defaults kept)
+        ref = pycolmap.AbsolutePoseRefinementOptions(refine_focal_length=True)
         out = {}
         for im in self._rec.images.values():
             if not im.has_pose:
