@@ -250,13 +250,16 @@ def run_sfm(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions,
             used = f"{matcher}+exhaustive"
         else:
             every, rest = len(rest), [p for p in alike(opts.retrieval_neighbours, out) if p not in matched]
-            emit(on_event, Note(f"{matcher} matching left {len(out)} image(s) out; matching each with the "
-                                f"{opts.retrieval_neighbours} images most like it ({len(rest):,} pairs, not the "
-                                f"{every:,} with every image)"))
-            used = f"{matcher}+retrieval"
-        _match(db, rest, work_dir, mopts, clock)
-        matched.update(rest)
-        models = _map(db, image_dir, work_dir / "models2", mapper, len(names), clock)
+            k = opts.retrieval_neighbours
+            emit(on_event, Note(f"{matcher} matching left {len(out)} image(s) out; " + (
+                f"matching each with the {k} images most like it ({len(rest):,} pairs, not the {every:,} with every "
+                "image)" if rest else f"each was matched with the {k} images most like it already, and matching them "
+                f"with every image would take {every:,} pairs: not tried (--matcher exhaustive does)")))
+            used = f"{matcher}+retrieval" if rest else matcher
+        if rest:
+            _match(db, rest, work_dir, mopts, clock)
+            matched.update(rest)
+            models = _map(db, image_dir, work_dir / "models2", mapper, len(names), clock)
     tried = [f"{used} matching with COLMAP's thresholds"]
     if not models or models[0].num_registered < 2:
         # Try harder: a starting pair with fewer inliers and less parallax than COLMAP asks for.
