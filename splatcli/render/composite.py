@@ -23,7 +23,8 @@ early termination.
 Per-slot work (coefficients, gradient scatter) happens per segment for active blocks
 only, so pairs behind saturated pixels cost only their planning.
 
-The backward takes alpha and T of each segment from the forward, which keeps them up to
+The backward takes alpha and T of each segment from the forward (with its per-slot terms and
+gathered rows), which keeps them up to
 KEEP_BYTES (a small share of a dense render's time saved; beyond that budget, keeping more made
 the forward slower than it saved), and computes the rest again. It uses the 3DGS identity for
 the colour behind a Gaussian, suffix_i = C_final - prefix_i, so it needs no back-to-front pass. The per-slot gradient sums over pixels are again one GEMM
@@ -330,37 +331,38 @@ def _seg_forward(geo: Tensor, cz: Tensor, gid: Tensor, centre: Tensor, featsT: T
     the sums of a weight times (r, g, b, z, 1) per pixel [na, 5, P] and T after [na, P]: the blending
     weight alpha T_before (weight None: the picture), or weight(alpha / (1 - alpha), T after)
     (`_median_weight`: the median depth).
-    `kept`: a list that r = alpha / (1 - alpha) and T after [na, P, k] are appended to, for the
-    backward (blending weights only)."""
+    `kept`: a list that r = alpha / (1 - alpha) and T after [na, P, k], the exponent terms (`_coef`)
+    and the gathered (r, g, b, z, 1) rows are appended to, for the backward (blending weights only)."""
     p = geo.index_select(0, gid.reshape(-1)).view(*gid.shape, 6)  # [na, k, 6]
-    a = _alpha(_coef(p, centre)[0], featsT, a_min)
-    r, U = _transmittance(a, Tc, t_min)
+    coef2, q = _coef(p, centre)
+    r, U = _transmittance(_alpha(coef2, featsT, a_min), Tc, t_min)
+    czg = cz.index_select(0, gid.reshape(-1)).view(*gid.shape, 5)
     if weight is not None:
         w = weight(r, U)
     else:
         w = r.mul_(U) if kept is None else r * U  # alpha T_before; 0 where not blended
         if kept is not None:
-            kept.append((r, U))
-    czg = cz.index_select(0, gid.reshape(-1)).view(*gid.shape, 5)
+            kept.append((r, U, q, czg))
     return torch.bmm(czg.transpose(1, 2), w.transpose(1, 2)), U[:, :, -1]
 
 
 def _seg_backward(geo: Tensor, cz: Tensor, gid: Tensor, centre: Tensor, feats: Tensor, featsT: Tensor,
                   Tc: Tensor | None, g4: Tensor, g4t: Tensor, base: Tensor, pc: Tensor | None, c: _Consts,
-                  saved: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor, Tensor]:
+                  saved: tuple | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """One segment of the backward pass, alpha and T recomputed: g4 [na, 4, P] and g4t [na, P, 4]
     the image gradient of (r, g, b, z), base [na, P] (see backward), pc [na, P] the prefix sum of
     w v over the earlier segments (None in the first). Returns d(u, v, A, B, C, log o, r, g, b, z) per slot [na, k, 10],
-    T after [na, P] and the prefix sum after [na, P]. `saved`: the forward's alpha / (1 - alpha) and T
-    after for this segment (used up here), instead of computing them again."""
-    p = geo.index_select(0, gid.reshape(-1)).view(*gid.shape, 6)
-    coef2, q = _coef(p, centre)
+    T after [na, P] and the prefix sum after [na, P]. `saved`: the forward's alpha / (1 - alpha), T
+    after, exponent terms and gathered (r, g, b, z, 1) rows for this segment (used up here), instead
+    of computing them again."""
     if saved is not None:
-        r, U = saved
+        r, U, q, czg = saved
     else:
+        coef2, q = _coef(geo.index_select(0, gid.reshape(-1)).view(*gid.shape, 6), centre)
         r, U = _transmittance(_alpha(coef2, featsT, c.a_min), Tc, c.t_min)
+        czg = cz.index_select(0, gid.reshape(-1)).view(*gid.shape, 5)
     w = r * U
-    czt = cz.index_select(0, gid.reshape(-1)).view(*gid.shape, 5)[..., :4].transpose(1, 2)  # [na, 4, k]
+    czt = czg[..., :4].transpose(1, 2)  # [na, 4, k]
     v = torch.bmm(g4t, czt)  # [na, P, k]: g . (rgb, z) per slot
     ds = torch.bmm(g4, w)  # [na, 4, k]
     t = w.mul_(v)  # (w is not needed again)
@@ -416,8 +418,9 @@ def _blend(plan: Plan, means2d: Tensor, conics: Tensor, opacities: Tensor, color
            weight=None, kept: list | None = None) -> Tensor:  # [nblocks, 5, P]: sums of weight times (r, g, b, z, 1) per pixel
     """The forward pass over the plan's chunks and segments, each slot weighted by its blending
     weight (weight None: the picture) or `weight(alpha / (1 - alpha), T_after)` (the 0.5 crossing
-    for the median depth). `kept`: a list that each segment's alpha / (1 - alpha) and T after are
-    appended to, in order, until they hold KEEP_BYTES (the backward computes the rest again)."""
+    for the median depth). `kept`: a list that each segment's alpha / (1 - alpha), T after, exponent
+    terms and gathered rows are appended to, in order, until they hold KEEP_BYTES (the backward computes
+    the rest again)."""
     dt, dev = means2d.dtype, means2d.device
     N = means2d.shape[0]
     P = plan.block * plan.block
@@ -439,7 +442,7 @@ def _blend(plan: Plan, means2d: Tensor, conics: Tensor, opacities: Tensor, color
             o, Tc = _seg_forward(gs.geo, gs.cz, _rowsel(gid, act)[:, k0:k1].contiguous(), _rowsel(centre, act), featsT,
                                  Tc, c.a_min, c.t_min, weight, keep)
             if keep is not None:
-                kept_bytes += 2 * kept[-1][0].numel() * kept[-1][0].element_size()
+                kept_bytes += sum(x.numel() * x.element_size() for x in (*kept[-1][:2], *kept[-1][2], kept[-1][3]))
             if out is None:
                 out = o
             elif act is None:
