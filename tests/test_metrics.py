@@ -64,9 +64,35 @@ def test_psnr_of_identical_images_is_finite() -> None:
     assert math.isfinite(float(psnr(a, a))) and float(psnr(a, a)) >= 100
 
 
-def test_ssim_gradcheck() -> None:
-    # D-SSIM is a training loss: its gradient must be right
+@pytest.mark.parametrize("masked", [False, True])
+def test_ssim_gradcheck(masked: bool) -> None:
+    # D-SSIM is a training loss: its closed-form gradient must be right, for both images and with a mask
     g = torch.Generator().manual_seed(0)
     a = torch.rand(12, 13, 2, dtype=torch.float64, generator=g, requires_grad=True)
-    b = torch.rand(12, 13, 2, dtype=torch.float64, generator=g)
-    assert torch.autograd.gradcheck(lambda x: ssim(x, b), (a,), fast_mode=True)  # random projections: 2 passes, not 312
+    b = torch.rand(12, 13, 2, dtype=torch.float64, generator=g, requires_grad=True)
+    keep = torch.rand(12, 13, generator=g) > 0.3 if masked else None
+    assert torch.autograd.gradcheck(lambda x, y: ssim(x, y, keep), (a, b), fast_mode=True)  # random projections: 2 passes, not 312
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_ssim_gradient_matches_autograd_through_the_map(masked: bool) -> None:
+    """The closed-form backward against autograd through ssim_map (the reference), float32 at a
+    training size, both images, through a random upstream gradient."""
+    g = torch.Generator().manual_seed(1)
+    a = torch.rand(64, 80, 3, generator=g, requires_grad=True)
+    b = torch.rand(64, 80, 3, generator=g, requires_grad=True)
+    keep = torch.rand(64, 80, generator=g) > 0.3 if masked else None
+    cot = torch.randn((), generator=g)
+    if keep is None:
+        ref = ssim_map(a, b).mean()
+    else:
+        m = ssim_map(a * keep[..., None], b * keep[..., None])
+        w = keep[5:-5, 5:-5].float()
+        ref = (m * w).sum() / (w.sum() * m.shape[0])
+    got = ssim(a, b, keep)
+    assert float(got.detach()) == float(ref.detach())  # the same forward arithmetic
+    ga, gb = torch.autograd.grad(got * cot, (a, b))
+    ra, rb = torch.autograd.grad(ref * cot, (a, b))
+    # float32 sums in another order: a few ulps of the largest entry
+    for x, y in ((ga, ra), (gb, rb)):
+        assert torch.allclose(x, y, rtol=0, atol=1e-5 * float(y.abs().max()))

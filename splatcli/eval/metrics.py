@@ -43,41 +43,98 @@ def _gauss_1d(dtype: torch.dtype, device: torch.device) -> Tensor:  # [11]
     return (g / g.sum()).to(dtype=dtype, device=device)
 
 
-def ssim_map(pred: Tensor, gt: Tensor) -> Tensor:
-    """pred, gt: [H, W, C] in [0, 1]. Returns the SSIM map [C, H-10, W-10]."""
-    if pred.shape != gt.shape or pred.dim() != 3:
-        raise ValueError(f"ssim expects two [H, W, C] images of one shape, got {tuple(pred.shape)} and {tuple(gt.shape)}")
-    H, W, C = pred.shape
-    if H < SSIM_WINDOW or W < SSIM_WINDOW:
-        raise ValueError(f"ssim needs images of at least {SSIM_WINDOW}x{SSIM_WINDOW} pixels, got {W}x{H}")
-    x = pred.permute(2, 0, 1)  # [C, H, W]
-    y = gt.permute(2, 0, 1).to(x.dtype)
-    # The five moment maps as 5C channels of ONE image, filtered depthwise
-    # (groups=5C). On CPU this layout is many times faster forward+backward than a
-    # batch of 5C one-channel images, and the training loss runs it every step.
-    stack = torch.cat([x, y, x * x, y * y, x * y], dim=0).unsqueeze(0)  # [1, 5C, H, W]
-    k = stack.shape[1]
-    g = _gauss_1d(x.dtype, x.device)
-    m = F.conv2d(stack, g.view(1, 1, 1, -1).expand(k, 1, 1, SSIM_WINDOW).contiguous(), groups=k)
-    m = F.conv2d(m, g.view(1, 1, -1, 1).expand(k, 1, SSIM_WINDOW, 1).contiguous(), groups=k)
-    mu_x, mu_y, e_xx, e_yy, e_xy = m[0].split(C, dim=0)  # each [C, H-10, W-10]
+def _window(n: int, dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:  # [n, 1, 1, 11], [n, 1, 11, 1]
+    g = _gauss_1d(dtype, device)
+    return (g.view(1, 1, 1, -1).expand(n, 1, 1, SSIM_WINDOW).contiguous(),
+            g.view(1, 1, -1, 1).expand(n, 1, SSIM_WINDOW, 1).contiguous())
+
+
+def _filter(maps: Tensor) -> Tensor:  # [n, H, W] -> [n, H-10, W-10]: the window over the valid region
+    # All maps as channels of ONE image, filtered depthwise (groups=n). On CPU this layout is many
+    # times faster forward+backward than a batch of one-channel images, and the training loss runs it
+    # every step.
+    wx, wy = _window(maps.shape[0], maps.dtype, maps.device)
+    return F.conv2d(F.conv2d(maps.unsqueeze(0), wx, groups=maps.shape[0]), wy, groups=maps.shape[0])[0]
+
+
+def _filter_t(maps: Tensor) -> Tensor:  # [n, H-10, W-10] -> [n, H, W]: the transpose of _filter
+    wx, wy = _window(maps.shape[0], maps.dtype, maps.device)
+    t = F.conv_transpose2d(maps.unsqueeze(0), wy, groups=maps.shape[0])
+    return F.conv_transpose2d(t, wx, groups=maps.shape[0])[0]
+
+
+def _parts(x: Tensor, y: Tensor) -> tuple[Tensor, ...]:  # [C, H, W] each -> each [C, H-10, W-10]
+    """The filtered means and SSIM's four factors: S = (a1 a2) / (b1 b2)."""
+    C = x.shape[0]
+    mu_x, mu_y, e_xx, e_yy, e_xy = _filter(torch.cat([x, y, x * x, y * y, x * y], dim=0)).split(C, dim=0)
     var_x = e_xx - mu_x * mu_x
     var_y = e_yy - mu_y * mu_y
     cov = e_xy - mu_x * mu_y
-    num = (2 * mu_x * mu_y + _C1) * (2 * cov + _C2)
-    den = (mu_x * mu_x + mu_y * mu_y + _C1) * (var_x + var_y + _C2)
-    return num / den
+    a1, a2 = 2 * mu_x * mu_y + _C1, 2 * cov + _C2
+    b1, b2 = mu_x * mu_x + mu_y * mu_y + _C1, var_x + var_y + _C2
+    return mu_x, mu_y, a1, a2, b1, b2
+
+
+def _images(pred: Tensor, gt: Tensor) -> tuple[Tensor, Tensor]:  # [H, W, C] each -> [C, H, W] each
+    if pred.shape != gt.shape or pred.dim() != 3:
+        raise ValueError(f"ssim expects two [H, W, C] images of one shape, got {tuple(pred.shape)} and {tuple(gt.shape)}")
+    H, W, _ = pred.shape
+    if H < SSIM_WINDOW or W < SSIM_WINDOW:
+        raise ValueError(f"ssim needs images of at least {SSIM_WINDOW}x{SSIM_WINDOW} pixels, got {W}x{H}")
+    return pred.permute(2, 0, 1), gt.permute(2, 0, 1).to(pred.dtype)
+
+
+def ssim_map(pred: Tensor, gt: Tensor) -> Tensor:
+    """pred, gt: [H, W, C] in [0, 1]. Returns the SSIM map [C, H-10, W-10]."""
+    _, _, a1, a2, b1, b2 = _parts(*_images(pred, gt))
+    return (a1 * a2) / (b1 * b2)
+
+
+class _MeanSsim(torch.autograd.Function):
+    """Mean SSIM (over `w` [H-10, W-10], the windows' weights, when given) with its gradient in closed
+    form: d/dx = W^T(dS/dmu_x) + 2 x W^T(dS/de_xx) + y W^T(dS/de_xy), W the window filter, so the
+    backward filters three maps per channel where autograd's filters all five moments."""
+
+    @staticmethod
+    def forward(ctx, pred, gt, w):
+        x, y = _images(pred, gt)
+        mu_x, mu_y, a1, a2, b1, b2 = _parts(x, y)
+        S = (a1 * a2) / (b1 * b2)  # [C, h, w]
+        if w is None:
+            value, scale = S.mean(), torch.full((), 1.0 / S.numel(), dtype=S.dtype, device=S.device)
+        else:
+            denom = (w.sum() * S.shape[0]).clamp_min(1)
+            value, scale = (S * w).sum() / denom, w / denom
+        ctx.save_for_backward(x, y, mu_x, mu_y, a1, a2, b1, b2, S, scale)
+        return value
+
+    @staticmethod
+    def backward(ctx, g):
+        x, y, mu_x, mu_y, a1, a2, b1, b2, S, scale = ctx.saved_tensors
+        gS = g * scale  # d loss / d S, per window
+        q = gS / (b1 * b2)
+        d_e_xy = 2 * q * a1  # (the same for x and y)
+        out = []
+        for need, u, v, mu_u, mu_v in ((ctx.needs_input_grad[0], x, y, mu_x, mu_y), (ctx.needs_input_grad[1], y, x, mu_y, mu_x)):
+            if not need:
+                out.append(None)
+                continue
+            d_mu = 2 * q * (mu_v * (a2 - a1) - S * mu_u * (b2 - b1))
+            d_e_uu = -gS * S / b2
+            C = u.shape[0]
+            t_mu, t_uu, t_uv = _filter_t(torch.cat([d_mu, d_e_uu, d_e_xy], dim=0)).split(C, dim=0)
+            out.append((t_mu + 2 * u * t_uu + v * t_uv).permute(1, 2, 0))  # [H, W, C]
+        return out[0], out[1], None
 
 
 def ssim(pred: Tensor, gt: Tensor, keep: Tensor | None = None) -> Tensor:  # [H, W, C] each, keep [H, W] -> scalar
     """Mean SSIM over the valid region and the channels (and the kept pixels: module docstring)."""
+    gt = gt.to(pred.dtype)
     if keep is None:
-        return ssim_map(pred, gt).mean()
+        return _MeanSsim.apply(pred, gt, None)
     k = keep[..., None].to(pred.dtype)
-    m = ssim_map(pred * k, gt.to(pred.dtype) * k)  # [C, H-10, W-10]
     r = SSIM_WINDOW // 2
-    w = keep[r:-r, r:-r].to(m.dtype)  # the windows' centres
-    return (m * w).sum() / (w.sum() * m.shape[0]).clamp_min(1)
+    return _MeanSsim.apply(pred * k, gt * k, keep[r:-r, r:-r].to(pred.dtype))  # weights: the windows' centres
 
 
 def _affine_fit(x: Tensor, y: Tensor) -> Tensor:  # [P, 3] float64 each -> [4, 3]
