@@ -113,14 +113,13 @@ class _MeanSsim(torch.autograd.Function):
         x, y, mu_x, mu_y, a1, a2, b1, b2, S, scale = ctx.saved_tensors
         gS = g * scale  # d loss / d S, per window
         q = gS / (b1 * b2)
-        d_e_xy = 2 * q * a1  # (the same for x and y)
+        d_e_xy, d_e_uu = 2 * q * a1, -gS * S / b2  # (the same for x and y)
         out = []
         for need, u, v, mu_u, mu_v in ((ctx.needs_input_grad[0], x, y, mu_x, mu_y), (ctx.needs_input_grad[1], y, x, mu_y, mu_x)):
             if not need:
                 out.append(None)
                 continue
             d_mu = 2 * q * (mu_v * (a2 - a1) - S * mu_u * (b2 - b1))
-            d_e_uu = -gS * S / b2
             C = u.shape[0]
             t_mu, t_uu, t_uv = _filter_t(torch.cat([d_mu, d_e_uu, d_e_xy], dim=0)).split(C, dim=0)
             out.append((t_mu + 2 * u * t_uu + v * t_uv).permute(1, 2, 0))  # [H, W, C]

@@ -152,7 +152,7 @@ FOCAL_SPREAD = 1.15
 # with the focal length unknown, from its matches in that model) under this spread (90th over 10th
 # percentile) mean one camera fits them, and no mapping with a camera each is tried. A shared camera
 # bends the model towards itself, so photos from several cameras spread far less here than their true
-# focal lengths do (docs/guide.md, "Cameras"): 1.11x for a quarter of the sample's views zoomed 1.5x.
+# focal lengths do (docs/guide.md, "Cameras grouped as the photos were taken"): 1.11x for a quarter of the sample's views zoomed 1.5x.
 ONE_CAMERA_SPREAD = 1.05
 # SIFT goes again to the upsampled octave when its image's short side is under this and the
 # mapping left over 10% of the images out (not for a few blurry frames of a video): upsampling
