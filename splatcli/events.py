@@ -24,12 +24,15 @@ class Stage:
 @dataclass(frozen=True)
 class Progress:
     """`done` units of the current stage are finished; `info` holds live figures
-    (e.g. loss, PSNR, Gaussian count) for the progress bar."""
+    (e.g. loss, PSNR, Gaussian count) for the progress bar; `eta_s` the seconds left where
+    the stage knows them better than the count does (training: its time plan, or its steps
+    priced by their resolution), None: the displays extrapolate from the count."""
 
     name: str
     done: int
     total: int | None = None
     info: dict[str, Any] = field(default_factory=dict)
+    eta_s: float | None = None
 
 
 @dataclass(frozen=True)

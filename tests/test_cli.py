@@ -191,3 +191,21 @@ def test_off_a_terminal_a_long_stage_prints_a_line_now_and_then_with_its_eta(cap
     assert 8 <= len(logged) <= 10, err
     assert logged[0] == "train: 100/1,000 (10%), 0:10 elapsed, ETA 1:30  loss 0.5", logged[0]
     assert not any(line.startswith("quick: ") for line in err)
+
+
+def test_a_stage_that_knows_its_time_left_prints_it_rather_than_the_counts_extrapolation(capsys, monkeypatch):
+    """Training's steps slow down as the model grows and the resolution rises: its events carry the
+    time left (Progress.eta_s: the time plan's), which the log line prints instead of elapsed / done x left."""
+    from splatcli.cli import common
+    from splatcli.events import Progress, Stage, StageDone
+
+    now = [1000.0]
+    monkeypatch.setattr(common.time, "monotonic", lambda: now[0])
+    with common.Ui().progress() as sink:
+        sink(Stage("train", total=1000))
+        for step in range(1, 201):
+            now[0] += 0.1
+            sink(Progress("train", step, 1000, {}, eta_s=600.0 - now[0] + 1000.0))
+        sink(StageDone("train", 20.0))
+    logged = [line for line in capsys.readouterr().err.splitlines() if line.startswith("train: ")]
+    assert logged[0] == "train: 100/1,000 (10%), 0:10 elapsed, ETA 9:50", logged  # not 1:30

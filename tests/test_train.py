@@ -297,9 +297,13 @@ def test_time_budget_plans_a_compressed_schedule(tmp_path):
     # a preset-shaped template far longer than the budget allows
     template = {**SMALL, "iterations": 3000, "refine_start": 300, "refine_every": 100, "opacity_reset": 1500,
                 "refine_stop": 2000, "sh_degree_interval": 600}
-    s = train(proj.root, make_config(**template, time_budget=budget), CPU)
+    events: list = []
+    s = train(proj.root, make_config(**template, time_budget=budget), CPU, on_event=events.append)
     plan = s.plan
     assert plan is not None and plan["budget_s"] == budget and plan["template"]["iterations"] == 3000
+    etas = [e.eta_s for e in events if isinstance(e, Progress) and e.name == "train"]
+    assert etas and all(e is not None and 0.0 <= e <= budget for e in etas)  # the plan's time left
+    assert etas[0] > etas[-1] and etas[-1] <= 0.25 * budget
     assert len(plan["history"]) >= 2 and all(h["steps_per_s"] > 0 for h in plan["history"])
     assert s.steps == plan["history"][-1]["iterations"] < 3000
     assert s.train_seconds <= 1.25 * budget  # a tiny scene: plans are coarse at this scale
@@ -373,6 +377,23 @@ def test_the_eta_of_a_step_schedule_prices_the_steps_left_by_their_resolution():
     flat = make_config("demo")  # no coarse steps: the measured rate times the steps left
     assert told(flat, 200, 20.0, world=2).startswith(f"at least {log.duration(1300 / 10.0)} of training left at "
                                                      "20.00 steps/s")
+
+
+def test_the_progress_eta_is_the_plans_time_left_or_the_priced_steps_left():
+    """The time left that the progress bar and the log lines show: a planned run's budget less its
+    training seconds; a run without a plan, its steps left priced by resolution (as the note says),
+    None until ETA_AFTER_S seconds are measured, estimated again at most once a second."""
+    from types import SimpleNamespace
+
+    from splatcli.train import log
+    from splatcli.train.plan import step_costs
+
+    fast = make_config("fast", iterations=7000)
+    eta = log.Eta(SimpleNamespace(step=0, elapsed_s=0.0, world=1), fast)
+    assert eta.left(SimpleNamespace(step=50, elapsed_s=log.ETA_AFTER_S / 2, world=1)) is None
+    left = 20.0 * step_costs(fast, 7000, 100, 7000).sum() / step_costs(fast, 7000, 0, 100).sum()
+    assert eta.left(SimpleNamespace(step=100, elapsed_s=20.0, world=1)) == pytest.approx(left)
+    assert eta.left(SimpleNamespace(step=200, elapsed_s=20.5, world=1)) == pytest.approx(left)  # (within the second)
 
 
 def test_a_second_eta_comes_once_the_model_has_stopped_growing():

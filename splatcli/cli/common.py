@@ -81,6 +81,17 @@ def parse_background(text: str | None, *, auto: bool = False) -> tuple[float, fl
     return rgb  # type: ignore[return-value]
 
 
+class _Remaining(TimeRemainingColumn):
+    """Time left: the stage's own estimate where its events carry one (Progress.eta_s), else rich's
+    extrapolation from the count."""
+
+    def render(self, task: Any) -> Any:
+        eta = task.fields.get("eta")
+        if eta is None or task.finished:
+            return super().render(task)
+        return Text(_clock(eta), style="progress.remaining")
+
+
 class _Count(MofNCompleteColumn):
     """`done/total`, left blank for a stage that has no count (a spinner and a time)."""
 
@@ -127,7 +138,9 @@ class _LogLines:
             elapsed = now - t0
             count = f"{ev.done:,}" + (f"/{ev.total:,} ({100 * ev.done / ev.total:.0f}%)" if ev.total else "")
             eta = ""
-            if ev.total and 0 < ev.done < ev.total:
+            if ev.eta_s is not None and (not ev.total or ev.done < ev.total):
+                eta = f", ETA {_clock(ev.eta_s)}"
+            elif ev.total and 0 < ev.done < ev.total:
                 eta = f", ETA {_clock(elapsed / ev.done * (ev.total - ev.done))}"
             info = "  ".join(f"{k} {_fmt(v)}" for k, v in ev.info.items())
             self.console.print(escape(f"{ev.name}: {count}, {_clock(elapsed)} elapsed{eta}" + (f"  {info}" if info else "")))
@@ -158,7 +171,7 @@ class Ui:
             BarColumn(),
             _Count(),
             TimeElapsedColumn(),
-            TimeRemainingColumn(),
+            _Remaining(),
             TextColumn("{task.fields[info]}"),
             console=self.err,
             transient=False,
@@ -187,7 +200,7 @@ class Ui:
                 if ev.name not in tasks:
                     tasks[ev.name] = bars.add_task(ev.name, total=ev.total, info="")
                 info = "  ".join(f"{k} {_fmt(v)}" for k, v in ev.info.items())
-                bars.update(tasks[ev.name], completed=ev.done, total=ev.total, info=info, counted=True)
+                bars.update(tasks[ev.name], completed=ev.done, total=ev.total, info=info, counted=True, eta=ev.eta_s)
             elif isinstance(ev, StageDone):
                 tid = tasks.get(ev.name)
                 if tid is not None:

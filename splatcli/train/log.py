@@ -128,6 +128,16 @@ class Eta:
         self.grown = cfg.refine.refine_stop  # the step growth ends at
         self.again = state.step < self.grown < cfg.total_steps  # a second note is due then
         self.since: tuple[int, float] | None = None  # (step, elapsed) once grown
+        self.last: tuple[float, float | None] = (-1.0, None)  # (elapsed, seconds left) of the latest estimate
+
+    def left(self, state: TrainState) -> float | None:
+        """Training seconds left: the steps left priced by their resolution at the speed measured
+        since the model stopped growing (once it has), else since the start; None until
+        ETA_AFTER_S seconds are measured. Estimated again at most once a training second."""
+        if state.elapsed_s - self.last[0] >= 1.0:
+            est = self._left(state, self.since or self.start)
+            self.last = (state.elapsed_s, None if est is None else est[0])
+        return self.last[1]
 
     def _left(self, state: TrainState, start: tuple[int, float]) -> tuple[float, float] | None:
         """(seconds left, steps/s) measured from `start`, once ETA_AFTER_S seconds have passed."""

@@ -271,7 +271,8 @@ class _Run:
             evaluated = _measure(t.cfg, self.data, state, step, total, comm, force=True)
             fitted = _measure_fit(t.cfg, self.data, state, step, comm) if evaluated is not None else None
         self.writer.line(step, state, evaluated, fitted, t.cfg.log_every, force=step == total)
-        emit(self.on_event, Progress(STAGE, state.images, total * comm.world, self.writer.info(state)))
+        eta = max(state.plan.budget_s - state.elapsed_s, 0.0) if state.plan is not None else self.eta.left(state)
+        emit(self.on_event, Progress(STAGE, state.images, total * comm.world, self.writer.info(state), eta))
         if comm.main and state.plan is None:
             self.eta.tell(state, self.on_event)
         if comm.main:
