@@ -372,11 +372,15 @@ def test_eval_of_a_run_that_learnt_each_photos_light_leads_with_the_compensated_
     """Trained with --appearance exposure: the held-out photo's light is unknowable, so eval's
     headline (eval.json, eval.md, the printed line) is the appearance-compensated score."""
     proj = _tiny(tmp_path, gains=GAINS)
-    train(proj.root, make_config(**{**SMALL, "iterations": 10}), CPU)
+    s = train(proj.root, make_config(**{**SMALL, "iterations": 10}), CPU)
     r = run_cli("eval", proj.root, "--budgets", "1", "--no-plots", "--device", "cpu")
     assert r.exit_code == 0, r.output
     report = json.loads((proj.reports_dir / "eval.json").read_text())
     assert report["headline"] == "compensated" and report["compensated_psnr"] > report["psnr"]
+    # training watched the held-out views under the same protocol: its last figure is eval's headline
+    assert s.protocol == "compensated" and report["curve_protocol"] == "compensated"
+    assert s.psnr == pytest.approx(report["compensated_psnr"], abs=1e-3)  # (the summary rounds)
+    assert report["training_curve"][-1]["psnr"] == pytest.approx(s.psnr, abs=1e-3)  # (the log rounds)
     assert "appearance compensated" in r.output and "Headline: the appearance-compensated score" in (
         proj.reports_dir / "eval.md").read_text()
     assert "raw (colour fitted" not in " ".join(r.output.split())  # the raw score is not labelled with the other's protocol

@@ -74,3 +74,17 @@ def test_a_new_schedule_keeps_the_strategies_rows(tmp_path):
     assert all(a is b for a, b in zip(t.state.splats.states, rows))
     t.step(4, t.next_batch(4))
     assert t.state.optimizers["means"].param_groups[0]["lr"] == means_lr(longer, 4, t.data.extent)
+
+
+def test_a_step_of_a_collection_leaves_a_passer_by_out_of_its_loss(tmp_path):
+    """--transients ignore: past robust_start x the steps, a region of the photo that disagrees with
+    the render leaves the loss (train/transients.py); before it, and with keep, it counts."""
+    losses = {}
+    for mode, start in (("keep", 0.0), ("ignore", 0.5), ("ignore", 0.0)):
+        t = _trainer(tmp_path / f"{mode}{start}", transients=mode, robust_start=start)
+        batch = t.next_batch(1)
+        batch.target = batch.target.clone()
+        batch.target[5:25, 10:30] = 1.0 - batch.target[5:25, 10:30]  # a passer-by in a 40x48 photo
+        losses[mode, start] = float(t.step(1, batch).loss)
+    assert losses["ignore", 0.5] == losses["keep", 0.0]  # step 1 of 40: not yet
+    assert losses["ignore", 0.0] < 0.8 * losses["keep", 0.0], losses

@@ -363,6 +363,7 @@ def _run_eval(plan: EvalPlan, on_event: EventSink | None) -> EvalReport:
     curve = read_curve(project.train_log_path) if config.model is None else []
     # the log's scores: 8-bit since train recorded its quantisation, unquantised before
     curve_q = str(tsum.get("quantisation", "none")) if curve else None
+    curve_p = str(tsum.get("protocol", "raw")) if curve else None
     report = EvalReport(
         psnr=mean_psnr,
         ssim=mean_ssim,
@@ -393,6 +394,7 @@ def _run_eval(plan: EvalPlan, on_event: EventSink | None) -> EvalReport:
         masks=masks,
         quantisation=q,
         curve_quantisation=curve_q,
+        curve_protocol=curve_p,
         stats=model_stats(g),
         notes=notes,
     )

@@ -107,6 +107,7 @@ class EvalReport:
     quantisation: str = REPORTED  # renders as scored (eval/score.py): "8-bit" as saved to PNG, or "none"
     renderer: str = "torch"  # what drew the renders: torch (the PyTorch path) or gsplat
     curve_quantisation: str | None = None  # the same for training_curve (train.json's summary; None: no curve)
+    curve_protocol: str | None = None  # training_curve's protocol: raw, or compensated (train.json's summary)
     psnr_color_fit: float | None = None  # mean over views of the PSNR after each view's colour fit (metrics.color_fit)
     compensated_psnr: float | None = None  # means over views under COMPENSATED
     compensated_ssim: float | None = None
@@ -137,7 +138,8 @@ class EvalReport:
     def to_json(self) -> dict[str, Any]:
         d = asdict(self)
         return {**self.summary(), **{k: d[k] for k in ("per_image", "budgets", "formats", "training_curve", "stats",
-                                                       "plots", "notes", "curve_quantisation")}}
+                                                       "plots", "notes", "curve_quantisation",
+                                                       "curve_protocol")}}
 
 
 def used_sh_degree(sh: Tensor) -> Tensor:  # [N, K, 3] -> [N] int
@@ -202,9 +204,11 @@ def write_plots(report: EvalReport, project: Project, out_dir: Path) -> list[str
     ax1, ax2 = fig.subplots(1, 2)
     curve = report.training_curve
     if curve:
-        ax1.plot([p.elapsed_s for p in curve], [p.psnr for p in curve], "o-", label="held-out PSNR while training")
+        comp = " (compensated)" if report.curve_protocol == "compensated" else ""
+        ax1.plot([p.elapsed_s for p in curve], [p.psnr for p in curve], "o-", label=f"held-out PSNR while training{comp}")
     if report.train_seconds is not None:
-        ax1.plot([report.train_seconds], [report.psnr], "s", color="C3", label="final (eval)")
+        final = report.compensated_psnr if report.curve_protocol == "compensated" else report.psnr
+        ax1.plot([report.train_seconds], [final], "s", color="C3", label="final (eval)")
     ax1.set_xlabel("training time (s)")
     ax1.set_ylabel("PSNR (dB)")
     ax1.set_title("error against training time")
@@ -342,7 +346,8 @@ def write_report_md(report: EvalReport, project: Project) -> str:
         lines.append("")
     if r.training_curve:
         q = QUANTISATION_WORDS.get(r.curve_quantisation or "", r.curve_quantisation)
-        lines += [f"Held-out PSNR while training (reports/train_log.jsonl; {q}):", "",
+        how = f"{q}; appearance compensated" if r.curve_protocol == "compensated" else q
+        lines += [f"Held-out PSNR while training (reports/train_log.jsonl; {how}):", "",
                   "| step | training time (s) | PSNR (dB) | SSIM | Gaussians |", "| --- | --- | --- | --- | --- |"]
         for p in r.training_curve:
             lines.append(f"| {p.step} | {p.elapsed_s:.1f} | {p.psnr:.2f} | {_opt(p.ssim, '.4f')} | "

@@ -36,6 +36,7 @@ from ..strategy import (
     SupportConfig,
 )
 from .appearance import APPEARANCE, ExposureConfig
+from .transients import TRANSIENTS, TransientsConfig
 
 MAX_SH_DEGREE = 3
 PRESET_NAMES = ("default", "fast", "demo")
@@ -131,6 +132,11 @@ class TrainConfig:
                           "views between them see it); held-out views, eval and exported files use the scene alone.",
                           group=APPEARANCE_GROUP, choices=APPEARANCE, parse=_lower)
     exposure: ExposureConfig = section(ExposureConfig, "--appearance exposure", prefix="exposure_")
+    transients: str = opt("keep", "keep | ignore: ignore leaves out of each photo's loss the regions that disagree "
+                          "with the scene (people, cars, banners, clouds that move), from a quarter of the run on: "
+                          "a photo collection's passers-by then do not become floaters.", group=APPEARANCE_GROUP,
+                          choices=TRANSIENTS, parse=_lower)
+    robust: TransientsConfig = section(TransientsConfig, "--transients ignore", prefix="robust_")
 
     # ---- optimiser (Adam, per attribute) -------------------------------------
     lr_means: float = opt(1.6e-4, "Learning rate of the means, x scene extent, decaying exponentially ...", more_than=0)
@@ -181,6 +187,13 @@ class TrainConfig:
     def refine(self) -> RefineConfig:
         """The chosen strategy's section: its schedule, budget and penalties."""
         return self.mcmc if self.strategy == "mcmc" else self.default
+
+    @property
+    def heldout_protocol(self) -> str:
+        """How the held-out views are scored while training: "compensated" where each photo's
+        appearance is learnt (no model of the others predicts a held-out photo's light:
+        eval/metrics.half_fit), else "raw"; eval's headline follows the same rule."""
+        return "raw" if self.appearance == "none" else "compensated"
 
     @property
     def max_sh_degree(self) -> int:
@@ -386,6 +399,7 @@ class TrainSummary:
     mask_mode: str = "off"  # what was done with the masks (Project.mask_mode); eval scores the same way
     chosen: list[dict[str, Any]] | None = None  # what `train` chose for options not given, and why (train/auto.py)
     quantisation: str = "8-bit"  # how psnr/ssim (the held-out log's last figures) were scored (eval/score.py)
+    protocol: str = "raw"  # ... and under which protocol: raw, or compensated (TrainConfig.heldout_protocol)
     compiled: dict[str, Any] | None = None  # --compile: mode, why, seconds in first calls, graphs, why it fell back
     blocks: dict[str, Any] | None = None  # --block auto: renders per block size, and what each measured
 

@@ -245,6 +245,7 @@ def finish(project: Project, cfg: TrainConfig, state: TrainState, resumed_from: 
         mask_mode=project.mask_mode(cfg.mask_mode),
         chosen=chosen or None,
         quantisation=REPORTED,
+        protocol=cfg.heldout_protocol,
         compiled=state.compiled,
         blocks=state.block.summary() if isinstance(state.block, BlockTuner) and state.block.calls else None,
         **owned,

@@ -332,7 +332,8 @@ class _Run:
         """Context.score: "test", or "val:K": K evenly spaced training views, each through its own colour transform."""
         data = self.data
         if which == "test":
-            return evaluate_views(self.trainer.state, data.test, data.background, sh_degree, self.comm) if data.test else None
+            return evaluate_views(self.trainer.state, data.test, data.background, sh_degree, self.comm,
+                                  compensated=self.trainer.cfg.heldout_protocol == "compensated") if data.test else None
         idx = subset(list(range(len(data.train))), int(which.split(":")[1]))
         return evaluate_views(self.trainer.state, [data.train[i] for i in idx], data.background, sh_degree, self.comm,
                               idx)
@@ -375,7 +376,7 @@ def _measure(cfg: TrainConfig, data: TrainData, state: TrainState, step: int, to
     if not data.test or not (force or (cfg.eval_every and step % cfg.eval_every == 0 and step < total)):
         return None
     return evaluate_views(state, data.test, data.background, state.active_sh_degree(step, cfg.sh_degree_interval),
-                          comm)
+                          comm, compensated=cfg.heldout_protocol == "compensated")
 
 
 def _measure_fit(cfg: TrainConfig, data: TrainData, state: TrainState, step: int,
@@ -392,6 +393,7 @@ def _measure_fit(cfg: TrainConfig, data: TrainData, state: TrainState, step: int
 def evaluate_views(
     state: TrainState, views: list[TrainView], bg: Tensor, sh_degree: int,  # bg [3] in [0, 1]
     comm: Comm | None = None, train_index: list[int] | None = None, quantisation: str = REPORTED,
+    compensated: bool = False,
 ) -> tuple[float, float]:
     """Mean PSNR (dB) and SSIM over `views`, scored as eval scores them (eval/score.py:
     renders quantised to 8 bits as saved, over the kept pixels of views with a mask), so
@@ -405,9 +407,10 @@ def evaluate_views(
         img = render_view(state, v, bg, sh_degree).image
         if i is not None:
             img = state.image_model.shade(img, i)[0]
-        sc = score_image(img, v.image, v.keep, quantisation=quantisation)  # the uint8 photograph, as eval reads it
-        ps.append(sc.psnr)
-        ss.append(sc.ssim)
+        sc = score_image(img, v.image, v.keep, quantisation=quantisation,  # the uint8 photograph, as eval reads it
+                         compensated=compensated)
+        ps.append(sc.compensated.psnr if sc.compensated is not None else sc.psnr)
+        ss.append(sc.compensated.ssim if sc.compensated is not None else sc.ssim)
     p, s = comm.mean(torch.tensor([sum(ps), sum(ss), float(len(ps))], dtype=torch.float64)).tolist()
     return p, s
 

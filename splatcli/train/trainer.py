@@ -23,6 +23,7 @@ from .data import TrainData, TrainView
 from .distributed import Comm
 from .loss import photometric_loss
 from .profile import StepProfile
+from .transients import kept_pixels
 from .state import TrainState, make_strategies, means_lr
 
 
@@ -107,7 +108,10 @@ class Trainer:
                 strategy.step_pre_backward(s.splats, st, step, info)
         with prof.stage("loss"):
             image, penalty = s.image_model.shade(out.image, batch.index, step, cfg.iterations)
-            loss = photometric_loss(image, batch.target, cfg.lambda_dssim, batch.view.keep) + penalty
+            keep = batch.view.keep
+            if cfg.transients == "ignore" and step > cfg.robust.start * cfg.iterations:
+                keep = kept_pixels(image, batch.target, keep, cfg.robust)
+            loss = photometric_loss(image, batch.target, cfg.lambda_dssim, keep) + penalty
         with prof.stage("backward"):
             loss.backward()
         return info, loss
