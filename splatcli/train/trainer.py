@@ -23,8 +23,8 @@ from .data import TrainData, TrainView
 from .distributed import Comm
 from .loss import photometric_loss
 from .profile import StepProfile
-from .transients import kept_pixels
 from .state import TrainState, make_strategies, means_lr
+from .transients import kept_pixels
 
 
 @dataclass
