@@ -159,26 +159,3 @@ def test_train_with_no_options_says_what_it_chose_and_records_it(proj, monkeypat
     stored = json.loads((proj.root / "splatcli.json").read_text())["steps"]["train"]["config"]
     assert stored["strategy"] == "mcmc" and stored["time_budget"] == 4.0
 
-
-def test_photos_from_many_cameras_leave_out_what_moves(proj, monkeypatch):
-    """A collection (photos from MANY_CAMERAS sizes and focal lengths or more) gets --transients ignore
-    and a far sphere (--init-far);
-    one camera's photos (a phone's sweep) do not; the option given wins; a budget alone keeps it off."""
-    from types import SimpleNamespace
-
-    from splatcli.camera import Camera
-
-    monkeypatch.setattr(auto, "free_cores", lambda: 1)
-    assert "transients" not in _chosen(_choose(proj, {}))  # the tiny project: one camera
-    cams = auto.read_project_scene(proj).cameras
-    many = [Camera(c.name, c.width, c.height, c.K * [[1 + i / 50], [1 + i / 50], [1]], c.viewmat)
-            for i, c in enumerate(cams)]
-    assert len(many) >= auto.MANY_CAMERAS
-    monkeypatch.setattr(auto, "read_project_scene", lambda p: SimpleNamespace(cameras=many))
-    c = _choose(proj, {})
-    assert _chosen(c)["transients"] == "ignore" and make_config(chosen=c).transients == "ignore"
-    assert _chosen(c)["init_far"] == auto.FAR_POINTS and make_config(chosen=c).init_far == auto.FAR_POINTS
-    assert "transients" not in _chosen(_choose(proj, {"transients": "keep"}))
-    assert make_config(init_far=0, chosen=_choose(proj, {"init_far": 0})).init_far == 0
-    assert make_config(transients="keep", chosen=_choose(proj, {"transients": "keep"})).transients == "keep"
-    assert "transients" not in _chosen(_choose(proj, {"time_budget": 60.0}))

@@ -4,11 +4,9 @@ minutes, sized to the capture and to the machine (issue 35).
 With no schedule given (no --preset, --iterations or --time-budget) a CPU run gets the
 fast preset's shape planned into a time budget, at a training size a CPU handles, with
 MCMC's fixed Gaussian budget grown on a curve tied to the time (train/plan.py), and one
-process per free core; photos get the appearance model, and photos from many cameras (a
-collection) leave out what one photo shows and the others do not (--transients ignore) and
-start their backdrop on a far sphere (--init-far). A run given only a --time-budget gets
-the same but those three, at a training size that grows with the budget beyond the default
-one (`train_size`). Every choice yields to the option given for it; each is recorded with
+process per free core. A run given only a --time-budget gets the same but the appearance
+model, at a training size that grows with the budget beyond the default one
+(`train_size`). Every choice yields to the option given for it; each is recorded with
 its reason (train.json's `chosen`). On CUDA nothing is chosen: the paper's schedule.
 
 What was given comes in typed (`Asked`, which cli/train_config.py builds from the command
@@ -36,8 +34,6 @@ BUDGET_S = 600.0  # training seconds of a default CPU run: with loading and the 
 MAX_SIZE = 480  # px, the longest side a default CPU run trains at
 GAUSSIANS_PER_PIXEL = 0.45  # the MCMC budget per training pixel (fox at 480 px: 58k; lego at 200 px: 18k)
 MIN_GAUSSIANS, MAX_GAUSSIANS = 5_000, 400_000
-MANY_CAMERAS = 8  # photos from this many cameras (sizes and focal lengths) or more are a collection: --transients ignore
-FAR_POINTS = 20_000  # a collection's --init-far (spread over the whole sphere; those a view sees are kept)
 MAX_PROCESSES = 8  # data-parallel processes at most: each one added gains less (docs/benchmarks.md, "Many processes")
 # torch threads per chosen process at most, where cores are left over: on 16 cores 6 processes with 2 threads each took
 # more steps to a higher PSNR than with 1, and 1 process with 16 far fewer (docs/benchmarks.md, "Many processes")
@@ -76,8 +72,6 @@ class Chosen:
     time_budget: float | None = None
     max_size: int | None = None
     appearance: str | None = None
-    transients: str | None = None
-    init_far: int | None = None
     strategy: str | None = None
     max_gaussians: int | None = None  # MCMC's budget (chosen with --strategy mcmc alone)
     threads: int | None = None  # torch threads of each process
@@ -91,10 +85,6 @@ class Chosen:
             cfg = replace(cfg, max_size=self.max_size)
         if self.appearance is not None:
             cfg = replace(cfg, appearance=self.appearance)
-        if self.transients is not None:
-            cfg = replace(cfg, transients=self.transients)
-        if self.init_far is not None:
-            cfg = replace(cfg, init_far=self.init_far)
         if self.max_gaussians is not None:
             cfg = replace(cfg, mcmc=replace(cfg.mcmc, max_gaussians=self.max_gaussians))
         return cfg
@@ -202,12 +192,6 @@ def choose(project: Project, asked: Asked, nproc: int | None, device: torch.devi
     if default_run and photos and len(cams) >= 8:  # (a --time-budget run keeps the appearance it was measured with)
         out.appearance = pick("appearance", "exposure", "photographs: their exposure and white balance vary from "
                               "shot to shot")
-    kinds = len({(c.width, c.height, round(float(c.K[0, 0]))) for c in cams})
-    if default_run and photos and kinds >= MANY_CAMERAS:
-        out.transients = pick("transients", "ignore", f"photos from {kinds} cameras, a collection: what one photo shows "
-                              "and the others do not (passers-by) is left out of its loss")
-        out.init_far = pick("init_far", FAR_POINTS, "a collection's sky and far background start on a far sphere, not "
-                            "as floaters near the cameras")
     max_size = int(asked.config.max_size if out.max_size is None else out.max_size)
     train_px = sorted(c.at_resolution(downscale, max_size).width * c.at_resolution(downscale, max_size).height
                       for c in cams)[len(cams) // 2]
