@@ -156,6 +156,7 @@ def test_train_with_no_options_says_what_it_chose_and_records_it(proj, monkeypat
     assert [c["option"] for c in s["chosen"]] == ["preset", "time_budget", "appearance", "strategy",
                                                   "max_gaussians"]
     assert s["plan"]["budget_s"] == 4.0 and s["train_seconds"] <= 4.0 * 1.5
+    assert s["protocol"] == "compensated"  # photos, each one's light learnt: held out as eval's headline scores them
     stored = json.loads((proj.root / "splatcli.json").read_text())["steps"]["train"]["config"]
     assert stored["strategy"] == "mcmc" and stored["time_budget"] == 4.0
 

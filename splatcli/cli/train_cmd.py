@@ -54,6 +54,7 @@ def train(
                           comm=comm, chosen=chosen.record())
     finally:
         comm.close()  # on every path: gloo's threads must be gone before the interpreter exits
-    psnr = f", held-out PSNR {s.psnr:.2f} dB" if s.psnr is not None else ""
+    how = " (appearance compensated)" if s.protocol == "compensated" else ""
+    psnr = f", held-out PSNR {s.psnr:.2f} dB{how}" if s.psnr is not None else ""
     ui.summary(s.to_json(), title=f"trained {s.steps} steps in {s.train_seconds:.0f} s{psnr}", lines=[
         f"{s.num_gaussians} Gaussians, SH degree {s.sh_degree}, .ply {s.ply_bytes / 1e6:.2f} MB", f"checkpoint: {s.checkpoint}"])
