@@ -47,7 +47,7 @@ def kept_pixels(image: Tensor, target: Tensor, keep: Tensor | None,  # [H, W, 3]
                 cfg: TransientsConfig) -> Tensor:  # -> [H, W] bool
     """The pixels of a training photo that its loss keeps (module docstring); `keep`: the pixels
     a mask keeps already (None: all), which alone bound the errors' quantile and stay out."""
-    err = (image.detach() - target).abs().mean(-1)  # [H, W]
+    err = (image - target).abs().mean(-1)  # [H, W] (no_grad: nothing is tracked)
     valid = err if keep is None else err[keep]
     if valid.numel() == 0:
         return torch.zeros_like(err, dtype=torch.bool) if keep is None else keep
