@@ -6,12 +6,16 @@ typed, applied to the config's fields; the processes of `train --nproc` are sent
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
+import numpy as np
 import pytest
 import torch
 
+from splatcli.camera import SceneData
 from splatcli.cli.train_config import asked, make_config
 from splatcli.errors import SplatError
+from splatcli.project import holdout_split
 from splatcli.train import auto
 from support.tiny_project import make_tiny_project, run_cli
 
@@ -76,13 +80,35 @@ def test_the_training_size_follows_the_time_budget(proj, monkeypatch):
     assert auto.train_size(90) == auto.train_size(auto.BUDGET_S) == auto.MAX_SIZE == 480
     assert auto.train_size(4 * auto.BUDGET_S) == 960 and auto.train_size(3 * auto.BUDGET_S) == 830
     big = auto.read_project_scene(proj).cameras
-    monkeypatch.setattr(auto, "read_project_scene", lambda p: type("S", (), {"cameras": [
-        c.scaled(40.0) for c in big]})())  # 40x: 1920x1600 photos
+    monkeypatch.setattr(auto, "read_project_scene", lambda p: SceneData([c.scaled(40.0) for c in big], np.zeros((0, 3)),
+                                                                        np.zeros((0, 3), np.uint8)))  # 40x: 1920x1600 photos
     monkeypatch.setattr(auto, "free_cores", lambda: 1)
     for budget, size in ((180.0, 480), (2400.0, 960), (None, 480)):
         given = {} if budget is None else {"time_budget": budget}
         got = _chosen(_choose(proj, given))
         assert got["max_size"] == size, (budget, got)
+
+
+def test_a_capture_of_many_views_and_points_gets_more_time_and_gaussians(proj, monkeypatch):
+    """Past VIEWS_AT_BUDGET training views the default run grows with the square root of their
+    count (capped), at the default training size; the Gaussian budget leaves room for three per
+    SfM point where that is more than one view's pixels suggest. A given budget is kept."""
+    assert auto.default_budget(10) == auto.default_budget(100) == auto.BUDGET_S
+    assert auto.default_budget(218) == 890.0 and auto.default_budget(10_000) == auto.MAX_BUDGET_FACTOR * auto.BUDGET_S
+    cam = auto.read_project_scene(proj).cameras[0]
+    many = [replace(cam.scaled(20.0), name=f"{i:04d}.png") for i in range(250)]  # 960x800 photos
+    proj.update_manifest(splits=holdout_split([c.name for c in many]))  # as process records it: 32 held out
+    points = np.zeros((34_000, 3))
+    monkeypatch.setattr(auto, "read_project_scene", lambda p: SceneData(many, points, np.zeros((34_000, 3), np.uint8)))
+    monkeypatch.setattr(auto, "free_cores", lambda: 1)
+    c = _choose(proj, {})
+    got = _chosen(c)
+    assert got["time_budget"] == auto.default_budget(218) > auto.BUDGET_S  # 250 views, every 8th held out
+    assert got["max_size"] == auto.MAX_SIZE  # the time goes to seeing the views, not to a larger size
+    assert got["max_gaussians"] == 102_000 and "SfM point" in next(x.why for x in c.choices if x.option == "max_gaussians")
+    assert "218 training views" in next(x.why for x in c.choices if x.option == "time_budget")
+    assert "time_budget" not in _chosen(_choose(proj, {"time_budget": 300.0}))
+    assert _chosen(_choose(proj, {"max_gaussians": 7_000})).get("max_gaussians") is None
 
 
 def test_cuda_and_resume_choose_nothing(proj):
@@ -119,7 +145,8 @@ def test_cores_left_over_become_threads_of_the_processes(proj, monkeypatch):
     thread (measured on 16 cores: 27% more steps), never more than MAX_THREADS, and never
     over an OMP_NUM_THREADS the user gave (torch already runs more than one thread)."""
     cams = auto.read_project_scene(proj).cameras
-    monkeypatch.setattr(auto, "read_project_scene", lambda p: type("S", (), {"cameras": cams * 5})())
+    monkeypatch.setattr(auto, "read_project_scene",
+                        lambda p: SceneData(cams * 5, np.zeros((0, 3)), np.zeros((0, 3), np.uint8)))
     monkeypatch.setattr(auto.torch, "get_num_threads", lambda: 1)
     for free, k, threads in ((2, 2, None), (4, 4, None), (11, 6, None), (12, 6, 2), (16, 6, 2), (64, 6, 2)):
         monkeypatch.setattr(auto, "free_cores", lambda free=free: free)

@@ -33,6 +33,14 @@ from .config import TrainConfig
 BUDGET_S = 600.0  # training seconds of a default CPU run: with loading and the last evaluation, ends within 15 min
 MAX_SIZE = 480  # px, the longest side a default CPU run trains at
 GAUSSIANS_PER_PIXEL = 0.45  # the MCMC budget per training pixel (fox at 480 px: 58k; lego at 200 px: 18k)
+# A capture's own content: the budget leaves room to grow to this many Gaussians per SfM point (a scene
+# seen all round, background and all, holds far more than one view's pixels suggest).
+GAUSSIANS_PER_POINT = 3
+# Captures of more training views train longer, so that each photo is still seen often enough: the
+# default budget up to VIEWS_AT_BUDGET views, then growing with the square root of the count, to at
+# most MAX_BUDGET_FACTOR times it (about 18 minutes: with loading and evaluation, within 20).
+VIEWS_AT_BUDGET = 100
+MAX_BUDGET_FACTOR = 1.75
 MIN_GAUSSIANS, MAX_GAUSSIANS = 5_000, 400_000
 MAX_PROCESSES = 8  # data-parallel processes at most: each one added gains less (docs/benchmarks.md, "Many processes")
 # torch threads per chosen process at most, where cores are left over: on 16 cores 6 processes with 2 threads each took
@@ -150,6 +158,12 @@ def _idle_share(window_s: float) -> float | None:
     return (i1 - i0) / (t1 - t0) if t1 > t0 else None
 
 
+def default_budget(train_views: int) -> float:
+    """Training seconds of a run with no schedule given, for a capture of `train_views` views."""
+    factor = min(MAX_BUDGET_FACTOR, (train_views / VIEWS_AT_BUDGET) ** 0.5)
+    return BUDGET_S if factor <= 1.0 else float(round(BUDGET_S * factor, -1))
+
+
 def train_size(budget_s: float) -> int:
     """The longest side (px) a planned CPU run of `budget_s` trains at: MAX_SIZE up to the
     default budget (where the planned runs were measured: docs/benchmarks.md, "Time budgets"),
@@ -176,14 +190,20 @@ def choose(project: Project, asked: Asked, nproc: int | None, device: torch.devi
         out.choices.append(Choice(option, value, why))
         return value
 
-    cams = read_project_scene(project).cameras
+    scene = read_project_scene(project)
+    cams = scene.cameras
     longest = max(max(c.width, c.height) for c in cams)
+    held = set(project.splits([c.name for c in cams])["test"])
+    views = sum(c.name not in held for c in cams)
     out.preset = pick("preset", "fast", "the fast preset's shape (coarse to fine; grow, then refine a fixed set), "
                       "planned into the time")
-    out.time_budget = pick("time_budget", BUDGET_S, f"{BUDGET_S / 60:.0f} minutes of training on a CPU; more time, "
-                           "more quality")
+    planned = default_budget(views)
+    out.time_budget = pick("time_budget", planned, f"{planned / 60:.0f} minutes of training on a CPU" + (
+        "; more time, more quality" if planned == BUDGET_S else
+        f" for {views} training views, so that each is seen often enough"))
     budget = float(asked.config.time_budget if out.time_budget is None else out.time_budget)  # type: ignore[arg-type]
-    size = train_size(budget)
+    # (time chosen for the number of views goes to seeing them, not to a larger size)
+    size = train_size(budget if out.time_budget is None else BUDGET_S)
     downscale = float(asked.config.downscale)
     if longest / downscale > size:
         out.max_size = pick("max_size", size, f"the photos are {longest} px across; {size} px fits {budget / 60:.0f} "
@@ -197,9 +217,12 @@ def choose(project: Project, asked: Asked, nproc: int | None, device: torch.devi
                       for c in cams)[len(cams) // 2]
     if ("strategy" not in given or asked.config.strategy == "mcmc") and asked.mcmc_fits:
         out.strategy = pick("strategy", "mcmc", "a fixed Gaussian budget, grown on a curve planned to the time")
+        by_px, by_pts = GAUSSIANS_PER_PIXEL * train_px, GAUSSIANS_PER_POINT * len(scene.points)
+        why = (f"{GAUSSIANS_PER_PIXEL} per pixel of a {train_px:,}-pixel training view" if by_px >= by_pts else
+               f"{GAUSSIANS_PER_POINT} per SfM point ({len(scene.points):,}): room to grow beyond what the capture "
+               "holds")
         out.max_gaussians = pick("max_gaussians", int(min(MAX_GAUSSIANS, max(MIN_GAUSSIANS, round(
-            GAUSSIANS_PER_PIXEL * train_px, -3)))), f"{GAUSSIANS_PER_PIXEL} per pixel of a {train_px:,}-pixel "
-            "training view")
+            max(by_px, by_pts), -3)))), why)
     if nproc is None:
         free = free_cores()
         k = min(free, MAX_PROCESSES, max(1, len(cams) // 8))
