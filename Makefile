@@ -7,6 +7,9 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 DEMO ?= demo-project
 PYTEST_ARGS ?=
+# Test processes (pytest-xdist): one per core, at most 4; each test file stays in one process, so its
+# module fixtures are built once. `make test WORKERS=0` runs the suite in this process alone.
+WORKERS ?= auto --maxprocesses 4
 # make bench: an OpenSplat checkout for the same-run peer comparison (skipped when empty).
 OPENSPLAT_SOURCE ?=
 # One torch thread per process unless you say otherwise (docs/guide.md, "Threads").
@@ -31,11 +34,11 @@ check: setup
 
 # The whole suite (what CI runs).
 test: setup
-	$(BIN)/python -m pytest -q $(PYTEST_ARGS)
+	$(BIN)/python -m pytest -q -n $(WORKERS) --dist loadfile $(PYTEST_ARGS)
 
 # The everyday tier: everything but the tests marked slow (soak, pipelines, data-parallel, end to end, ...).
 test-fast: setup
-	$(BIN)/python -m pytest -q -m "not slow" $(PYTEST_ARGS)
+	$(BIN)/python -m pytest -q -m "not slow" -n $(WORKERS) --dist loadfile $(PYTEST_ARGS)
 
 demo: setup
 	rm -rf $(DEMO)

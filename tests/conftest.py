@@ -16,6 +16,13 @@ import torch
 from support import data_dir  # tests/support (pyproject's pytest pythonpath names tests/)
 
 
+def pytest_collection_modifyitems(config, items):
+    """The slow tests first (stable: files stay in order otherwise). With several test processes
+    (`make test`) each file runs in one of them, and the longest file, started last, would leave the
+    others idle at the end."""
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
+
+
 @pytest.fixture(autouse=True)
 def _seed_everything():
     random.seed(0)
