@@ -35,7 +35,7 @@ MAX_SIZE = 480  # px, the longest side a default CPU run trains at
 GAUSSIANS_PER_PIXEL = 0.45  # the MCMC budget per training pixel (fox at 480 px: 58k; lego at 200 px: 18k)
 # A capture's own content: the budget leaves room to grow to this many Gaussians per SfM point (a scene
 # seen all round, background and all, holds far more than one view's pixels suggest).
-GAUSSIANS_PER_POINT = 4
+GAUSSIANS_PER_POINT = 3
 # Captures of more training views train longer, so that each photo is still seen often enough: the
 # default budget up to VIEWS_AT_BUDGET views, then growing with the square root of the count, to at
 # most MAX_BUDGET_FACTOR times it (about 18 minutes: with loading and evaluation, within 20).
@@ -160,7 +160,7 @@ def _idle_share(window_s: float) -> float | None:
 
 def default_budget(train_views: int) -> float:
     """Training seconds of a run with no schedule given, for a capture of `train_views` views."""
-    factor = min(MAX_BUDGET_FACTOR, train_views / VIEWS_AT_BUDGET)
+    factor = min(MAX_BUDGET_FACTOR, (train_views / VIEWS_AT_BUDGET) ** 0.5)
     return BUDGET_S if factor <= 1.0 else float(round(BUDGET_S * factor, -1))
 
 
