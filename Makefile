@@ -10,6 +10,8 @@ PYTEST_ARGS ?=
 # Test processes (pytest-xdist): one per core, at most 4; each test file stays in one process, so its
 # module fixtures are built once. `make test WORKERS=0` runs the suite in this process alone.
 WORKERS ?= auto --maxprocesses 4
+# (files in the order collected, where tests/conftest.py puts the longest first; xdist's own order is by size)
+XDIST = -n $(WORKERS) --dist loadfile --no-loadscope-reorder
 # make bench: an OpenSplat checkout for the same-run peer comparison (skipped when empty).
 OPENSPLAT_SOURCE ?=
 # One torch thread per process unless you say otherwise (docs/guide.md, "Threads").
@@ -34,11 +36,11 @@ check: setup
 
 # The whole suite (what CI runs).
 test: setup
-	$(BIN)/python -m pytest -q -n $(WORKERS) --dist loadfile $(PYTEST_ARGS)
+	$(BIN)/python -m pytest -q $(XDIST) $(PYTEST_ARGS)
 
 # The everyday tier: everything but the tests marked slow (soak, pipelines, data-parallel, end to end, ...).
 test-fast: setup
-	$(BIN)/python -m pytest -q -m "not slow" -n $(WORKERS) --dist loadfile $(PYTEST_ARGS)
+	$(BIN)/python -m pytest -q -m "not slow" $(XDIST) $(PYTEST_ARGS)
 
 demo: setup
 	rm -rf $(DEMO)

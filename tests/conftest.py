@@ -17,10 +17,10 @@ from support import data_dir  # tests/support (pyproject's pytest pythonpath nam
 
 
 def pytest_collection_modifyitems(config, items):
-    """The slow tests first (stable: files stay in order otherwise). With several test processes
-    (`make test`) each file runs in one of them, and the longest file, started last, would leave the
-    others idle at the end."""
-    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
+    """The tests marked `first` (the longest), then the other slow ones, then the rest (stable: files
+    stay in order otherwise). With several test processes (`make test`) each file runs in one of
+    them, and a long file started last would leave the others idle at the end."""
+    items.sort(key=lambda item: (item.get_closest_marker("first") is None, item.get_closest_marker("slow") is None))
 
 
 @pytest.fixture(autouse=True)

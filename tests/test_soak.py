@@ -19,6 +19,7 @@ REFINE_STOP = 4_000  # --preset fast
 
 
 @pytest.mark.slow
+@pytest.mark.first  # about 3.5 minutes: started first (tests/conftest.py)
 @pytest.mark.skipif(not os.path.isdir("/proc/self/fd"), reason="RSS and descriptors are read from /proc")
 def test_20k_steps_keep_memory_and_descriptors_flat(tmp_path):
     proj = make_tiny_project(tmp_path / "p", trained=False)

@@ -13,7 +13,7 @@ closure  # train/appearance.py: torch.optim.Optimizer.step's signature
 signum  # process/run.py, train/loop.py: signal handlers' signature
 
 # pytest calls its hooks by name
-pytest_collection_modifyitems  # tests/conftest.py: the slow tests first
+pytest_collection_modifyitems  # tests/conftest.py: the longest tests first
 
 # http.server and socketserver call these by name (viewer/server.py)
 _.server_version
