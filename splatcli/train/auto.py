@@ -2,9 +2,10 @@
 minutes, sized to the capture and to the machine (issue 35).
 
 With no schedule given (no --preset, --iterations or --time-budget) a CPU run gets the
-fast preset's shape planned into a time budget, at a training size a CPU handles, with
-MCMC's fixed Gaussian budget grown on a curve tied to the time (train/plan.py), and one
-process per free core. A run given only a --time-budget gets the same but the appearance
+fast preset's shape planned into a time budget that grows with the number of training views
+(`default_budget`), at a training size a CPU handles, with MCMC's fixed Gaussian budget (from a
+view's pixels or the SfM points, whichever is more) grown on a curve tied to the time
+(train/plan.py), and one process per free core. A run given only a --time-budget gets the same but the appearance
 model, at a training size that grows with the budget beyond the default one
 (`train_size`). Every choice yields to the option given for it; each is recorded with
 its reason (train.json's `chosen`). On CUDA nothing is chosen: the paper's schedule.
