@@ -246,3 +246,23 @@ def test_profile_writes_where_the_time_went(tmp_path):
     plain = make_tiny_project(tmp_path / "q", trained=False)
     train(plain.root, make_config(iterations=3, init_random_points=200, eval_every=0), CPU)
     assert not plain.profile_json_path.exists()
+
+
+def test_the_compile_note_says_loading_from_a_warm_cache_and_compiling_from_an_empty_one(tmp_path, monkeypatch):
+    from splatcli.train.loop import _compile
+
+    monkeypatch.setattr(kernels, "_status", kernels.Status())
+    monkeypatch.setattr(kernels, "compiler", lambda: "g++")
+    monkeypatch.setenv("SPLATCLI_CACHE_DIR", str(tmp_path))
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "mine"))  # set_mode leaves a user's folder alone
+    cfg = make_config(compile="on")
+    notes: list[str] = []
+    try:
+        _compile(cfg, CPU, lambda e: notes.append(e.message))
+        (tmp_path / "inductor").mkdir()
+        (tmp_path / "inductor" / "kernel").write_text("x")
+        _compile(cfg, CPU, lambda e: notes.append(e.message))
+    finally:
+        kernels.set_mode("off")
+    assert notes[0].startswith("compiling the rasterizer's planner") and "first run" in notes[0]
+    assert notes[1].startswith("loading the rasterizer's compiled planner") and "first run" not in notes[1]

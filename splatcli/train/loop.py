@@ -123,9 +123,12 @@ def _compile(cfg: TrainConfig, device: torch.device, on_event: EventSink | None)
     if status.failed:
         emit(on_event, Note(status.failed, "warning"))
     elif mode == "on":
-        first = "" if kernels.warm_cache() else " (the first run on this machine compiles, about 20 s, counted in the time)"
-        emit(on_event, Note(f"compiling the rasterizer's planner for this CPU{first}; kernels kept in "
-                            f"{kernels.cache_dir()}; --compile off to skip"))
+        if kernels.warm_cache():
+            what = f"loading the rasterizer's compiled planner for this CPU from {kernels.cache_dir()}"
+        else:
+            what = ("compiling the rasterizer's planner for this CPU (the first run on this machine compiles, about "
+                    f"20 s, counted in the time); kernels kept in {kernels.cache_dir()}")
+        emit(on_event, Note(f"{what}; --compile off to skip"))
     return {"mode": mode, "why": why}
 
 
