@@ -286,20 +286,26 @@ def _coef(p: Tensor, centre: Tensor):  # p [na, k, 6] gathered rows; centre [na,
 
 
 def _slot_grads(q, R: Tensor, dcz: Tensor) -> Tensor:  # R [na, 6, k], dcz [na, 4, k] -> [10, na, k]
-    """Chain rule from the per-slot pixel sums to (mean, conic, log o, colour, z)."""
+    """Chain rule from the per-slot pixel sums to (mean, conic, log o, colour, z), written into one
+    [10, na, k] tensor with fused multiply-adds: these tensors are small, so the op count is the cost.
+
+        d mean = (A R1 + B R2 - gx R0,  B R1 + C R2 - gy R0)
+        d A    = d0x (R1 - R0 d0x / 2) - R3 / 2
+        d B    = d0y (R1 - R0 d0x) + d0x R2 - R4
+        d C    = d0y (R2 - R0 d0y / 2) - R5 / 2
+        d log o = R0"""
     d0x, d0y, A, B, C, gx, gy = q
     R0, R1, R2, R3, R4, R5 = R.unbind(1)
-    return torch.stack(
-        [
-            -gx * R0 + A * R1 + B * R2,
-            -gy * R0 + B * R1 + C * R2,
-            -0.5 * (R0 * d0x * d0x - 2 * R1 * d0x + R3),
-            -(R0 * d0x * d0y - R1 * d0y - R2 * d0x + R4),
-            -0.5 * (R0 * d0y * d0y - 2 * R2 * d0y + R5),
-            R0,
-            *dcz.unbind(1),
-        ]
-    )
+    out = R.new_empty(10, *R0.shape)
+    torch.mul(A, R1, out=out[0]).addcmul_(B, R2).addcmul_(gx, R0, value=-1.0)
+    torch.mul(B, R1, out=out[1]).addcmul_(C, R2).addcmul_(gy, R0, value=-1.0)
+    hx = R0 * d0x
+    torch.mul(d0x, torch.add(R1, hx, alpha=-0.5), out=out[2]).add_(R3, alpha=-0.5)
+    torch.mul(d0y, R1 - hx, out=out[3]).addcmul_(d0x, R2).sub_(R4)
+    torch.mul(d0y, torch.add(R2, R0 * d0y, alpha=-0.5), out=out[4]).add_(R5, alpha=-0.5)
+    out[5].copy_(R0)
+    out[6:].copy_(dcz.transpose(0, 1))
+    return out
 
 
 def _alpha(coef2: Tensor, featsT: Tensor, a_min: float) -> Tensor:  # [nb, P, k]
