@@ -56,13 +56,13 @@ def _filter(maps: Tensor) -> Tensor:  # [n, H, W] -> [n, H-10, W-10]: the window
     if maps.device.type != "cpu":
         return _conv(maps)
     g = _gauss_1d(maps.dtype, maps.device).tolist()
-    H, W = maps.shape[1:]
-    a = maps[:, :, : W - 10] * g[0]
+    h, w = maps.shape[1] - SSIM_WINDOW + 1, maps.shape[2] - SSIM_WINDOW + 1  # the valid region
+    a = maps[:, :, :w] * g[0]
     for t in range(1, SSIM_WINDOW):
-        a.add_(maps[:, :, t : t + W - 10], alpha=g[t])
-    b = a[:, : H - 10] * g[0]
+        a.add_(maps[:, :, t : t + w], alpha=g[t])
+    b = a[:, :h] * g[0]
     for t in range(1, SSIM_WINDOW):
-        b.add_(a[:, t : t + H - 10], alpha=g[t])
+        b.add_(a[:, t : t + h], alpha=g[t])
     return b
 
 
@@ -71,10 +71,11 @@ def _filter_t(maps: Tensor) -> Tensor:  # [n, H-10, W-10] -> [n, H, W]: the tran
         return _conv_t(maps)
     g = _gauss_1d(maps.dtype, maps.device).tolist()
     n, h, w = maps.shape
-    a = maps.new_zeros(n, h + 10, w)
+    e = SSIM_WINDOW - 1  # the rows and columns the window's border adds back
+    a = maps.new_zeros(n, h + e, w)
     for t in range(SSIM_WINDOW):
         a[:, t : t + h].add_(maps, alpha=g[t])
-    b = maps.new_zeros(n, h + 10, w + 10)
+    b = maps.new_zeros(n, h + e, w + e)
     for t in range(SSIM_WINDOW):
         b[:, :, t : t + w].add_(a, alpha=g[t])
     return b

@@ -499,7 +499,7 @@ class _Composite(torch.autograd.Function):
         base_all = (g4 * acc[:, :4]).sum(1) + Tfin * ((g4[:, :3] * background[:, None]).sum(1) - gA)
         g4t_all = g4.transpose(1, 2)  # [nblocks, P, 4]
         # d(u, v, A, B, C, log o, r, g, b, z), one row per quantity: index_add_ along dim 1 of [10, N + 1]
-        # took about half the time of accumulating rows of [N + 1, 10] (index_put_ or index_add_).
+        # measured a little faster in place than accumulating rows of [N + 1, 10] (fox: 21 -> 20 ms a backward).
         dg = torch.zeros(10, N + 1, dtype=dt, device=dev)
         kept, ctx.kept = collections.deque(ctx.kept or ()), None  # used up (edited in place): a second backward computes them again
         for bl, K in plan.chunks:
