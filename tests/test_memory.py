@@ -15,7 +15,7 @@ from typer.testing import CliRunner
 import splatcli.train.trainer as trainer
 from splatcli.cli.main import app
 from splatcli.files.checkpoint import load_checkpoint
-from splatcli.render.composite import KEEP_BYTES
+from splatcli.render.composite import WORK_BYTES
 from splatcli.train.memory import BYTES_PER_GAUSSIAN, is_out_of_memory, plan_memory
 from support.tiny_project import make_tiny_project
 
@@ -41,7 +41,7 @@ def test_plan_counts_images_and_gaussians():
     p = plan_memory(cams, 300, 5000)
     assert p.budgeted and p.gaussians == 5000
     assert p.images == int(1.8 * 3 * sum(c.width * c.height for c in cams))
-    assert p.need == p.images + 5000 * BYTES_PER_GAUSSIAN + KEEP_BYTES  # and what a render keeps for its backward
+    assert p.need == p.images + 5000 * BYTES_PER_GAUSSIAN + WORK_BYTES  # and what a render holds for its backward
     assert not plan_memory(cams, 300, None).budgeted  # no budget: an estimate from the image size
 
 

@@ -212,6 +212,24 @@ def test_auto_block_follows_screen_size_not_overlap(sigma, many, expected):
         assert blocks.choose_block(blocks.extents(cov2d, opac), 1000, 1000) == expected
 
 
+@pytest.mark.parametrize("slots", [1, 1000], ids=["every-segment", "batched"])
+def test_batching_the_backwards_scatter_changes_no_bit(monkeypatch, slots):
+    """The backward adds its per-slot gradients into the per-Gaussian sums once SCATTER_SLOTS are pending:
+    the same additions in the same order as one call per segment, so the same bits whatever the batch."""
+    args = make_scene(1500, 80, 64, dtype=torch.float32, seed=5)
+    cot = torch.rand(64, 80, 3, generator=torch.Generator().manual_seed(3))
+
+    def grads(pending: int):
+        monkeypatch.setattr(composite, "SCATTER_SLOTS", pending)
+        p = [t.clone().requires_grad_(i < 5) for i, t in enumerate(args)]
+        (rasterize(*p, 80, 64, block=4).image * cot).sum().backward()
+        return [t.grad for t in p[:5]]
+
+    base = grads(1 << 30)  # one call for the whole backward
+    assert any(bool(g.abs().sum() > 0) for g in base)
+    assert all(torch.equal(a, b) for a, b in zip(base, grads(slots)))
+
+
 @pytest.mark.parametrize("keep", [0, 1 << 14, 1 << 30], ids=["none", "some", "all"])
 def test_backward_from_the_forwards_kept_alpha_is_bit_for_bit_the_recomputed_one(monkeypatch, keep):
     """The forward keeps its segments' alpha and transmittance (up to KEEP_BYTES) for the backward; what it

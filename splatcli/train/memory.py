@@ -24,7 +24,7 @@ except ImportError:  # Windows: no RLIMIT_AS; the other limits still apply
 
 from ..camera import Camera
 from ..errors import SplatError
-from ..render.composite import KEEP_BYTES  # what a render keeps for its backward, at most
+from ..render.composite import WORK_BYTES  # what a render holds for its backward, at most
 
 # Bytes per Gaussian over a run: parameters (59 floats), their gradients and two Adam
 # moments (4 x 236 B), strategy rows, and the per-step projection and compositing
@@ -115,7 +115,7 @@ def plan_memory(cameras: list[Camera], init_count: int, max_gaussians: int | Non
         n, budgeted = max(init_count, int(GAUSSIANS_PER_PIXEL * max(pixels, default=0))), False
     free, limit = free_memory()
     longest = max((max(c.width, c.height) for c in cameras), default=0)
-    return MemoryPlan(copies * (images + n * BYTES_PER_GAUSSIAN + KEEP_BYTES), copies * images, n, budgeted, free,
+    return MemoryPlan(copies * (images + n * BYTES_PER_GAUSSIAN + WORK_BYTES), copies * images, n, budgeted, free,
                       limit, longest, copies)
 
 
@@ -125,7 +125,7 @@ def check_memory(plan: MemoryPlan, max_size: int) -> None:
         return
     gb = lambda b: f"{b / 2**30:.1f} GB"  # noqa: E731
     what = f"{plan.gaussians:,} Gaussians" + ("" if plan.budgeted else " (estimated; no --max-gaussians)")
-    room = (plan.free - plan.images) // plan.copies - KEEP_BYTES
+    room = (plan.free - plan.images) // plan.copies - WORK_BYTES
     if room >= 20_000 * BYTES_PER_GAUSSIAN:
         fix = f"--max-gaussians {room // BYTES_PER_GAUSSIAN // 1000 * 1000}"
     else:  # the images nearly fill it: half of what is free for smaller images, half for the Gaussians
