@@ -98,11 +98,15 @@ def test_ssim_gradient_matches_autograd_through_the_map(masked: bool) -> None:
         assert torch.allclose(x, y, rtol=0, atol=1e-5 * float(y.abs().max()))
 
 
+@pytest.mark.parametrize("group", [1, 1500, 1 << 30], ids=["one-map", "two-maps", "all-maps"])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_ssim_window_shifted_adds_equal_the_convolutions(dtype: torch.dtype) -> None:
-    """The CPU's window (shifted multiply-adds) against the depthwise convolutions CUDA uses, and
-    the transpose against the convolution's adjoint: <F x, y> = <x, F^T y>."""
+def test_ssim_window_shifted_adds_equal_the_convolutions(monkeypatch, dtype: torch.dtype, group: int) -> None:
+    """The CPU's window (shifted multiply-adds, a group of maps at a time) against the depthwise
+    convolutions CUDA uses, and the transpose against the convolution's adjoint: <F x, y> = <x, F^T y>."""
+    from splatcli.eval import metrics
     from splatcli.eval.metrics import _conv, _conv_t, _filter, _filter_t
+
+    monkeypatch.setattr(metrics, "GROUP_ELEMS", group)  # 1500: two 23x31 maps a group, the last alone
 
     g = torch.Generator().manual_seed(3)
     x = torch.rand(5, 23, 31, generator=g, dtype=dtype)
