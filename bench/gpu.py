@@ -87,7 +87,7 @@ def syncs(device: torch.device) -> list[dict]:
     for name, settings in (("before (CPU settings)", comp.device_settings(torch.device("cpu"))),
                            ("CUDA settings", comp.device_settings(torch.device("cuda")))):
         old = comp.device_settings
-        comp.device_settings = lambda dev, s=settings: s
+        comp.device_settings = lambda dev, block=8, s=settings: s
         try:
             fwd_bwd(rasterize, args, W, H)  # warm-up
             with HostSyncs() as h:

@@ -60,7 +60,7 @@ def test_early_termination_and_chunking_keep_the_picture(monkeypatch):
     assert (ref.alpha > 0.99).float().mean() > 0.5
     for seg, chunk, every in [(4, 1 << 12, 1), (16, 1 << 14, 1), (1024, 1 << 24, 1), (4, 1 << 12, 3)]:
         # every: segments between termination tests (CUDA's setting; skipping a test only adds zeros)
-        monkeypatch.setattr(composite, "device_settings", lambda dev, s=(seg, chunk, every): s)
+        monkeypatch.setattr(composite, "device_settings", lambda dev, block=8, s=(seg, chunk, every): s)
         out = rasterize(*_as(args, torch.float32), W, H)
         # float32 against the float64 reference: the 1e-4 bound
         torch.testing.assert_close(out.image, ref.image.float(), atol=1e-4, rtol=0)
@@ -70,7 +70,7 @@ def test_early_termination_and_chunking_keep_the_picture(monkeypatch):
 @pytest.mark.parametrize("antialiased, every", [(False, 1), (True, 1), (False, 3)])
 def test_gradients_match_reference(antialiased, every, monkeypatch):
     # short segments exercise the carried prefix sums; every 3rd: CUDA's sparser termination tests
-    monkeypatch.setattr(composite, "device_settings", lambda dev: (8, 1 << 12, every))
+    monkeypatch.setattr(composite, "device_settings", lambda dev, block=8: (8, 1 << 12, every))
     W, H = 37, 29
     args = make_scene(300, W, H, sh_degree=3, seed=1)
     args[3] = args[3] + 2.0  # opaque enough that blocks terminate early
