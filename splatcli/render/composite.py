@@ -532,7 +532,8 @@ class _Composite(torch.autograd.Function):
                 pend.append((gid_s.reshape(-1), dgs.reshape(10, -1)))
                 npend += gid_s.numel()
                 if npend >= SCATTER_SLOTS:
-                    npend = _scatter(dg, pend)
+                    _scatter(dg, pend)
+                    npend = 0
                 nseg += 1
                 if k1 < K and nseg % plan.terminate_every == 0:
                     act, Tc, (pc,) = _terminate(act, Tc, _rowsel(cnt, act) > k1, pc)
@@ -552,13 +553,12 @@ class _Composite(torch.autograd.Function):
         return None, dg[:2].T, dg[2:5].T, d_opac, dg[6:9].T, dg[9], d_bg
 
 
-def _scatter(dg: Tensor, pend: list) -> int:
+def _scatter(dg: Tensor, pend: list) -> None:
     """Adds the pending segments' per-slot gradients into dg [10, N + 1] in one call, and empties `pend`."""
     if pend:
         ids, vals = zip(*pend)
         dg.index_add_(1, torch.cat(ids), torch.cat(vals, 1))
         pend.clear()
-    return 0
 
 
 def _to_image(plan: Plan, x: Tensor) -> Tensor:  # [nblocks, C, P] -> [H, W, C]
