@@ -198,9 +198,10 @@ def test_the_faster_form_is_kept_after_taking_turns(monkeypatch):
         kernels.set_mode("off")
 
 
-@pytest.mark.parametrize("budget, warm, steps, mode", [(90.0, False, None, "off"), (600.0, False, None, "on"),
-                                                        (90.0, True, None, "on"), (30.0, True, None, "off"),
-                                                        (None, False, 30_000, "on"), (None, False, 1500, "off")])
+@pytest.mark.parametrize("budget, warm, steps, mode", [(300.0, False, None, "off"), (600.0, False, None, "off"),
+                                                        (3600.0, False, None, "on"), (1200.0, True, None, "on"),
+                                                        (300.0, True, None, "off"), (None, False, 30_000, "on"),
+                                                        (None, False, 7000, "off")])
 def test_auto_compiles_runs_long_enough_to_repay_it(tmp_path, monkeypatch, budget, warm, steps, mode):
     monkeypatch.setenv("SPLATCLI_CACHE_DIR", str(tmp_path))
     monkeypatch.setattr(kernels, "compiler", lambda: "g++")

@@ -238,12 +238,13 @@ def choose(project: Project, asked: Asked, nproc: int | None, device: torch.devi
     return out
 
 
-# --compile auto: compile when the run is at least this long (seconds of training), so that the
-# few per cent a compiled planner saves on every step repay its first compile (the costs measured:
-# docs/benchmarks.md, "Compiled kernels").
-COMPILE_COLD_S = 300.0
-COMPILE_WARM_S = 60.0
-COMPILE_STEPS = 3000  # a step schedule without a time budget: compile from this many steps
+# --compile auto: compile when the run is at least this long (seconds of training). The compiled
+# planner saves a few per cent of a step at most, and on some CPUs nothing, while an empty cache
+# costs tens of seconds of compiling and a warm one a few seconds of loading, all taken from the
+# budget (docs/benchmarks.md, "Time budgets": a 300 s run trained fewer steps compiled than eager).
+COMPILE_COLD_S = 1800.0
+COMPILE_WARM_S = 900.0
+COMPILE_STEPS = 10_000  # a step schedule without a time budget: compile from this many steps
 
 
 def compile_mode(cfg: TrainConfig, device: torch.device) -> tuple[str, str]:
