@@ -3,13 +3,14 @@ one step renders, backpropagates and updates; over a few epochs the loss falls."
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from splatcli.cli.train_config import make_config
 from splatcli.strategy import Context
 from splatcli.train.data import load_train_data
 from splatcli.train.state import means_lr, new_state
-from splatcli.train.trainer import Trainer
+from splatcli.train.trainer import Trainer, _all_finite
 from support.tiny_project import make_tiny_project, tiny_gaussians
 
 CPU = torch.device("cpu")
@@ -61,6 +62,24 @@ def test_a_non_finite_step_changes_nothing_and_is_counted(tmp_path):
     assert (t.state.bad_steps, t.state.bad_run) == (1, 1)
     for k, p in t.state.params.items():
         assert torch.equal(before[k], p), k
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
+def test_one_non_finite_gradient_value_anywhere_is_caught(tmp_path, bad):
+    t = _trainer(tmp_path)
+    params = t.state.trainable()
+    for p in params.values():
+        p.grad = torch.randn(p.shape, generator=torch.Generator().manual_seed(1))
+    loss = torch.tensor(0.5)
+    assert _all_finite(loss, t.state)
+    for name, p in params.items():
+        for i in {0, p.numel() // 2, p.numel() - 1}:  # the first, a middle and the last (a vector's tail) value
+            g = p.grad.view(-1)
+            keep = float(g[i])
+            g[i] = bad
+            assert not _all_finite(loss, t.state), (name, i)
+            g[i] = keep
+    assert _all_finite(loss, t.state) and not _all_finite(torch.tensor(bad), t.state)
 
 
 def test_a_new_schedule_keeps_the_strategies_rows(tmp_path):
