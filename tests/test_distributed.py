@@ -23,7 +23,7 @@ from splatcli.cli.train_config import make_config
 from splatcli.eval.curve import read_log
 from splatcli.files.checkpoint import load_checkpoint
 from splatcli.strategy.default import DefaultStrategyState
-from splatcli.train.distributed import Comm
+from splatcli.train.distributed import SHM_DIR, Comm
 from support.tiny_project import make_tiny_project
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -246,6 +246,19 @@ def _ranks(rank: int, world: int, store: str, out: str) -> None:
     p.grad = torch.full((3,), float(rank + 1))
     loss, stop = comm.reduce_step({"p": p}, torch.tensor(float(rank)), stop=rank == 1)
     results["grad"], results["loss"], results["stop"] = p.grad.tolist(), float(loss), stop
+    # the same through shared memory (ranks on one machine), as the model grows: the same bits as gloo's
+    shm = Comm(rank=rank, world=world, shared=True)
+    gen = torch.Generator().manual_seed(rank)
+    results["shared"] = []
+    for n in (3, 3, 700, 5, 700, 2000):
+        p = torch.nn.Parameter(torch.zeros(n))
+        g = torch.randn(n, generator=gen) * 10 ** rank
+        p.grad, q = g.clone(), torch.nn.Parameter(torch.zeros(n))
+        q.grad = g.clone()
+        got = shm.reduce_step({"p": p}, torch.tensor(float(rank)), stop=False)
+        ref = comm.reduce_step({"p": q}, torch.tensor(float(rank)), stop=False)
+        results["shared"].append([torch.equal(p.grad, q.grad), float(got[0]), got[1], float(ref[0]), p.grad[:3].tolist()])
+    results["shared_files"] = sorted(f for f in os.listdir(SHM_DIR) if f.startswith(f"splatcli-{shm._slots.tag}-"))
     # agreement: equal parameters pass; one flipped bit on one rank fails on every rank
     q = {"p": torch.nn.Parameter(torch.linspace(0, 1, 5))}
     comm.check_agree(q)
@@ -268,3 +281,6 @@ def test_collectives_merge_rows_average_gradients_and_catch_a_one_bit_difference
         assert x["grad"] == [1.5] * 3 and x["loss"] == 0.5 and x["stop"] is True and x["caught"] is True
         assert x["refolded"] == [4.0, 6.0]  # the folded totals once, plus each rank's new view
     assert r[0]["folded"] == [[2.0, 4.0], [2.0, 2.0]] and r[1]["folded"] == [[0.0, 0.0], [0.0, 0.0]]
+    assert r[0]["shared"] == r[1]["shared"] and len(r[0]["shared"]) == 6  # every rank the same gradients
+    assert all(same and loss == 0.5 == ref and not stop for same, loss, stop, ref, _ in r[0]["shared"])
+    assert r[0]["shared_files"] == r[1]["shared_files"] == []  # unlinked once mapped

@@ -4,7 +4,10 @@ Every rank holds the whole model and renders its own view each step (the view
 stream is the one-process stream dealt out in turn, so K ranks see in one step
 the K views one process sees in K steps). `Comm.reduce_step` all-reduces the
 gradients with the loss and the stop flag in one buffer, so every rank applies
-the same update and holds identical parameters and Adam moments. Densification
+the same update and holds identical parameters and Adam moments. Ranks on one machine
+exchange the gradients through shared memory (`_Slots`: each writes its own, one small
+collective says all are written, each sums them all in rank order), which costs a few
+times less than gloo's all-reduce over loopback sockets. Densification
 accumulators stay per rank until a strategy decides (`Comm.combine_rows`), and
 are folded into rank 0's before a checkpoint (`Comm.fold_rows`), so a checkpoint
 never depends on the number of ranks.
@@ -16,7 +19,9 @@ run is a single process and every method is free.
 
 from __future__ import annotations
 
+import contextlib
 import os
+import tempfile
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -32,6 +37,71 @@ from ..errors import SplatError
 TIMEOUT_S = float(os.environ.get("SPLATCLI_DIST_TIMEOUT", "600"))
 
 
+SHM_DIR = "/dev/shm"  # where the ranks of one machine share their gradients (absent: gloo's all-reduce)
+
+
+class _Slots:
+    """Two buffers per rank in shared memory (files under SHM_DIR, unlinked once every rank has
+    mapped them), used in turn: a rank writes step k+2's gradients into the buffer it wrote at
+    step k only after passing step k+1's collective, so every other rank has read step k's.
+    Grown by a quarter beyond the need when the model outgrows them (every rank at the same step,
+    since the ranks hold the same model)."""
+
+    def __init__(self, rank: int, world: int, barrier):
+        self.rank, self.world, self.barrier = rank, world, barrier
+        self.cap, self.turn = 0, 0
+        self.bufs: list[list[Tensor]] = []  # [turn][rank] -> [cap] float32
+        self.total = torch.empty(0)  # [cap] this rank's sum of all ranks' gradients
+        self.tag = "-".join(os.environ.get(k, "") for k in ("MASTER_PORT", "TORCHELASTIC_RUN_ID"))  # one run's
+
+    def _path(self, rank: int, turn: int) -> str:
+        return os.path.join(SHM_DIR, f"splatcli-{self.tag}-{self.cap}-{rank}-{turn}")
+
+    def reserve(self, n: int) -> None:
+        if n <= self.cap:
+            return
+        self.cap = n + n // 4 + 1024
+        mine = [self._path(self.rank, t) for t in (0, 1)]
+        try:
+            own = [torch.from_file(f, shared=True, size=self.cap, dtype=torch.float32) for f in mine]
+            self.barrier()  # every rank has made its files
+            self.bufs = [[own[t] if r == self.rank else
+                          torch.from_file(self._path(r, t), shared=True, size=self.cap, dtype=torch.float32)
+                          for r in range(self.world)] for t in (0, 1)]
+            self.barrier()  # every rank has mapped every file: the names can go (the mappings stay)
+        finally:
+            for f in mine:
+                with contextlib.suppress(OSError):
+                    os.unlink(f)
+        self.total = torch.empty(self.cap)
+
+    def sum(self, parts: list[Tensor]) -> Tensor:  # parts: 1-D float32 -> [n] the sum over ranks
+        n = sum(int(p.numel()) for p in parts)
+        self.reserve(n)
+        bufs, self.turn = self.bufs[self.turn], 1 - self.turn
+        torch.cat(parts, out=bufs[self.rank][:n])
+        self.barrier()  # every rank's gradients are written
+        out = torch.add(bufs[0][:n], bufs[1][:n], out=self.total[:n])  # the same order on every rank: the same bits
+        for b in bufs[2:]:
+            out += b[:n]
+        return out
+
+
+def _barrier() -> None:
+    """Every rank has arrived (a one-value all-reduce: gloo's barrier costs more)."""
+    import torch.distributed as dist
+
+    dist.all_reduce(torch.zeros(1))
+
+
+def _shared_memory_usable() -> bool:
+    try:
+        with tempfile.NamedTemporaryFile(dir=SHM_DIR, prefix="splatcli-probe-"):
+            return True
+    except OSError:
+        return False
+
+
 @dataclass
 class Comm:
     """One rank's view of the process group (a single process: rank 0 of 1)."""
@@ -42,6 +112,8 @@ class Comm:
     seconds: float = 0.0  # spent in collectives (communication, and waiting for slower ranks)
     calls: int = 0
     checks: int = 0  # parameter agreement checks passed
+    shared: bool = False  # gradients exchanged through shared memory (every rank on this machine)
+    _slots: _Slots | None = None
 
     @property
     def main(self) -> bool:
@@ -65,8 +137,16 @@ class Comm:
             return loss.detach(), stop
         ps = list(params.values())
         parts = [(p.grad if p.grad is not None else torch.zeros_like(p)).reshape(-1) for p in ps]
-        flat = torch.cat(parts + [loss.detach().reshape(1).to(ps[0].dtype), torch.tensor([float(stop)], device=ps[0].device)])
-        self._all_reduce(flat)
+        parts += [loss.detach().reshape(1).to(ps[0].dtype), torch.tensor([float(stop)], device=ps[0].device)]
+        if self.shared and ps[0].device.type == "cpu" and ps[0].dtype == torch.float32:
+            if self._slots is None:
+                self._slots = _Slots(self.rank, self.world, _barrier)
+            t0 = time.perf_counter()
+            flat = self._slots.sum(parts)
+            self.seconds += time.perf_counter() - t0
+            self.calls += 1
+        else:
+            flat = self._all_reduce(torch.cat(parts))
         flat /= self.world
         o = 0
         for p in ps:
@@ -166,4 +246,5 @@ def join(device: torch.device) -> Comm:
         raise SplatError(f"rank {rank} of {world}: could not join the process group "
                          f"({type(exc).__name__}: {' '.join(str(exc).split())[:200]})",
                          hint="check MASTER_ADDR / MASTER_PORT and that every node started") from None
-    return Comm(rank=rank, world=world, local_world=local_world)
+    return Comm(rank=rank, world=world, local_world=local_world,
+                shared=device.type == "cpu" and local_world == world and _shared_memory_usable())
