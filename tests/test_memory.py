@@ -14,9 +14,17 @@ from typer.testing import CliRunner
 
 import splatcli.train.trainer as trainer
 from splatcli.cli.main import app
+from splatcli.errors import SplatError
 from splatcli.files.checkpoint import load_checkpoint
 from splatcli.render.composite import WORK_BYTES
-from splatcli.train.memory import BYTES_PER_GAUSSIAN, is_out_of_memory, plan_memory
+from splatcli.train.memory import (
+    ADVISE_SHARE,
+    BYTES_PER_GAUSSIAN,
+    MemoryPlan,
+    check_memory,
+    is_out_of_memory,
+    plan_memory,
+)
 from support.tiny_project import make_tiny_project
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -56,6 +64,17 @@ def test_a_run_that_cannot_fit_stops_at_once_naming_a_budget_that_fits(tmp_path)
     fits = re.search(r"--max-gaussians (\d+)", line).group(1)
     r = CliRunner().invoke(app, [*args, "--max-gaussians", fits])  # the advice is a setting that fits
     assert r.exit_code == 0, r.stderr
+
+
+def test_the_advice_leaves_room_for_free_memory_to_move():
+    free = 4 << 30
+    plan = MemoryPlan(need=2 * free, images=free // 10, gaussians=10**9, budgeted=True, free=free,
+                      limit="available RAM", longest=800, copies=1)
+    with pytest.raises(SplatError) as e:
+        check_memory(plan, 800)
+    advised = int(re.search(r"--max-gaussians (\d+)", str(e.value)).group(1))
+    used = plan.images + advised * BYTES_PER_GAUSSIAN + WORK_BYTES
+    assert 0.7 * free < used <= ADVISE_SHARE * free < free
 
 
 @pytest.mark.skipif(sys.platform != "linux", reason="RLIMIT_AS and /proc are Linux")

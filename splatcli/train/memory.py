@@ -119,18 +119,24 @@ def plan_memory(cameras: list[Camera], init_count: int, max_gaussians: int | Non
                       limit, longest, copies)
 
 
+# The advice fits this share of what is free: free memory moves while the user reads it (other
+# programs, the page cache), and a setting that fills it to the last byte fails on the next try.
+ADVISE_SHARE = 0.8
+
+
 def check_memory(plan: MemoryPlan, max_size: int) -> None:
     """Refuse a run that cannot fit, naming a --max-gaussians or --max-size that would."""
     if plan.free is None or plan.need <= plan.free:
         return
     gb = lambda b: f"{b / 2**30:.1f} GB"  # noqa: E731
     what = f"{plan.gaussians:,} Gaussians" + ("" if plan.budgeted else " (estimated; no --max-gaussians)")
-    room = (plan.free - plan.images) // plan.copies - WORK_BYTES
+    free = int(plan.free * ADVISE_SHARE)
+    room = (free - plan.images) // plan.copies - WORK_BYTES
     if room >= 20_000 * BYTES_PER_GAUSSIAN:
         fix = f"--max-gaussians {room // BYTES_PER_GAUSSIAN // 1000 * 1000}"
     else:  # the images nearly fill it: half of what is free for smaller images, half for the Gaussians
-        side = max(16, int(plan.longest * math.sqrt(0.5 * plan.free / max(plan.images, 1))))
-        fix = f"--max-size {min(side, max_size)} and --max-gaussians {max(1000, plan.free // 2 // plan.copies // BYTES_PER_GAUSSIAN // 1000 * 1000)}"
+        side = max(16, int(plan.longest * math.sqrt(0.5 * free / max(plan.images, 1))))
+        fix = f"--max-size {min(side, max_size)} and --max-gaussians {max(1000, free // 2 // plan.copies // BYTES_PER_GAUSSIAN // 1000 * 1000)}"
     raise SplatError(f"training needs about {gb(plan.need)} ({what} and {gb(plan.images)} of images) but "
                      f"{plan.limit} leaves {gb(plan.free)}; try {fix}")
 
