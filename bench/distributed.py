@@ -2,6 +2,7 @@
 
     .venv/bin/python bench/distributed.py [--scenes lego,fox] [--nprocs 1,2] [--train-args "--preset fast"]
                                           [--iterations lego=2000,fox=1000] [--eval-every 250]
+    .venv/bin/python bench/distributed.py --exchange 18000,58000 [--reps 40]
 
 For each scene (processed once, as bench/train.py does) it trains the same schedule
 with K = 1, 2, ... processes, one after the other on the same machine, one torch thread
@@ -12,6 +13,10 @@ evaluation within 0.1 dB of it), the speed-up and parallel efficiency against K 
 share of rank 0's training time spent in collectives (exchanging gradients and waiting
 for the slower rank), the held-out curve, and the load average before and after each
 run. Results: bench/out/distributed.json (common.report), the table printed.
+
+--exchange N,...: the gradient exchange alone (`Comm.reduce_step`) of a model of N Gaussians
+(SH degree 3), in two ranks on this machine, through gloo's all-reduce and through shared
+memory, taking turns; medians and quartiles of the slower rank in ms (bench/out/exchange.json).
 """
 
 from __future__ import annotations
@@ -19,6 +24,12 @@ from __future__ import annotations
 import argparse
 import os
 import shlex
+import statistics
+import tempfile
+import time
+
+import torch
+import torch.multiprocessing as mp
 
 from common import OUT, SCENES, ensure_processed, fresh_copy, psnr_curve, report, splatcli
 
@@ -39,6 +50,54 @@ def train_k(scene: str, k: int, args: list[str]) -> dict:
             "curve": psnr_curve(proj)}
 
 
+def _exchange_rank(rank: int, store: str, sizes: list[int], reps: int, out: str) -> None:
+    import json
+
+    import torch.distributed as dist
+
+    from splatcli.train.distributed import Comm
+
+    torch.set_num_threads(1)
+    dist.init_process_group("gloo", init_method=f"file://{store}", rank=rank, world_size=2)
+    got = {}
+    for n in sizes:
+        shapes = [(n, 3), (n, 4), (n, 3), (n,), (n, 1, 3), (n, 15, 3)]  # means ... sh rest (degree 3)
+        params = {str(i): torch.nn.Parameter(torch.randn(s)) for i, s in enumerate(shapes)}
+        comms = {"gloo": Comm(rank=rank, world=2, shared=False), "shared memory": Comm(rank=rank, world=2, shared=True)}
+        times = {k: [] for k in comms}
+        for _ in range(reps):
+            for name, comm in comms.items():  # taking turns
+                for p in params.values():
+                    p.grad = torch.randn_like(p)
+                dist.barrier()
+                t = time.perf_counter()
+                comm.reduce_step(params, torch.tensor(1.0), False)
+                dt = torch.tensor([time.perf_counter() - t])
+                dist.all_reduce(dt, op=dist.ReduceOp.MAX)  # the slower rank's
+                times[name].append(1e3 * float(dt))
+        got[n] = times
+    if rank == 0:
+        with open(out, "w") as f:
+            json.dump(got, f)
+    dist.destroy_process_group()
+
+
+def exchange(sizes: list[int], reps: int) -> None:
+    with tempfile.TemporaryDirectory() as tmp:
+        out = os.path.join(tmp, "times.json")
+        mp.spawn(_exchange_rank, args=(os.path.join(tmp, "store"), sizes, reps, out), nprocs=2, join=True)
+        import json
+
+        got = json.load(open(out))
+    rows = []
+    for n, times in got.items():
+        for how, ts in times.items():
+            q = statistics.quantiles(ts, n=4)
+            rows.append({"gaussians": int(n), "exchange": how, "median_ms": statistics.median(ts),
+                         "q1_ms": q[0], "q3_ms": q[2]})
+    report("exchange", rows, reps=reps)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenes", default="lego,fox", help="comma-separated (bench/common.py SCENES)")
@@ -46,7 +105,11 @@ def main() -> None:
     ap.add_argument("--eval-every", type=int, default=250)
     ap.add_argument("--nprocs", default="1,2")
     ap.add_argument("--iterations", default="lego=2000,fox=1000", help="per scene, in views seen")
+    ap.add_argument("--exchange", default="", help="Gaussian counts: time the gradient exchange alone")
+    ap.add_argument("--reps", type=int, default=40)
     args = ap.parse_args()
+    if args.exchange:
+        return exchange([int(n) for n in args.exchange.split(",")], args.reps)
     iters = dict(kv.split("=") for kv in args.iterations.split(",") if kv)
     rows = []
     for scene in [s for s in args.scenes.split(",") if s]:
