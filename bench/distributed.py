@@ -22,13 +22,17 @@ memory, taking turns; medians and quartiles of the slower rank in ms (bench/out/
 from __future__ import annotations
 
 import argparse
+import itertools
+import json
 import os
 import shlex
 import statistics
 import tempfile
 import time
+from pathlib import Path
 
 import torch
+import torch.distributed as dist
 import torch.multiprocessing as mp
 
 from common import OUT, SCENES, ensure_processed, fresh_copy, psnr_curve, report, splatcli
@@ -50,52 +54,37 @@ def train_k(scene: str, k: int, args: list[str]) -> dict:
             "curve": psnr_curve(proj)}
 
 
-def _exchange_rank(rank: int, store: str, sizes: list[int], reps: int, out: str) -> None:
-    import json
-
-    import torch.distributed as dist
-
+def _exchange_rank(rank: int, tmp: str, sizes: list[int], reps: int) -> None:
     from splatcli.train.distributed import Comm
 
     torch.set_num_threads(1)
-    dist.init_process_group("gloo", init_method=f"file://{store}", rank=rank, world_size=2)
-    got = {}
-    for n in sizes:
-        shapes = [(n, 3), (n, 4), (n, 3), (n,), (n, 1, 3), (n, 15, 3)]  # means ... sh rest (degree 3)
-        params = {str(i): torch.nn.Parameter(torch.randn(s)) for i, s in enumerate(shapes)}
-        comms = {"gloo": Comm(rank=rank, world=2, shared=False), "shared memory": Comm(rank=rank, world=2, shared=True)}
+    dist.init_process_group("gloo", init_method=f"file://{tmp}/store", rank=rank, world_size=2)
+    comms = {"gloo": Comm(rank=rank, world=2), "shared memory": Comm(rank=rank, world=2, shared=True)}
+    rows = []
+    for n in sizes:  # a model of n Gaussians: means, quats, scales, opacity, SH (degree 3)
+        params = [torch.nn.Parameter(torch.randn(n, k)) for k in (3, 4, 3, 1, 3, 45)]
         times = {k: [] for k in comms}
-        for _ in range(reps):
-            for name, comm in comms.items():  # taking turns
-                for p in params.values():
-                    p.grad = torch.randn_like(p)
-                dist.barrier()
-                t = time.perf_counter()
-                comm.reduce_step(params, torch.tensor(1.0), False)
-                dt = torch.tensor([time.perf_counter() - t])
-                dist.all_reduce(dt, op=dist.ReduceOp.MAX)  # the slower rank's
-                times[name].append(1e3 * float(dt))
-        got[n] = times
+        for _, (name, comm) in itertools.product(range(reps), comms.items()):  # taking turns
+            for p in params:
+                p.grad = torch.randn_like(p)
+            dist.barrier()
+            t = time.perf_counter()
+            comm.reduce_step(dict(enumerate(params)), torch.tensor(1.0), False)
+            dt = torch.tensor([time.perf_counter() - t])
+            dist.all_reduce(dt, op=dist.ReduceOp.MAX)  # the slower rank's
+            times[name].append(1e3 * float(dt))
+        rows += [{"gaussians": n, "exchange": k, "median_ms": statistics.median(ts),
+                  "q1_ms": statistics.quantiles(ts, n=4)[0], "q3_ms": statistics.quantiles(ts, n=4)[2]}
+                 for k, ts in times.items()]
     if rank == 0:
-        with open(out, "w") as f:
-            json.dump(got, f)
+        Path(tmp, "rows.json").write_text(json.dumps(rows))
     dist.destroy_process_group()
 
 
 def exchange(sizes: list[int], reps: int) -> None:
     with tempfile.TemporaryDirectory() as tmp:
-        out = os.path.join(tmp, "times.json")
-        mp.spawn(_exchange_rank, args=(os.path.join(tmp, "store"), sizes, reps, out), nprocs=2, join=True)
-        import json
-
-        got = json.load(open(out))
-    rows = []
-    for n, times in got.items():
-        for how, ts in times.items():
-            q = statistics.quantiles(ts, n=4)
-            rows.append({"gaussians": int(n), "exchange": how, "median_ms": statistics.median(ts),
-                         "q1_ms": q[0], "q3_ms": q[2]})
-    report("exchange", rows, reps=reps)
+        mp.spawn(_exchange_rank, args=(tmp, sizes, reps), nprocs=2, join=True)
+        report("exchange", json.loads(Path(tmp, "rows.json").read_text()), reps=reps)
 
 
 def main() -> None:

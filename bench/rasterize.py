@@ -1,8 +1,8 @@
 """Benchmark the rasterizer: forward, forward+backward, peak memory, ns per pair.
 
-    python bench/rasterize.py [--threads 1,2] [--reps 5] [--only NAME ...] [--no-reference] [--flattened]
+    python bench/rasterize.py [--threads 1,2] [--reps 5] [--only NAME ...] [--no-reference]
 
-Workloads (seeded, issue 7): synthetic N = 10k and 100k at 256x256 and 800x600 (camera
+Workloads (seeded): synthetic N = 10k and 100k at 256x256 and 800x600 (camera
 at the origin, f = 0.8 W; means x, y ~ U(-2, 2), z ~ U(3, 7); log scales ~ U(-4, -2);
 normalised Gaussian-noise quats; opacity 0.5 + 0.1 N(0, 1) clamped to [0.05, 0.95];
 colour U(0, 1) as SH degree 0), 100k at 800x600 with SH degree 3, and garden: the
@@ -30,7 +30,6 @@ import os
 import statistics
 import threading
 import time
-from dataclasses import dataclass
 
 import torch
 
@@ -153,58 +152,6 @@ def reference_once(wl: Workload, band: int = 2) -> dict:
     return {"fwd": t1 - t0, "tot": (t1 - t0) + (t2 - t1)}
 
 
-def flattened(means, quats, log_scales, opacity_logits, sh, viewmat, K, width, height):
-    """The textbook flattened formulation (the alternative we measured against): one row
-    per (Gaussian, pixel) pair inside the alpha bounding box, alpha per pair, a global
-    sort by (pixel, depth), a segmented cumsum of log(1 - alpha) for transmittance, and
-    index_add into pixels; backward by autograd. Same model and picture as rasterize()."""
-    W, H = width, height
-    pr = project(means, quats, log_scales, opacity_logits, sh, viewmat, K, W, H, int(math.isqrt(sh.shape[1])) - 1)
-    with torch.no_grad():
-        fp = pr.footprint  # the drawable Gaussians in depth order
-        idx, m, cv, rc = fp.gid, fp.means2d, fp.cov2d, fp.rect
-        t2 = 2 * torch.log((fp.opacities * 255).clamp_min(1e-30)) + 1e-3
-        hx, hy = (t2 * cv[:, 0]).sqrt(), (t2 * cv[:, 2]).sqrt()
-        x0 = torch.maximum(torch.ceil(m[:, 0] - hx - 0.5), rc[:, 0] * 16.0).clamp_min(0).long()
-        x1 = torch.minimum(torch.floor(m[:, 0] + hx - 0.5), rc[:, 2] * 16.0 - 1).clamp_max(W - 1).long()
-        y0 = torch.maximum(torch.ceil(m[:, 1] - hy - 0.5), rc[:, 1] * 16.0).clamp_min(0).long()
-        y1 = torch.minimum(torch.floor(m[:, 1] + hy - 0.5), rc[:, 3] * 16.0 - 1).clamp_max(H - 1).long()
-        nx, ny = (x1 - x0 + 1).clamp_min(0), (y1 - y0 + 1).clamp_min(0)
-        n = nx * ny
-        rank = torch.repeat_interleave(torch.arange(idx.numel()), n)
-        loc = torch.arange(rank.numel()) - (torch.cumsum(n, 0) - n)[rank]
-        px = x0[rank] + loc % nx[rank]
-        py = y0[rank] + loc // nx[rank]
-        key, order = torch.sort((py * W + px) * max(idx.numel(), 1) + rank)
-        pix = torch.div(key, max(idx.numel(), 1), rounding_mode="floor")
-        rank, px, py = rank[order], px[order], py[order]
-        gid = idx[rank]
-    d = torch.stack([px + 0.5, py + 0.5], 1).to(means.dtype) - pr.means2d[gid]
-    A, B, C = pr.conics[gid].unbind(1)
-    alpha = pr.opacities[gid] * torch.exp(-0.5 * (A * d[:, 0] ** 2 + C * d[:, 1] ** 2) - B * d[:, 0] * d[:, 1])
-    alpha = torch.where(alpha >= 1 / 255, alpha.clamp(max=0.99), torch.zeros_like(alpha))
-    lg = torch.log1p(-alpha).double()  # a global float32 cumsum would lose the segments' digits
-    cs = torch.cumsum(lg, 0)
-    first = torch.searchsorted(pix, pix)  # start of each pixel's segment
-    excl = cs - lg - torch.where(first > 0, cs[(first - 1).clamp_min(0)], torch.zeros_like(cs))
-    T_before = torch.exp(excl).to(alpha.dtype)
-    inc = (T_before * (1 - alpha) >= 1e-4).detach()
-    w = torch.where(inc, alpha * T_before, torch.zeros_like(alpha))
-    img = torch.zeros(H * W, 3, dtype=means.dtype).index_add(0, pix, w[:, None] * pr.colors[gid])
-    acc = torch.zeros(H * W, dtype=means.dtype).index_add(0, pix, w)
-    return img.reshape(H, W, 3), (1 - acc).reshape(H, W)
-
-
-@dataclass
-class _Out:
-    image: torch.Tensor
-
-
-def flattened_measure(wl: Workload, reps: int) -> dict:
-    fn = lambda *a: _Out(flattened(*a)[0])  # noqa: E731
-    return measure(wl, reps, torch.device("cpu"), fn=fn)
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--threads", default=str(torch.get_num_threads()), help="comma list of torch thread counts")
@@ -212,7 +159,6 @@ def main() -> None:
     ap.add_argument("--only", nargs="*", help="workload names (default: all)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--no-reference", action="store_true", help="skip the (slow) dense reference run")
-    ap.add_argument("--flattened", action="store_true", help="also time the textbook flattened formulation")
     args = ap.parse_args()
     device = torch.device(args.device)
     threads = [int(t) for t in args.threads.split(",")]
@@ -241,18 +187,6 @@ def main() -> None:
                               "times_fast_fwd": ref["fwd"] * 1e3 / fast["fwd_ms"],
                               "times_fast_fwd_bwd": ref["tot"] * 1e3 / fast["fwd_bwd_ms"]}
         print(f"dense reference: {extra['reference']}", flush=True)
-    if args.flattened and small:
-        torch.set_num_threads(threads[-1])
-        with torch.no_grad():
-            diff = (flattened(*small.args, small.width, small.height)[0]
-                    - rasterize(*small.args, small.width, small.height).image).abs().max().item()
-        fl = flattened_measure(small, args.reps)
-        extra["flattened"] = {"workload": small.name, "threads": threads[-1], "fwd_ms": fl["fwd"] * 1e3,
-                              "fwd_bwd_ms": fl["tot"] * 1e3, "fwd_bwd_cpu_ms": fl["tot_cpu"] * 1e3,
-                              "peak_mb": fl["mem"],
-                              "times_fast_cpu": fl["tot_cpu"] * 1e3 / fast["fwd_bwd_cpu_ms"], "max_abs_diff": diff}
-        print(f"flattened: {extra['flattened']}", flush=True)
-    # goals: fwd+bwd <= 40 ns/pair (issue 7), <= 25 (issue 12), at every thread count
     report("rasterize", rows, device=str(device), reps=args.reps, load_start=round(load0, 2), **extra)
 
 
