@@ -121,7 +121,11 @@ def sh_basis_rows_backward(
     x, y, z = dirs
     mono = torch.stack([torch.ones_like(x), x, y, z, x * x, y * y, z * z, x * y, x * z, y * z])  # [10, N]
     D = torch.tensor(_DY, dtype=g.dtype, device=g.device)[:, :k]
-    return (torch.mm(D, g).view(3, len(_MONO2), -1) * mono).sum(1)
+    coef = torch.mm(D, g).view(3, len(_MONO2), -1)  # [3, 10, N]
+    out = coef[:, 0] * mono[0]  # [3, N]; a monomial at a time: (coef * mono).sum(1) wrote a [3, 10, N] product first
+    for i in range(1, len(_MONO2)):
+        out.addcmul_(coef[:, i], mono[i])
+    return out
 
 
 def eval_sh(
