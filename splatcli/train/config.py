@@ -171,9 +171,10 @@ class TrainConfig:
     seed: int = opt(0, "Random seed; the same seed on CPU gives the same result, bit for bit, unless --block is auto (the default).",
                     group=RUN)
     compile: str = opt("auto", "Compile the rasterizer's planner with torch.compile on a CPU (a C++ compiler is "
-                       "needed; kernels are kept in ~/.cache/splatcli, so only a machine's first run compiles, about "
-                       "20 s): on, off, or auto = on for runs long enough to repay it (docs/guide.md, \"Compiled "
-                       "kernels\"). The result is the same either way.", group=RUN, choices=COMPILE_MODES,
+                       "needed; kernels are kept in ~/.cache/splatcli, so only a machine's first run compiles, "
+                       "20-30 s): on, off, or auto = on for runs long enough to repay it: 30 min, 15 when cached "
+                       "(docs/guide.md, \"Compiled kernels\"). The result is the same either way.", group=RUN,
+                       choices=COMPILE_MODES,
                        parse=_lower)
     block: str = opt("auto", "The PyTorch compositor's pixel block, a speed knob (the picture is the same up to float "
                      "rounding): auto measures which of 4, 8 and 16 px is fastest on this CPU as training goes "
