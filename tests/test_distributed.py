@@ -23,6 +23,7 @@ from splatcli.cli.train_config import make_config
 from splatcli.eval.curve import read_log
 from splatcli.files.checkpoint import load_checkpoint
 from splatcli.strategy.default import DefaultStrategyState
+from splatcli.train import distributed
 from splatcli.train.distributed import SHM_DIR, Comm
 from support.tiny_project import make_tiny_project
 
@@ -259,6 +260,14 @@ def _ranks(rank: int, world: int, store: str, out: str) -> None:
         ref = comm.reduce_step({"p": q}, torch.tensor(float(rank)), stop=False)
         results["shared"].append([torch.equal(p.grad, q.grad), float(got[0]), got[1], float(ref[0]), p.grad[:3].tolist()])
     results["shared_files"] = sorted(f for f in os.listdir(SHM_DIR) if f.startswith(f"splatcli-{shm._slots.tag}-"))
+    # no room in shared memory (a container's small /dev/shm): gloo, on every rank alike
+    distributed._shm_free = (lambda: 0) if rank == 1 else distributed._shm_free
+    full = Comm(rank=rank, world=world, shared=True)
+    p, q = torch.nn.Parameter(torch.zeros(4)), torch.nn.Parameter(torch.zeros(4))
+    p.grad, q.grad = torch.full((4,), float(rank)), torch.full((4,), float(rank))
+    full.reduce_step({"p": p}, torch.tensor(0.0), stop=False)
+    comm.reduce_step({"p": q}, torch.tensor(0.0), stop=False)
+    results["full"] = [full.shared, torch.equal(p.grad, q.grad), p.grad.tolist()]
     # agreement: equal parameters pass; one flipped bit on one rank fails on every rank
     q = {"p": torch.nn.Parameter(torch.linspace(0, 1, 5))}
     comm.check_agree(q)
@@ -284,3 +293,4 @@ def test_collectives_merge_rows_average_gradients_and_catch_a_one_bit_difference
     assert r[0]["shared"] == r[1]["shared"] and len(r[0]["shared"]) == 6  # every rank the same gradients
     assert all(same and loss == 0.5 == ref and not stop for same, loss, stop, ref, _ in r[0]["shared"])
     assert r[0]["shared_files"] == r[1]["shared_files"] == []  # unlinked once mapped
+    assert r[0]["full"] == r[1]["full"] == [False, True, [0.5] * 4]

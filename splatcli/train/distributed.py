@@ -38,6 +38,7 @@ TIMEOUT_S = float(os.environ.get("SPLATCLI_DIST_TIMEOUT", "600"))
 
 
 SHM_DIR = "/dev/shm"  # where the ranks of one machine share their gradients (absent: gloo's all-reduce)
+SHM_HEADROOM = 2  # the buffers take at most half of what is free there (containers often get 64 MB)
 
 
 class _Slots:
@@ -47,8 +48,8 @@ class _Slots:
     Grown by a quarter beyond the need when the model outgrows them (every rank at the same step,
     since the ranks hold the same model)."""
 
-    def __init__(self, rank: int, world: int, barrier):
-        self.rank, self.world, self.barrier = rank, world, barrier
+    def __init__(self, rank: int, world: int, agree):
+        self.rank, self.world, self.agree = rank, world, agree  # agree(ok): every rank's ok (a collective)
         self.cap, self.turn = 0, 0
         self.bufs: list[list[Tensor]] = []  # [turn][rank] -> [cap] float32
         self.total = torch.empty(0)  # [cap] this rank's sum of all ranks' gradients
@@ -57,41 +58,58 @@ class _Slots:
     def _path(self, rank: int, turn: int) -> str:
         return os.path.join(SHM_DIR, f"splatcli-{self.tag}-{self.cap}-{rank}-{turn}")
 
-    def reserve(self, n: int) -> None:
+    def reserve(self, n: int) -> bool:
+        """Buffers for n values on every rank; False (on every rank alike) when the shared memory
+        has no room for them: a full tmpfs would kill a process that writes to it (SIGBUS)."""
         if n <= self.cap:
-            return
-        self.cap = n + n // 4 + 1024
+            return True
+        cap = n + n // 4 + 1024
+        if not self.agree(_shm_free() >= SHM_HEADROOM * 2 * self.world * 4 * cap):
+            return False
+        self.cap = cap
         mine = [self._path(self.rank, t) for t in (0, 1)]
         try:
             own = [torch.from_file(f, shared=True, size=self.cap, dtype=torch.float32) for f in mine]
-            self.barrier()  # every rank has made its files
+            self.agree(True)  # every rank has made its files
             self.bufs = [[own[t] if r == self.rank else
                           torch.from_file(self._path(r, t), shared=True, size=self.cap, dtype=torch.float32)
                           for r in range(self.world)] for t in (0, 1)]
-            self.barrier()  # every rank has mapped every file: the names can go (the mappings stay)
+            self.agree(True)  # every rank has mapped every file: the names can go (the mappings stay)
         finally:
             for f in mine:
                 with contextlib.suppress(OSError):
                     os.unlink(f)
         self.total = torch.empty(self.cap)
+        return True
 
-    def sum(self, parts: list[Tensor]) -> Tensor:  # parts: 1-D float32 -> [n] the sum over ranks
+    def sum(self, parts: list[Tensor]) -> Tensor | None:  # parts: 1-D float32 -> [n] the sum over ranks
+        """The sum over ranks, or None (on every rank) when the shared memory has no room."""
         n = sum(int(p.numel()) for p in parts)
-        self.reserve(n)
+        if not self.reserve(n):
+            return None
         bufs, self.turn = self.bufs[self.turn], 1 - self.turn
         torch.cat(parts, out=bufs[self.rank][:n])
-        self.barrier()  # every rank's gradients are written
+        self.agree(True)  # every rank's gradients are written
         out = torch.add(bufs[0][:n], bufs[1][:n], out=self.total[:n])  # the same order on every rank: the same bits
         for b in bufs[2:]:
             out += b[:n]
         return out
 
 
-def _barrier() -> None:
-    """Every rank has arrived (a one-value all-reduce: gloo's barrier costs more)."""
+def _agree(ok: bool) -> bool:
+    """Whether every rank's `ok` holds; every rank has arrived (a one-value all-reduce: gloo's
+    barrier costs more)."""
     import torch.distributed as dist
 
-    dist.all_reduce(torch.zeros(1))
+    t = torch.tensor([float(ok)])
+    dist.all_reduce(t, op=dist.ReduceOp.MIN)
+    return bool(t[0] > 0)
+
+
+def _shm_free() -> int:
+    """Bytes free in SHM_DIR."""
+    st = os.statvfs(SHM_DIR)
+    return st.f_bavail * st.f_frsize
 
 
 def _shared_memory_usable() -> bool:
@@ -138,14 +156,17 @@ class Comm:
         ps = list(params.values())
         parts = [(p.grad if p.grad is not None else torch.zeros_like(p)).reshape(-1) for p in ps]
         parts += [loss.detach().reshape(1).to(ps[0].dtype), torch.tensor([float(stop)], device=ps[0].device)]
+        flat: Tensor | None = None
         if self.shared and ps[0].device.type == "cpu" and ps[0].dtype == torch.float32:
             if self._slots is None:
-                self._slots = _Slots(self.rank, self.world, _barrier)
+                self._slots = _Slots(self.rank, self.world, _agree)
             t0 = time.perf_counter()
             flat = self._slots.sum(parts)
             self.seconds += time.perf_counter() - t0
             self.calls += 1
-        else:
+            if flat is None:  # no room in shared memory for this model: gloo from now on
+                self.shared, self._slots = False, None
+        if flat is None:
             flat = self._all_reduce(torch.cat(parts))
         flat /= self.world
         o = 0
