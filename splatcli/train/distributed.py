@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import tempfile
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -48,8 +47,8 @@ class _Slots:
     Grown by a quarter beyond the need when the model outgrows them (every rank at the same step,
     since the ranks hold the same model)."""
 
-    def __init__(self, rank: int, world: int, agree):
-        self.rank, self.world, self.agree = rank, world, agree  # agree(ok): every rank's ok (a collective)
+    def __init__(self, rank: int, world: int):
+        self.rank, self.world = rank, world
         self.cap, self.turn = 0, 0
         self.bufs: list[list[Tensor]] = []  # [turn][rank] -> [cap] float32
         self.total = torch.empty(0)  # [cap] this rank's sum of all ranks' gradients
@@ -64,17 +63,17 @@ class _Slots:
         if n <= self.cap:
             return True
         cap = n + n // 4 + 1024
-        if not self.agree(_shm_free() >= SHM_HEADROOM * 2 * self.world * 4 * cap):
+        if not _agree(_shm_free() >= SHM_HEADROOM * 2 * self.world * 4 * cap):
             return False
         self.cap = cap
         mine = [self._path(self.rank, t) for t in (0, 1)]
         try:
             own = [torch.from_file(f, shared=True, size=self.cap, dtype=torch.float32) for f in mine]
-            self.agree(True)  # every rank has made its files
+            _agree(True)  # every rank has made its files
             self.bufs = [[own[t] if r == self.rank else
                           torch.from_file(self._path(r, t), shared=True, size=self.cap, dtype=torch.float32)
                           for r in range(self.world)] for t in (0, 1)]
-            self.agree(True)  # every rank has mapped every file: the names can go (the mappings stay)
+            _agree(True)  # every rank has mapped every file: the names can go (the mappings stay)
         finally:
             for f in mine:
                 with contextlib.suppress(OSError):
@@ -89,7 +88,7 @@ class _Slots:
             return None
         bufs, self.turn = self.bufs[self.turn], 1 - self.turn
         torch.cat(parts, out=bufs[self.rank][:n])
-        self.agree(True)  # every rank's gradients are written
+        _agree(True)  # every rank's gradients are written
         out = torch.add(bufs[0][:n], bufs[1][:n], out=self.total[:n])  # the same order on every rank: the same bits
         for b in bufs[2:]:
             out += b[:n]
@@ -110,14 +109,6 @@ def _shm_free() -> int:
     """Bytes free in SHM_DIR."""
     st = os.statvfs(SHM_DIR)
     return st.f_bavail * st.f_frsize
-
-
-def _shared_memory_usable() -> bool:
-    try:
-        with tempfile.NamedTemporaryFile(dir=SHM_DIR, prefix="splatcli-probe-"):
-            return True
-    except OSError:
-        return False
 
 
 @dataclass
@@ -159,7 +150,7 @@ class Comm:
         flat: Tensor | None = None
         if self.shared and ps[0].device.type == "cpu" and ps[0].dtype == torch.float32:
             if self._slots is None:
-                self._slots = _Slots(self.rank, self.world, _agree)
+                self._slots = _Slots(self.rank, self.world)
             t0 = time.perf_counter()
             flat = self._slots.sum(parts)
             self.seconds += time.perf_counter() - t0
@@ -268,4 +259,4 @@ def join(device: torch.device) -> Comm:
                          f"({type(exc).__name__}: {' '.join(str(exc).split())[:200]})",
                          hint="check MASTER_ADDR / MASTER_PORT and that every node started") from None
     return Comm(rank=rank, world=world, local_world=local_world,
-                shared=device.type == "cpu" and local_world == world and _shared_memory_usable())
+                shared=device.type == "cpu" and local_world == world and os.access(SHM_DIR, os.W_OK))
