@@ -152,9 +152,10 @@ class TimePlan:
         """A finished run resumed with a budget that leaves time (`--resume --time-budget S`): its
         main schedule reopened and planned to the new budget at the speed it last ran (the
         learning-rate decay laid over the new length, as `--resume --iterations N` does for a
-        stepped run). None while the run is unfinished (the plan goes on by itself) or no
-        time is left."""
-        if views < cfg.iterations or elapsed >= self.budget_s - self.probe_s or not self.history:
+        stepped run). None while the run is unfinished (the plan goes on by itself) or it
+        ended within the plan's resolution of the budget (a `replan_every` share of it: plans
+        land that close, and the same budget given again has nothing left to do)."""
+        if views < cfg.iterations or elapsed >= self.budget_s * (1.0 - self.replan_every) or not self.history:
             return None
         return self.replan(cfg, views, elapsed, self.history[-1].get("stalled_s", 0.0), reopen=True)
 
