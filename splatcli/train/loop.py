@@ -163,13 +163,16 @@ class _Run:
     def start(self, ck: Checkpoint | None, device: torch.device) -> None:
         """The trainer of a new run, or of `ck`'s; a finished planned run given more time
         reopened; every rank starting from rank 0's parameters."""
+        plan = time_plan(self.base, ck.extra.get("plan") if ck is not None else None)
+        if plan is not None:
+            self.base = plan.tuned(self.base)  # (its learning rates from the first step)
         data, comm, run = self.data, self.comm, self.base.for_world(self.comm.world)  # the schedule K ranks follow
         if ck is None:
             state = new_state(initial_gaussians(self.base, data, device), run, data.extent, device, len(data.train),
                               self.ctx, comm.world)
         else:
             state = state_from_checkpoint(ck, run, data.extent, device, len(data.train), self.ctx, comm.world)
-        state.plan = time_plan(self.base, ck.extra.get("plan") if ck is not None else None)
+        state.plan = plan
         self.trainer = Trainer(state, run, data, self.ctx, comm, self.prof)
         if ck is not None:
             self._extend()

@@ -16,7 +16,8 @@ What a plan sets:
   refinement at least every MIN_REFINE_EVERY steps;
 * the means' learning rate held at its initial value for the first LR_HOLD of the run
   (`lr_hold`), then decaying: a compressed exponential decay leaves a short run's last
-  half at a tenth of the rate, before the model has its shape;
+  half at a tenth of the rate, before the model has its shape; and every rate higher than
+  the preset's (`tuned`, from the first step);
 * the Gaussian count on a curve tied to the resolution schedule (as DashGaussian does):
   the strategy's budget is cap x (scale at the next plan)^2, where scale is the
   coarse-to-fine resolution, so that cheap coarse steps are not slowed by Gaussians
@@ -42,6 +43,11 @@ from .config import TrainConfig
 MIN_ITERATIONS = 30  # a plan never shrinks the run below this
 MIN_REFINE_EVERY = 25  # steps between refinements, at least (or the template's, when smaller)
 LR_HOLD = 0.6  # the fraction of a planned run the means' learning rate stays at its initial value
+# A planned run's learning rates: a budget buys a few thousand steps, where the presets' rates are
+# the paper's for 30,000, so every rate is LR_SCALE x the preset's and the higher SH bands learn at
+# 1/SHN_DIV of the DC's rate, not 1/20 (docs/benchmarks.md, "Time budgets").
+LR_SCALE = 1.5
+SHN_DIV = 10.0
 # A step's cost that does not grow with its pixels, as a share of a full-size step's: fitted so that
 # (a + 1) / (a + 1/16) is fox's speed at 1/4 of the size over its speed at full (480 px, 2 processes).
 OVERHEAD = 0.07
@@ -130,6 +136,13 @@ class TimePlan:
         return TimePlan(budget_s=float(cfg.time_budget), template=Schedule.of(cfg),
                         probe_s=min(5.0, 0.05 * float(cfg.time_budget)), cap=cfg.refine.max_gaussians)
 
+    @staticmethod
+    def tuned(cfg: TrainConfig) -> TrainConfig:
+        """`cfg` with a planned run's learning rates (LR_HOLD, LR_SCALE, SHN_DIV); the same
+        config again leaves it as it is."""
+        return replace(cfg, lr_hold=max(cfg.lr_hold, LR_HOLD), lr_scale=max(cfg.lr_scale, LR_SCALE),
+                       lr_shN_div=min(cfg.lr_shN_div, SHN_DIV))
+
     def scaled(self, cfg: TrainConfig, iterations: int, at: int = 0) -> TrainConfig:
         """`cfg` with the template schedule scaled to `iterations` main steps, the learning
         rate held, and the Gaussian budget of the curve at step `at`. Refinement keeps at
@@ -139,7 +152,7 @@ class TimePlan:
         out = self.template.scaled(iterations / self.template.iterations)
         out = replace(out, iterations=iterations,
                       refine_every=max(out.refine_every, min(MIN_REFINE_EVERY, self.template.refine_every)))
-        cfg = out.applied(replace(cfg, lr_hold=max(cfg.lr_hold, LR_HOLD)))
+        cfg = out.applied(self.tuned(cfg))
         if self.cap is not None:
             cfg = cfg.with_refine(max_gaussians=self.curve(cfg, at))
         return cfg

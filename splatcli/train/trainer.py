@@ -23,7 +23,7 @@ from .data import TrainData, TrainView
 from .distributed import Comm
 from .loss import photometric_loss
 from .profile import StepProfile
-from .state import TrainState, make_strategies, means_lr
+from .state import TrainState, learning_rates, make_strategies, means_lr
 from .transients import kept_pixels
 
 
@@ -69,9 +69,12 @@ class Trainer:
     def reschedule(self, cfg: TrainConfig) -> None:
         """Follow a new schedule (a --time-budget plan), from the next step on. The
         strategies are made again from it: they hold only their settings, and their
-        running state (the rows in `state.splats.states`) is kept."""
+        running state (the rows in `state.splats.states`) is kept; the optimisers take its
+        learning rates (their moments are kept)."""
         self.cfg = cfg
         self.state.strategies = make_strategies(cfg, self.data.extent, self.ctx)
+        for name, opt in self.state.optimizers.items():
+            opt.param_groups[0]["lr"] = learning_rates(cfg, self.data.extent)[name]
 
     def catch_up(self) -> list[RefineStats | None]:
         """On resume: what each strategy does that an uninterrupted run would have done by now."""
