@@ -73,8 +73,9 @@ class Trainer:
         learning rates (their moments are kept)."""
         self.cfg = cfg
         self.state.strategies = make_strategies(cfg, self.data.extent, self.ctx)
+        lrs = learning_rates(cfg, self.data.extent)
         for name, opt in self.state.optimizers.items():
-            opt.param_groups[0]["lr"] = learning_rates(cfg, self.data.extent)[name]
+            opt.param_groups[0]["lr"] = lrs[name]
 
     def catch_up(self) -> list[RefineStats | None]:
         """On resume: what each strategy does that an uninterrupted run would have done by now."""
