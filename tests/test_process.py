@@ -117,6 +117,27 @@ def test_rerun_needs_overwrite_and_interrupts_leave_the_project_alone(processed,
     assert not (tmp_path / "new").exists()
 
 
+def test_a_large_capture_is_mapped_on_every_core_with_fewer_global_adjustments(scene, tmp_path, monkeypatch):
+    """From LARGE_CAPTURE images the mapper runs on every core with the large-capture bundle-adjustment
+    schedule, and the manifest says so; below it, one thread and COLMAP's schedule (repeatable)."""
+    from splatcli.sfm import reconstruct
+
+    src, used = _zoomed(scene, tmp_path / "photos", 1.0, 4), []
+    real_map = reconstruct._map
+    monkeypatch.setattr(reconstruct, "_map", lambda db, im, out, mapper, *a, **k: (used.append(mapper),
+                                                                                 real_map(db, im, out, mapper, *a, **k))[1])
+    r = process(src, tmp_path / "small")
+    assert used[0].num_threads == 1 and used[0].ba_global_frames_ratio == 1.1 and not used[0].ba_global_ignore_redundant
+    assert not any("every core" in t for t in r.sfm_tried)
+    used.clear()
+    monkeypatch.setattr(reconstruct, "LARGE_CAPTURE", N_VIEWS)
+    r = process(src, tmp_path / "large")
+    assert r.registered == N_VIEWS
+    assert used[0].num_threads == -1 and used[0].ba_global_frames_ratio == reconstruct.LARGE_MAPPER["ba_global_frames_ratio"]
+    assert used[0].ba_global_ignore_redundant and used[0].ba_local_max_refinements == 1
+    assert any("every core" in t for t in r.sfm_tried), r.sfm_tried
+
+
 def test_a_run_interrupted_while_mapping_keeps_its_features_and_matches_for_the_next(scene, tmp_path, monkeypatch):
     """Interrupted at mapping: the next `process` of the same photos extracts and matches nothing again,
     and says so; then `--overwrite` with other mapping options starts from the project's own database."""

@@ -244,6 +244,9 @@ class MapperOptions:
     ba_global_max_num_iterations: int = 50
     ba_global_frames_ratio: float = 1.1  # global BA when the model grew by this factor
     ba_global_points_ratio: float = 1.1
+    ba_global_ignore_redundant: bool = False  # global BA leaves out points that well-covered images see anyway
+    ba_local_max_refinements: int = 2  # COLMAP's default
+    ba_threads_min_residuals: int = 50000  # a BA smaller than this runs on one thread (COLMAP's default)
     init_min_num_inliers: int = 100
     init_min_tri_angle: float = 16.0  # degrees
     init_max_error: float = 4.0  # pixels
@@ -392,6 +395,9 @@ def incremental_mapping(db: Path, image_dir: Path, out_dir: Path, opts: MapperOp
     o.ba_global_max_num_iterations = opts.ba_global_max_num_iterations
     o.ba_global_frames_ratio = opts.ba_global_frames_ratio
     o.ba_global_points_ratio = opts.ba_global_points_ratio
+    o.ba_local_max_refinements = opts.ba_local_max_refinements
+    o.ba_min_num_residuals_for_cpu_multi_threading = opts.ba_threads_min_residuals
+    o.mapper.ba_global_ignore_redundant_points3D = opts.ba_global_ignore_redundant
     o.mapper.init_min_num_inliers = opts.init_min_num_inliers
     o.mapper.init_min_tri_angle = opts.init_min_tri_angle
     o.mapper.init_max_error = opts.init_max_error
