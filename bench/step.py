@@ -27,6 +27,7 @@ import time
 import torch
 
 from common import report
+from splatcli.device import tune_allocator
 from splatcli.files.checkpoint import load_checkpoint
 from splatcli.project import Project
 from splatcli.render import kernels
@@ -81,7 +82,10 @@ def main() -> None:
     ap.add_argument("--fractions", default="0.25,0.5,1", help="shares of the model's Gaussians")
     ap.add_argument("--views", type=int, default=12)
     ap.add_argument("--compile", choices=("on", "off"), default="off", help="the rasterizer's compiled kernels")
+    ap.add_argument("--allocator", choices=("tuned", "glibc"), default="tuned", help="tuned: as every splatcli command")
     args = ap.parse_args()
+    if args.allocator == "tuned":
+        tune_allocator()
     kernels.set_mode(args.compile)
     torch.set_num_threads(1)
     proj, cpu = Project.open(args.project), torch.device("cpu")
@@ -109,6 +113,7 @@ def main() -> None:
             print(rows[-1], flush=True)
     st = kernels.status()
     report("step", rows, project=args.project, max_size=args.max_size, views=args.views, compile=args.compile,
+           allocator=args.allocator,
            compile_s=st.compile_s if args.compile == "on" else None, load_start=round(load0, 2))
 
 

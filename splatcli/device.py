@@ -13,6 +13,29 @@ from .errors import SplatError
 VECTOR_FLAGS = ("avx512f", "avx512_bf16", "avx2", "fma", "avx", "neon", "asimd", "sve")
 
 
+# glibc's malloc hands blocks above a threshold to mmap and gives freed memory back to the system,
+# so the rasterizer's dense temporaries (0.1-30 MB, made and freed many times a step) were fresh,
+# page-faulting memory each time. Kept in the process below these sizes, a lego step (18k Gaussians,
+# 200 px) measured 1.3-1.45x faster and a fox step (58k, 480 px) 1.05x (Zen 3), at the same peak memory.
+MMAP_THRESHOLD = 64 << 20
+TRIM_THRESHOLD = 256 << 20
+
+
+def tune_allocator() -> bool:
+    """Keep freed memory for reuse (see MMAP_THRESHOLD) where the C library is glibc; whether it was set."""
+    import ctypes
+    import ctypes.util
+
+    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+        return False
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        m_trim, m_mmap = -1, -3  # malloc.h: M_TRIM_THRESHOLD, M_MMAP_THRESHOLD
+        return bool(libc.mallopt(m_mmap, MMAP_THRESHOLD)) and bool(libc.mallopt(m_trim, TRIM_THRESHOLD))
+    except (OSError, AttributeError):
+        return False
+
+
 def resolve_device(name: str = "auto") -> torch.device:
     """"auto" picks CUDA when available, else CPU. "cuda" without a GPU is a user error."""
     name = (name or "auto").strip().lower()

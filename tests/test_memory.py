@@ -123,3 +123,13 @@ def test_only_allocation_failures_count_as_out_of_memory():
     assert is_out_of_memory(RuntimeError("CUDA out of memory. Tried to allocate 2.00 GiB"))
     assert not is_out_of_memory(RuntimeError("shape mismatch"))
     assert not is_out_of_memory(ValueError("can't allocate memory"))
+
+
+def test_the_allocator_keeps_freed_memory_where_the_c_library_is_glibc():
+    """Every command calls tune_allocator (cli/main.py); on glibc both thresholds are set, elsewhere nothing is."""
+    import platform
+
+    from splatcli.device import tune_allocator
+
+    glibc = platform.system() == "Linux" and platform.libc_ver()[0] == "glibc"
+    assert tune_allocator() is glibc

@@ -27,8 +27,12 @@ except ImportError:  # pragma: no cover
     from click import exceptions as _cx  # type: ignore[no-redef]
 
 from .. import __version__
+from ..device import tune_allocator
 from ..errors import Interrupted, SplatError
 from ..train.launch import ERRORS_ENV
+
+
+tune_allocator()  # every command, and the processes `train --nproc` starts (they run this module)
 
 
 def _one_line(msg: str) -> str:
