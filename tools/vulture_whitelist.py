@@ -59,3 +59,6 @@ _.has_prior_focal_length  # sfm/colmap.py: a pycolmap camera's flag, read by COL
 _.external_attr  # formats/sog.py: a zip member's permissions, read by unzip
 # render/kernels.py sets torch's own config flag (read inside torch.compile)
 _.use_duck_shape
+# sfm/colmap.py sets pycolmap's mapper options (read inside COLMAP's incremental mapper)
+_.ba_min_num_residuals_for_cpu_multi_threading
+_.ba_global_ignore_redundant_points3D

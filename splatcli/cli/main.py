@@ -31,7 +31,6 @@ from ..device import tune_allocator
 from ..errors import Interrupted, SplatError
 from ..train.launch import ERRORS_ENV
 
-
 tune_allocator()  # every command, and the processes `train --nproc` starts (they run this module)
 
 
