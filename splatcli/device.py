@@ -15,8 +15,9 @@ VECTOR_FLAGS = ("avx512f", "avx512_bf16", "avx2", "fma", "avx", "neon", "asimd",
 
 # glibc's malloc hands blocks above a threshold to mmap and gives freed memory back to the system,
 # so the rasterizer's dense temporaries (0.1-30 MB, made and freed many times a step) were fresh,
-# page-faulting memory each time. Kept in the process below these sizes, a lego step (18k Gaussians,
-# 200 px) measured 1.3-1.45x faster and a fox step (58k, 480 px) 1.05x (Zen 3), at the same peak memory.
+# page-faulting memory each time. Kept in the process below these sizes, bench/step.py measured lego
+# (18k Gaussians, 200 px) 1.2-1.5x and fox (58k, 480 px) 1.05x faster on a Zen 3, at the same peak
+# memory; whole training steps vary more than that there and showed no clear difference.
 MMAP_THRESHOLD = 64 << 20
 TRIM_THRESHOLD = 256 << 20
 
