@@ -96,6 +96,7 @@ class Plan:
     chunk_elems: int = CHUNK_ELEMS  # dense elements per segment (segments grow as blocks terminate)
     terminate_every: int = 1  # segments between early-termination tests (each a host sync on CUDA)
     meter: Meter | None = None  # told the compositing backward's seconds (a BlockTuner's measurement)
+    slots: tuple[int, list[Tensor]] | None = None  # (padding id, each chunk's slot ids): _slot_ids' cache
 
 
 def _feats(block: int, dtype: torch.dtype, device: torch.device) -> Tensor:  # [6, P]
@@ -260,14 +261,16 @@ def _ratio(alpha: float, dtype: torch.dtype) -> float:
 
 class _Gauss:
     """Per-Gaussian rows (u, v, A, B, C, log o, r, g, b, z, 1), plus one padding row at index N
-    (log o = -1e4: alpha exactly 0). The constant 1 makes the colour GEMM also sum the blending
+    (log o = -1e4: alpha exactly 0). A, B, C and log o are in log2 units (times log2 e), so that
+    the exponent's coefficients need no scaling per slot (the backward divides the mean's
+    gradient by log2 e once per Gaussian). The constant 1 makes the colour GEMM also sum the blending
     weights, which gives T_final = 1 - sum w for free. One table, so that a segment gathers its
     slots' rows once (one 11-wide gather costs about half of a 6-wide and a 5-wide one)."""
 
     def __init__(self, means2d, conics, opacities, colors, depths):
         logo = torch.log(torch.clamp_min(opacities, 1e-38)).masked_fill(opacities <= 0, _DEAD)
         ones = torch.ones_like(depths)[:, None]
-        rows = torch.cat([means2d, conics, logo[:, None], colors, depths[:, None], ones], 1)
+        rows = torch.cat([means2d, conics * _LOG2E, logo[:, None] * _LOG2E, colors, depths[:, None], ones], 1)
         pad = rows.new_zeros(1, 11)
         pad[0, 5] = _DEAD
         self.rows = torch.cat([rows, pad], 0)  # [N + 1, 11]
@@ -286,20 +289,26 @@ def _coef(p: Tensor, centre: Tensor):  # p [na, k, 6] gathered rows; centre [na,
     c0 + gx lx + gy ly + qa lx^2 + qb lx ly + qc ly^2, with d0 = mean - block centre.
     Expanding around the block centre keeps the terms small where alpha matters: the
     large part of d0 lies along the ellipse's long axis, where Q d0 is small.
-    Returns coef2 [na, 6, k] in log2 units and (d0x, d0y, A, B, C, gx, gy), each [na, k]."""
+    Returns coef2 [na, 6, k] and (d0x, d0y, A, B, C, gx, gy), each [na, k]; all but d0 in log2
+    units, as the table holds A, B, C and log o."""
     d0x = p[..., 0] - centre[:, 0:1]
     d0y = p[..., 1] - centre[:, 1:2]
     A, B, C = p[..., 2], p[..., 3], p[..., 4]
-    gx = A * d0x + B * d0y
-    gy = B * d0x + C * d0y
-    c0 = p[..., 5] - 0.5 * (d0x * gx + d0y * gy)
-    coef2 = torch.stack([c0, gx, gy, -0.5 * A, -B, -0.5 * C], 1).mul_(_LOG2E)
+    coef2 = p.new_empty(d0x.shape[0], 6, d0x.shape[1])
+    gx = torch.mul(A, d0x, out=coef2[:, 1]).addcmul_(B, d0y)
+    gy = torch.mul(B, d0x, out=coef2[:, 2]).addcmul_(C, d0y)
+    torch.mul(d0x, gx, out=coef2[:, 0]).addcmul_(d0y, gy).mul_(-0.5).add_(p[..., 5])
+    torch.mul(A, -0.5, out=coef2[:, 3])
+    torch.neg(B, out=coef2[:, 4])
+    torch.mul(C, -0.5, out=coef2[:, 5])
     return coef2, (d0x, d0y, A, B, C, gx, gy)
 
 
-def _slot_grads(q, R: Tensor, dcz: Tensor) -> Tensor:  # R [na, 6, k], dcz [na, 4, k] -> [10, na, k]
+def _slot_grads(q, R: Tensor, dcz: Tensor, out: Tensor) -> Tensor:  # R [na, 6, k], dcz [na, 4, k] -> out [10, na, k]
     """Chain rule from the per-slot pixel sums to (mean, conic, log o, colour, z), written into one
     [10, na, k] tensor with fused multiply-adds: these tensors are small, so the op count is the cost.
+    A, B, C, gx and gy come in log2 units, so the mean's rows come log2 e times too large (the
+    caller divides once per Gaussian).
 
         d mean = (A R1 + B R2 - gx R0,  B R1 + C R2 - gy R0)
         d A    = d0x (R1 - R0 d0x / 2) - R3 / 2
@@ -308,7 +317,6 @@ def _slot_grads(q, R: Tensor, dcz: Tensor) -> Tensor:  # R [na, 6, k], dcz [na, 
         d log o = R0"""
     d0x, d0y, A, B, C, gx, gy = q
     R0, R1, R2, R3, R4, R5 = R.unbind(1)
-    out = R.new_empty(10, *R0.shape)
     torch.mul(A, R1, out=out[0]).addcmul_(B, R2).addcmul_(gx, R0, value=-1.0)
     torch.mul(B, R1, out=out[1]).addcmul_(C, R2).addcmul_(gy, R0, value=-1.0)
     hx = R0 * d0x
@@ -370,11 +378,11 @@ def _seg_forward(rows: Tensor, gid: Tensor, centre: Tensor, featsT: Tensor, Tc: 
 
 def _seg_backward(rows: Tensor, gid: Tensor, centre: Tensor, feats: Tensor, featsT: Tensor,
                   Tc: Tensor | None, g4: Tensor, g4t: Tensor, base: Tensor, pc: Tensor | None, c: _Consts,
-                  saved: tuple | None = None) -> tuple[Tensor, Tensor, Tensor]:
+                  out: Tensor, saved: tuple | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """One segment of the backward pass, alpha and T recomputed: g4 [na, 4, P] and g4t [na, P, 4]
     the image gradient of (r, g, b, z), base [na, P] (see backward), pc [na, P] the prefix sum of
-    w v over the earlier segments (None in the first). Returns d(u, v, A, B, C, log o, r, g, b, z) per slot [10, na, k],
-    T after [na, P] and the prefix sum after [na, P]. `saved`: the forward's alpha / (1 - alpha), T
+    w v over the earlier segments (None in the first). Writes d(u, v, A, B, C, log o, r, g, b, z) per slot into
+    `out` [10, na, k] and returns it, T after [na, P] and the prefix sum after [na, P]. `saved`: the forward's alpha / (1 - alpha), T
     after, exponent terms and gathered (r, g, b, z, 1) rows for this segment (used up here), instead
     of computing them again."""
     if saved is not None:
@@ -399,7 +407,7 @@ def _seg_backward(rows: Tensor, gid: Tensor, centre: Tensor, feats: Tensor, feat
     ind = torch.minimum(U.mul_(c.u_scale), r.sub_(c.r_max).mul_(-c.r_scale), out=U).clamp_(max=1.0)
     dpow = t.mul_(ind)
     Rs = torch.matmul(feats, dpow)  # [na, 6, k]: sums of dpow * pixel features
-    return _slot_grads(q, Rs, ds), Tlast, pc
+    return _slot_grads(q, Rs, ds, out), Tlast, pc
 
 
 def _seg_end(plan: Plan, k0: int, K: int, rows: int) -> int:
@@ -410,16 +418,39 @@ def _seg_end(plan: Plan, k0: int, K: int, rows: int) -> int:
     return min(K, k0 + max(plan.seg, plan.chunk_elems // max(8 * rows * P, 1)))
 
 
-def _chunk_ids(plan: Plan, bl: Tensor, K: int, n: int):
-    """Gaussian id of every (block, k) slot of a chunk ([nb, K], padding -> n) and the
-    block centres [nb, 2]."""
-    ar = torch.arange(K, device=bl.device)
-    pos = (plan.block_start[bl][:, None] + ar).clamp_max(max(plan.n_pairs - 1, 0))
-    gid = torch.where(ar < plan.block_count[bl][:, None], plan.pair_gid.index_select(0, pos.reshape(-1)).view_as(pos), n)
+def _slot_ids(plan: Plan, n: int) -> list[Tensor]:
+    """Gaussian id of every (block, k) slot of each chunk ([nb, K] per chunk, padding -> n), built
+    once for the forward and the backward: one scatter of the pairs into the chunks' dense slots."""
+    if plan.slots is not None and plan.slots[0] == n:
+        return plan.slots[1]
+    dev = plan.pair_gid.device
+    nbs = [len(bl) for bl, _ in plan.chunks]
+    if not nbs:
+        return []
+    ks = torch.tensor([K for _, K in plan.chunks], device=dev)
+    nb_t = torch.tensor(nbs, device=dev)
+    sizes = nb_t * ks
+    offs = torch.cumsum(sizes, 0) - sizes  # each chunk's first slot
+    row = torch.arange(sum(nbs), device=dev) - torch.repeat_interleave(torch.cumsum(nb_t, 0) - nb_t, nb_t)
+    first = torch.repeat_interleave(offs, nb_t) + row * torch.repeat_interleave(ks, nb_t)  # each block's first slot
+    shift = torch.zeros_like(plan.block_start)
+    shift[torch.cat([bl for bl, _ in plan.chunks])] = first
+    shift -= plan.block_start  # pair j of a block goes to slot j + shift
+    pos = torch.repeat_interleave(shift, plan.block_count, output_size=plan.n_pairs)
+    pos += torch.arange(plan.n_pairs, device=dev)
+    dense = torch.full((int(sizes.sum()),), n, dtype=plan.pair_gid.dtype, device=dev)
+    dense.index_copy_(0, pos, plan.pair_gid)
+    out = [x.view(nb, K) for x, nb, (_, K) in zip(dense.split(sizes.tolist()), nbs, plan.chunks)]
+    plan.slots = (n, out)
+    return out
+
+
+def _centres(plan: Plan, bl: Tensor, dtype: torch.dtype) -> Tensor:  # [nb, 2]
+    """The pixel centres of blocks `bl`."""
     b = plan.block
     cx = (bl % plan.nbx) * b + b / 2
     cy = torch.div(bl, plan.nbx, rounding_mode="floor") * b + b / 2
-    return gid, torch.stack([cx, cy], -1)
+    return torch.stack([cx, cy], -1).to(dtype)
 
 
 def _rowsel(x: Tensor, act: Tensor | None) -> Tensor:
@@ -451,9 +482,8 @@ def _blend(plan: Plan, means2d: Tensor, conics: Tensor, opacities: Tensor, color
     featsT = _feats(plan.block, dt, dev).T.contiguous()  # [P, 6]
     acc = torch.zeros(plan.nbx * plan.nby, 5, P, dtype=dt, device=dev)  # (r, g, b, depth, sum w)
     kept_bytes = 0
-    for bl, K in plan.chunks:
-        gid, centre = _chunk_ids(plan, bl, K, N)
-        centre = centre.to(dt)
+    for (bl, K), gid in zip(plan.chunks, _slot_ids(plan, N)):
+        centre = _centres(plan, bl, dt)
         cnt = plan.block_count.index_select(0, bl)  # [nb] list lengths
         out = None
         act, Tc = None, None
@@ -513,11 +543,10 @@ class _Composite(torch.autograd.Function):
         # d(u, v, A, B, C, log o, r, g, b, z), one row per quantity: index_add_ along dim 1 of [10, N + 1]
         # measured a little faster in place than accumulating rows of [N + 1, 10] (fox: 21 -> 20 ms a backward).
         dg = torch.zeros(10, N + 1, dtype=dt, device=dev)
-        pend, npend = [], 0  # segments' (slot ids, per-slot gradients) not yet scattered into dg
+        pend = _Pending(dg, sum(len(bl) * K for bl, K in plan.chunks))
         kept, ctx.kept = collections.deque(ctx.kept or ()), None  # used up (edited in place): a second backward computes them again
-        for bl, K in plan.chunks:
-            gid, centre = _chunk_ids(plan, bl, K, N)
-            centre = centre.to(dt)
+        for (bl, K), gid in zip(plan.chunks, _slot_ids(plan, N)):
+            centre = _centres(plan, bl, dt)
             g4b, g4tb = g4.index_select(0, bl), g4t_all.index_select(0, bl).contiguous()  # [nb, 4, P], [nb, P, 4]
             base = base_all.index_select(0, bl)  # [nb, P]
             cnt = plan.block_count.index_select(0, bl)  # [nb] list lengths
@@ -526,22 +555,18 @@ class _Composite(torch.autograd.Function):
             while k0 < K:
                 k1 = _seg_end(plan, k0, K, len(bl) if act is None else len(act))
                 gid_s = _rowsel(gid, act)[:, k0:k1].contiguous()
-                dgs, Tc, pc = _seg_backward(gs.rows, gid_s, _rowsel(centre, act), feats, featsT, Tc, _rowsel(g4b, act),
-                                   _rowsel(g4tb, act), _rowsel(base, act), pc, c,
-                                   kept.popleft() if kept else None)  # (freed as the backward goes)
-                pend.append((gid_s.reshape(-1), dgs.reshape(10, -1)))
-                npend += gid_s.numel()
-                if npend >= SCATTER_SLOTS:
-                    _scatter(dg, pend)
-                    npend = 0
+                _, Tc, pc = _seg_backward(gs.rows, gid_s, _rowsel(centre, act), feats, featsT, Tc, _rowsel(g4b, act),
+                                          _rowsel(g4tb, act), _rowsel(base, act), pc, c, pend.take(gid_s),
+                                          kept.popleft() if kept else None)  # (freed as the backward goes)
                 nseg += 1
                 if k1 < K and nseg % plan.terminate_every == 0:
                     act, Tc, (pc,) = _terminate(act, Tc, _rowsel(cnt, act) > k1, pc)
                     if act is not None and act.numel() == 0:
                         break
                 k0 = k1
-        _scatter(dg, pend)
+        pend.flush()
         dg = dg[:, :N]
+        dg[:2] /= _LOG2E  # (_Gauss: A, B, C in log2 units)
         d_opac = dg[5] / opacities.clamp_min(1e-38)  # d log o -> d o; 0 for pair-less Gaussians
         d_bg = None
         if ctx.needs_input_grad[6]:
@@ -553,12 +578,35 @@ class _Composite(torch.autograd.Function):
         return None, dg[:2].T, dg[2:5].T, d_opac, dg[6:9].T, dg[9], d_bg
 
 
-def _scatter(dg: Tensor, pend: list) -> None:
-    """Adds the pending segments' per-slot gradients into dg [10, N + 1] in one call, and empties `pend`."""
-    if pend:
-        ids, vals = zip(*pend)
-        dg.index_add_(1, torch.cat(ids), torch.cat(vals, 1))
-        pend.clear()
+class _Pending:
+    """Per-slot gradients not yet added into dg [10, N + 1]: segments write theirs into one buffer
+    of SCATTER_SLOTS slots (no concatenation), added in one call when it is full and at the end."""
+
+    def __init__(self, dg: Tensor, slots: int):  # slots: how many the backward will write, at most
+        self.dg, self.n, self.cap = dg, 0, max(1, min(SCATTER_SLOTS, slots))
+        self.ids = torch.empty(self.cap, dtype=torch.int64, device=dg.device)
+        self.vals = dg.new_empty(10, self.cap)
+
+    def take(self, gid: Tensor) -> Tensor:  # gid [na, k] -> [10, na, k] to write the slots' gradients into
+        """Room for one segment's gradients, whose slots hold the Gaussians `gid`."""
+        S = gid.numel()
+        if self.n + S > self.cap:
+            self.flush()
+        if S > self.cap:  # (a segment larger than the buffer: added on the next flush, on its own)
+            self.big = (gid.reshape(-1), self.vals.new_empty(10, S))
+            return self.big[1].view(10, *gid.shape)
+        self.ids[self.n : self.n + S] = gid.reshape(-1)
+        out = self.vals[:, self.n : self.n + S].view(10, *gid.shape)
+        self.n += S
+        return out
+
+    def flush(self) -> None:
+        if self.n:
+            self.dg.index_add_(1, self.ids[: self.n], self.vals[:, : self.n])
+            self.n = 0
+        big = self.__dict__.pop("big", None)
+        if big is not None:
+            self.dg.index_add_(1, *big)
 
 
 def _to_image(plan: Plan, x: Tensor) -> Tensor:  # [nblocks, C, P] -> [H, W, C]
