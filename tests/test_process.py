@@ -122,16 +122,23 @@ def test_a_large_capture_is_mapped_on_every_core_with_fewer_global_adjustments(s
     schedule, and the manifest says so; below it, one thread and COLMAP's schedule (repeatable)."""
     from splatcli.sfm import reconstruct
 
-    src, used = _zoomed(scene, tmp_path / "photos", 1.0, 4), []
-    real_map = reconstruct._map
+    src, used, matched = _zoomed(scene, tmp_path / "photos", 1.0, 4), [], []
+    real_map, real_match = reconstruct._map, reconstruct._match
     monkeypatch.setattr(reconstruct, "_map", lambda db, im, out, mapper, *a, **k: (used.append(mapper),
                                                                                  real_map(db, im, out, mapper, *a, **k))[1])
+    monkeypatch.setattr(reconstruct, "_match", lambda db, pairs, *a: (matched.append(set(pairs)), real_match(db, pairs, *a))[1])
     r = process(src, tmp_path / "small")
     assert used[0].num_threads == 1 and used[0].ba_global_frames_ratio == 1.1 and not used[0].ba_global_ignore_redundant
     assert not any("every core" in t for t in r.sfm_tried)
     used.clear()
     monkeypatch.setattr(reconstruct, "LARGE_CAPTURE", N_VIEWS)
-    r = process(src, tmp_path / "large")
+    monkeypatch.setattr(reconstruct, "FAR_PAIRS", 1)  # sequential pairs at most 5 apart: those 8 apart go
+    real_nearest, alike = reconstruct.nearest_pairs, []
+    monkeypatch.setattr(reconstruct, "nearest_pairs", lambda *a: alike.extend(real_nearest(*a)) or alike)
+    r = process(src, tmp_path / "large", ProcessConfig(matcher="sequential"))
+    at = {c.name: i for i, c in enumerate(ground_truth(scene))}
+    assert any(at[q[1]] - at[q[0]] == 8 for q in reconstruct.sequential_pairs(sorted(at), 5))
+    assert {q for q in matched[1] if at[q[1]] - at[q[0]] > 5} <= set(alike)  # only retrieval's
     assert r.registered == N_VIEWS
     assert used[0].num_threads == -1 and used[0].ba_global_frames_ratio == reconstruct.LARGE_MAPPER["ba_global_frames_ratio"]
     assert used[0].ba_global_ignore_redundant and used[0].ba_local_max_refinements == 1
