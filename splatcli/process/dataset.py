@@ -111,7 +111,8 @@ def finish_model(model: Model, st: Project, work: Path, cfg: ProcessConfig, run:
         return False
     model.write(st.distorted_dir)
     with run.stage("undistort", len(names)) as s:
-        out = colmap.undistort(model, work / "input", work / "undistorted", num_threads=cfg.num_threads)
+        out = colmap.undistort(model, work / "input", work / "undistorted", num_threads=cfg.num_threads,
+                               on_progress=s.progress)
         st.sparse_dir.parent.mkdir(parents=True, exist_ok=True)
         os.replace(out, st.sparse_dir)
         os.replace(work / "undistorted" / "images", st.images_dir)
