@@ -210,10 +210,10 @@ def paint_masked(rgb: np.ndarray, keep: np.ndarray,
     return np.where(keep[..., None], rgb, fill)
 
 
-def write_image(path: Path, img: np.ndarray) -> None:
-    """Atomically encode `img` in the format of `path`'s suffix."""
+def write_image(path: Path, img: np.ndarray, quality: int = JPEG_QUALITY) -> None:
+    """Atomically encode `img` in the format of `path`'s suffix (JPEG at `quality`)."""
     suffix = path.suffix.lower()
-    params = [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY] if suffix in (".jpg", ".jpeg") else []
+    params = [cv2.IMWRITE_JPEG_QUALITY, quality] if suffix in (".jpg", ".jpeg") else []
     ok, enc = cv2.imencode(suffix, img, params)
     if not ok:
         raise ImageError(f"cannot encode as {suffix}")

@@ -543,9 +543,10 @@ class _Composite(torch.autograd.Function):
         # d(u, v, A, B, C, log o, r, g, b, z), one row per quantity: index_add_ along dim 1 of [10, N + 1]
         # measured a little faster in place than accumulating rows of [N + 1, 10] (fox: 21 -> 20 ms a backward).
         dg = torch.zeros(10, N + 1, dtype=dt, device=dev)
-        pend = _Pending(dg, sum(len(bl) * K for bl, K in plan.chunks))
+        slots = _slot_ids(plan, N)
+        pend = _Pending(dg, sum(x.numel() for x in slots))
         kept, ctx.kept = collections.deque(ctx.kept or ()), None  # used up (edited in place): a second backward computes them again
-        for (bl, K), gid in zip(plan.chunks, _slot_ids(plan, N)):
+        for (bl, K), gid in zip(plan.chunks, slots):
             centre = _centres(plan, bl, dt)
             g4b, g4tb = g4.index_select(0, bl), g4t_all.index_select(0, bl).contiguous()  # [nb, 4, P], [nb, P, 4]
             base = base_all.index_select(0, bl)  # [nb, P]
@@ -584,6 +585,7 @@ class _Pending:
 
     def __init__(self, dg: Tensor, slots: int):  # slots: how many the backward will write, at most
         self.dg, self.n, self.cap = dg, 0, max(1, min(SCATTER_SLOTS, slots))
+        self.big: tuple[Tensor, Tensor] | None = None  # a segment larger than the buffer: (ids, gradients)
         self.ids = torch.empty(self.cap, dtype=torch.int64, device=dg.device)
         self.vals = dg.new_empty(10, self.cap)
 
@@ -592,7 +594,7 @@ class _Pending:
         S = gid.numel()
         if self.n + S > self.cap:
             self.flush()
-        if S > self.cap:  # (a segment larger than the buffer: added on the next flush, on its own)
+        if S > self.cap:  # added on the next flush, on its own
             self.big = (gid.reshape(-1), self.vals.new_empty(10, S))
             return self.big[1].view(10, *gid.shape)
         self.ids[self.n : self.n + S] = gid.reshape(-1)
@@ -604,9 +606,9 @@ class _Pending:
         if self.n:
             self.dg.index_add_(1, self.ids[: self.n], self.vals[:, : self.n])
             self.n = 0
-        big = self.__dict__.pop("big", None)
-        if big is not None:
-            self.dg.index_add_(1, *big)
+        if self.big is not None:
+            self.dg.index_add_(1, *self.big)
+            self.big = None
 
 
 def _to_image(plan: Plan, x: Tensor) -> Tensor:  # [nblocks, C, P] -> [H, W, C]

@@ -13,8 +13,10 @@ from __future__ import annotations
 
 import hashlib
 import math
+import os
 import threading
 from collections.abc import Callable, Iterable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -580,11 +582,12 @@ def _pixel_map(distorted, pinhole) -> tuple[np.ndarray, np.ndarray]:  # pycolmap
 def _resample(names: list[str], image_dir: Path, out_dir: Path, pixel_map: Callable, jpeg_quality: int,
               num_threads: int, on_progress: Callable[[int], None] | None) -> None:
     """Each image resampled bilinearly through its camera's pixel map, written under its name in
-    `out_dir` (the format its extension says), on `num_threads` threads (-1: every core)."""
-    import os
-    from concurrent.futures import ThreadPoolExecutor
-
+    `out_dir` (the format its extension says), on `num_threads` threads (-1: every core). Read as
+    COLMAP reads them: 8-bit colour, EXIF orientation ignored, whatever the name says (masks are
+    PNGs under their images' names, which `inputs.images.read_image` would refuse)."""
     import cv2
+
+    from ..inputs.images import ImageError, write_image
 
     def one(name: str) -> None:
         src = np.fromfile(image_dir / name, np.uint8)
@@ -592,14 +595,11 @@ def _resample(names: list[str], image_dir: Path, out_dir: Path, pixel_map: Calla
         if img is None:
             raise SplatError(f"{image_dir / name}: cannot be read for undistortion")
         mx, my = pixel_map(name)
-        out = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        ext = Path(name).suffix or ".png"
-        ok, buf = cv2.imencode(ext, out, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality] if ext.lower() in (".jpg", ".jpeg") else [])
-        if not ok:
-            raise SplatError(f"{name}: cannot be written as {ext} after undistortion")
-        dst = out_dir / name
-        dst.parent.mkdir(parents=True, exist_ok=True)
-        buf.tofile(dst)
+        try:
+            write_image(out_dir / name, cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE),
+                        jpeg_quality)
+        except ImageError as exc:
+            raise SplatError(f"{name}: {exc} after undistortion") from None
 
     threads = (os.cpu_count() or 1) if num_threads < 1 else num_threads
     with ThreadPoolExecutor(max(1, threads)) as ex:
