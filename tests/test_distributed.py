@@ -181,6 +181,19 @@ def test_sigterm_to_the_launcher_checkpoints_once_and_exits_130(tmp_path):
     assert s["resumed_from"] == ck.step
 
 
+def test_a_sigterm_once_pycolmap_is_imported_ends_the_process_without_a_word():
+    """The launcher stops the other workers with SIGTERM when one reports a one-line error; one that
+    has imported pycolmap must end as quietly as before it did (pycolmap's glog handler printed a
+    30-line stack trace)."""
+    code = ("import os, signal, time\n"
+            "from splatcli.sfm import colmap\n"
+            "colmap.load()\n"
+            "os.kill(os.getpid(), signal.SIGTERM)\n"
+            "time.sleep(60)\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == -signal.SIGTERM and r.stderr == "", r.stderr
+
+
 @pytest.mark.slow
 def test_a_port_in_use_and_a_bad_option_are_one_line_errors(tmp_path):
     proj = _project(tmp_path)

@@ -14,6 +14,8 @@ from __future__ import annotations
 import hashlib
 import math
 import os
+import signal
+import sys
 import threading
 from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
@@ -38,16 +40,35 @@ def set_verbose(verbose: bool) -> None:
 
 
 def _pc() -> Any:
-    import pycolmap
-
+    pycolmap = _import()
     # glog: 0 INFO, 1 WARNING, 2 ERROR, 3 FATAL. COLMAP is chatty; we report ourselves.
     pycolmap.logging.minloglevel = 0 if _VERBOSE else 3
     return pycolmap
 
 
+def _import() -> Any:
+    """pycolmap, with SIGTERM as it was before the import. Its glog installs C-level handlers for
+    crash signals and SIGTERM on import, and that one prints a stack trace of 30 lines: a `train
+    --nproc` worker that the launcher stops while another reports a one-line error would print it.
+    On the main thread the import runs with SIGTERM held back, and the handler in place before it
+    is put back (a SIGTERM that came meanwhile is then taken by that one)."""
+    if "pycolmap" in sys.modules or threading.current_thread() is not threading.main_thread():
+        import pycolmap
+
+        return pycolmap
+    before = signal.getsignal(signal.SIGTERM)
+    held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM})
+    try:
+        import pycolmap
+    finally:
+        if before is not None:  # (None: a handler not set from Python, which cannot be put back)
+            signal.signal(signal.SIGTERM, before)
+        signal.pthread_sigmask(signal.SIG_SETMASK, held)
+    return pycolmap
+
+
 def load() -> None:
-    """Import pycolmap now. Its glog installs C-level handlers for SIGTERM and
-    crash signals on import; a Python SIGTERM handler must be set after that."""
+    """Import pycolmap now (with SIGTERM kept as it was: `_import`)."""
     _pc()
 
 

@@ -75,8 +75,6 @@ def _train(project: Project, cfg: TrainConfig, device: torch.device, resume: boo
            chosen: list[dict[str, Any]] | None) -> TrainSummary:
     project.require_processed()
     ck, cfg = _resumed(project, cfg, device, overrides, on_event) if resume else (None, cfg)
-    # Reading the scene imports pycolmap, whose glog installs its own SIGTERM handler:
-    # ours goes in after it.
     if device.type == "cpu":  # a run that cannot fit stops here, before loading anything
         _check_fits(project, cfg, ck, comm)
     data = load_train_data(project, cfg.downscale, cfg.max_size, device, cfg.eval_max_views, cfg.mask_mode)
