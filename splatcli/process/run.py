@@ -103,7 +103,7 @@ def _terminate_as_interrupt() -> Iterator[None]:
     def handler(signum: int, frame: Any) -> None:
         raise Interrupted("process terminated; run it again to start over")
 
-    colmap.load()  # imported before ours goes in (its import leaves SIGTERM as it found it)
+    colmap.load()  # imported on this (the main) thread: only there does the import keep glog off SIGTERM
     previous = signal.signal(signal.SIGTERM, handler)
     try:
         yield
