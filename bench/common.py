@@ -23,6 +23,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
+from splatcli.device import cpu_flags, cpu_name
 from splatcli.eval.curve import read_curve
 from splatcli.project import Project
 
@@ -164,17 +165,9 @@ def commit() -> str:
 
 
 def cpu() -> dict:
-    """The CPU model (/proc/cpuinfo's "model name"), its widest vector extensions, the cores."""
-    model, flags = "", set()
-    with contextlib.suppress(OSError), open("/proc/cpuinfo") as f:
-        for line in f:
-            key, _, val = line.partition(":")
-            if key.strip() == "model name" and not model:
-                model = val.strip()
-            elif key.strip() == "flags" and not flags:
-                flags = set(val.split())
-    return {"model": model or "unknown", "avx512f": "avx512f" in flags, "avx2": "avx2" in flags,
-            "cores": os.cpu_count()}
+    """The CPU model with its widest vector extensions (`device.cpu_name`), and the cores."""
+    flags = cpu_flags()
+    return {"model": cpu_name(), "avx512f": "avx512f" in flags, "avx2": "avx2" in flags, "cores": os.cpu_count()}
 
 
 def cell(v: Any) -> str:

@@ -61,28 +61,44 @@ def describe_device(device: torch.device) -> str:
     return f"{device.type} ({n} thread{'' if n == 1 else 's'}; {cpu_name()})"
 
 
-@cache
-def cpu_name() -> str:
-    """The CPU model and its widest vector extensions, for every timing's record:
-    "AMD EPYC (avx2, fma)". From /proc/cpuinfo where there is one."""
-    model, flags = platform.processor() or platform.machine(), set()
+def _cpuinfo(path: str) -> dict[str, str]:
+    """/proc/cpuinfo's fields (keys lower case), each as the first processor gives it (ARM's
+    "Hardware" comes after them all); {} where there is none."""
+    info: dict[str, str] = {}
     try:
-        with open("/proc/cpuinfo") as f:
+        with open(path) as f:
             for line in f:
-                key, _, val = line.partition(":")
-                key = key.strip().lower()
-                if key in ("model name", "hardware") and model in ("", platform.machine(), platform.processor()):
-                    model = val.strip()
-                elif key in ("flags", "features") and not flags:
-                    flags = set(val.split())
+                key, sep, val = line.partition(":")
+                if sep:
+                    info.setdefault(key.strip().lower(), val.strip())
     except OSError:
         pass
+    return info
+
+
+def cpu_flags(path: str = "/proc/cpuinfo") -> set[str]:
+    """The CPU's feature flags, as /proc/cpuinfo names them (empty where it is absent)."""
+    info = _cpuinfo(path)
+    return set((info.get("flags") or info.get("features") or "").split())
+
+
+@cache
+def cpu_name(path: str = "/proc/cpuinfo") -> str:
+    """The CPU model and its widest vector extensions, for every timing's record: "AMD EPYC 7B13
+    (avx2, fma)". A model name without a number (virtual machines often give "AMD EPYC") gets the
+    family and model numbers, which tell generations apart: "AMD EPYC (family 25 model 1; avx2, fma)"."""
+    info = _cpuinfo(path)
+    model = info.get("model name") or info.get("hardware") or platform.processor() or platform.machine()
+    flags = cpu_flags(path)
     ext = [f for f in VECTOR_FLAGS if f in flags]
     if "avx512f" in ext:  # the widest says enough
         ext = [f for f in ext if f.startswith("avx512")]
     elif "avx2" in ext:
         ext = [f for f in ext if f in ("avx2", "fma")]
-    return f"{model or 'unknown CPU'} ({', '.join(ext)})" if ext else (model or "unknown CPU")
+    generic = not any(c.isdigit() for c in model) and "cpu family" in info and "model" in info
+    family = f"family {info['cpu family']} model {info['model']}" if generic else ""
+    detail = "; ".join(x for x in (family, ", ".join(ext)) if x)
+    return f"{model or 'unknown CPU'} ({detail})" if detail else (model or "unknown CPU")
 
 
 def synchronize(device: torch.device) -> None:

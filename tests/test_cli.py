@@ -108,6 +108,23 @@ def test_device_cuda_without_gpu_is_one_line_error():
             resolve_device("cuda")
 
 
+def test_the_cpu_name_tells_generations_apart_where_the_model_name_does_not(tmp_path):
+    """Timings are recorded with the CPU's name: a virtual machine's bare "AMD EPYC" gets the family
+    and model numbers (a Zen 3 and a Zen 4 rank the same code differently), a named model does not."""
+    from splatcli.device import cpu_name
+
+    def name(model: str, flags: str, family: str = "25", number: str = "1") -> str:
+        p = tmp_path / f"cpuinfo-{len(list(tmp_path.iterdir()))}"
+        block = f"processor\t: {{i}}\ncpu family\t: {family}\nmodel\t\t: {number}\nmodel name\t: {model}\nflags\t\t: {flags}\n\n"
+        p.write_text(block.format(i=0) + block.format(i=1).replace(model, "other"))
+        return cpu_name(str(p))
+
+    assert name("AMD EPYC", "sse2 avx avx2 fma") == "AMD EPYC (family 25 model 1; avx2, fma)"
+    assert name("AMD EPYC", "avx2 fma avx512f avx512_bf16", number="17") == "AMD EPYC (family 25 model 17; avx512f, avx512_bf16)"
+    assert name("AMD EPYC 7B13 64-Core Processor", "avx2 fma") == "AMD EPYC 7B13 64-Core Processor (avx2, fma)"
+    assert cpu_name(str(tmp_path / "absent")) != ""  # no /proc/cpuinfo: the platform's word for it
+
+
 def test_json_is_one_object_on_stdout(capsys):
     from splatcli.cli.common import Ui
 
