@@ -76,10 +76,13 @@ def _cpuinfo(path: str) -> dict[str, str]:
     return info
 
 
+def _flags(info: dict[str, str]) -> set[str]:
+    return set((info.get("flags") or info.get("features") or "").split())
+
+
 def cpu_flags(path: str = "/proc/cpuinfo") -> set[str]:
     """The CPU's feature flags, as /proc/cpuinfo names them (empty where it is absent)."""
-    info = _cpuinfo(path)
-    return set((info.get("flags") or info.get("features") or "").split())
+    return _flags(_cpuinfo(path))
 
 
 @cache
@@ -89,7 +92,7 @@ def cpu_name(path: str = "/proc/cpuinfo") -> str:
     family and model numbers, which tell generations apart: "AMD EPYC (family 25 model 1; avx2, fma)"."""
     info = _cpuinfo(path)
     model = info.get("model name") or info.get("hardware") or platform.processor() or platform.machine()
-    flags = cpu_flags(path)
+    flags = _flags(info)
     ext = [f for f in VECTOR_FLAGS if f in flags]
     if "avx512f" in ext:  # the widest says enough
         ext = [f for f in ext if f.startswith("avx512")]
