@@ -53,10 +53,11 @@ def _splats(n: int, opacity: torch.Tensor | None = None, seed: int = 0) -> Splat
     return Splats(params, opt, [])
 
 
-def _info(n: int) -> StepInfo:
+def _info(n: int, visible: torch.Tensor | None = None) -> StepInfo:  # visible [n] bool: every one drawn by default
     z = torch.zeros(n)
     r = RenderOutput(image=torch.zeros(2, 2, 3), alpha=torch.zeros(2, 2), depth=torch.zeros(2, 2),
-                     means2d=torch.zeros(n, 2), radii=torch.zeros(n, dtype=torch.int32), visible=z.bool(), depths=z)
+                     means2d=torch.zeros(n, 2), radii=torch.zeros(n, dtype=torch.int32),
+                     visible=torch.ones(n, dtype=torch.bool) if visible is None else visible, depths=z)
     return StepInfo(r, 2, 2)
 
 
@@ -177,6 +178,21 @@ def test_penalties_reach_the_gradients_before_the_loss():
     o = torch.sigmoid(sp.params["opacity_logits"].detach())
     torch.testing.assert_close(sp.params["opacity_logits"].grad, 0.5 * o * (1 - o) / 10)
     torch.testing.assert_close(sp.params["log_scales"].grad, 0.25 * sp.params["log_scales"].detach().exp() / 30)
+
+
+def test_penalties_fall_on_the_gaussians_the_view_draws_alone():
+    """A Gaussian the step's view does not draw gets no penalty (Adam would turn it, its only
+    gradient then, into a full step down); the drawn ones get the same gradient as when every
+    one is drawn: the mean is still over the whole model."""
+    s = _strategy(cap=10, opacity_reg=0.5, scale_reg=0.25)
+    sp = _splats(10)
+    drawn = torch.arange(10) % 3 == 0
+    s.step_pre_backward(sp, s.initial_state(10, torch.device("cpu")), 1, _info(10, drawn))
+    o = torch.sigmoid(sp.params["opacity_logits"].detach())
+    want = torch.where(drawn, 0.5 * o * (1 - o) / 10, torch.zeros_like(o))
+    torch.testing.assert_close(sp.params["opacity_logits"].grad, want)
+    g = sp.params["log_scales"].grad
+    assert bool((g[~drawn] == 0).all()) and bool((g[drawn] > 0).all())
 
 
 def test_penalties_stop_at_reg_stop():

@@ -109,9 +109,10 @@ class MCMCStrategy(Strategy):
         return MCMCStrategyState(gen)
 
     def step_pre_backward(self, splats: Splats, state: MCMCStrategyState, step: int, info: StepInfo) -> None:
-        """The penalties' gradients, accumulated before the photometric loss's."""
+        """The penalties' gradients on the Gaussians the view draws, accumulated before the
+        photometric loss's (regularize.py says why those alone)."""
         if self.reg_stop is None or step < self.reg_stop:
-            regularize(splats.params, self.config.opacity_reg, self.config.scale_reg)
+            regularize(splats.params, self.config.opacity_reg, self.config.scale_reg, info.render.visible)
 
     def step_post_backward(self, splats: Splats, state: MCMCStrategyState, step: int, info: StepInfo) -> RefineStats:
         n = len(splats)

@@ -1,7 +1,13 @@
-"""Opacity and scale penalties on the whole model (as MCMC uses them, Kheradmand et al. 2024):
-they keep Gaussians small and let the unneeded ones fade, so that densification does not
-fill what the training views leave unconstrained with floaters (issue 15's overfitting
-study, docs/guide.md "Held-out quality over time").
+"""Opacity and scale penalties (as MCMC uses them, Kheradmand et al. 2024): they keep Gaussians
+small and let the unneeded ones fade, so that densification does not fill what the training
+views leave unconstrained with floaters (docs/guide.md "Held-out quality over time").
+
+Each step penalises the Gaussians its view draws, beside the photometric loss that judges the
+same Gaussians. Adam turns a small but steady gradient into a step of the full learning rate:
+penalised in every step, a Gaussian that the step's view does not show had the penalty as its
+only gradient, and so faded at the learning rate, whatever the other views said of it. On a
+capture of many views, where each view shows a small part of the model, that emptied the
+background and churned the model (docs/benchmarks.md, "Training with no options").
 
 Their gradients are accumulated into `.grad` before the photometric loss's backward (the
 two add up), so the loop does not change.
@@ -10,15 +16,20 @@ two add up), so the loop does not change.
 from __future__ import annotations
 
 import torch
+from torch import Tensor
 
 from .base import Params, Splats, StepInfo, Strategy
 
 
-def regularize(params: Params, opacity_reg: float, scale_reg: float) -> None:
-    """Backward of opacity_reg * mean(sigmoid(o)) + scale_reg * mean(exp(log s)) into the
-    parameters' `.grad`."""
-    reg = (opacity_reg * torch.sigmoid(params["opacity_logits"]).mean()
-           + scale_reg * params["log_scales"].exp().mean())
+def regularize(params: Params, opacity_reg: float, scale_reg: float, drawn: Tensor | None = None) -> None:
+    """Backward of opacity_reg * mean(sigmoid(o)) + scale_reg * mean(exp(log s)), the means taken
+    over the whole model but the terms only of the Gaussians in `drawn` ([N] bool: those the
+    step's view draws; None: every one), into the parameters' `.grad`."""
+    o, s = torch.sigmoid(params["opacity_logits"]), params["log_scales"].exp()
+    if drawn is not None:
+        keep = drawn.to(o.dtype)
+        o, s = o * keep, s * keep[:, None]
+    reg = opacity_reg * o.mean() + scale_reg * s.mean()
     reg.backward()
 
 
@@ -29,4 +40,4 @@ class RegularizeStep(Strategy):
         self.opacity_reg, self.scale_reg = opacity_reg, scale_reg
 
     def step_pre_backward(self, splats: Splats, state: object, step: int, info: StepInfo) -> None:
-        regularize(splats.params, self.opacity_reg, self.scale_reg)
+        regularize(splats.params, self.opacity_reg, self.scale_reg, info.render.visible)
