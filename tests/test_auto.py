@@ -165,12 +165,27 @@ def test_free_cores_leave_busy_cores_alone(monkeypatch):
     assert 0 <= auto._idle_share(0.05) <= 1  # this machine's, a share
     monkeypatch.setattr(auto.os, "sched_getaffinity", lambda pid: {0, 1, 2, 3})
     monkeypatch.setattr(auto.os, "cpu_count", lambda: 4)
+    monkeypatch.setattr(auto.time, "sleep", lambda s: None)
     for idle, free in ((0.35, 1), (0.0, 1), (0.98, 4), (0.5, 2)):  # never fewer than one
         monkeypatch.setattr(auto, "_idle_share", lambda w, idle=idle: idle)
         assert auto.free_cores() == free, idle
     monkeypatch.setattr(auto, "_idle_share", lambda w: None)  # no /proc/stat: the load average
     monkeypatch.setattr(auto.os, "getloadavg", lambda: (2.6, 0.0, 0.0))
     assert auto.free_cores() == 1
+
+
+def test_a_burst_of_load_at_the_start_does_not_take_a_process(monkeypatch):
+    monkeypatch.setattr(auto.os, "sched_getaffinity", lambda pid: {0, 1})
+    monkeypatch.setattr(auto.os, "cpu_count", lambda: 2)
+    slept = []
+    monkeypatch.setattr(auto.time, "sleep", slept.append)
+    for shares, free, waits in (([0.5, 0.97], 2, 1),  # one core busy for a moment: both are free
+                                ([0.5, 0.5], 1, 1),  # busy in both windows: it stays busy
+                                ([0.97], 2, 0)):  # all idle: no second window
+        seq, slept[:] = iter(shares), []
+        monkeypatch.setattr(auto, "_idle_share", lambda w, seq=seq: next(seq))
+        assert auto.free_cores() == free, shares
+        assert len(slept) == waits, shares  # the gap before a second window (the mocked windows do not sleep)
 
 
 def test_train_with_no_options_says_what_it_chose_and_records_it(proj, monkeypatch):

@@ -124,16 +124,22 @@ def inherited() -> tuple[Chosen, TrainConfig | None]:
     return Chosen(choices=choices), cfg
 
 
-def free_cores(window_s: float = 0.5) -> int:
+def free_cores(window_s: float = 0.5, settle_s: float = 2.0) -> int:
     """Cores this process may use that are idle now (never fewer than 1): the affinity
     mask's size times the idle share of the CPUs over `window_s` (/proc/stat; the load
     average lags by minutes, both after a job ends and after one starts), or less the
-    one-minute load average where /proc/stat is not there."""
+    one-minute load average where /proc/stat is not there. Where a core is busy, a second
+    window `settle_s` later decides with the first (the idler of the two): a burst of a few
+    seconds (a test, a compile, a job ending) would otherwise cost a 10-minute run a process."""
     try:
         cores = len(os.sched_getaffinity(0))
     except (AttributeError, OSError):
         cores = os.cpu_count() or 1
     idle = _idle_share(window_s)
+    if idle is not None and round((1.0 - idle) * (os.cpu_count() or cores)) >= 1 and settle_s > 0:
+        time.sleep(settle_s)
+        again = _idle_share(window_s)
+        idle = idle if again is None else max(idle, again)
     if idle is None:
         try:
             busy = os.getloadavg()[0]
