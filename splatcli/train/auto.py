@@ -231,8 +231,9 @@ def choose(project: Project, asked: Asked, nproc: int | None, device: torch.devi
         out.max_gaussians = pick("max_gaussians", int(min(MAX_GAUSSIANS, max(MIN_GAUSSIANS, round(
             max(by_px, by_pts), -3)))), why)
     if nproc is None:
-        free = free_cores()
-        k = min(free, MAX_PROCESSES, max(1, len(cams) // 8))
+        cap = min(MAX_PROCESSES, max(1, len(cams) // 8))
+        free = free_cores() if cap > 1 else 1  # one process whatever is free: not sampled
+        k = min(free, cap)
         if k > 1:
             out.nproc = k
             out.choices.append(Choice("nproc", k, f"{free} free cores: {k} training processes (--nproc 1 for one)"))
