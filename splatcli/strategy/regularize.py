@@ -21,14 +21,13 @@ from torch import Tensor
 from .base import Params, Splats, StepInfo, Strategy
 
 
-def regularize(params: Params, opacity_reg: float, scale_reg: float, drawn: Tensor | None = None) -> None:
+def regularize(params: Params, opacity_reg: float, scale_reg: float, drawn: Tensor) -> None:
     """Backward of opacity_reg * mean(sigmoid(o)) + scale_reg * mean(exp(log s)), the means taken
     over the whole model but the terms only of the Gaussians in `drawn` ([N] bool: those the
-    step's view draws; None: every one), into the parameters' `.grad`."""
-    o, s = torch.sigmoid(params["opacity_logits"]), params["log_scales"].exp()
-    if drawn is not None:
-        keep = drawn.to(o.dtype)
-        o, s = o * keep, s * keep[:, None]
+    step's view draws), into the parameters' `.grad`."""
+    keep = drawn.to(params["opacity_logits"].dtype)  # [N]
+    o = torch.sigmoid(params["opacity_logits"]) * keep  # [N]
+    s = params["log_scales"].exp() * keep[:, None]  # [N, 3]
     reg = opacity_reg * o.mean() + scale_reg * s.mean()
     reg.backward()
 

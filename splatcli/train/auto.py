@@ -135,8 +135,9 @@ def free_cores(window_s: float = 0.5, settle_s: float = 2.0) -> int:
         cores = len(os.sched_getaffinity(0))
     except (AttributeError, OSError):
         cores = os.cpu_count() or 1
+    cpus = os.cpu_count() or cores  # /proc/stat's shares are of every CPU, not only ours
     idle = _idle_share(window_s)
-    if idle is not None and round((1.0 - idle) * (os.cpu_count() or cores)) >= 1 and settle_s > 0:
+    if idle is not None and settle_s > 0 and round((1.0 - idle) * cpus) >= 1:
         time.sleep(settle_s)
         again = _idle_share(window_s)
         idle = idle if again is None else max(idle, again)
@@ -146,7 +147,7 @@ def free_cores(window_s: float = 0.5, settle_s: float = 2.0) -> int:
         except OSError:
             busy = 0.0
     else:
-        busy = (1.0 - idle) * (os.cpu_count() or cores)
+        busy = (1.0 - idle) * cpus
     return max(1, min(cores, cores - int(round(busy))))
 
 
