@@ -142,6 +142,48 @@ def test_copies_are_drawn_from_their_source_gaussian():
     torch.testing.assert_close(sp.params["means"][0].detach(), centre)  # the source stays put
 
 
+def test_a_gaussian_no_view_draws_for_a_sweep_is_moved_onto_live_ones():
+    """Off every view, nothing brings a Gaussian back or lets it die: one that no view (of any
+    rank) drew over a sweep (SWEEP_EPOCHS epochs of the views) is relocated like a dead one;
+    one drawn once stays, and a new row is judged from the next sweep on."""
+    op = torch.full((50,), 0.6)
+    s = MCMCStrategy(MCMCStrategyConfig(max_gaussians=50, refine_start=0, refine_stop=10_000, refine_every=10,
+                                        noise_lr=0.0, spread=0.0, shrink=1.0), views=5)
+    assert s.sweep == 10
+    sp = _splats(50, op)
+    st = s.initial_state(50, torch.device("cpu"))
+    sp.states = [st]  # edited with the parameters (ops)
+    before = sp.params["means"].detach().clone()
+    shown = torch.ones(50, dtype=torch.bool)
+    shown[:8] = False  # rows 0-7 off every view of this rank ...
+    other_rank = torch.zeros(50)
+    other_rank[7] = 1.0  # ... but another rank's view drew row 7
+
+    def info(step: int) -> StepInfo:
+        i = _info(50, shown | (torch.arange(50) == 6) if step == 3 else shown)  # row 6 drawn once, at step 3
+        i.combine = lambda state: state.drawn.add_(other_rank)
+        return i
+
+    for step in range(1, 11):
+        stats = s.step_post_backward(sp, st, step, info(step))
+    assert stats.pruned == 6  # rows 0-5 at the sweep's end, step 10
+    after = sp.params["means"].detach()
+    assert not bool(torch.isclose(after[:6], before[:6]).all(dim=1).any())
+    for m in after[:6]:  # each now on a live Gaussian's centre (spread 0)
+        assert bool(((before[8:] - m).norm(dim=1) < 1e-6).any())
+    torch.testing.assert_close(after[6:8], before[6:8])  # drawn once, or by the other rank: kept
+    other_rank.zero_()
+    for step in range(11, 31):
+        stats = s.step_post_backward(sp, st, step, _info(50, shown))
+        if step == 20:  # rows 0-5 were new at the sweep's start, 6-7 were there: judged now
+            assert stats.pruned == 2
+    assert stats.pruned == 6  # step 30: the rows relocated at 10, still off every view (those of 20 are new to it)
+    unswept = _strategy(cap=50, noise_lr=0.0)  # views not given: nothing is looked for
+    sp2 = _splats(50, op)
+    st2 = unswept.initial_state(50, torch.device("cpu"))
+    assert unswept.step_post_backward(sp2, st2, 100, _info(50, shown)).pruned == 0
+
+
 def test_relocation_goes_on_after_growth_stops():
     """Growth ends with the refinement window; dead Gaussians are still moved until
     `relocate_stop` (the late deaths are reused instead of wasting the budget)."""

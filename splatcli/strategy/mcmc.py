@@ -11,7 +11,13 @@ gradients and separate slowly, which cost held-out PSNR on lego), and, like thos
 they and their source shrink by 1.6: at full size the spread copies cover more than
 their source did, and the larger Gaussians cost render time. Growth ends with the
 refinement window, relocation goes on to `relocate_until` of the run, so that
-Gaussians that die late are reused instead of wasting the budget. After
+Gaussians that die late are reused instead of wasting the budget. A Gaussian that no
+training view drew over a sweep of `SWEEP_EPOCHS` epochs of the views is lost, and moved
+like a dead one: the noise below walks the nearly transparent ones away, and off every
+view nothing (no photo, no penalty) brings one back or lets it die (on 40 photos of a
+landmark, 24-47% of the budget had left every view by the end, some a hundred thousand
+extents away, where a position quantised to the scene's range lost the rest of it).
+After
 every optimiser step, positions get noise shaped by each Gaussian's own covariance and
 gated to the nearly transparent ones (so the sampler explores where the scene is
 empty). L1 penalties on opacity and scale are added to the gradients before the
@@ -26,6 +32,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 from torch import Tensor
@@ -64,9 +71,20 @@ class MCMCStrategyConfig(RefineConfig):
                         "beside it).", at_least=1)
 
 
+# A sweep for lost Gaussians spans this many epochs of the training views (the views come in
+# shuffled epochs: any window of two holds every view once at least).
+SWEEP_EPOCHS = 2
+
+
 @dataclass
 class MCMCStrategyState(RowState):
     generator: torch.Generator  # relocation and noise sampling
+    drawn: Tensor  # [N] float: the views that drew each Gaussian in this sweep (summed over ranks)
+    tracked: Tensor  # [N] float: 1 for the Gaussians that were there when the sweep began (new rows 0)
+    sweep_from: int = 0  # the step the sweep began at
+
+    ROWS: ClassVar[tuple[str, ...]] = ("drawn", "tracked")
+    REDUCE: ClassVar[dict[str, str]] = {"drawn": "sum"}
 
 
 def relocation(opacity: Tensor, scales: Tensor, ratio: Tensor, max_ratio: int) -> tuple[Tensor, Tensor]:
@@ -91,10 +109,11 @@ class MCMCStrategy(Strategy):
     name = "mcmc"
 
     def __init__(self, config: MCMCStrategyConfig, relocate_stop: int | None = None,
-                 reg_stop: int | None = None) -> None:
+                 reg_stop: int | None = None, views: int | None = None) -> None:
         """Growth in (refine_start, refine_stop) to `config.max_gaussians`; relocation until
         `relocate_stop` (default: refine_stop); the penalties before step `reg_stop` (default:
-        every step)."""
+        every step); lost Gaussians found over sweeps of SWEEP_EPOCHS x `views` steps (None:
+        not looked for)."""
         if config.max_gaussians is None:
             raise ValueError("MCMCStrategy needs config.max_gaussians")
         self.config = config
@@ -102,11 +121,12 @@ class MCMCStrategy(Strategy):
         self.refine_start, self.refine_stop, self.refine_every = config.refine_start, config.refine_stop, config.refine_every
         self.relocate_stop = max(self.refine_stop, relocate_stop or 0)
         self.reg_stop = reg_stop
+        self.sweep = None if views is None else SWEEP_EPOCHS * max(1, views)
 
     def initial_state(self, n: int, device: torch.device, seed: int = 0) -> MCMCStrategyState:
         gen = torch.Generator(device=device)
         gen.manual_seed(int(seed) + 0x3C3C)  # its own stream: never shifts view sampling
-        return MCMCStrategyState(gen)
+        return MCMCStrategyState(gen, torch.zeros(n, device=device), torch.ones(n, device=device))
 
     def step_pre_backward(self, splats: Splats, state: MCMCStrategyState, step: int, info: StepInfo) -> None:
         """The penalties' gradients on the Gaussians the view draws, accumulated before the
@@ -117,8 +137,10 @@ class MCMCStrategy(Strategy):
     def step_post_backward(self, splats: Splats, state: MCMCStrategyState, step: int, info: StepInfo) -> RefineStats:
         n = len(splats)
         stats = RefineStats(step=step, before=n, after=n)
+        state.drawn += info.render.visible.to(state.drawn.dtype)
         if self.refine_start < step < self.relocate_stop and step % self.refine_every == 0:
-            stats.pruned = self._relocate(splats, state)  # moved, not removed: logged as pruned-and-cloned
+            lost = self._lost(state, step, info)
+            stats.pruned = self._relocate(splats, state, lost)  # moved, not removed: logged as pruned-and-cloned
             stats.cloned = self._grow(splats, state, step) if step < self.refine_stop else 0
             stats.cloned += stats.pruned
         if info.finite:
@@ -126,10 +148,24 @@ class MCMCStrategy(Strategy):
         stats.after = len(splats)
         return stats
 
+    def _lost(self, state: MCMCStrategyState, step: int, info: StepInfo) -> Tensor | None:  # -> [N] bool
+        """At the end of a sweep, the Gaussians that were there all through it and that no
+        view drew (every rank's views: `combine`); a new sweep begins. None mid-sweep."""
+        if self.sweep is None or step - state.sweep_from < self.sweep:
+            return None
+        info.combine(state)
+        lost = (state.tracked > 0) & (state.drawn == 0)
+        state.drawn.zero_()
+        state.tracked.fill_(1.0)
+        state.sweep_from = step
+        return lost
+
     @torch.no_grad()
-    def _relocate(self, splats: Splats, state: MCMCStrategyState) -> int:
+    def _relocate(self, splats: Splats, state: MCMCStrategyState, lost: Tensor | None = None) -> int:
         opacity = torch.sigmoid(splats.params["opacity_logits"])
         dead = opacity <= self.config.min_opacity
+        if lost is not None:
+            dead |= lost
         n_dead = int(dead.sum())
         if n_dead == 0 or n_dead == len(opacity):
             return 0

@@ -138,7 +138,7 @@ def make_strategies(cfg: TrainConfig, extent: float, ctx: Context) -> list[Strat
     if cfg.strategy == "mcmc":
         density: Strategy = MCMCStrategy(replace(cfg.mcmc, refine_stop=stop),
                                          min(cfg.iterations, round(cfg.mcmc.relocate_until * cfg.iterations)),
-                                         round(cfg.mcmc.reg_until * cfg.iterations))
+                                         round(cfg.mcmc.reg_until * cfg.iterations), views=len(ctx.cameras()))
     else:
         # With far points (--init-far) the size limit is an angle: far Gaussians may be large.
         grow = cfg.default.grow_grad2d * (MIP_GROW_GRAD2D if cfg.mip_filter else 1.0)
