@@ -15,10 +15,9 @@ Gaussians that die late are reused instead of wasting the budget. A Gaussian tha
 training view drew over a sweep of `SWEEP_EPOCHS` epochs of the views is lost, and moved
 like a dead one: the noise below walks the nearly transparent ones away, and off every
 view nothing (no photo, no penalty) brings one back or lets it die (on 40 photos of a
-landmark, 24-47% of the budget had left every view by the end, some a hundred thousand
-extents away, where a position quantised to the scene's range lost the rest of it).
-After
-every optimiser step, positions get noise shaped by each Gaussian's own covariance and
+landmark, 23-46% of the budget had left every view by the end, some 90,000 camera
+extents away, where positions quantised to the model's range lost the rest of it).
+After every optimiser step, positions get noise shaped by each Gaussian's own covariance and
 gated to the nearly transparent ones (so the sampler explores where the scene is
 empty). L1 penalties on opacity and scale are added to the gradients before the
 loss's backward (they accumulate into the same `.grad`), which keeps Gaussians small
