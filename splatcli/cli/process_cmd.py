@@ -60,6 +60,8 @@ def process(
     lines = [f"{r.train} train / {r.test} test images, {r.points} points"
              + (f", reprojection error {r.mean_reprojection_error:.2f} px" if r.mean_reprojection_error else ""),
              "stages: " + ", ".join(f"{k} {v:.1f}s" for k, v in r.seconds.items())]
+    if r.consistency is not None:
+        lines.append(f"poses checked: {r.consistency['line']}")
     if r.cameras:
         lines.append(f"cameras: {len(r.cameras)} ({_camera_kinds(r.cameras)})")
     if r.mask_source:

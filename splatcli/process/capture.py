@@ -9,7 +9,7 @@ from ..errors import SplatError
 from ..events import Stages
 from ..inputs.images import IMAGE_EXTS, StagedImage, fit_size, list_folder
 from ..project import Project
-from ..sfm.reconstruct import UPSAMPLED, SfmOptions, octave, run_sfm
+from ..sfm.reconstruct import SfmOptions, Tried, octave, run_sfm
 from . import features
 from .cameras import group_cameras
 from .config import MIN_IMAGES, ProcessConfig, sift_max_size
@@ -131,7 +131,7 @@ def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
                   where=spec.images_dir or spec.path, on_event=run.sink, mask_dir=mask_dir,
                   features_ready=found is not None, on_features=lambda: features.mark(work, key))
     if found:
-        res.tried.insert(0, f"features and matches reused from {found}")
+        res.tried.insert(0, Tried(f"features and matches reused from {found}", "the same photos and feature options"))
     for k, v in res.seconds.items():
         run.seconds[k] = run.seconds.get(k, 0.0) + v
     if split is not None and res.cameras == [g.names for g in split.groups]:
@@ -145,7 +145,7 @@ def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
                  "little or be too blurry", "warning")
     st.sfm_dir.mkdir(parents=True, exist_ok=True)
     os.replace(work / "database.db", st.database_path)
-    if (work / features.KEY_FILE).is_file() and not any(t.startswith(UPSAMPLED) for t in res.tried):
+    if (work / features.KEY_FILE).is_file() and not res.features_changed:
         # (a database remade on the upsampled octave is not what the key's options make)
         os.replace(work / features.KEY_FILE, st.sfm_dir / features.KEY_FILE)
     if mask_source == "alpha" and not any(s.has_alpha for s in staged if s.name in set(model.registered_names())):
@@ -156,6 +156,9 @@ def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
                     background=background, mean_reprojection_error=model.mean_reprojection_error(),
                     mean_track_length=model.mean_track_length(), skipped=skipped, matcher=res.matcher,
                     pairs=res.num_pairs, keypoints_median=res.keypoints_median, model_sizes=res.model_sizes,
-                    unregistered=res.unregistered, left_out_models=res.left_out_models, sfm_tried=res.tried,
+                    unregistered=res.unregistered, left_out_models=res.left_out_models,
+                    sfm_tried=[t.summary() for t in res.tried],
+                    consistency=res.consistency.summary() if res.consistency is not None else None,
+                    placed_apart=res.placed_apart,
                     dropped_blurry=dropped, camera_grouping=grouping.rule,
                     cameras=[g.summary() for g in grouping.groups])

@@ -63,7 +63,10 @@ class ProcessResult:
     unregistered: list[str] = field(default_factory=list)
     left_out_models: dict[str, int | None] = field(default_factory=dict)  # unregistered image -> the model (numbered
     # by size: 1 is the kept one) it registered in instead, None for none
-    sfm_tried: list[str] = field(default_factory=list)  # the mapping attempts made
+    sfm_tried: list[dict[str, Any]] = field(default_factory=list)  # the mapping attempts made: what, why, cost, result
+    consistency: dict[str, Any] | None = None  # SfM: the model's poses against its image pairs' own geometry
+    placed_apart: list[str] = field(default_factory=list)  # SfM: images left out because no model placed them
+    # where their pairs say (among `unregistered` too)
     skipped: list[str] = field(default_factory=list)  # "name: reason"
     missing: int = 0  # files listed by the input but absent
     dropped_blurry: int = 0

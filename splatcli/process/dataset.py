@@ -42,7 +42,9 @@ class Dataset:
     dropped_blurry: int = 0
     triangulated: int | None = None  # posed captures: points triangulated with the poses fixed (kept or not)
     left_out_models: dict[str, int | None] = field(default_factory=dict)  # SfM: unregistered -> model it fell into
-    sfm_tried: list[str] = field(default_factory=list)  # SfM: the mapping attempts made
+    sfm_tried: list[dict] = field(default_factory=list)  # SfM: the mapping attempts made (reconstruct.Tried.summary)
+    consistency: dict | None = None  # SfM: the kept model against its pairs' geometry (sfm/check.py)
+    placed_apart: list[str] = field(default_factory=list)  # SfM: registered where no model agreed with their pairs: left out
     camera_grouping: str | None = None  # SfM: process/cameras.py's rule
     cameras: list[dict] = field(default_factory=list)  # SfM: each camera's images and EXIF facts
     bounds: tuple[np.ndarray, np.ndarray] | None = None  # the scene box the input states (LLFF's near/far), for want of points

@@ -18,6 +18,7 @@ from typing import Any
 from ..events import Stages
 from ..inputs.images import StagedImage, fit_size
 from ..project import Project
+from ..sfm.check import check_model
 from ..sfm.colmap import Model
 from ..sfm.reconstruct import SfmOptions, triangulate_posed
 from .config import ProcessConfig, sift_max_size
@@ -38,6 +39,7 @@ class PosedPoints:
     keypoints_median: float
     mean_reprojection_error: float | None  # pixels
     mean_track_length: float | None
+    consistency: dict[str, Any]  # the given poses against the photos' pairs (sfm/check.py)
 
 
 def add_points(model: Model, staged: list[StagedImage], work: Path, st: Project, cfg: ProcessConfig, run: Stages,
@@ -54,12 +56,17 @@ def add_points(model: Model, staged: list[StagedImage], work: Path, st: Project,
         run.seconds[k] = run.seconds.get(k, 0.0) + v
     st.sfm_dir.mkdir(parents=True, exist_ok=True)
     os.replace(work / "database.db", st.database_path)
+    check = check_model(st.database_path, model)
+    if check.consistent:
+        run.note(f"poses checked: {check.line()}")
+    else:
+        run.note(f"the capture's poses disagree with its photos: {check.line()}", "warning")
     out = res.model
     n = out.num_points
     kept = n >= MIN_POINTS
     info = PosedPoints(points=n, kept=kept, pairs=res.num_pairs, keypoints_median=res.keypoints_median,
                        mean_reprojection_error=out.mean_reprojection_error() if kept else None,
-                       mean_track_length=out.mean_track_length() if kept else None)
+                       mean_track_length=out.mean_track_length() if kept else None, consistency=check.summary())
     if not kept:
         run.note(f"only {n} point(s) triangulated from the photos with the given poses (fewer than {MIN_POINTS}: "
                  "too little texture, or photos that disagree with the poses); training starts from random points")
@@ -97,4 +104,4 @@ def posed_facts(info: PosedPoints | None) -> dict:
         return {}
     return {"matcher": "posed", "pairs": info.pairs, "keypoints_median": info.keypoints_median,
             "mean_reprojection_error": info.mean_reprojection_error, "mean_track_length": info.mean_track_length,
-            "triangulated": info.points}
+            "triangulated": info.points, "consistency": info.consistency}

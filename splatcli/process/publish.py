@@ -98,6 +98,8 @@ def publish(root: Path, stage: Path, spec: InputSpec, cfg: ProcessConfig, ds: Da
         unregistered=ds.unregistered,
         left_out_models=ds.left_out_models,
         sfm_tried=ds.sfm_tried,
+        consistency=ds.consistency,
+        placed_apart=ds.placed_apart,
         skipped=ds.skipped,
         missing=ds.missing,
         dropped_blurry=ds.dropped_blurry,

@@ -11,13 +11,15 @@ it: the two SQLite copies in one process corrupt each other's locks (SIGBUS).
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import math
 import os
 import signal
 import sys
 import threading
-from collections.abc import Callable, Iterable
+import time
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -72,6 +74,29 @@ def load() -> None:
     _pc()
 
 
+class OverTime(Exception):
+    """A call stopped at its time cap (`deadline`)."""
+
+
+_DEADLINES: list[float] = []  # time.monotonic() values
+
+
+@contextlib.contextmanager
+def deadline(when: float) -> Iterator[None]:
+    """Calls through `run_cancellable` (and `global_mapping`) within stop, cancelled, with OverTime
+    raised, once `time.monotonic()` passes `when`."""
+    _DEADLINES.append(when)
+    try:
+        yield
+    finally:
+        _DEADLINES.remove(when)
+
+
+def _check_deadline() -> None:
+    if _DEADLINES and time.monotonic() > min(_DEADLINES):
+        raise OverTime
+
+
 def _one_line(exc: BaseException) -> str:
     return " ".join(str(exc).split())[:300]
 
@@ -102,6 +127,7 @@ def run_cancellable(fn: Callable[..., Any], *args: Any, poll: Callable[[], None]
     th.start()
     try:
         while not done.wait(0.1):
+            _check_deadline()
             if poll is not None:
                 poll()
     except BaseException:
@@ -147,28 +173,34 @@ def create_database(path: Path, image_dir: Path, cameras: list[list[str]], *,
         raise SplatError(f"{image_dir}: COLMAP could not read the images ({_one_line(exc)})") from None
 
 
-def regroup_database(src: Path, dst: Path, image_dir: Path, cameras: list[list[str]], *,
-                     camera_model: str = "SIMPLE_RADIAL") -> None:
-    """A new database `dst` whose images are grouped into `cameras` afresh, with
-    `src`'s features, matches and verified geometries copied (no SIFT or matching
-    again; the geometries stay valid, as they do not depend on the grouping)."""
+def copy_database(src: Path, dst: Path, image_dir: Path, cameras: list[list[str]], *,
+                  camera_model: str = "SIMPLE_RADIAL", without: Iterable[str] = ()) -> None:
+    """A new database `dst` whose images are grouped into `cameras` afresh, with `src`'s features,
+    matches and verified geometries copied (the geometries do not depend on the grouping), except
+    the features of the images in `without` and every match of theirs: extraction and matching
+    then redo those alone."""
     pycolmap = _pc()
+    drop = set(without)
     create_database(dst, image_dir, cameras, camera_model=camera_model)
     with pycolmap.Database.open(str(src)) as a, pycolmap.Database.open(str(dst)) as b:
         old = {im.image_id: im.name for im in a.read_all_images()}
         new = {im.name: im.image_id for im in b.read_all_images()}
         ids = {i: new[n] for i, n in old.items()}
-        for i in old:
+        for i, n in old.items():
+            if n in drop:
+                continue
             if a.exists_keypoints(i):
                 b.write_keypoints(ids[i], a.read_keypoints(i))
             if a.exists_descriptors(i):
                 b.write_descriptors(ids[i], a.read_descriptors(i))
         for pair, matches in zip(*a.read_all_matches()):
             i, j = pycolmap.pair_id_to_image_pair(pair)
-            b.write_matches(ids[i], ids[j], matches)  # the database orders each pair itself
+            if old[i] not in drop and old[j] not in drop:
+                b.write_matches(ids[i], ids[j], matches)  # the database orders each pair itself
         for pair, geom in zip(*a.read_two_view_geometries()):
             i, j = pycolmap.pair_id_to_image_pair(pair)
-            b.write_two_view_geometry(ids[i], ids[j], geom)
+            if old[i] not in drop and old[j] not in drop:
+                b.write_two_view_geometry(ids[i], ids[j], geom)
 
 
 @dataclass(frozen=True)
@@ -252,6 +284,44 @@ def read_descriptors(db: Path, names: list[str]) -> list[np.ndarray]:
             a = np.asarray(d.read_descriptors(ids[n]).data, dtype=np.uint8) if n in ids else None
             out.append(a.reshape(-1, 128) if a is not None and a.size else np.zeros((0, 128), np.uint8))
     return out
+
+
+@dataclass(frozen=True)
+class VerifiedPair:
+    """A verified image pair of the database: its inlier matches and its own two-view geometry."""
+
+    a: str
+    b: str
+    matches: np.ndarray  # [M, 2] uint32: keypoint indices in a and in b
+    kind: str  # "E" (calibrated), "F" (uncalibrated), or "H" (planar or a pure rotation: no relative pose)
+    matrix: np.ndarray | None  # [3, 3]: the E or F the pair's own RANSAC found (x_b^T M x_a = 0), None for "H"
+
+
+_POSED_KINDS = {2: "E", 3: "F"}  # TwoViewGeometryConfiguration: CALIBRATED, UNCALIBRATED
+
+
+def read_verified_pairs(db: Path, min_inliers: int = 15, *,
+                        keypoints: bool = True) -> tuple[list[VerifiedPair], dict[str, np.ndarray]]:
+    """Every verified pair with at least `min_inliers` inlier matches, and (`keypoints`) each image's
+    keypoints ([n, 2] float64, COLMAP's pixel coordinates) for the images of those pairs."""
+    pycolmap = _pc()
+    out: list[VerifiedPair] = []
+    with pycolmap.Database.open(str(db)) as d:
+        names = {im.image_id: im.name for im in d.read_all_images()}
+        ids, geoms = d.read_two_view_geometries()
+        used: set[int] = set()
+        for pair, g in zip(ids, geoms):
+            m = np.asarray(g.inlier_matches)
+            if len(m) < min_inliers:
+                continue
+            i, j = pycolmap.pair_id_to_image_pair(pair)
+            kind = _POSED_KINDS.get(int(g.config), "H")
+            mat = None if kind == "H" else np.asarray(g.E if kind == "E" else g.F, np.float64)
+            out.append(VerifiedPair(names[i], names[j], m.reshape(-1, 2), kind, mat))
+            used.update((i, j))
+        points = {names[i]: np.asarray(d.read_keypoints(i), np.float64).reshape(-1, 6)[:, :2]
+                  for i in sorted(used)} if keypoints else {}
+    return out, points
 
 
 # ---- mapping ----------------------------------------------------------------
@@ -355,6 +425,16 @@ class Model:
         return (np.stack([p.xyz for p in pts.values()]).astype(np.float64),
                 np.stack([p.color for p in pts.values()]).astype(np.uint8))
 
+    def views(self) -> dict[str, View]:
+        """Registered image name -> its pose and camera (for checking the model against pair geometry)."""
+        out = {}
+        for im in self._rec.images.values():
+            if im.has_pose:
+                pose = im.cam_from_world
+                pose = pose() if callable(pose) else pose
+                out[im.name] = View(np.asarray(pose.matrix(), np.float64), self._rec.cameras[im.camera_id])
+        return out
+
     # --- edits
     def keep_images(self, names: Iterable[str]) -> None:
         """Deregister every image not in `names` (with its observations)."""
@@ -396,6 +476,20 @@ class Model:
             self._rec.write_text(str(out_dir))
         else:
             self._rec.write(str(out_dir))
+
+
+class View:
+    """A registered image's pose ([3, 4] cam_from_world) and camera."""
+
+    def __init__(self, pose: np.ndarray, camera: Any) -> None:
+        self.pose = pose
+        self._cam = camera
+        self.K = np.asarray(camera.calibration_matrix(), np.float64)  # [3, 3] (distortion left out)
+        self.focal = float(camera.mean_focal_length())
+
+    def normalised(self, xy: np.ndarray) -> np.ndarray:  # [n, 2] pixels -> [n, 2] on the z = 1 plane
+        """Keypoints through the camera's model, distortion included."""
+        return np.asarray(self._cam.cam_from_img(np.asarray(xy, np.float64)), np.float64).reshape(-1, 2)
 
 
 def _model_name(cam: Any) -> str:
@@ -458,6 +552,63 @@ def incremental_mapping(db: Path, image_dir: Path, out_dir: Path, opts: MapperOp
     models = [Model(r) for r in (recs or {}).values()]
     models.sort(key=lambda m: (-m.num_registered, -m.num_points))
     return models
+
+
+def global_mapping(db: Path, image_dir: Path, out_dir: Path, *, seed: int, num_threads: int,
+                   poll: Callable[[], None] | None = None) -> list[Model]:
+    """COLMAP's global mapper (GLOMAP: every rotation, then every position, at once), largest
+    model first. pycolmap cannot cancel it, so it runs in a child process, which Ctrl-C or a
+    `deadline` passing (OverTime) stops at once. `poll` runs every 0.2 s meanwhile."""
+    import json
+    import subprocess
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    args = {"db": str(db), "images": str(image_dir), "out": str(out_dir), "seed": seed, "threads": num_threads,
+            "verbose": _VERBOSE}
+    code = "import sys; from splatcli.sfm.colmap import _global_child; _global_child(sys.argv[1])"
+    child = subprocess.Popen([sys.executable, "-c", code, json.dumps(args)], stdin=subprocess.DEVNULL,
+                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+    try:
+        while child.poll() is None:
+            _check_deadline()
+            if poll is not None:
+                poll()
+            time.sleep(0.2)
+    except BaseException:
+        child.kill()
+        child.wait()
+        raise
+    err = child.stderr.read().decode(errors="replace") if child.stderr else ""
+    if child.returncode:
+        last = err.strip().splitlines()[-1] if err.strip() else f"exit {child.returncode}"
+        raise SplatError(f"{db}: COLMAP's global mapper failed ({_one_line(RuntimeError(last))})")
+    models = [Model(_reconstruction(d)) for d in sorted(out_dir.iterdir()) if (d / "images.bin").is_file()]
+    models.sort(key=lambda m: (-m.num_registered, -m.num_points))
+    return models
+
+
+def _reconstruction(path: Path) -> Any:
+    return _pc().Reconstruction(str(path))
+
+
+def _global_child(arg: str) -> None:
+    """The child process of `global_mapping`: map, each model written under out/<k>."""
+    import json
+
+    a = json.loads(arg)
+    set_verbose(bool(a["verbose"]))
+    pycolmap = _pc()
+    pycolmap.set_random_seed(a["seed"])
+    o = pycolmap.GlobalPipelineOptions()
+    o.random_seed = o.mapper.random_seed = a["seed"]
+    o.num_threads = o.mapper.num_threads = a["threads"]
+    o.mapper.rotation_averaging.random_seed = a["seed"]
+    o.mapper.global_positioning.random_seed = a["seed"]
+    o.mapper.retriangulation.random_seed = a["seed"]
+    o.mapper.global_positioning.use_gpu = False
+    o.mapper.bundle_adjustment.ceres.use_gpu = False
+    pycolmap.global_mapping(a["db"], a["images"], a["out"], options=o)
 
 
 # ---- reading, building and undistorting models -----------------------------

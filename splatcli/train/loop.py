@@ -74,6 +74,10 @@ def _train(project: Project, cfg: TrainConfig, device: torch.device, resume: boo
            overrides: Overrides | None, on_event: EventSink | None, comm: Comm,
            chosen: list[dict[str, Any]] | None) -> TrainSummary:
     project.require_processed()
+    if comm.main and not resume:
+        warning = pose_warning(project)
+        if warning:
+            emit(on_event, Note(warning, "warning"))
     ck, cfg = _resumed(project, cfg, device, overrides, on_event) if resume else (None, cfg)
     if device.type == "cpu":  # a run that cannot fit stops here, before loading anything
         _check_fits(project, cfg, ck, comm)
@@ -86,6 +90,20 @@ def _train(project: Project, cfg: TrainConfig, device: torch.device, resume: boo
         run.start(ck, device)
         run.loop()
     return log.finish(project, run.base, run.trainer.state, ck.step if ck is not None else None, comm, chosen)
+
+
+def pose_warning(project: Project) -> str | None:
+    """What `process` found wrong with the poses, said again before training on them: images it
+    left out as placed apart from the rest, or poses that failed its consistency check."""
+    summary = (project.step("process") or {}).get("summary") or {}
+    apart, check = summary.get("placed_apart") or [], summary.get("consistency") or {}
+    if apart:
+        shown = ", ".join(apart[:8]) + (f" and {len(apart) - 8} more" if len(apart) > 8 else "")
+        return (f"process left out {len(apart)} image(s) that no model placed where their image pairs say "
+                f"({shown}); training on the {summary.get('registered')} it kept (reports/process.json lists them)")
+    if check and not check.get("consistent", True):
+        return f"the poses failed process's consistency check: {check.get('line')}"
+    return None
 
 
 def _resumed(project: Project, cfg: TrainConfig, device: torch.device, overrides: Overrides | None,
