@@ -15,6 +15,7 @@ import contextlib
 import hashlib
 import math
 import os
+import shutil
 import signal
 import sys
 import threading
@@ -241,22 +242,120 @@ class MatchOptions:
     seed: int = 0
 
 
-def match_pairs(db: Path, pairs: list[tuple[str, str]], list_file: Path, opts: MatchOptions) -> None:
-    """Match and geometrically verify the given image pairs (names)."""
+MIN_PAIRS_PER_WORKER = 200  # fewer pairs than this per process: matched in this process (a child costs ~0.5 s)
+
+
+def match_pairs(db: Path, pairs: list[tuple[str, str]], work_dir: Path, opts: MatchOptions,
+                on_progress: Callable[[int], None] | None = None) -> None:
+    """Match and geometrically verify the given image pairs (names), repeatably: on one thread per
+    process (worker.py says why), the pairs split into contiguous shares among child processes, one
+    per core (`opts.num_threads`), each into a copy of the database, merged back in pair order.
+    `on_progress(k)`: pairs done so far."""
+    from . import worker
+
     pycolmap = _pc()
-    list_file.write_text("".join(f"{a} {b}\n" for a, b in pairs), encoding="utf-8")
-    mo = pycolmap.FeatureMatchingOptions()
-    mo.num_threads = opts.num_threads
-    mo.sift.max_ratio = opts.max_ratio
-    po = pycolmap.ImportedPairingOptions()
-    po.match_list_path = str(list_file)
-    vo = pycolmap.TwoViewGeometryOptions()
-    vo.min_num_inliers = opts.min_num_inliers
-    vo.ransac.random_seed = opts.seed
-    run_cancellable(
-        pycolmap.match_image_pairs, str(db), matching_options=mo, pairing_options=po,
-        verification_options=vo, device=pycolmap.Device.cpu,
-    )
+    k = max(1, min(_threads(opts.num_threads), len(pairs) // MIN_PAIRS_PER_WORKER))
+    settings = {"num_threads": 1, "max_ratio": opts.max_ratio, "min_inliers": opts.min_num_inliers,
+                "seed": opts.seed}
+    done = [0] * k
+
+    def progress(w: int, line: str) -> None:
+        done[w] += int(line)
+        if on_progress is not None:
+            on_progress(sum(done))
+
+    if k == 1:
+        for i in range(0, len(pairs), worker.PAIRS_PER_CALL):
+            chunk = [list(p) for p in pairs[i : i + worker.PAIRS_PER_CALL]]
+            run_cancellable(worker.match_chunk, pycolmap, str(db), chunk, str(work_dir / "pairs.txt"), settings)
+            progress(0, str(len(chunk)))
+        return
+    shares = [pairs[w * len(pairs) // k : (w + 1) * len(pairs) // k] for w in range(k)]
+    copies = [work_dir / f"{db.stem}.match{w}.db" for w in range(k)]
+    try:
+        for c in copies:
+            shutil.copyfile(db, c)
+        run_workers([{"kind": "match", "db": str(c), "pairs": [list(p) for p in share],
+                      "list_file": str(work_dir / f"pairs{w}.txt"), "opts": settings}
+                     for w, (c, share) in enumerate(zip(copies, shares))], on_line=progress)
+        _merge_matches(db, list(zip(copies, shares)))
+    finally:
+        for c in copies:
+            c.unlink(missing_ok=True)
+
+
+def _merge_matches(db: Path, parts: list[tuple[Path, list[tuple[str, str]]]]) -> None:
+    """Each part's pairs' matches and verified geometries (from its database) into `db`, in order;
+    pairs `db` holds already are left as they are."""
+    pycolmap = _pc()
+    with pycolmap.Database.open(str(db)) as d:
+        ids = {im.name: im.image_id for im in d.read_all_images()}
+        for path, pairs in parts:
+            with pycolmap.Database.open(str(path)) as src:
+                for a, b in pairs:
+                    i, j = ids[a], ids[b]
+                    if d.exists_matches(i, j) or not src.exists_matches(i, j):
+                        continue
+                    d.write_matches(i, j, src.read_matches(i, j))
+                    if src.exists_two_view_geometry(i, j):
+                        d.write_two_view_geometry(i, j, src.read_two_view_geometry(i, j))
+
+
+def _threads(n: int) -> int:
+    return (os.cpu_count() or 1) if n < 1 else n
+
+
+def run_workers(jobs: list[dict[str, Any]], on_line: Callable[[int, str], None] | None = None) -> None:
+    """Each job in a child process (worker.py), all at once; `on_line(k, line)` for each line job k
+    prints. Ctrl-C, a `deadline` passing (OverTime) or one child failing stops them all."""
+    import json
+    import subprocess
+
+    procs = [subprocess.Popen([sys.executable, "-m", "splatcli.sfm.worker", json.dumps({**job, "verbose": _VERBOSE})],
+                              stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for job in jobs]
+    lines: list[tuple[int, str]] = []
+    lock = threading.Lock()
+
+    def read(k: int, p: subprocess.Popen) -> None:
+        for line in p.stdout:  # type: ignore[union-attr]
+            with lock:
+                lines.append((k, line.strip()))
+
+    readers = [threading.Thread(target=read, args=(k, p), daemon=True) for k, p in enumerate(procs)]
+    for r in readers:
+        r.start()
+
+    def drain() -> None:
+        with lock:
+            got, lines[:] = list(lines), []
+        for k, line in got:
+            if on_line is not None and line:
+                on_line(k, line)
+
+    try:
+        while any(p.poll() is None for p in procs):
+            _check_deadline()
+            if any(p.returncode for p in procs if p.returncode is not None):
+                break
+            drain()
+            time.sleep(0.1)
+    except BaseException:
+        for p in procs:
+            p.kill()
+        for p in procs:
+            p.wait()
+        raise
+    for r in readers:
+        r.join()
+    drain()
+    failed = [p for p in procs if p.wait()]
+    for p in procs:
+        if p.poll() is None:
+            p.kill()
+    if failed:
+        err = failed[0].stderr.read().strip().splitlines() if failed[0].stderr else []
+        raise SplatError(f"COLMAP failed in a worker process ({_one_line(RuntimeError(err[-1] if err else f'exit {failed[0].returncode}'))})")
 
 
 @dataclass(frozen=True)
@@ -554,61 +653,18 @@ def incremental_mapping(db: Path, image_dir: Path, out_dir: Path, opts: MapperOp
     return models
 
 
-def global_mapping(db: Path, image_dir: Path, out_dir: Path, *, seed: int, num_threads: int,
-                   poll: Callable[[], None] | None = None) -> list[Model]:
+def global_mapping(db: Path, image_dir: Path, out_dir: Path, *, seed: int, num_threads: int) -> list[Model]:
     """COLMAP's global mapper (GLOMAP: every rotation, then every position, at once), largest
-    model first. pycolmap cannot cancel it, so it runs in a child process, which Ctrl-C or a
-    `deadline` passing (OverTime) stops at once. `poll` runs every 0.2 s meanwhile."""
-    import json
-    import subprocess
-
+    model first. pycolmap cannot cancel it, so it runs in a child process (worker.py), which Ctrl-C
+    or a `deadline` passing (OverTime) stops at once."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    args = {"db": str(db), "images": str(image_dir), "out": str(out_dir), "seed": seed, "threads": num_threads,
-            "verbose": _VERBOSE}
-    code = "import sys; from splatcli.sfm.colmap import _global_child; _global_child(sys.argv[1])"
-    child = subprocess.Popen([sys.executable, "-c", code, json.dumps(args)], stdin=subprocess.DEVNULL,
-                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
-    try:
-        while child.poll() is None:
-            _check_deadline()
-            if poll is not None:
-                poll()
-            time.sleep(0.2)
-    except BaseException:
-        child.kill()
-        child.wait()
-        raise
-    err = child.stderr.read().decode(errors="replace") if child.stderr else ""
-    if child.returncode:
-        last = err.strip().splitlines()[-1] if err.strip() else f"exit {child.returncode}"
-        raise SplatError(f"{db}: COLMAP's global mapper failed ({_one_line(RuntimeError(last))})")
-    models = [Model(_reconstruction(d)) for d in sorted(out_dir.iterdir()) if (d / "images.bin").is_file()]
+    run_workers([{"kind": "global", "db": str(db), "images": str(image_dir), "out": str(out_dir), "seed": seed,
+                  "threads": num_threads}])
+    pycolmap = _pc()
+    models = [Model(pycolmap.Reconstruction(str(d))) for d in sorted(out_dir.iterdir()) if (d / "images.bin").is_file()]
     models.sort(key=lambda m: (-m.num_registered, -m.num_points))
     return models
-
-
-def _reconstruction(path: Path) -> Any:
-    return _pc().Reconstruction(str(path))
-
-
-def _global_child(arg: str) -> None:
-    """The child process of `global_mapping`: map, each model written under out/<k>."""
-    import json
-
-    a = json.loads(arg)
-    set_verbose(bool(a["verbose"]))
-    pycolmap = _pc()
-    pycolmap.set_random_seed(a["seed"])
-    o = pycolmap.GlobalPipelineOptions()
-    o.random_seed = o.mapper.random_seed = a["seed"]
-    o.num_threads = o.mapper.num_threads = a["threads"]
-    o.mapper.rotation_averaging.random_seed = a["seed"]
-    o.mapper.global_positioning.random_seed = a["seed"]
-    o.mapper.retriangulation.random_seed = a["seed"]
-    o.mapper.global_positioning.use_gpu = False
-    o.mapper.bundle_adjustment.ceres.use_gpu = False
-    pycolmap.global_mapping(a["db"], a["images"], a["out"], options=o)
 
 
 # ---- reading, building and undistorting models -----------------------------

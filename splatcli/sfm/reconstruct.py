@@ -127,8 +127,8 @@ UPSAMPLE_BELOW = 1000
 UPSAMPLED = "SIFT again on the upsampled octave"
 UPSAMPLED_COST = 4.0
 MATCHED_BEST = 3
-RETRY_SHARE = 0.5
-RETRY_MIN_S = 30.0
+RETRY_SHARE = 1.0
+RETRY_MIN_S = 60.0
 GLOBAL_MAPPER = "the global mapper"  # the repair of a model that fails the check (its `Tried.attempt` starts so)
 
 
@@ -499,10 +499,10 @@ def _second_pass(s: _Sfm) -> list[Model] | None:
 
 
 def _more_features(s: _Sfm) -> list[Model] | None:
-    """Too few features, perhaps: SIFT again on COLMAP's upsampled octave, on the images left
-    out and those each matches best (a camera each needs more to calibrate than a shared one:
-    where it registered fewer, on every image), then mapping again. Only where its estimated
-    cost fits under the cap, which also stops it."""
+    """Too few features, perhaps: SIFT again on COLMAP's upsampled octave, then mapping again. On
+    the images left out and those each matches best; where a camera each registered fewer than
+    the shared camera (it needs more features to calibrate), on every image, mapped a camera each.
+    Only where its estimated cost fits under the cap, which also stops it."""
     n, n_best = len(s.names), s.registered
     if octave(s.opts, s.min_side) != 0 or s.min_side >= UPSAMPLE_BELOW or not (s.weak_split or n_best < 0.9 * n):
         return None
@@ -516,35 +516,37 @@ def _more_features(s: _Sfm) -> list[Model] | None:
     what = f"{UPSAMPLED}, on {len(redo)} of {n} images"
     why = f"{n_best} of {n} images registered" + (" (fewer with a camera each)" if s.weak_split else "")
     if estimate > cap:
-        s.note(f"{why}; {UPSAMPLED.lower()} would take about {estimate:.0f} s, over the {cap:.0f} s a retry may "
-               "take here: not tried")
+        s.note(f"{why}; {UPSAMPLED[0].lower()}{UPSAMPLED[1:]} would take about {estimate:.0f} s, over the "
+               f"{cap:.0f} s a retry may take now: not tried")
         s.tried.append(Tried(what, why, 0.0, estimate, None, False, f"not run: over the cap of {cap:.0f} s"))
         return None
     s.note(f"{why}; extracting more features (SIFT on the upsampled octave) on {len(redo)} image(s) and mapping "
-           f"again (about {estimate:.0f} s)")
-    t0, deadline = time.perf_counter(), time.monotonic() + cap
-    db = s.work / "database_more.db"
-    colmap.copy_database(s.db, db, s.image_dir, s.cameras, camera_model=s.opts.camera_model, without=redo)
+           f"again (about {estimate:.0f} s, at most {cap:.0f} s)")
+    cams = s.split_cameras if s.weak_split and s.split_cameras is not None else s.cameras
+    t0, db = time.perf_counter(), s.work / "database_more.db"
+    colmap.copy_database(s.db, db, s.image_dir, cams, camera_model=s.opts.camera_model, without=redo)
     try:
-        with colmap.deadline(deadline):
-            sift = replace(s.opts, first_octave=-1)
-            _extract(db, s.image_dir, sorted(redo, key=natural_key), sift, s.min_side, s.clock, s.mask_dir, None)
+        with colmap.deadline(time.monotonic() + cap):
+            _extract(db, s.image_dir, sorted(redo, key=natural_key), replace(s.opts, first_octave=-1), s.min_side,
+                     s.clock, s.mask_dir, None)
             s.match(pairs, db)
             models = s.map("models_upsampled", db=db)
     except colmap.OverTime:
         s.attempt(what, why, None, t0, estimate_s=estimate, result=f"stopped at the cap of {cap:.0f} s")
         _said(s, "more features")
         return None
-    keep = bool(models) and models[0].num_registered > n_best
-    s.attempt(what, why, models, t0, estimate_s=estimate, kept=keep)
+    got = models[0].num_registered if models else 0
+    spread = _focal_spread(models[0].focal_lengths(), s.cameras, cams) if models and cams is not s.cameras else 1.0
+    keep = got > n_best or (cams is not s.cameras and got >= 0.9 * n_best and spread > FOCAL_SPREAD)
+    s.attempt(what, why, models, t0, estimate_s=estimate, kept=keep,
+              result=f"kept one camera each (their focal lengths spread {spread:.2f}x)" if keep and cams is not s.cameras
+              else "")
     _said(s, "more features")
     if not keep:
         return None
     db.replace(s.db)
-    s.features_changed = True
-    if s.weak_split and s.split_cameras is not None and s.cameras != s.split_cameras:
-        s.models = models
-        return _camera_each(s) or models
+    s.cameras, s.features_changed = cams, True
+    s.matched.update(pairs)
     return models
 
 
@@ -688,12 +690,7 @@ def _match(db: Path, pairs: list[tuple[str, str]], work_dir: Path, mopts: MatchO
     if not pairs:
         return
     with clock.stage("match", len(pairs)) as st:
-        # Each call reloads descriptors and restarts threads, so calls carry
-        # at least 100 pairs: ~10 progress updates at a small overhead.
-        step = max(100, -(-len(pairs) // 10))
-        for i in range(0, len(pairs), step):
-            colmap.match_pairs(db, pairs[i : i + step], work_dir / "pairs.txt", mopts)
-            st.progress(min(i + step, len(pairs)))
+        colmap.match_pairs(db, pairs, work_dir, mopts, on_progress=st.progress)
 
 
 def _keypoint_median(db: Path) -> float:
