@@ -9,7 +9,7 @@ from ..errors import SplatError
 from ..events import Stages
 from ..inputs.images import IMAGE_EXTS, StagedImage, fit_size, list_folder
 from ..project import Project
-from ..sfm.reconstruct import SfmOptions, Tried, octave, run_sfm
+from ..sfm.reconstruct import LARGE_CAPTURE, SfmOptions, Tried, octave, run_sfm
 from . import features
 from .cameras import group_cameras
 from .config import MIN_IMAGES, ProcessConfig, sift_max_size
@@ -138,8 +138,10 @@ def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
         grouping = split
         run.note(grouping.reason)
     model = res.model
-    if res.unregistered:
-        run.note(left_out_warning(res.unregistered, res.left_out_models, res.model_sizes), "warning")
+    apart = set(res.placed_apart)  # (named in their own warning)
+    if [n for n in res.unregistered if n not in apart]:
+        run.note(left_out_warning([n for n in res.unregistered if n not in apart], res.left_out_models,
+                                  res.model_sizes), "warning")
     if model.num_registered < len(names) / 2:
         run.note(f"only {model.num_registered} of {len(names)} images registered; the photos may overlap too "
                  "little or be too blurry", "warning")
@@ -159,6 +161,6 @@ def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
                     unregistered=res.unregistered, left_out_models=res.left_out_models,
                     sfm_tried=[t.summary() for t in res.tried],
                     consistency=res.consistency.summary() if res.consistency is not None else None,
-                    placed_apart=res.placed_apart,
+                    placed_apart=res.placed_apart, repeatable=len(names) < LARGE_CAPTURE,
                     dropped_blurry=dropped, camera_grouping=grouping.rule,
                     cameras=[g.summary() for g in grouping.groups])

@@ -45,6 +45,7 @@ class Dataset:
     sfm_tried: list[dict] = field(default_factory=list)  # SfM: the mapping attempts made (reconstruct.Tried.summary)
     consistency: dict | None = None  # SfM: the kept model against its pairs' geometry (sfm/check.py)
     placed_apart: list[str] = field(default_factory=list)  # SfM: registered where no model agreed with their pairs: left out
+    repeatable: bool = True  # SfM under reconstruct.LARGE_CAPTURE photos (mapping on one thread)
     camera_grouping: str | None = None  # SfM: process/cameras.py's rule
     cameras: list[dict] = field(default_factory=list)  # SfM: each camera's images and EXIF facts
     bounds: tuple[np.ndarray, np.ndarray] | None = None  # the scene box the input states (LLFF's near/far), for want of points

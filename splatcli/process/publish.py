@@ -100,6 +100,7 @@ def publish(root: Path, stage: Path, spec: InputSpec, cfg: ProcessConfig, ds: Da
         sfm_tried=ds.sfm_tried,
         consistency=ds.consistency,
         placed_apart=ds.placed_apart,
+        repeatable=ds.repeatable,
         skipped=ds.skipped,
         missing=ds.missing,
         dropped_blurry=ds.dropped_blurry,
