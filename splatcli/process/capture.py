@@ -9,7 +9,7 @@ from ..errors import SplatError
 from ..events import Stages
 from ..inputs.images import IMAGE_EXTS, StagedImage, fit_size, list_folder
 from ..project import Project
-from ..sfm.reconstruct import LARGE_CAPTURE, SfmOptions, Tried, octave, run_sfm
+from ..sfm.reconstruct import LARGE_CAPTURE, SfmOptions, SfmResult, Tried, octave, run_sfm
 from . import features
 from .cameras import group_cameras
 from .config import MIN_IMAGES, ProcessConfig, sift_max_size
@@ -49,6 +49,17 @@ def left_out_warning(unregistered: list[str], fell_into: dict[str, int | None], 
     named = ", ".join(f"{n} ({where(n)})" for n in unregistered[:shown])
     more = f", and {len(unregistered) - shown} more (the manifest lists them all)" if len(unregistered) > shown else ""
     return f"{split}{len(unregistered)} image(s) did not register in it: {named}{more}"
+
+
+def _say_left_out(res: SfmResult, run: Stages) -> None:
+    """The warnings for images the model lacks (those placed apart have had their own)."""
+    apart = set(res.placed_apart)
+    missing = [n for n in res.unregistered if n not in apart]
+    if missing:
+        run.note(left_out_warning(missing, res.left_out_models, res.model_sizes), "warning")
+    if res.model.num_registered < len(res.names) / 2:
+        run.note(f"only {res.model.num_registered} of {len(res.names)} images registered; the photos may overlap "
+                 "too little or be too blurry", "warning")
 
 
 def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: tuple[float, float, float] | None,
@@ -138,13 +149,7 @@ def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
         grouping = split
         run.note(grouping.reason)
     model = res.model
-    apart = set(res.placed_apart)  # (named in their own warning)
-    if [n for n in res.unregistered if n not in apart]:
-        run.note(left_out_warning([n for n in res.unregistered if n not in apart], res.left_out_models,
-                                  res.model_sizes), "warning")
-    if model.num_registered < len(names) / 2:
-        run.note(f"only {model.num_registered} of {len(names)} images registered; the photos may overlap too "
-                 "little or be too blurry", "warning")
+    _say_left_out(res, run)
     st.sfm_dir.mkdir(parents=True, exist_ok=True)
     os.replace(work / "database.db", st.database_path)
     if (work / features.KEY_FILE).is_file() and not res.features_changed:
