@@ -81,7 +81,8 @@ def pose_errors(est: list[Camera], ref: list[Camera], tol: float = 0.02, seed: i
     _, extent = scene_extent([c for _, c in pairs])
     rng, best = np.random.default_rng(seed), None
     for _ in range(500):
-        s, R, t = similarity(*(x[rng.choice(len(pairs), 3, replace=False)] for x in (ec, rc)))
+        pick = rng.choice(len(pairs), 3, replace=False)
+        s, R, t = similarity(ec[pick], rc[pick])
         inl = np.linalg.norm(s * ec @ R.T + t - rc, axis=1) <= tol * extent
         if best is None or inl.sum() > best.sum():
             best = inl

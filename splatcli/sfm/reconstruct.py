@@ -506,7 +506,12 @@ def _more_features(s: _Sfm) -> list[Model] | None:
     n, n_best = len(s.names), s.registered
     if octave(s.opts, s.min_side) != 0 or s.min_side >= UPSAMPLE_BELOW or not (s.weak_split or n_best < 0.9 * n):
         return None
-    out = set(s.names) - set(s.models[0].registered_names() if s.models else [])
+    out = set(s.names) - {n for m in s.models for n in m.registered_names()}  # in no model: too few features?
+    if not (out or s.weak_split):
+        s.tried.append(Tried(UPSAMPLED, f"{n - n_best} of {n} images left out", 0.0, None, None, False,
+                             "not run: the images left out registered in models of their own (they have features "
+                             "enough; nothing joins them to the largest)"))
+        return None
     redo = set(s.names) if s.weak_split or not s.models else out | _matched_best(s.db, out, MATCHED_BEST)
     pairs = sorted(p for p in s.matched | set(s.alike(s.opts.retrieval_neighbours, out)) if set(p) & redo)
     per_image = s.spent("extract features") / max(n, 1)
