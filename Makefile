@@ -3,6 +3,9 @@
 PYTHON ?= python3
 TORCH ?= torch==2.13.0
 TORCHVISION ?= torchvision==0.28.0
+# Where torch comes from: pip's default index unless set (PyPI serves Linux the CUDA build;
+# https://download.pytorch.org/whl/cpu has the CPU build).
+TORCH_INDEX ?=
 VENV ?= .venv
 BIN := $(VENV)/bin
 DEMO ?= demo-project
@@ -23,7 +26,7 @@ $(BIN)/splatcli: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 	# torch (and the torchvision built for it) first, pinned, so that nothing else drags in the multi-GB CUDA wheels.
-	$(BIN)/pip install -q "$(TORCH)" "$(TORCHVISION)"
+	$(BIN)/pip install -q $(if $(TORCH_INDEX),--index-url $(TORCH_INDEX)) "$(TORCH)" "$(TORCHVISION)"
 	$(BIN)/pip install -q -e ".[dev,plots,lpips]"
 	@touch $@
 

@@ -712,3 +712,59 @@ def test_matching_in_worker_processes_gives_the_matches_of_one_thread(scene, tmp
     assert len(a) >= len(names) and [(p.a, p.b) for p in a] == [(p.a, p.b) for p in b]
     assert all(np.array_equal(p.matches, q.matches) and p.kind == q.kind for p, q in zip(a, b))
     assert not list(tmp_path.glob("*.match*.db"))  # the copies are gone
+
+
+def _big(scene: Path, out: Path, noise: int = 0) -> Path:
+    """The scene's views at 768x576 without EXIF (SIFT at octave 0, under 1,000 px: the upsampled retry
+    applies), every other one zoomed 1.25x, and `noise` photos of noise that match nothing."""
+    out.mkdir()
+    for c in ground_truth(scene):
+        img = cv2.imread(str(scene / "images" / c.name))
+        img = zoom_about_centre(img, 1.25) if int(c.name[:3]) % 2 else img
+        cv2.imwrite(str(out / c.name), cv2.resize(img, (3 * W, 3 * H), interpolation=cv2.INTER_CUBIC))
+    rng = np.random.default_rng(0)
+    for k in range(noise):
+        cv2.imwrite(str(out / f"zz_noise{k}.jpg"), rng.integers(0, 256, (3 * H, 3 * W, 3), dtype=np.uint8))
+    return out
+
+
+def test_more_features_go_to_the_images_left_out_alone_and_are_recorded_with_their_cost(scene, tmp_path,
+                                                                                         monkeypatch):
+    """Two photos of noise among 16 views: the mapping leaves them out (11% of the photos), in no model.
+    SIFT runs again on the upsampled octave on those two alone (they match no other photo best), not on
+    all 18; it registers no more and is not kept; the manifest records why it ran, its estimated and
+    spent seconds."""
+    from splatcli.sfm import colmap
+
+    real, upsampled = colmap.extract_features, []
+
+    def spy(db, image_dir, names, opts, **k):
+        if opts.first_octave == -1:
+            upsampled.extend(names)
+        return real(db, image_dir, names, opts, **k)
+
+    monkeypatch.setattr(colmap, "extract_features", spy)
+    r = process(_big(scene, tmp_path / "big", noise=2), tmp_path / "p", ProcessConfig(num_threads=1))
+    assert r.registered == N_VIEWS and sorted(r.unregistered) == ["zz_noise0.jpg", "zz_noise1.jpg"]
+    assert sorted(upsampled) == ["zz_noise0.jpg", "zz_noise1.jpg"]
+    more = [t for t in r.sfm_tried if t["attempt"].startswith("SIFT again on the upsampled octave")]
+    assert len(more) == 1 and "on 2 of 18 images" in more[0]["attempt"] and not more[0]["kept"], r.sfm_tried
+    assert more[0]["why"] == "16 of 18 images registered" and more[0]["estimate_s"] > 0 and more[0]["seconds"] > 0
+
+
+def test_more_features_are_not_tried_where_their_estimate_is_over_the_cap(scene, tmp_path, monkeypatch):
+    """The same capture with the cap made tiny: the retry is estimated, not run, and the manifest says so."""
+    from splatcli.sfm import colmap, reconstruct
+
+    monkeypatch.setattr(reconstruct, "RETRY_MIN_S", 0.0)
+    monkeypatch.setattr(reconstruct, "RETRY_SHARE", 1e-3)
+    real, upsampled = colmap.extract_features, []
+    monkeypatch.setattr(colmap, "extract_features", lambda db, image_dir, names, opts, **k: (
+        upsampled.extend(names) if opts.first_octave == -1 else None, real(db, image_dir, names, opts, **k))[1])
+    notes = []
+    r = process(_big(scene, tmp_path / "big", noise=2), tmp_path / "p", ProcessConfig(num_threads=1),
+                on_event=notes.append)
+    assert not upsampled
+    more = [t for t in r.sfm_tried if t["attempt"].startswith("SIFT again on the upsampled octave")]
+    assert len(more) == 1 and more[0]["registered"] is None and more[0]["result"].startswith("not run: over the cap")
+    assert any("would take about" in n.message and "not tried" in n.message for n in notes if isinstance(n, Note))

@@ -333,29 +333,31 @@ def run_workers(jobs: list[dict[str, Any]], on_line: Callable[[int, str], None] 
             if on_line is not None and line:
                 on_line(k, line)
 
-    try:
-        while any(p.poll() is None for p in procs):
-            _check_deadline()
-            if any(p.returncode for p in procs if p.returncode is not None):
-                break
-            drain()
-            time.sleep(0.1)
-    except BaseException:
+    def stop() -> None:
         for p in procs:
-            p.kill()
+            if p.poll() is None:
+                p.kill()
         for p in procs:
             p.wait()
+
+    failed = None
+    try:
+        while failed is None and any(p.poll() is None for p in procs):
+            _check_deadline()
+            drain()
+            failed = next((p for p in procs if p.poll()), None)
+            time.sleep(0.1)
+    except BaseException:
+        stop()
         raise
+    failed = failed or next((p for p in procs if p.poll()), None)
+    if failed is not None:
+        stop()
+        err = failed.stderr.read().strip().splitlines() if failed.stderr else []
+        raise SplatError(f"COLMAP failed in a worker process ({_one_line(RuntimeError(err[-1] if err else f'exit {failed.returncode}'))})")
     for r in readers:
         r.join()
     drain()
-    failed = [p for p in procs if p.wait()]
-    for p in procs:
-        if p.poll() is None:
-            p.kill()
-    if failed:
-        err = failed[0].stderr.read().strip().splitlines() if failed[0].stderr else []
-        raise SplatError(f"COLMAP failed in a worker process ({_one_line(RuntimeError(err[-1] if err else f'exit {failed[0].returncode}'))})")
 
 
 @dataclass(frozen=True)
