@@ -265,8 +265,9 @@ def match_pairs(db: Path, pairs: list[tuple[str, str]], work_dir: Path, opts: Ma
             on_progress(sum(done))
 
     if k == 1:
-        for i in range(0, len(pairs), worker.PAIRS_PER_CALL):
-            chunk = [list(p) for p in pairs[i : i + worker.PAIRS_PER_CALL]]
+        step = max(worker.PAIRS_PER_CALL, -(-len(pairs) // (2 * worker.CALLS)))
+        for i in range(0, len(pairs), step):
+            chunk = [list(p) for p in pairs[i : i + step]]
             run_cancellable(worker.match_chunk, pycolmap, str(db), chunk, str(work_dir / "pairs.txt"), settings)
             progress(0, str(len(chunk)))
         return
@@ -276,7 +277,8 @@ def match_pairs(db: Path, pairs: list[tuple[str, str]], work_dir: Path, opts: Ma
         for c in copies:
             shutil.copyfile(db, c)
         run_workers([{"kind": "match", "db": str(c), "pairs": [list(p) for p in share],
-                      "list_file": str(work_dir / f"pairs{w}.txt"), "opts": settings}
+                      "list_file": str(work_dir / f"pairs{w}.txt"), "opts": settings,
+                      "per_call": max(worker.PAIRS_PER_CALL, -(-len(share) // worker.CALLS))}
                      for w, (c, share) in enumerate(zip(copies, shares))], on_line=progress)
         _merge_matches(db, list(zip(copies, shares)))
     finally:

@@ -506,7 +506,7 @@ def _more_features(s: _Sfm) -> list[Model] | None:
     n, n_best = len(s.names), s.registered
     if octave(s.opts, s.min_side) != 0 or s.min_side >= UPSAMPLE_BELOW or not (s.weak_split or n_best < 0.9 * n):
         return None
-    out = set(s.names) - {n for m in s.models for n in m.registered_names()}  # in no model: too few features?
+    out = set(s.names) - {x for m in s.models for x in m.registered_names()}  # in no model: too few features?
     if not (out or s.weak_split):
         s.tried.append(Tried(UPSAMPLED, f"{n - n_best} of {n} images left out", 0.0, None, None, False,
                              "not run: the images left out registered in models of their own (they have features "

@@ -2,7 +2,7 @@
 started by sfm/colmap.py. It imports pycolmap alone (no torch), so it starts in a third of a second.
 
 * "match": match and verify a share of the image pairs on one thread, into the job's copy of
-  the database, printing a line per `PAIRS_PER_CALL` pairs done. COLMAP's matcher on several
+  the database, printing a line per call (of `per_call` pairs) done. COLMAP's matcher on several
   threads in one process does not repeat: its threads race, and 2 to 35 of 714 pairs of 40 photos
   came out different in 2 of 6 runs of one machine with nothing else running; on one thread
   it repeats. Processes of one thread each repeat and still use every core.
@@ -16,7 +16,9 @@ import sys
 from pathlib import Path
 from typing import Any
 
-PAIRS_PER_CALL = 100  # each call reloads descriptors and restarts threads: ~10 progress lines at a small cost
+PAIRS_PER_CALL = 100  # the least per call: each reloads descriptors and builds each image's index again
+CALLS = 4  # per process: more, smaller calls cost more (1,700 pairs in 2 processes: 45.5 s in calls of 100,
+# 42.3 s of 170, 41.8 s of 400)
 
 
 def match_options(pycolmap: Any, num_threads: int, max_ratio: float, min_inliers: int, seed: int) -> tuple:
@@ -40,10 +42,10 @@ def match_chunk(pycolmap: Any, db: str, pairs: list[list[str]], list_file: str, 
                                device=pycolmap.Device.cpu, **call)
 
 
-def match(pycolmap: Any, db: str, pairs: list[list[str]], list_file: str, opts: dict) -> None:
-    """The "match" job: `pairs` into `db`, `PAIRS_PER_CALL` at a time, a line on stdout after each."""
-    for i in range(0, len(pairs), PAIRS_PER_CALL):
-        chunk = pairs[i : i + PAIRS_PER_CALL]
+def match(pycolmap: Any, db: str, pairs: list[list[str]], list_file: str, opts: dict, per_call: int) -> None:
+    """The "match" job: `pairs` into `db`, `per_call` at a time, a line on stdout after each."""
+    for i in range(0, len(pairs), per_call):
+        chunk = pairs[i : i + per_call]
         match_chunk(pycolmap, db, chunk, list_file, opts)
         print(len(chunk), flush=True)
 
