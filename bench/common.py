@@ -23,6 +23,9 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from splatcli.camera import Camera, scene_extent
 from splatcli.device import cpu_flags, cpu_name
 from splatcli.eval.curve import read_curve
 from splatcli.project import Project
@@ -152,6 +155,55 @@ def splatcli(args: list[str], log: Path, *, cwd: Path = REPO, env: dict | None =
 def psnr_curve(project: Path) -> list[tuple[float, float]]:
     """Held-out PSNR against training seconds, from the project's train log (splatcli.eval.curve)."""
     return [(p.elapsed_s, p.psnr) for p in read_curve(Project(Path(project)).train_log_path)]
+
+
+# ---- poses ----------------------------------------------------------------------------
+
+
+def similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Umeyama: s, R, t minimising |dst - (s R src + t)|^2 over [N, 3] points."""
+    ms, md = src.mean(0), dst.mean(0)
+    xs, xd = src - ms, dst - md
+    U, D, Vt = np.linalg.svd(xd.T @ xs / len(src))
+    S = np.diag([1.0, 1.0, -1.0 if np.linalg.det(U) * np.linalg.det(Vt) < 0 else 1.0])
+    R = U @ S @ Vt
+    s = float(np.trace(np.diag(D) @ S) / max((xs**2).sum() / len(src), 1e-300))
+    return s, R, md - s * R @ ms
+
+
+def angle_deg(Q: np.ndarray) -> float:
+    s = 0.5 * np.linalg.norm([Q[2, 1] - Q[1, 2], Q[0, 2] - Q[2, 0], Q[1, 0] - Q[0, 1]])
+    return float(np.degrees(np.arctan2(s, 0.5 * (np.trace(Q) - 1.0))))
+
+
+def pose_errors(est: list[Camera], ref: list[Camera], tol: float = 0.02, seed: int = 0) -> dict:
+    """`est` against `ref` (matched by name) after a similarity fitted by RANSAC on camera centres
+    (inliers within `tol` of the reference's extent, `camera.scene_extent`), then refitted on the
+    inliers, so that cameras placed apart do not pull it: rotation errors in degrees, centre errors
+    as a percentage of the extent, their medians, means and largest, and the shares of cameras
+    within 2 degrees and 2%, and within 1 degree and 1%."""
+    by = {c.name: c for c in ref}
+    pairs = [(c, by[c.name]) for c in est if c.name in by]
+    ec = np.stack([c.center for c, _ in pairs])
+    rc = np.stack([c.center for _, c in pairs])
+    _, extent = scene_extent([c for _, c in pairs])
+    rng, best = np.random.default_rng(seed), None
+    for _ in range(500):
+        pick = rng.choice(len(pairs), 3, replace=False)
+        s, R, t = similarity(ec[pick], rc[pick])
+        inl = np.linalg.norm(s * ec @ R.T + t - rc, axis=1) <= tol * extent
+        if best is None or inl.sum() > best.sum():
+            best = inl
+    for _ in range(3):
+        s, R, t = similarity(ec[best], rc[best])
+        err = np.linalg.norm(s * ec @ R.T + t - rc, axis=1) / extent
+        best = err <= tol
+    rot = np.array([angle_deg((e.viewmat[:3, :3] @ R.T).T @ r.viewmat[:3, :3]) for e, r in pairs])
+    return {"compared": len(pairs), "median_rot_deg": float(np.median(rot)), "median_centre_pct": 100 * float(np.median(err)),
+            "mean_rot_deg": float(rot.mean()), "mean_centre_pct": 100 * float(err.mean()),
+            "within_2deg_2pct": 100 * float(np.mean((rot <= 2) & (err <= 0.02))),
+            "within_1deg_1pct": 100 * float(np.mean((rot <= 1) & (err <= 0.01))),
+            "max_rot_deg": float(rot.max()), "max_centre_pct": 100 * float(err.max())}
 
 
 # ---- results --------------------------------------------------------------------------

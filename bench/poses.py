@@ -25,10 +25,8 @@ import shutil
 import tempfile
 from pathlib import Path
 
-import numpy as np
-
-from common import Run, report, splatcli
-from splatcli.camera import Camera, scene_extent
+from common import Run, pose_errors, report, splatcli
+from splatcli.camera import Camera
 from splatcli.project import Project
 from splatcli.sfm.colmap import read_scene
 
@@ -53,48 +51,6 @@ def cameras(project: Path) -> list[Camera]:
     p = Project(project)
     raw = p.sfm_dir / "distorted"
     return read_scene(raw if raw.is_dir() else p.sparse_dir, pinhole_only=False).cameras
-
-
-def similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Umeyama: s, R, t minimising |dst - (s R src + t)|^2 over [N, 3] points."""
-    ms, md = src.mean(0), dst.mean(0)
-    xs, xd = src - ms, dst - md
-    U, D, Vt = np.linalg.svd(xd.T @ xs / len(src))
-    S = np.diag([1.0, 1.0, -1.0 if np.linalg.det(U) * np.linalg.det(Vt) < 0 else 1.0])
-    R = U @ S @ Vt
-    s = float(np.trace(np.diag(D) @ S) / max((xs**2).sum() / len(src), 1e-300))
-    return s, R, md - s * R @ ms
-
-
-def angle_deg(Q: np.ndarray) -> float:
-    s = 0.5 * np.linalg.norm([Q[2, 1] - Q[1, 2], Q[0, 2] - Q[2, 0], Q[1, 0] - Q[0, 1]])
-    return float(np.degrees(np.arctan2(s, 0.5 * (np.trace(Q) - 1.0))))
-
-
-def pose_errors(est: list[Camera], ref: list[Camera], tol: float = 0.02, seed: int = 0) -> dict:
-    """`est` against `ref` (matched by name) after a similarity fitted by RANSAC on camera centres
-    (inliers within `tol` of the extent), then refitted on the inliers."""
-    by = {c.name: c for c in ref}
-    pairs = [(c, by[c.name]) for c in est if c.name in by]
-    ec = np.stack([c.center for c, _ in pairs])
-    rc = np.stack([c.center for _, c in pairs])
-    _, extent = scene_extent([c for _, c in pairs])
-    rng, best = np.random.default_rng(seed), None
-    for _ in range(500):
-        pick = rng.choice(len(pairs), 3, replace=False)
-        s, R, t = similarity(ec[pick], rc[pick])
-        inl = np.linalg.norm(s * ec @ R.T + t - rc, axis=1) <= tol * extent
-        if best is None or inl.sum() > best.sum():
-            best = inl
-    for _ in range(3):
-        s, R, t = similarity(ec[best], rc[best])
-        err = np.linalg.norm(s * ec @ R.T + t - rc, axis=1) / extent
-        best = err <= tol
-    rot = np.array([angle_deg((e.viewmat[:3, :3] @ R.T).T @ r.viewmat[:3, :3]) for e, r in pairs])
-    return {"compared": len(pairs), "median_rot_deg": float(np.median(rot)), "median_centre_pct": 100 * float(np.median(err)),
-            "within_2deg_2pct": 100 * float(np.mean((rot <= 2) & (err <= 0.02))),
-            "within_1deg_1pct": 100 * float(np.mean((rot <= 1) & (err <= 0.01))),
-            "max_rot_deg": float(rot.max()), "max_centre_pct": 100 * float(err.max())}
 
 
 def row(label: str, order: str, k: int, r: Run) -> dict:

@@ -12,7 +12,7 @@ names (no order left) and runs all pairs against `auto` (pairs by retrieval), wi
 each against the other's. Skips cleanly when the data is absent.
 
 sample scene: sample_data/scene (sample_data/make_scene.py's defaults) through process,
-then poses against the exact ground truth after a similarity alignment (tests/support/align.py).
+then poses against the exact ground truth after a similarity alignment (common.pose_errors).
 
 Results: bench/out/process.json (common.report), the table printed.
 """
@@ -23,22 +23,18 @@ import argparse
 import hashlib
 import json
 import shutil
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-from common import REPO, data_dir, report
+from common import REPO, data_dir, pose_errors, report
 from splatcli.camera import Camera
 from splatcli.inputs.transforms import read_transforms
 from splatcli.process.run import ProcessConfig, ProcessResult, process
 from splatcli.project import Project
 from splatcli.sfm.colmap import read_scene
-
-sys.path.insert(0, str(REPO / "tests"))  # the tests' pose alignment (tests/support/align.py), borrowed
-from support.align import PoseErrors, compare_poses
 
 FOX_WIDTH = 400  # the baseline was measured at 400 px wide
 
@@ -59,8 +55,8 @@ def fox_reference(fox: Path) -> list[Camera]:
     return [Camera(f.name, 1, 1, np.eye(3), f.viewmat) for f in ts.frames]
 
 
-def errors_of(project: Path, reference: list[Camera]) -> PoseErrors:
-    return compare_poses(read_scene(Project(project).sparse_dir).cameras, reference)
+def errors_of(project: Path, reference: list[Camera]) -> dict:
+    return pose_errors(read_scene(Project(project).sparse_dir).cameras, reference)
 
 
 def fox_at_width(fox_images: Path, out: Path, width: int = FOX_WIDTH) -> Path:
@@ -97,17 +93,15 @@ def unordered_rows(images: Path, tmp: Path, ref: list[Camera]) -> list[dict]:
     ra, pa, ca = process_timed(shuffled, ProcessConfig(), tmp, "unordered-auto")
     rows.append(row("fox 400 px renamed, auto (retrieval)", ra, ca, errors_of(pa, ref_h)))
     vs = errors_of(pa, read_scene(Project(pe).sparse_dir).cameras)
-    rows[-1]["against all pairs"] = f"{vs.max_rotation_deg:.3f} deg / {100 * vs.max_center_error_rel:.3f}%"
+    rows[-1]["against all pairs"] = f"{vs['max_rot_deg']:.3f} deg / {vs['max_centre_pct']:.3f}%"
     return rows
 
 
-def row(label: str, r: ProcessResult, cpu: float, e: PoseErrors | None) -> dict:
+def row(label: str, r: ProcessResult, cpu: float, e: dict | None) -> dict:
     return {"run": label, "registered": f"{r.registered}/{r.total}", "points": r.points,
             "reproj_px": r.mean_reprojection_error, **{f"{k} s": v for k, v in r.seconds.items()}, "cpu_s": cpu,
             "matching": f"{r.matcher}, {r.pairs} pairs",
-            "max_rot_deg": e.max_rotation_deg if e else None, "mean_rot_deg": e.mean_rotation_deg if e else None,
-            "max_centre_pct": 100 * e.max_center_error_rel if e else None,
-            "mean_centre_pct": 100 * e.mean_center_error_rel if e else None}
+            **{k: (e or {}).get(k) for k in ("max_rot_deg", "mean_rot_deg", "max_centre_pct", "mean_centre_pct")}}
 
 
 def main() -> None:

@@ -74,8 +74,8 @@ class ProcessResult:
     camera_grouping: str | None = None  # SfM: how images were grouped into cameras (process/cameras.py)
     cameras: list[dict[str, Any]] = field(default_factory=list)  # SfM: each camera's images and EXIF facts
     warnings: list[str] = field(default_factory=list)
-    repeatable: bool = True  # the same input, options and --seed give the same model on one machine (SfM from
-    # 100 photos maps on every core: the registered images repeat, the poses within a few hundredths of a degree)
+    repeatable: bool = True  # the same input, options and --seed give the same model on one machine (False for SfM
+    # from 100 photos, mapped on every core, which COLMAP does not promise to repeat)
 
     def summary(self) -> dict[str, Any]:
         d = asdict(self)

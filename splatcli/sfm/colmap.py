@@ -481,7 +481,7 @@ class Model:
         return {im.name: float(self._rec.cameras[im.camera_id].mean_focal_length())
                 for im in self._rec.images.values() if im.has_pose}
 
-    def estimated_focals(self, min_points: int = 50, most: int = 64) -> dict[str, float]:
+    def estimated_focals(self, min_points: int = 50, most: int = 64, seed: int = 0) -> dict[str, float]:
         """Registered image name -> a focal length (px) found for that image alone: its absolute pose
         with the focal length unknown, from its 2D-3D matches in this model (images with fewer than
         `min_points`, or where no pose is found, are left out). Photos that fit one shared camera give
@@ -489,7 +489,7 @@ class Model:
         images, evenly spaced in name order (250 video frames took 7.4 s, for a spread that 64 tell)."""
         pycolmap = _pc()
         est = pycolmap.AbsolutePoseEstimationOptions(estimate_focal_length=True)
-        est.mergedict({"ransac": {"max_error": 4.0, "random_seed": 0}})  # (COLMAP's other RANSAC defaults kept)
+        est.mergedict({"ransac": {"max_error": 4.0, "random_seed": seed}})  # (COLMAP's other RANSAC defaults kept)
         ref = pycolmap.AbsolutePoseRefinementOptions(refine_focal_length=True)
         out = {}
         posed = sorted((im for im in self._rec.images.values() if im.has_pose), key=lambda im: im.name)

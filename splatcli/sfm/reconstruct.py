@@ -448,7 +448,7 @@ def _camera_each(s: _Sfm) -> list[Model] | None:
         # Every image registered: each one's focal length found on its own (from its matches in
         # the model) tells at once whether one camera fits them: about the same for photos from one
         # camera, far apart for photos from several forced onto one (which register, with bent poses).
-        spread = _focal_spread(s.models[0].estimated_focals(), s.cameras, s.split_cameras)
+        spread = _focal_spread(s.models[0].estimated_focals(seed=s.opts.seed), s.cameras, s.split_cameras)
         if spread <= ONE_CAMERA_SPREAD:
             s.note(f"all {n} images registered, and the focal lengths found for each alone agree (spread "
                    f"{spread:.2f}x): one camera fits them; not mapping again with a camera each "
