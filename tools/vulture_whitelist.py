@@ -62,3 +62,4 @@ _.use_duck_shape
 # sfm/colmap.py sets pycolmap's mapper options (read inside COLMAP's incremental mapper)
 _.ba_min_num_residuals_for_cpu_multi_threading
 _.ba_global_ignore_redundant_points3D
+_.use_gpu  # sfm/worker.py: pycolmap's global mapper options (read inside COLMAP)

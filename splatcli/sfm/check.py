@@ -91,7 +91,7 @@ class Consistency:
 
     def line(self) -> str:
         strong = self.strong
-        head = (f"{round(100 * self.share, 1):g}% of {len(strong)} strong image pairs agree with the poses "
+        head = (f"{round(100 * self.share, 1):g}% of {len(strong):,} strong image pairs agree with the poses "
                 f"(median error {np.median([p.error_px for p in strong]) if strong else 0:.2f} px)")
         if self.consistent:
             return head

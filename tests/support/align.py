@@ -46,14 +46,6 @@ class PoseErrors:
         """Largest centre error as a fraction of the scene's extent."""
         return float(self.center_error.max() / self.extent)
 
-    @property
-    def mean_rotation_deg(self) -> float:
-        return float(self.rotation_deg.mean())
-
-    @property
-    def mean_center_error_rel(self) -> float:
-        return float(self.center_error.mean() / self.extent)
-
 
 def umeyama(src: np.ndarray, dst: np.ndarray) -> Sim3:
     """The similarity minimising sum |dst - (s R src + t)|^2.
