@@ -4,10 +4,16 @@ from __future__ import annotations
 
 import platform
 from functools import cache
+from pathlib import Path
 
 import torch
 
 from .errors import SplatError
+
+try:
+    import resource
+except ImportError:  # Windows: no RLIMIT_AS; the other limits still apply
+    resource = None  # type: ignore[assignment]
 
 # The vector extensions that rank the same code differently on different CPUs, as /proc/cpuinfo names them.
 VECTOR_FLAGS = ("avx512f", "avx512_bf16", "avx2", "fma", "avx", "neon", "asimd", "sve")
@@ -108,3 +114,57 @@ def synchronize(device: torch.device) -> None:
     """Wait for the device's queued work (timings of CUDA work need it)."""
     if device.type == "cuda":
         torch.cuda.synchronize(device)
+
+
+def _read_int(path: Path) -> int | None:
+    try:
+        text = path.read_text().split()[0]
+    except (OSError, IndexError):
+        return None
+    return int(text) if text.isdigit() else None  # "max": no limit
+
+
+def _cgroup_free() -> int | None:
+    """memory.max - memory.current of this process's cgroup (v2, or v1's names)."""
+    try:
+        rel = next((ln.split(":", 2)[2].strip() for ln in Path("/proc/self/cgroup").read_text().splitlines()
+                    if ln.startswith("0::")), None)
+    except OSError:
+        rel = None
+    for base, lim, cur in ((Path("/sys/fs/cgroup") / (rel or "/").lstrip("/"), "memory.max", "memory.current"),
+                           (Path("/sys/fs/cgroup"), "memory.max", "memory.current"),
+                           (Path("/sys/fs/cgroup/memory"), "memory.limit_in_bytes", "memory.usage_in_bytes")):
+        limit, used = _read_int(base / lim), _read_int(base / cur)
+        if limit is not None and used is not None and limit < 1 << 60:
+            return max(0, limit - used)
+    return None
+
+
+def _rlimit_free() -> int | None:
+    if resource is None:
+        return None
+    soft = resource.getrlimit(resource.RLIMIT_AS)[0]
+    if soft == resource.RLIM_INFINITY:
+        return None
+    try:
+        vm = next(int(ln.split()[1]) * 1024 for ln in Path("/proc/self/status").read_text().splitlines()
+                  if ln.startswith("VmSize:"))
+    except (OSError, StopIteration):
+        return None
+    return max(0, soft - vm)
+
+
+def _available() -> int | None:
+    try:
+        return next(int(ln.split()[1]) * 1024 for ln in Path("/proc/meminfo").read_text().splitlines()
+                    if ln.startswith("MemAvailable:"))
+    except (OSError, StopIteration):
+        return None
+
+
+def free_memory() -> tuple[int | None, str]:
+    """Bytes this process may still allocate, and which limit says so."""
+    found = [(v, name) for v, name in ((_cgroup_free(), "the cgroup's memory limit"),
+                                       (_rlimit_free(), "RLIMIT_AS (ulimit -v)"),
+                                       (_available(), "available RAM")) if v is not None]
+    return min(found) if found else (None, "unknown")

@@ -196,3 +196,29 @@ def test_the_checker_sees_imports():
     assert ("__init__.py", "render/") in found  # splatcli.__getattr__'s lazy `from . import render`
     assert find_cycle([Edge("a.py", 1, "splatcli.b", "a.py", "b/"), Edge("b/x.py", 2, "splatcli.a", "b/", "a.py")])
     assert len(layers_from_doc()) >= 5
+
+
+def imported_names(path: Path) -> list[tuple[int, str]]:
+    """(line, dotted name) of every absolute import in a file."""
+    tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found += [(node.lineno, a.name) for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and not node.level and node.module:
+            found.append((node.lineno, node.module))
+    return found
+
+
+def test_bench_and_tests_keep_to_their_own():
+    """splatcli/ imports neither bench/ nor tests/; bench/ uses the package and its own helpers,
+    never tests/ (its support is for tests); tests/ never import a benchmark (test_bench runs them
+    as children)."""
+    own_bench = {p.stem for p in (ROOT / "bench").glob("*.py")}
+    rules = [(PACKAGE, ("bench", "tests") + tuple(own_bench)), (ROOT / "bench", ("tests", "support")),
+             (ROOT / "tests", ("bench",) + tuple(own_bench - {"conftest"}))]
+    wrong = [f"  {path.relative_to(ROOT)}:{line} imports {name}"
+             for folder, banned in rules for path in sorted(folder.rglob("*.py"))
+             for line, name in imported_names(path) if name.split(".")[0] in banned]
+    if wrong:
+        pytest.fail("imports across splatcli/, bench/ and tests/:\n" + "\n".join(wrong), pytrace=False)

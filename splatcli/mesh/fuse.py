@@ -27,6 +27,7 @@ from plyfile import PlyData, PlyElement
 from torch import Tensor
 
 from ..camera import Camera, focus_point
+from ..device import free_memory
 from ..errors import SplatError
 from ..eval.score import load_target
 from ..events import EventSink, Progress, Stage, StageDone, emit
@@ -35,7 +36,6 @@ from ..gaussians import Gaussians
 from ..model import load_model
 from ..project import Project, writer_lock
 from ..render.rasterize import render_surface
-from ..train.memory import free_memory
 from ..views.sources import View, dataset_views
 
 RESOLUTION = 256  # voxels along the box's longest side, by default

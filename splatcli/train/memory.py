@@ -13,16 +13,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from pathlib import Path
 
 import torch
 
-try:
-    import resource
-except ImportError:  # Windows: no RLIMIT_AS; the other limits still apply
-    resource = None  # type: ignore[assignment]
-
 from ..camera import Camera
+from ..device import free_memory
 from ..errors import SplatError
 from ..render.composite import WORK_BYTES  # what a render holds for its backward, at most
 
@@ -48,60 +43,6 @@ class MemoryPlan:
     limit: str  # what bounds `free`
     longest: int  # the longest image side trained, px
     copies: int = 1  # data-parallel ranks on this machine, each holding images and model
-
-
-def _read_int(path: Path) -> int | None:
-    try:
-        text = path.read_text().split()[0]
-    except (OSError, IndexError):
-        return None
-    return int(text) if text.isdigit() else None  # "max": no limit
-
-
-def _cgroup_free() -> int | None:
-    """memory.max - memory.current of this process's cgroup (v2, or v1's names)."""
-    try:
-        rel = next((ln.split(":", 2)[2].strip() for ln in Path("/proc/self/cgroup").read_text().splitlines()
-                    if ln.startswith("0::")), None)
-    except OSError:
-        rel = None
-    for base, lim, cur in ((Path("/sys/fs/cgroup") / (rel or "/").lstrip("/"), "memory.max", "memory.current"),
-                           (Path("/sys/fs/cgroup"), "memory.max", "memory.current"),
-                           (Path("/sys/fs/cgroup/memory"), "memory.limit_in_bytes", "memory.usage_in_bytes")):
-        limit, used = _read_int(base / lim), _read_int(base / cur)
-        if limit is not None and used is not None and limit < 1 << 60:
-            return max(0, limit - used)
-    return None
-
-
-def _rlimit_free() -> int | None:
-    if resource is None:
-        return None
-    soft = resource.getrlimit(resource.RLIMIT_AS)[0]
-    if soft == resource.RLIM_INFINITY:
-        return None
-    try:
-        vm = next(int(ln.split()[1]) * 1024 for ln in Path("/proc/self/status").read_text().splitlines()
-                  if ln.startswith("VmSize:"))
-    except (OSError, StopIteration):
-        return None
-    return max(0, soft - vm)
-
-
-def _available() -> int | None:
-    try:
-        return next(int(ln.split()[1]) * 1024 for ln in Path("/proc/meminfo").read_text().splitlines()
-                    if ln.startswith("MemAvailable:"))
-    except (OSError, StopIteration):
-        return None
-
-
-def free_memory() -> tuple[int | None, str]:
-    """Bytes this process may still allocate, and which limit says so."""
-    found = [(v, name) for v, name in ((_cgroup_free(), "the cgroup's memory limit"),
-                                       (_rlimit_free(), "RLIMIT_AS (ulimit -v)"),
-                                       (_available(), "available RAM")) if v is not None]
-    return min(found) if found else (None, "unknown")
 
 
 def plan_memory(cameras: list[Camera], init_count: int, max_gaussians: int | None, copies: int = 1) -> MemoryPlan:
