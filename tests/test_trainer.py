@@ -3,6 +3,8 @@ one step renders, backpropagates and updates; over a few epochs the loss falls."
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 import torch
 
@@ -12,6 +14,8 @@ from splatcli.train.data import load_train_data
 from splatcli.train.state import means_lr, new_state
 from splatcli.train.trainer import Trainer, _all_finite
 from support.tiny_project import make_tiny_project, tiny_gaussians
+
+REPO = Path(__file__).resolve().parents[1]
 
 CPU = torch.device("cpu")
 
@@ -107,3 +111,13 @@ def test_a_step_of_a_collection_leaves_a_passer_by_out_of_its_loss(tmp_path):
         losses[mode, start] = float(t.step(1, batch).loss)
     assert losses["ignore", 0.5] == losses["keep", 0.0]  # step 1 of 40: not yet
     assert losses["ignore", 0.0] < 0.8 * losses["keep", 0.0], losses
+
+
+def test_one_backward_per_step():
+    """The step has one loss: strategies and image models return their terms, the trainer sums
+    them and calls backward once (two backward calls would each walk the graph they share)."""
+    calls = [f"{p.relative_to(REPO)}:{i}" for folder in ("train", "strategy")
+             for p in sorted((REPO / "splatcli" / folder).rglob("*.py"))
+             for i, line in enumerate(p.read_text(encoding="utf-8").splitlines(), 1)
+             if ".backward(" in line.split("#")[0]]
+    assert calls == ["splatcli/train/trainer.py:" + calls[0].rsplit(":", 1)[1]], calls

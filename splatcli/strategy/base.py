@@ -4,7 +4,7 @@ a strategy at each step, and what a refinement did.
 A strategy keeps its hyperparameters in a frozen dataclass and its running state in
 a `RowState`. The loop calls every strategy of the run at the same fixed points:
 
-    strategy.step_pre_backward(splats, state, step, info)
+    term = strategy.step_pre_backward(splats, state, step, info)  # a loss term, or None
     stats = strategy.step_post_backward(splats, state, step, info)
 
 and, once when a run resumes, `strategy.catch_up(splats, state, step)`. Whenever the
@@ -156,8 +156,10 @@ class Strategy:
     def initial_state(self, n: int, device: torch.device, seed: int) -> RowState:
         return RowState()
 
-    def step_pre_backward(self, splats: Splats, state: Any, step: int, info: StepInfo) -> None:
-        """Before backward: e.g. ask autograd to keep a gradient."""
+    def step_pre_backward(self, splats: Splats, state: Any, step: int, info: StepInfo) -> Tensor | None:
+        """Before backward: e.g. ask autograd to keep a gradient. Returns a term ([] scalar) the
+        trainer adds to the step's loss before its one backward, or None."""
+        return None
 
     def step_post_backward(self, splats: Splats, state: Any, step: int, info: StepInfo) -> RefineStats | None:
         """After the optimiser step of `step`."""

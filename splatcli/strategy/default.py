@@ -74,7 +74,7 @@ class DefaultStrategy(Strategy):
         return step < self.config.refine_stop
 
     def step_pre_backward(self, splats: Splats, state: DefaultStrategyState, step: int, info: StepInfo) -> None:
-        """Ask autograd to keep the screen-space mean gradient we accumulate."""
+        """Ask autograd to keep the screen-space mean gradient we accumulate (no loss term)."""
         if self.active(step) and info.render.means2d.requires_grad:
             info.render.means2d.retain_grad()
 

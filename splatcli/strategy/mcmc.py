@@ -127,11 +127,13 @@ class MCMCStrategy(Strategy):
         gen.manual_seed(int(seed) + 0x3C3C)  # its own stream: never shifts view sampling
         return MCMCStrategyState(gen, torch.zeros(n, device=device), torch.ones(n, device=device))
 
-    def step_pre_backward(self, splats: Splats, state: MCMCStrategyState, step: int, info: StepInfo) -> None:
-        """The penalties' gradients on the Gaussians the view draws, accumulated before the
-        photometric loss's (regularize.py says why those alone)."""
+    def step_pre_backward(self, splats: Splats, state: MCMCStrategyState, step: int,
+                          info: StepInfo) -> Tensor | None:
+        """The penalties on the Gaussians the view draws (regularize.py says why those alone), a
+        term of the step's loss; none from `reg_stop` on."""
         if self.reg_stop is None or step < self.reg_stop:
-            regularize(splats.params, self.config.opacity_reg, self.config.scale_reg, info.render.visible)
+            return regularize(splats.params, self.config.opacity_reg, self.config.scale_reg, info.render.visible)
+        return None
 
     def step_post_backward(self, splats: Splats, state: MCMCStrategyState, step: int, info: StepInfo) -> RefineStats:
         n = len(splats)

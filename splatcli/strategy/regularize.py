@@ -9,8 +9,8 @@ only gradient, and so faded at the learning rate, whatever the other views said 
 capture of many views, where each view shows a small part of the model, that emptied the
 background and churned the model (docs/benchmarks.md, "Training with no options").
 
-Their gradients are accumulated into `.grad` before the photometric loss's backward (the
-two add up), so the loop does not change.
+The penalty is a loss term the strategy returns from `step_pre_backward`: the trainer adds it
+to the photometric loss and calls backward once.
 """
 
 from __future__ import annotations
@@ -21,15 +21,13 @@ from torch import Tensor
 from .base import Params, Splats, StepInfo, Strategy
 
 
-def regularize(params: Params, opacity_reg: float, scale_reg: float, drawn: Tensor) -> None:
-    """Backward of opacity_reg * mean(sigmoid(o)) + scale_reg * mean(exp(log s)), the means taken
-    over the whole model but the terms only of the Gaussians in `drawn` ([N] bool: those the
-    step's view draws), into the parameters' `.grad`."""
+def regularize(params: Params, opacity_reg: float, scale_reg: float, drawn: Tensor) -> Tensor:  # -> [] loss term
+    """opacity_reg * mean(sigmoid(o)) + scale_reg * mean(exp(log s)), the means taken over the
+    whole model but the terms only of the Gaussians in `drawn` ([N] bool: those the step's view draws)."""
     keep = drawn.to(params["opacity_logits"].dtype)  # [N]
     o = torch.sigmoid(params["opacity_logits"]) * keep  # [N]
     s = params["log_scales"].exp() * keep[:, None]  # [N, 3]
-    reg = opacity_reg * o.mean() + scale_reg * s.mean()
-    reg.backward()
+    return opacity_reg * o.mean() + scale_reg * s.mean()
 
 
 class RegularizeStep(Strategy):
@@ -38,5 +36,5 @@ class RegularizeStep(Strategy):
     def __init__(self, opacity_reg: float, scale_reg: float) -> None:
         self.opacity_reg, self.scale_reg = opacity_reg, scale_reg
 
-    def step_pre_backward(self, splats: Splats, state: object, step: int, info: StepInfo) -> None:
-        regularize(splats.params, self.opacity_reg, self.scale_reg, info.render.visible)
+    def step_pre_backward(self, splats: Splats, state: object, step: int, info: StepInfo) -> Tensor:
+        return regularize(splats.params, self.opacity_reg, self.scale_reg, info.render.visible)

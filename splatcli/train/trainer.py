@@ -108,8 +108,8 @@ class Trainer:
             out = render_view(s, batch.view, self.data.background, s.active_sh_degree(step, cfg.sh_degree_interval))
         info = StepInfo(out, batch.view.camera.width, batch.view.camera.height, combine=self.comm.combine_rows)
         with prof.stage("densification"):
-            for strategy, st in zip(s.strategies, s.splats.states):
-                strategy.step_pre_backward(s.splats, st, step, info)
+            terms = [strategy.step_pre_backward(s.splats, st, step, info)
+                     for strategy, st in zip(s.strategies, s.splats.states)]
         with prof.stage("loss"):
             image, penalty = s.image_model.shade(out.image, batch.index, step, cfg.iterations)
             keep = batch.view.keep
@@ -117,7 +117,9 @@ class Trainer:
                 keep = kept_pixels(image, batch.target, keep, cfg.robust)
             loss = photometric_loss(image, batch.target, cfg.lambda_dssim, keep) + penalty
         with prof.stage("backward"):
-            loss.backward()
+            # one backward for the whole step: the photometric loss, the image model's penalty and
+            # the strategies' terms; the loss reported is the first two (as the log has always said)
+            sum((t for t in terms if t is not None), loss).backward()
         return info, loss
 
     def refine(self, step: int, info: StepInfo) -> list[RefineStats | None]:
