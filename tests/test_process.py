@@ -575,15 +575,16 @@ def _zoomed(scene: Path, out: Path, zoom: float, every: int) -> Path:
 
 def test_photos_without_exif_from_two_cameras_that_all_register_together_still_get_a_camera_each(scene, tmp_path):
     """A quarter of the views zoomed 1.5x, no EXIF: one shared camera registers all 16 views, with poses
-    bent to fit one focal length (9.7 degrees, 25% of the extent off; with --single-camera the pose check
-    fails on them and leaves views out).
-    The default also maps them a camera each, finds focal lengths 1.5x apart, and keeps that."""
+    bent to fit one focal length (9.7 degrees, 25% of the extent off, checked here with --single-camera).
+    The pose check passes that model: the bent poses still explain every pair's matches (0.4 px), as a
+    wrong focal length can. The default also maps them a camera each, finds focal lengths 1.5x apart,
+    and keeps that."""
     src = _zoomed(scene, tmp_path / "zoomed", 1.5, 4)
     gt = ground_truth(scene)
     # one thread: COLMAP's threads make the mapping differ from run to run (the bent poses most)
     one = process(src, tmp_path / "one", ProcessConfig(cameras="single", num_threads=1))
-    assert not one.consistency["consistent"] and one.placed_apart  # what the check below is for: the pose check
-    # finds its pairs disagreeing and leaves the views it cannot place out
+    bent = compare_poses(read_scene(Project(tmp_path / "one").sparse_dir).cameras, gt)
+    assert one.registered == N_VIEWS and bent.max_rotation_deg > 3  # what the check below is for
     r = process(src, tmp_path / "p", ProcessConfig(num_threads=1))
     assert len(r.cameras) == N_VIEWS and r.registered == N_VIEWS
     assert any("kept one camera each" in t for t in tried(r)), r.sfm_tried

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import SplatError
@@ -11,7 +12,7 @@ from ..inputs.images import IMAGE_EXTS, StagedImage, fit_size, list_folder
 from ..project import Project
 from ..sfm.reconstruct import LARGE_CAPTURE, SfmOptions, SfmResult, Tried, octave, run_sfm
 from . import features
-from .cameras import group_cameras
+from .cameras import Grouping, group_cameras
 from .config import MIN_IMAGES, ProcessConfig, sift_max_size
 from .dataset import Dataset, finish_model, refuse_if_strict, stage_images
 from .detect import InputSpec
@@ -62,64 +63,75 @@ def _say_left_out(res: SfmResult, run: Stages) -> None:
                  "too little or be too blurry", "warning")
 
 
-def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: tuple[float, float, float] | None,
-                  run: Stages) -> Dataset:
-    work = stage / "work"
-    st = Project(stage)
-    skipped: list[str] = []
-    pairs: list[tuple[Path, str]] = []  # (photo, its name in the project)
-    dropped = 0
-    if spec.kind == "video":
-        with run.stage("video frames", None) as s:
-            frames = extract_frames(
-                spec.path, work / "input", every_fps=cfg.fps, num_frames=None if cfg.fps else cfg.num_frames,
-                blur_ratio=cfg.blur_ratio,
-                on_progress=lambda k, n: s.progress(k, n),
-            )
-        dropped = len(frames.dropped)
-        skipped = [f"frame {i}: could not be decoded (corrupt or truncated video)" for i in frames.unreadable]
-        refuse_if_strict(spec.path, skipped, cfg.strict)
-        run.note(f"extracted {frames.sampled} of {frames.total_frames} frames; dropped {dropped} blurry frame(s)")
-        if skipped:
-            shown = ", ".join(str(i) for i in frames.unreadable[:10]) + (", ..." if len(skipped) > 10 else "")
-            run.note(f"skipped {len(skipped)} frame(s) that could not be decoded: {shown}", "warning")
-        if len(frames.names) < MIN_IMAGES:
-            raise SplatError(f"{spec.path}: only {len(frames.names)} usable frame(s); need at least {MIN_IMAGES}")
-        w, h = frames.width, frames.height
-        staged = [StagedImage(n, w, h, False) for n in frames.names]
-        grouping = group_cameras(staged, None, cfg.cameras, video=True)
-    else:
-        assert spec.images_dir is not None
-        files, others = list_folder(spec.images_dir)
-        if not files:
-            raise SplatError(f"{spec.images_dir}: no images found (looked for {', '.join(IMAGE_EXTS)})")
-        pairs = list(zip(files, safe_names([p.name for p in files])))
-        staged, bad = stage_images(pairs, work, run, background=background, orient=True)
-        refuse_if_strict(spec.images_dir, bad, cfg.strict)
-        skipped = bad
-        if len(staged) < MIN_IMAGES:  # before the notes: a failed run says one line
-            why = f" ({'; '.join(bad[:3])})" if bad else ""
-            raise SplatError(
-                f"{spec.images_dir}: structure from motion needs at least {MIN_IMAGES} readable images, "
-                f"found {len(staged)}{why}"
-            )
-        by_name = {name: src for src, name in pairs}
-        grouping = group_cameras(staged, {s.name: by_name[s.name] for s in staged}, cfg.cameras, video=False)
-        if others:
-            shown = ", ".join(p.name for p in others[:5]) + (", ..." if len(others) > 5 else "")
-            run.note(f"skipped {len(others)} file(s) that are not images: {shown}")
-        for b in bad:
-            run.note(f"skipped {b}", "warning")
-    mdir = find_masks_dir(spec.images_dir) if spec.images_dir is not None else None
-    found = {name: mask_file(mdir, src.name) for src, name in pairs} if mdir is not None else {}
-    mask_source = stage_all(found, staged, work, run, invert=cfg.invert_masks, where=mdir)
-    names = [s.name for s in staged]
-    sizes = {(s.width, s.height) for s in staged}
+@dataclass
+class _Staged:
+    """The photos or frames staged under work/input, and their cameras."""
+
+    images: list[StagedImage]
+    grouping: Grouping
+    pairs: list[tuple[Path, str]] = field(default_factory=list)  # (photo, its name in the project); none for video
+    skipped: list[str] = field(default_factory=list)
+    dropped: int = 0  # blurry video frames
+
+
+def _stage_video(spec: InputSpec, work: Path, cfg: ProcessConfig, run: Stages) -> _Staged:
+    with run.stage("video frames", None) as s:
+        frames = extract_frames(
+            spec.path, work / "input", every_fps=cfg.fps, num_frames=None if cfg.fps else cfg.num_frames,
+            blur_ratio=cfg.blur_ratio,
+            on_progress=lambda k, n: s.progress(k, n),
+        )
+    skipped = [f"frame {i}: could not be decoded (corrupt or truncated video)" for i in frames.unreadable]
+    refuse_if_strict(spec.path, skipped, cfg.strict)
+    run.note(f"extracted {frames.sampled} of {frames.total_frames} frames; dropped {len(frames.dropped)} blurry frame(s)")
+    if skipped:
+        shown = ", ".join(str(i) for i in frames.unreadable[:10]) + (", ..." if len(skipped) > 10 else "")
+        run.note(f"skipped {len(skipped)} frame(s) that could not be decoded: {shown}", "warning")
+    if len(frames.names) < MIN_IMAGES:
+        raise SplatError(f"{spec.path}: only {len(frames.names)} usable frame(s); need at least {MIN_IMAGES}")
+    staged = [StagedImage(n, frames.width, frames.height, False) for n in frames.names]
+    return _Staged(staged, group_cameras(staged, None, cfg.cameras, video=True), skipped=skipped,
+                   dropped=len(frames.dropped))
+
+
+def _stage_folder(spec: InputSpec, work: Path, cfg: ProcessConfig, background: tuple[float, float, float] | None,
+                  run: Stages) -> _Staged:
+    assert spec.images_dir is not None
+    files, others = list_folder(spec.images_dir)
+    if not files:
+        raise SplatError(f"{spec.images_dir}: no images found (looked for {', '.join(IMAGE_EXTS)})")
+    pairs = list(zip(files, safe_names([p.name for p in files])))
+    staged, bad = stage_images(pairs, work, run, background=background, orient=True)
+    refuse_if_strict(spec.images_dir, bad, cfg.strict)
+    if len(staged) < MIN_IMAGES:  # before the notes: a failed run says one line
+        why = f" ({'; '.join(bad[:3])})" if bad else ""
+        raise SplatError(
+            f"{spec.images_dir}: structure from motion needs at least {MIN_IMAGES} readable images, "
+            f"found {len(staged)}{why}"
+        )
+    by_name = {name: src for src, name in pairs}
+    grouping = group_cameras(staged, {s.name: by_name[s.name] for s in staged}, cfg.cameras, video=False)
+    if others:
+        shown = ", ".join(p.name for p in others[:5]) + (", ..." if len(others) > 5 else "")
+        run.note(f"skipped {len(others)} file(s) that are not images: {shown}")
+    for b in bad:
+        run.note(f"skipped {b}", "warning")
+    return _Staged(staged, grouping, pairs=pairs, skipped=bad)
+
+
+def _say_grouping(grouping: Grouping, run: Stages) -> None:
     run.note(grouping.reason)
     for p in grouping.problems[:3]:
         run.note(f"EXIF ignored: {p}", "warning")
     if len(grouping.problems) > 3:
         run.note(f"EXIF ignored in {len(grouping.problems) - 3} more image(s)", "warning")
+
+
+def _pose(spec: InputSpec, got: _Staged, stage: Path, cfg: ProcessConfig, mask_dir: Path | None,
+          run: Stages) -> SfmResult:
+    """Structure from motion on the staged images, reusing a sibling's features where the key matches."""
+    work = stage / "work"
+    names = [s.name for s in got.images]
     max_size = sift_max_size(cfg, posed=False)
     sfm_opts = SfmOptions(
         matcher=cfg.matcher, ordered=spec.kind == "video", max_image_size=max_size,
@@ -127,10 +139,9 @@ def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
         sequential_overlap=cfg.sequential_overlap, seed=cfg.seed, num_threads=cfg.num_threads,
         camera_model=cfg.camera_model,
     )
-    sift_side = min(min(fit_size(w, h, max_size)) for w, h in sizes)  # smallest side SIFT will see
-    split = grouping.split() if cfg.cameras == "auto" else None
-    mask_dir = work / MASKS_DIR if mask_source else None
-    cameras = [g.names for g in grouping.groups]
+    sift_side = min(min(fit_size(s.width, s.height, max_size)) for s in got.images)  # smallest side SIFT will see
+    split = got.grouping.split() if cfg.cameras == "auto" else None
+    cameras = [g.names for g in got.grouping.groups]
     key = features.features_key(work / "input", names, mask_dir, {
         "max_image_size": max_size, "max_features": cfg.max_features, "octave": octave(sfm_opts, sift_side),
         "camera_model": cfg.camera_model, "cameras": cameras})
@@ -146,8 +157,21 @@ def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
     for k, v in res.seconds.items():
         run.seconds[k] = run.seconds.get(k, 0.0) + v
     if split is not None and res.cameras == [g.names for g in split.groups]:
-        grouping = split
-        run.note(grouping.reason)
+        got.grouping = split
+        run.note(split.reason)
+    return res
+
+
+def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: tuple[float, float, float] | None,
+                 run: Stages) -> Dataset:
+    work = stage / "work"
+    st = Project(stage)
+    got = _stage_video(spec, work, cfg, run) if spec.kind == "video" else _stage_folder(spec, work, cfg, background, run)
+    mdir = find_masks_dir(spec.images_dir) if spec.images_dir is not None else None
+    found = {name: mask_file(mdir, src.name) for src, name in got.pairs} if mdir is not None else {}
+    mask_source = stage_all(found, got.images, work, run, invert=cfg.invert_masks, where=mdir)
+    _say_grouping(got.grouping, run)
+    res = _pose(spec, got, stage, cfg, work / MASKS_DIR if mask_source else None, run)
     model = res.model
     _say_left_out(res, run)
     st.sfm_dir.mkdir(parents=True, exist_ok=True)
@@ -155,17 +179,18 @@ def from_capture(spec: InputSpec, stage: Path, cfg: ProcessConfig, background: t
     if (work / features.KEY_FILE).is_file() and not res.features_changed:
         # (a database remade on the upsampled octave is not what the key's options make)
         os.replace(work / features.KEY_FILE, st.sfm_dir / features.KEY_FILE)
-    if mask_source == "alpha" and not any(s.has_alpha for s in staged if s.name in set(model.registered_names())):
+    registered = set(model.registered_names())
+    if mask_source == "alpha" and not any(s.has_alpha for s in got.images if s.name in registered):
         mask_source = None
     undistorted = finish_model(model, st, work, cfg, run, masks=mask_source)
-    return Dataset(registered=model.num_registered, total=len(names), undistorted=undistorted,
-                    masks=mask_source is not None, mask_source=mask_source,
-                    background=background, mean_reprojection_error=model.mean_reprojection_error(),
-                    mean_track_length=model.mean_track_length(), skipped=skipped, matcher=res.matcher,
-                    pairs=res.num_pairs, keypoints_median=res.keypoints_median, model_sizes=res.model_sizes,
-                    unregistered=res.unregistered, left_out_models=res.left_out_models,
-                    sfm_tried=[t.summary() for t in res.tried],
-                    consistency=res.consistency.summary() if res.consistency is not None else None,
-                    placed_apart=res.placed_apart, repeatable=len(names) < LARGE_CAPTURE,
-                    dropped_blurry=dropped, camera_grouping=grouping.rule,
-                    cameras=[g.summary() for g in grouping.groups])
+    return Dataset(registered=model.num_registered, total=len(got.images), undistorted=undistorted,
+                   masks=mask_source is not None, mask_source=mask_source,
+                   background=background, mean_reprojection_error=model.mean_reprojection_error(),
+                   mean_track_length=model.mean_track_length(), skipped=got.skipped, matcher=res.matcher,
+                   pairs=res.num_pairs, keypoints_median=res.keypoints_median, model_sizes=res.model_sizes,
+                   unregistered=res.unregistered, left_out_models=res.left_out_models,
+                   sfm_tried=[t.summary() for t in res.tried],
+                   consistency=res.consistency.summary() if res.consistency is not None else None,
+                   placed_apart=res.placed_apart, repeatable=len(got.images) < LARGE_CAPTURE,
+                   dropped_blurry=got.dropped, camera_grouping=got.grouping.rule,
+                   cameras=[g.summary() for g in got.grouping.groups])
