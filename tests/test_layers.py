@@ -222,3 +222,22 @@ def test_bench_and_tests_keep_to_their_own():
              for line, name in imported_names(path) if name.split(".")[0] in banned]
     if wrong:
         pytest.fail("imports across splatcli/, bench/ and tests/:\n" + "\n".join(wrong), pytrace=False)
+
+
+# The rasterizer's hand-written kernels and its reference twin read best whole, as the math they follow.
+LONG_ALLOWED = {("render/projection.py", "forward"), ("render/projection.py", "_backward"),
+                ("render/reference.py", "rasterize_reference")}
+MAX_FUNCTION_LINES = 60
+
+
+def test_functions_are_short():
+    long = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        rel = str(path.relative_to(PACKAGE))
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and (rel, node.name) not in LONG_ALLOWED:
+                lines = node.end_lineno - node.lineno + 1
+                if lines > MAX_FUNCTION_LINES:
+                    long.append(f"  splatcli/{rel}:{node.lineno} {node.name}: {lines} lines")
+    if long:
+        pytest.fail(f"functions over {MAX_FUNCTION_LINES} lines:\n" + "\n".join(long), pytrace=False)

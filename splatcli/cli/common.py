@@ -146,6 +146,46 @@ class _LogLines:
             self.console.print(escape(f"{ev.name}: {count}, {_clock(elapsed)} elapsed{eta}" + (f"  {info}" if info else "")))
 
 
+class _BarSink:
+    """An EventSink drawing rich progress bars, and a log line per event off a terminal."""
+
+    def __init__(self, bars: RichProgress, err: Console, lines: _LogLines | None) -> None:
+        self.bars, self.err, self.lines = bars, err, lines
+        self.tasks: dict[str, TaskID] = {}
+        self.started = False
+
+    def start(self) -> None:
+        # Lazily: a command that fails on its input before any progress must
+        # print nothing but its one `error:` line (no blank live-display line).
+        if not self.started:
+            self.bars.start()
+            self.started = True
+
+    def __call__(self, ev: Event) -> None:
+        bars, tasks = self.bars, self.tasks
+        if isinstance(ev, (Stage, Progress)):
+            self.start()
+            if self.lines is not None:
+                self.lines(ev)
+        if isinstance(ev, Stage):
+            tasks[ev.name] = bars.add_task(ev.name, total=ev.total, info="", counted=ev.total is not None)
+        elif isinstance(ev, Progress):
+            if ev.name not in tasks:
+                tasks[ev.name] = bars.add_task(ev.name, total=ev.total, info="")
+            info = "  ".join(f"{k} {_fmt(v)}" for k, v in ev.info.items())
+            bars.update(tasks[ev.name], completed=ev.done, total=ev.total, info=info, counted=True, eta=ev.eta_s)
+        elif isinstance(ev, StageDone):
+            tid = tasks.get(ev.name)
+            if tid is not None:
+                t = bars.tasks[tid] if tid < len(bars.tasks) else None
+                total = t.total if t is not None and t.total is not None else (t.completed if t else 1)
+                bars.update(tid, total=total, completed=total)
+        elif isinstance(ev, Note):
+            self.err.print(
+                ("[yellow]warning:[/yellow] " if ev.level == "warning" else "[dim]note:[/dim] ") + escape(ev.message)
+            )
+
+
 class Ui:
     """The console of one command run."""
 
@@ -177,41 +217,7 @@ class Ui:
             transient=False,
             disable=self.quiet,
         )
-        tasks: dict[str, TaskID] = {}
-        started = False
-        lines = _LogLines(self.err) if not self.err.is_terminal and not self.quiet else None
-
-        def start() -> None:
-            # Lazily: a command that fails on its input before any progress must
-            # print nothing but its one `error:` line (no blank live-display line).
-            nonlocal started
-            if not started:
-                bars.start()
-                started = True
-
-        def sink(ev: Event) -> None:
-            if isinstance(ev, (Stage, Progress)):
-                start()
-                if lines is not None:
-                    lines(ev)
-            if isinstance(ev, Stage):
-                tasks[ev.name] = bars.add_task(ev.name, total=ev.total, info="", counted=ev.total is not None)
-            elif isinstance(ev, Progress):
-                if ev.name not in tasks:
-                    tasks[ev.name] = bars.add_task(ev.name, total=ev.total, info="")
-                info = "  ".join(f"{k} {_fmt(v)}" for k, v in ev.info.items())
-                bars.update(tasks[ev.name], completed=ev.done, total=ev.total, info=info, counted=True, eta=ev.eta_s)
-            elif isinstance(ev, StageDone):
-                tid = tasks.get(ev.name)
-                if tid is not None:
-                    t = bars.tasks[tid] if tid < len(bars.tasks) else None
-                    total = t.total if t is not None and t.total is not None else (t.completed if t else 1)
-                    bars.update(tid, total=total, completed=total)
-            elif isinstance(ev, Note):
-                self.err.print(
-                    ("[yellow]warning:[/yellow] " if ev.level == "warning" else "[dim]note:[/dim] ") + escape(ev.message)
-                )
-
+        sink = _BarSink(bars, self.err, _LogLines(self.err) if not self.err.is_terminal and not self.quiet else None)
         erase = False
         try:
             yield sink
@@ -221,10 +227,10 @@ class Ui:
             erase = True
             raise
         finally:
-            if started and erase:
+            if sink.started and erase:
                 bars.live.transient = True
                 bars.live.stop()  # not bars.stop(), which prints an empty line off a terminal
-            elif started:
+            elif sink.started:
                 bars.stop()
 
     def summary(self, data: dict[str, Any], title: str = "", lines: list[str] | None = None) -> None:

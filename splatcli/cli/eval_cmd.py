@@ -10,8 +10,8 @@ import typer
 from ..device import resolve_device
 from ..errors import SplatError
 from ..eval.evaluate import EvalConfig, compare_folders, plan_eval, run_eval
-from ..eval.report import FormatPoint
-from ..mesh.measure import score_mesh
+from ..eval.report import EvalReport, FormatPoint
+from ..mesh.measure import MeshReport, score_mesh
 from .common import BackgroundOpt, DebugOpt, DeviceOpt, JsonOpt, QuietOpt, RendererOpt, Ui, parse_background, resolve
 
 _D = EvalConfig()  # the defaults, written once in the config
@@ -30,6 +30,39 @@ def _smaller(f: FormatPoint) -> str:  # the .ply is what the others are measured
 
 def _lpips(v: float | None, sep: str = ", ") -> str:
     return "" if v is None else f"{sep}LPIPS {v:.4f}"
+
+
+def _summary(r: EvalReport, geo: MeshReport | None) -> tuple[str, list[str]]:
+    """The title line and the lines below it."""
+    raw = f"PSNR {r.psnr:.2f} dB, SSIM {r.ssim:.4f}{_lpips(r.lpips)}"
+    comp = f"PSNR {r.compensated_psnr:.2f} dB, SSIM {r.compensated_ssim:.4f}{_lpips(r.compensated_lpips)}"
+    title = (f"{r.split} split, appearance compensated: {comp} over {len(r.per_image)} views (raw: {raw})"
+             if r.headline == "compensated" else f"{r.split} split: {raw} over {len(r.per_image)} views")
+    lines = [f"PSNR after a per-view colour fit (exposure and white balance removed): {r.psnr_color_fit:.2f} dB",
+             ("appearance compensated: each view's colour fitted on its left half, scored on its right half; "
+              "raw: every pixel as rendered" if r.headline == "compensated" else
+              f"appearance compensated (colour fitted on each view's left half, scored on its right half): {comp}"),
+             f"{r.num_gaussians:,} Gaussians (SH {r.sh_degree}, {r.ply_bytes / 1e6:.2f} MB): "
+             f"{r.render_fps:.2f} frames/s at {r.width}x{r.height} on {r.device} ({r.renderer})"]
+    lines += [f"masks: scored on {r.masks}"] if r.masks else []
+    lines += [f"  {b.fraction:>4.0%}: {b.num_gaussians:>9,} Gaussians  {b.psnr:6.2f} dB  {b.ms_per_frame:8.1f} ms/frame"
+              for b in r.budgets]
+    lines += [f"  {f.format:>14}: {f.bytes / 1e6:8.2f} MB {_smaller(f):25}  {f.psnr:6.2f} dB ({-f.db_lost:+.2f})"
+              for f in r.formats]
+    lines += [f"  mesh {k}: Chamfer {s.chamfer:.4g}, F-score {s.fscore:.3f} (precision {s.precision:.3f}, recall "
+              f"{s.recall:.3f}) at {s.tau:.3g}" for k, s in ((("fused", geo.fused), ("centres", geo.centres)) if geo else ())]
+    lines += [f"report: {r.report_path}"] if r.report_path else []
+    return title, lines
+
+
+def _compare(ui: Ui, pred: Path, gt: Path, bg: tuple[float, float, float] | None, lpips_weights: Path | None,
+             device: str) -> None:
+    """--pred/--gt: two folders of images compared by file name."""
+    with ui.progress() as sink:
+        f = compare_folders(pred, gt, background=bg or (0.0, 0.0, 0.0), lpips_weights=lpips_weights,
+                            device=resolve_device(device), on_event=sink)
+    ui.summary(f.summary(), title=f"{len(f.per_image)} images compared",
+               lines=[f"PSNR {f.psnr:.2f} dB   SSIM {f.ssim:.4f}" + _lpips(f.lpips, "   ")])
 
 
 def evaluate(
@@ -66,11 +99,7 @@ def evaluate(
     if pred is not None or gt is not None:
         if pred is None or gt is None or project is not None:
             raise SplatError("--pred and --gt go together, without a project")
-        with ui.progress() as sink:
-            f = compare_folders(pred, gt, background=bg or (0.0, 0.0, 0.0), lpips_weights=lpips_weights,
-                                device=resolve_device(device), on_event=sink)
-        ui.summary(f.summary(), title=f"{len(f.per_image)} images compared",
-                   lines=[f"PSNR {f.psnr:.2f} dB   SSIM {f.ssim:.4f}" + _lpips(f.lpips, "   ")])
+        _compare(ui, pred, gt, bg, lpips_weights, device)
         return
     if project is None:
         raise SplatError("give a PROJECT, or --pred DIR --gt DIR")
@@ -81,22 +110,5 @@ def evaluate(
     with ui.progress() as sink:
         r = run_eval(plan, on_event=sink)
     geo = score_mesh(project, mesh) if mesh is not None else None  # mesh/measure.py
-    raw = f"PSNR {r.psnr:.2f} dB, SSIM {r.ssim:.4f}{_lpips(r.lpips)}"
-    comp = f"PSNR {r.compensated_psnr:.2f} dB, SSIM {r.compensated_ssim:.4f}{_lpips(r.compensated_lpips)}"
-    title = (f"{r.split} split, appearance compensated: {comp} over {len(r.per_image)} views (raw: {raw})"
-             if r.headline == "compensated" else f"{r.split} split: {raw} over {len(r.per_image)} views")
-    ui.summary(r.summary() | ({"mesh": geo.to_json()} if geo else {}), title=title,
-               lines=[f"PSNR after a per-view colour fit (exposure and white balance removed): {r.psnr_color_fit:.2f} dB",
-                      ("appearance compensated: each view's colour fitted on its left half, scored on its right half; "
-                       "raw: every pixel as rendered" if r.headline == "compensated" else
-                       f"appearance compensated (colour fitted on each view's left half, scored on its right half): {comp}"),
-                      f"{r.num_gaussians:,} Gaussians (SH {r.sh_degree}, {r.ply_bytes / 1e6:.2f} MB): "
-                      f"{r.render_fps:.2f} frames/s at {r.width}x{r.height} on {r.device} ({r.renderer})"]
-               + ([f"masks: scored on {r.masks}"] if r.masks else [])
-               + [f"  {b.fraction:>4.0%}: {b.num_gaussians:>9,} Gaussians  {b.psnr:6.2f} dB  {b.ms_per_frame:8.1f} ms/frame"
-                  for b in r.budgets]
-               + [f"  {f.format:>14}: {f.bytes / 1e6:8.2f} MB {_smaller(f):25}  {f.psnr:6.2f} dB ({-f.db_lost:+.2f})"
-                  for f in r.formats]
-               + [f"  mesh {k}: Chamfer {s.chamfer:.4g}, F-score {s.fscore:.3f} (precision {s.precision:.3f}, recall "
-                  f"{s.recall:.3f}) at {s.tau:.3g}" for k, s in ((("fused", geo.fused), ("centres", geo.centres)) if geo else ())]
-               + ([f"report: {r.report_path}"] if r.report_path else []))
+    title, lines = _summary(r, geo)
+    ui.summary(r.summary() | ({"mesh": geo.to_json()} if geo else {}), title=title, lines=lines)

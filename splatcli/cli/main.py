@@ -38,6 +38,30 @@ def _one_line(msg: str) -> str:
     return " ".join(str(msg).split())
 
 
+def _failure(exc: BaseException, debug: bool) -> tuple[str | None, int, str | None]:
+    """What a command raised as (the one line for stderr and the --json object, or None; the exit
+    code; a hint). Called in the `except` clause, so that --debug prints the traceback."""
+    if isinstance(exc, typer.Exit):  # --help, --version, typer.Exit
+        return None, exc.exit_code, None
+    if isinstance(exc, typer.Abort):
+        return "interrupted", 130, None
+    if isinstance(exc, _cx.UsageError):
+        hint = f"see `{exc.ctx.command_path} --help`" if exc.ctx is not None else None
+        return _one_line(exc.format_message()) + (f" ({hint})" if hint else ""), 2, hint
+    if isinstance(exc, _cx.ClickException):
+        return _one_line(exc.format_message()), 2, None
+    if isinstance(exc, SplatError):
+        if debug:
+            traceback.print_exc()
+        return _one_line(str(exc)), exc.exit_code, exc.hint
+    if isinstance(exc, (KeyboardInterrupt, Interrupted)):
+        return (_one_line(str(exc)) if isinstance(exc, Interrupted) and str(exc) else "interrupted"), 130, None
+    if debug:  # a bug: keep the message, hide the traceback unless asked
+        traceback.print_exc()
+    hint = "rerun with --debug for the traceback"
+    return f"internal error: {type(exc).__name__}: {_one_line(str(exc))} ({hint})", 1, hint
+
+
 class _Group(TyperGroup):
     """Runs commands with our exit-code policy, both from the console script and
     from typer's CliRunner (which calls `main` too)."""
@@ -46,15 +70,9 @@ class _Group(TyperGroup):
              standalone_mode: bool = True, **extra: Any) -> Any:
         argv = list(sys.argv[1:] if args is None else args)
         debug = "--debug" in argv or os.environ.get("SPLATCLI_DEBUG") == "1"
-        error: str | None = None  # the one line for stderr (and the --json object)
-        hint: str | None = None
         try:
             rv = super().main(args=argv, prog_name=prog_name or "splatcli", complete_var=complete_var,
                               standalone_mode=False, **extra)
-        except typer.Exit as exc:  # --help, --version, typer.Exit
-            code = exc.exit_code
-        except typer.Abort:
-            error, code = "interrupted", 130
         except _cx.UsageError as exc:
             if type(exc).__name__ == "NoArgsIsHelpError":  # bare `splatcli` or `splatcli CMD`: show help
                 sys.stdout.write(exc.format_message() + "\n")
@@ -63,29 +81,13 @@ class _Group(TyperGroup):
                 if standalone_mode:
                     sys.exit(code)
                 return code
-            ctx = exc.ctx
-            hint = f"see `{ctx.command_path} --help`" if ctx is not None else None
-            error = _one_line(exc.format_message()) + (f" ({hint})" if hint else "")
-            code = 2
-        except _cx.ClickException as exc:
-            error, code = _one_line(exc.format_message()), 2
-        except SplatError as exc:
-            if debug:
-                traceback.print_exc()
-            error, code, hint = _one_line(str(exc)), exc.exit_code, exc.hint
-        except (KeyboardInterrupt, Interrupted) as exc:
-            error = _one_line(str(exc)) if isinstance(exc, Interrupted) and str(exc) else "interrupted"
-            code = 130
-        except Exception as exc:  # a bug: keep the message, hide the traceback unless asked
-            if debug:
-                traceback.print_exc()
-            hint = "rerun with --debug for the traceback"
-            error, code = f"internal error: {type(exc).__name__}: {_one_line(str(exc))} ({hint})", 1
+            error, code, hint = _failure(exc, debug)
+        except (typer.Exit, typer.Abort, KeyboardInterrupt, Exception) as exc:
+            error, code, hint = _failure(exc, debug)
         else:
             # Not standalone, typer reports Ctrl-C by returning 130 instead of raising.
             code = rv if isinstance(rv, int) and not isinstance(rv, bool) else 0
-            if code == 130:
-                error = "interrupted"
+            error, hint = ("interrupted" if code == 130 else None), None
         to = os.environ.get(ERRORS_ENV)
         if error is not None and to:  # a worker of `train --nproc`: the launcher reports (train/launch.py)
             with open(os.path.join(to, f"rank{os.environ.get('RANK', '0')}.json"), "w") as f:

@@ -316,20 +316,24 @@ def run_eval(plan: EvalPlan, *, on_event: EventSink | None = None) -> EvalReport
         return _run_eval(plan, on_event)
 
 
+def _mask_mode(project: Project, tsum: dict[str, Any]) -> tuple[str, str | None]:
+    """The mask mode training used (else the project's), and what the report says of it (None: off)."""
+    mode = tsum.get("mask_mode") if tsum.get("mask_mode") in ("ignore", "background", "off") else None
+    mode = project.mask_mode(mode or "auto")
+    if mode == "off":
+        return mode, None
+    return mode, (MASKED_SCORING[mode] if project.mask_source() == "files" or mode == "ignore" else
+                  "whole images, composited over the background (the masks are the images' alpha)")
+
+
 def _run_eval(plan: EvalPlan, on_event: EventSink | None) -> EvalReport:
     project, config, g, views = plan.project, plan.config, plan.gaussians, plan.views
     step, model_name, notes, tsum = plan.step, plan.model_name, list(plan.notes), plan.train_summary
-    downscale, max_size, bg_rgb = plan.downscale, plan.max_size, plan.background
+    bg_rgb = plan.background
     bg = torch.tensor(bg_rgb, dtype=g.means.dtype, device=g.device)
-    device = g.device
 
-    mode = tsum.get("mask_mode") if tsum.get("mask_mode") in ("ignore", "background", "off") else None
-    mode = project.mask_mode(mode or "auto")
+    mode, masks = _mask_mode(project, tsum)
     gts, keeps = _ground_truth(project, views, bg_rgb, mode, on_event)
-    masks = None
-    if mode != "off":
-        masks = MASKED_SCORING[mode] if project.mask_source() == "files" or mode == "ignore" else \
-            "whole images, composited over the background (the masks are the images' alpha)"
 
     lp, aa, q, r = plan.lpips, plan.antialiased, config.quantisation, plan.renderer
     per_image, secs = _score_views(g, views, gts, keeps, bg, lp, on_event, "eval", aa, q, r)
@@ -338,14 +342,50 @@ def _run_eval(plan: EvalPlan, on_event: EventSink | None) -> EvalReport:
     mean_ssim = float(np.mean([s.ssim for s in per_image]))
     mean_lpips = _mean_lpips(per_image)
 
-    # ---- speed against error at smaller budgets --------------------------------
-    budgets = [BudgetPoint(fraction=1.0, num_gaussians=len(g), ply_bytes=ply_bytes(len(g), g.sh_degree),
-                           psnr=mean_psnr, ssim=mean_ssim, render_fps=fps, ms_per_frame=1000 * secs, lpips=mean_lpips)]
+    first = BudgetPoint(fraction=1.0, num_gaussians=len(g), ply_bytes=ply_bytes(len(g), g.sh_degree),
+                        psnr=mean_psnr, ssim=mean_ssim, render_fps=fps, ms_per_frame=1000 * secs, lpips=mean_lpips)
+    budgets = _budget_points(plan, first, gts, keeps, bg, on_event)
+    formats = _score_formats(g, config.formats, views, gts, keeps, bg, lp, mean_psnr, on_event, aa, q, r)
+    curve = read_curve(project.train_log_path) if config.model is None else []
+    # the log's scores: 8-bit since train recorded its quantisation, unquantised before
+    curve_q = str(tsum.get("quantisation", "none")) if curve else None
+    curve_p = str(tsum.get("protocol", "raw")) if curve else None
+    report = EvalReport(
+        psnr=mean_psnr, ssim=mean_ssim, lpips=mean_lpips, per_image=per_image, num_gaussians=len(g),
+        sh_degree=g.sh_degree, ply_bytes=ply_bytes(len(g), g.sh_degree),
+        train_seconds=float(tsum["train_seconds"]) if isinstance(tsum.get("train_seconds"), (int, float)) else None,
+        train_steps=int(tsum["steps"]) if isinstance(tsum.get("steps"), int) else step, render_fps=fps,
+        device=describe_device(g.device), renderer=r.name, split=config.split, width=views[0].camera.width,
+        height=views[0].camera.height, step=step, model=model_name,
+        psnr_color_fit=float(np.mean([s.psnr_color_fit for s in per_image])),
+        compensated_psnr=float(np.mean([s.compensated_psnr for s in per_image])),
+        compensated_ssim=float(np.mean([s.compensated_ssim for s in per_image])),
+        compensated_lpips=(None if any(s.compensated_lpips is None for s in per_image)
+                           else float(np.mean([s.compensated_lpips for s in per_image]))),
+        headline="compensated" if _learnt_appearance(project) and config.model is None else "raw", budgets=budgets,
+        formats=formats, training_curve=curve, masks=masks, quantisation=q, curve_quantisation=curve_q,
+        curve_protocol=curve_p, stats=model_stats(g), notes=notes,
+    )
+    for n in notes:
+        emit(on_event, Note(n))
+    if config.write:
+        _write(plan, report, on_event)
+    return report
+
+
+def _budget_points(plan: EvalPlan, first: BudgetPoint, gts: list[Tensor], keeps: list[Tensor | None], bg: Tensor,
+                   on_event: EventSink | None) -> list[BudgetPoint]:
+    """Speed against error at smaller budgets: the model pruned to each fraction of --budgets by
+    its contribution to the training views, scored on the same views as the whole (`first`)."""
+    project, config, g, views = plan.project, plan.config, plan.gaussians, plan.views
+    lp, aa, q, r = plan.lpips, plan.antialiased, config.quantisation, plan.renderer
+    budgets = [first]
     fractions = sorted({float(b) for b in config.budgets if b < 1.0}, reverse=True)
     if fractions:
         rank_views = [v.camera for v in dataset_views(project, "train" if project.splits()["train"] else "all")]
         stride = max(1, len(rank_views) // config.contribution_views)
-        rank_cams = [c.at_resolution(downscale, max_size) for c in rank_views[::stride][: config.contribution_views]]
+        rank_cams = [c.at_resolution(plan.downscale, plan.max_size)
+                     for c in rank_views[::stride][: config.contribution_views]]
         emit(on_event, Stage("rank Gaussians", total=None))
         t0 = time.perf_counter()
         weight = contributions(g, rank_cams)
@@ -356,69 +396,28 @@ def _run_eval(plan: EvalPlan, on_event: EventSink | None) -> EvalReport:
             budgets.append(BudgetPoint(fraction=f, num_gaussians=len(gp), ply_bytes=ply_bytes(len(gp), gp.sh_degree),
                                        psnr=_mean_psnr(sc), ssim=float(np.mean([x.ssim for x in sc])),
                                        render_fps=1.0 / max(s, 1e-9), ms_per_frame=1000 * s, lpips=_mean_lpips(sc)))
-    if 1.0 not in config.budgets:
-        budgets = budgets[1:]
+    return budgets if 1.0 in config.budgets else budgets[1:]
 
-    formats = _score_formats(g, config.formats, views, gts, keeps, bg, lp, mean_psnr, on_event, aa, q, r)
-    curve = read_curve(project.train_log_path) if config.model is None else []
-    # the log's scores: 8-bit since train recorded its quantisation, unquantised before
-    curve_q = str(tsum.get("quantisation", "none")) if curve else None
-    curve_p = str(tsum.get("protocol", "raw")) if curve else None
-    report = EvalReport(
-        psnr=mean_psnr,
-        ssim=mean_ssim,
-        lpips=mean_lpips,
-        per_image=per_image,
-        num_gaussians=len(g),
-        sh_degree=g.sh_degree,
-        ply_bytes=ply_bytes(len(g), g.sh_degree),
-        train_seconds=float(tsum["train_seconds"]) if isinstance(tsum.get("train_seconds"), (int, float)) else None,
-        train_steps=int(tsum["steps"]) if isinstance(tsum.get("steps"), int) else step,
-        render_fps=fps,
-        device=describe_device(device),
-        renderer=r.name,
-        split=config.split,
-        width=views[0].camera.width,
-        height=views[0].camera.height,
-        step=step,
-        model=model_name,
-        psnr_color_fit=float(np.mean([s.psnr_color_fit for s in per_image])),
-        compensated_psnr=float(np.mean([s.compensated_psnr for s in per_image])),
-        compensated_ssim=float(np.mean([s.compensated_ssim for s in per_image])),
-        compensated_lpips=(None if any(s.compensated_lpips is None for s in per_image)
-                           else float(np.mean([s.compensated_lpips for s in per_image]))),
-        headline="compensated" if _learnt_appearance(project) and config.model is None else "raw",
-        budgets=budgets,
-        formats=formats,
-        training_curve=curve,
-        masks=masks,
-        quantisation=q,
-        curve_quantisation=curve_q,
-        curve_protocol=curve_p,
-        stats=model_stats(g),
-        notes=notes,
-    )
-    for n in notes:
-        emit(on_event, Note(n))
-    if config.write:
 
-        out = Path(config.out) if config.out is not None else project.reports_dir
-        if config.plots:
-            plots = write_plots(report, project, out)
-            if plots is None:
-                report.notes.append(NO_PLOTS_HINT)
-                emit(on_event, Note(NO_PLOTS_HINT))
-            report.plots = plots or []
-        atomic_write_json(out / project.eval_json_path.name, report.to_json())
-        report.report_path = out / project.eval_md_path.name
-        atomic_write_text(report.report_path, write_report_md(report, project))
-        if config.model is None and config.out is None:  # the project's own model, in its own reports
-            project.record_step("eval", config={"split": config.split, "background": list(bg_rgb),
-                                                "downscale": downscale, "max_size": max_size,
-                                                "budgets": list(config.budgets), "formats": list(config.formats),
-                                                "antialiased": aa, "quantisation": q},
-                                summary=report.summary())
-    return report
+def _write(plan: EvalPlan, report: EvalReport, on_event: EventSink | None) -> None:
+    """The report's JSON, Markdown and plots; the project's own model's scores in its manifest."""
+    project, config = plan.project, plan.config
+    out = Path(config.out) if config.out is not None else project.reports_dir
+    if config.plots:
+        plots = write_plots(report, project, out)
+        if plots is None:
+            report.notes.append(NO_PLOTS_HINT)
+            emit(on_event, Note(NO_PLOTS_HINT))
+        report.plots = plots or []
+    atomic_write_json(out / project.eval_json_path.name, report.to_json())
+    report.report_path = out / project.eval_md_path.name
+    atomic_write_text(report.report_path, write_report_md(report, project))
+    if config.model is None and config.out is None:  # the project's own model, in its own reports
+        project.record_step("eval", config={"split": config.split, "background": list(plan.background),
+                                            "downscale": plan.downscale, "max_size": plan.max_size,
+                                            "budgets": list(config.budgets), "formats": list(config.formats),
+                                            "antialiased": plan.antialiased, "quantisation": config.quantisation},
+                            summary=report.summary())
 
 
 

@@ -9,6 +9,7 @@ the object-oriented API on an Agg canvas: no pyplot global state, no display.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -190,17 +191,8 @@ def _save(fig, path: Path) -> str:
     return path.name
 
 
-def write_plots(report: EvalReport, project: Project, out_dir: Path) -> list[str] | None:
-    """Draw the plots into `out_dir` (named as the project names them); returns
-    their file names, or None when matplotlib is absent."""
-    path = lambda name: out_dir / project.plot_path(name).name  # noqa: E731
-    try:
-        fig = _figure(11, 4)
-    except ImportError:
-        return None
-    names = []
-
-    # ---- speed against error ---------------------------------------------------
+def _plot_speed(fig: Any, report: EvalReport) -> None:  # fig: a matplotlib Figure
+    """Held-out PSNR against training time (left), and against render time at each budget (right)."""
     ax1, ax2 = fig.subplots(1, 2)
     curve = report.training_curve
     if curve:
@@ -228,44 +220,64 @@ def write_plots(report: EvalReport, project: Project, out_dir: Path) -> list[str
     ax2.set_ylabel("PSNR (dB)")
     ax2.set_title("error against render time, by Gaussian budget")
     ax2.grid(alpha=0.3)
-    names.append(_save(fig, path("speed_vs_error")))
 
+
+def _plot_formats(ax: Any, report: EvalReport) -> None:  # ax: a matplotlib Axes
+    """Held-out PSNR against file size, by format."""
+    for p in report.formats:
+        ax.plot([p.bytes / 1e6], [p.psnr], "o")
+        ax.annotate(f"{p.format} ({p.ratio:.1f}x)", (p.bytes / 1e6, p.psnr), textcoords="offset points",
+                    xytext=(4, 4), fontsize=8)
+    ax.set_xscale("log")
+    ax.set_xlabel("file size (MB, log scale)")
+    ax.set_ylabel("held-out PSNR (dB)")
+    ax.set_title("size against error, by file format")
+    ax.grid(alpha=0.3)
+
+
+def _plot_stats(st: ModelStats, save: Callable[[Any, str], str]) -> list[str]:
+    """Histograms of the scales and opacities, and the SH degrees used."""
+    names = []
+    for name, h, xlabel, title in (
+        ("scales", st.log10_scale_hist, "log10 scale (world units, all three axes)",
+         f"Gaussian scales (median {st.median_scale:.3g})"),
+        ("opacities", st.opacity_hist, "opacity", f"Gaussian opacities (median {st.median_opacity:.2f})"),
+    ):
+        fig = _figure()
+        ax = fig.subplots()
+        ax.stairs(h.counts, h.edges, fill=True)
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel("count")
+        ax.set_title(title)
+        names.append(save(fig, name))
+    fig = _figure(5, 3.5)
+    ax = fig.subplots()
+    ax.bar([str(d) for d in range(len(st.sh_degree_counts))], st.sh_degree_counts)
+    ax.set_xlabel("highest SH degree used")
+    ax.set_ylabel("Gaussians")
+    ax.set_title("SH degree actually used")
+    names.append(save(fig, "sh_degrees"))
+    return names
+
+
+def write_plots(report: EvalReport, project: Project, out_dir: Path) -> list[str] | None:
+    """Draw the plots into `out_dir` (named as the project names them); returns
+    their file names, or None when matplotlib is absent."""
+    def save(fig: Any, name: str) -> str:
+        return _save(fig, out_dir / project.plot_path(name).name)
+
+    try:
+        fig = _figure(11, 4)
+    except ImportError:
+        return None
+    _plot_speed(fig, report)
+    names = [save(fig, "speed_vs_error")]
     if report.formats:
         fig = _figure(6, 4)
-        ax = fig.subplots()
-        for p in report.formats:
-            ax.plot([p.bytes / 1e6], [p.psnr], "o")
-            ax.annotate(f"{p.format} ({p.ratio:.1f}x)", (p.bytes / 1e6, p.psnr), textcoords="offset points",
-                        xytext=(4, 4), fontsize=8)
-        ax.set_xscale("log")
-        ax.set_xlabel("file size (MB, log scale)")
-        ax.set_ylabel("held-out PSNR (dB)")
-        ax.set_title("size against error, by file format")
-        ax.grid(alpha=0.3)
-        names.append(_save(fig, path("formats")))
-
-    st = report.stats
-    if st is not None:
-        for name, h, xlabel, title in (
-            ("scales", st.log10_scale_hist, "log10 scale (world units, all three axes)",
-             f"Gaussian scales (median {st.median_scale:.3g})"),
-            ("opacities", st.opacity_hist, "opacity", f"Gaussian opacities (median {st.median_opacity:.2f})"),
-        ):
-            fig = _figure()
-            ax = fig.subplots()
-            ax.stairs(h.counts, h.edges, fill=True)
-            ax.set_xlabel(xlabel)
-            ax.set_ylabel("count")
-            ax.set_title(title)
-            names.append(_save(fig, path(name)))
-
-        fig = _figure(5, 3.5)
-        ax = fig.subplots()
-        ax.bar([str(d) for d in range(len(st.sh_degree_counts))], st.sh_degree_counts)
-        ax.set_xlabel("highest SH degree used")
-        ax.set_ylabel("Gaussians")
-        ax.set_title("SH degree actually used")
-        names.append(_save(fig, path("sh_degrees")))
+        _plot_formats(fig.subplots(), report)
+        names.append(save(fig, "formats"))
+    if report.stats is not None:
+        names += _plot_stats(report.stats, save)
     return names
 
 
@@ -281,9 +293,8 @@ def _lp(v: float | None) -> str:
     return "—" if v is None else f"{v:.4f}"
 
 
-def write_report_md(report: EvalReport, project: Project) -> str:
-    """The Markdown report (returned; the caller writes it atomically)."""
-    r = report
+def _md_summary(r: EvalReport, project: Project) -> list[str]:
+    """The title, what was scored, and the summary table."""
     lines = [
         f"# Evaluation of `{project.root.name}`",
         "",
@@ -317,6 +328,12 @@ def write_report_md(report: EvalReport, project: Project) -> str:
         "## Speed against error",
         "",
     ]
+    return lines
+
+
+def _md_budgets(r: EvalReport) -> list[str]:
+    """Speed against error: the model pruned to smaller budgets."""
+    lines: list[str] = []
     if "speed_vs_error.png" in r.plots:
         lines += ["![speed against error](speed_vs_error.png)", ""]
     if r.budgets:
@@ -331,6 +348,12 @@ def write_report_md(report: EvalReport, project: Project) -> str:
             lines.append(f"| {b.fraction:.0%} | {b.num_gaussians:,} | {_mb(b.ply_bytes)} | {b.psnr:.2f} | "
                          f"{b.ssim:.4f} | {_lp(b.lpips)} | {b.ms_per_frame:.1f} | {b.render_fps:.2f} |")
         lines.append("")
+    return lines
+
+
+def _md_formats(r: EvalReport) -> list[str]:
+    """Size against error, by file format."""
+    lines: list[str] = []
     if r.formats:
         lines += ["## Size against error, by file format", ""]
         if "formats.png" in r.plots:
@@ -344,6 +367,12 @@ def write_report_md(report: EvalReport, project: Project) -> str:
             lines.append(f"| {p.format} | {_mb(p.bytes)} | {p.bytes_per_gaussian:.1f} | {p.ratio:.1f}x | {p.psnr:.2f} | "
                          f"{p.ssim:.4f} | {_lp(p.lpips)} | {p.db_lost:.2f} | {p.encode_s:.2f} | {p.decode_s:.2f} |")
         lines.append("")
+    return lines
+
+
+def _md_curve(r: EvalReport) -> list[str]:
+    """Held-out PSNR while training, from the log."""
+    lines: list[str] = []
     if r.training_curve:
         q = QUANTISATION_WORDS.get(r.curve_quantisation or "", r.curve_quantisation)
         how = f"{q}; appearance compensated" if r.curve_protocol == "compensated" else q
@@ -356,6 +385,12 @@ def write_report_md(report: EvalReport, project: Project) -> str:
     else:
         lines += ["No held-out PSNR was logged during training (reports/train_log.jsonl).", ""]
 
+    return lines
+
+
+def _md_views(r: EvalReport) -> list[str]:
+    """The worst five views, the model's statistics, the notes, and every view."""
+    lines: list[str] = []
     lines += ["## Worst five views", "", "| view | PSNR (dB) | SSIM | LPIPS |", "| --- | --- | --- | --- |"]
     for s in r.worst(5):
         lines.append(f"| {s.name} | {s.psnr:.2f} | {s.ssim:.4f} | {_lp(s.lpips)} |")
@@ -379,4 +414,11 @@ def write_report_md(report: EvalReport, project: Project) -> str:
     lines += [f"| {s.name} | {s.psnr:.2f} | {s.ssim:.4f} | {_lp(s.lpips)} | {_opt(s.psnr_color_fit, '.2f')} | "
               f"{_opt(s.compensated_psnr, '.2f')} |" for s in r.per_image]
     lines.append("")
-    return "\n".join(lines)
+    return lines
+
+
+def write_report_md(report: EvalReport, project: Project) -> str:
+    """The Markdown report (returned; the caller writes it atomically)."""
+    r = report
+    parts = [_md_summary(r, project), _md_budgets(r), _md_formats(r), _md_curve(r), _md_views(r)]
+    return "\n".join(line for part in parts for line in part)

@@ -26,8 +26,10 @@ import json
 import math
 import os
 import zipfile
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -191,50 +193,53 @@ def write_sog(path: str | os.PathLike, g: Gaussians, options: SogOptions = SogOp
     return len(g) - dropped, dropped, len(data)
 
 
-def read_sog(path: str | os.PathLike, device: torch.device | str = "cpu") -> Gaussians:
-    """A .sog bundle (or an unbundled meta.json beside its images) as Gaussians. A
-    truncated, garbled or lying file is a one-line SplatError; nothing larger than
-    what the file can hold is decoded."""
-    from PIL import Image
-
-    path = Path(path)
+def _open_bundle(path: Path) -> tuple[Callable[[str], bytes], bytes, int]:
+    """(a member's bytes by name, meta.json's bytes, the bytes stored) of a .sog zip or a meta.json folder."""
     try:
         if path.name.lower().endswith(".json"):
             stored = sum(f.stat().st_size for f in path.parent.iterdir() if f.is_file())
-            get = lambda name: (path.parent / Path(name).name).read_bytes()  # noqa: E731  (no paths out of the folder)
-            meta_raw = path.read_bytes()[:MAX_META + 1]
-        else:
-            stored = path.stat().st_size
-            z = zipfile.ZipFile(path)
-            members = {i.filename: i for i in z.infolist()}
-            if any(i.file_size > MAX_RATIO * max(i.compress_size, 1) + 4096 for i in members.values()):
-                raise refuse(path, "a member expands far beyond its stored size")
+            return (lambda name: (path.parent / Path(name).name).read_bytes(),  # no paths out of the folder
+                    path.read_bytes()[:MAX_META + 1], stored)
+        stored = path.stat().st_size
+        z = zipfile.ZipFile(path)
+        members = {i.filename: i for i in z.infolist()}
+        if any(i.file_size > MAX_RATIO * max(i.compress_size, 1) + 4096 for i in members.values()):
+            raise refuse(path, "a member expands far beyond its stored size")
 
-            def get(name: str) -> bytes:
-                if name not in members:
-                    raise refuse(path, f"names {name!r}, which the archive does not hold")
-                return z.read(name)
+        def get(name: str) -> bytes:
+            if name not in members:
+                raise refuse(path, f"names {name!r}, which the archive does not hold")
+            return z.read(name)
 
-            meta_raw = get("meta.json") if "meta.json" in members else b""
-            if not meta_raw:
-                raise refuse(path, "no meta.json in the archive")
+        meta_raw = get("meta.json") if "meta.json" in members else b""
+        if not meta_raw:
+            raise refuse(path, "no meta.json in the archive")
+        return get, meta_raw, stored
     except (OSError, zipfile.BadZipFile, zipfile.LargeZipFile, ValueError) as exc:
         raise refuse(path, f"not a readable SOG file ({type(exc).__name__}: {' '.join(str(exc).split())[:80]})") from None
+
+
+def _read_meta(path: Path, meta_raw: bytes, stored: int) -> dict[str, Any]:
+    """meta.json, checked: version 2, the shapes of its bounds and codebooks, a count the file can hold."""
     try:
         meta = json.loads(meta_raw)
         n = int(meta["count"])
         if meta.get("version") != 2:
             raise refuse(path, f"SOG version {meta.get('version', 1)} is not supported (2 is)")
-        lo, hi = np.asarray(meta["means"]["mins"], np.float64), np.asarray(meta["means"]["maxs"], np.float64)
-        sbook = np.asarray(meta["scales"]["codebook"], np.float64)
-        cbook = np.asarray(meta["sh0"]["codebook"], np.float64)
-        shn = meta.get("shN")
-        if lo.shape != (3,) or hi.shape != (3,) or sbook.shape != (256,) or cbook.shape != (256,) or n < 0:
+        shapes = [np.asarray(meta["means"][k], np.float64).shape for k in ("mins", "maxs")]
+        shapes += [np.asarray(meta[k]["codebook"], np.float64).shape for k in ("scales", "sh0")]
+        if shapes != [(3,), (3,), (256,), (256,)] or n < 0:
             raise ValueError("means, codebooks or count have the wrong shape")
     except (ValueError, KeyError, TypeError) as exc:
         raise refuse(path, f"meta.json is not SOG metadata ({' '.join(str(exc).split())[:80]})") from None
     if n * 20 > MAX_RATIO * stored:
         raise refuse(path, f"claims {n:,} Gaussians, more than its {stored:,} bytes can hold")
+    return meta
+
+
+def _image_reader(path: Path, get: Callable[[str], bytes]) -> Callable[..., np.ndarray]:
+    """A reader of the bundle's WebP images as [pixels, 4] RGBA, refusing one that does not fit its entries."""
+    from PIL import Image
 
     def image(name: str, min_pixels: int, width: int | None = None) -> np.ndarray:
         try:
@@ -248,7 +253,37 @@ def read_sog(path: str | os.PathLike, device: torch.device | str = "cpu") -> Gau
         except ValueError as exc:
             raise refuse(path, str(exc)) from None
 
+    return image
+
+
+def _read_shn(path: Path, shn: dict[str, Any], files: list[str | None], n: int,
+              image: Callable[..., np.ndarray]) -> np.ndarray:  # -> [n, C, 3] float32, the higher SH bands
+    try:
+        bands, k, book = int(shn["bands"]), int(shn["count"]), np.asarray(shn["codebook"], np.float64)
+        coeffs = [0, 3, 8, 15][bands]
+        if book.shape != (256,) or not 0 < k <= 65536:
+            raise ValueError
+    except (ValueError, KeyError, TypeError, IndexError):
+        raise refuse(path, "meta.json shN is not SOG metadata") from None
+    cent = image(files[0], 64 * coeffs * math.ceil(k / 64), 64 * coeffs)
+    labels = image(files[1], n)[:n]
+    lab = labels[:, 0].astype(np.int64) | (labels[:, 1].astype(np.int64) << 8)
+    if (lab >= k).any():
+        raise refuse(path, "shN_labels.webp indexes past the palette")
+    pal = book.astype(np.float32)[cent[:, :3]].reshape(-1, coeffs, 3)  # [rows*64, C, 3]
+    return pal[lab]
+
+
+def read_sog(path: str | os.PathLike, device: torch.device | str = "cpu") -> Gaussians:
+    """A .sog bundle (or an unbundled meta.json beside its images) as Gaussians. A
+    truncated, garbled or lying file is a one-line SplatError; nothing larger than
+    what the file can hold is decoded."""
+    path = Path(path)
+    get, meta_raw, stored = _open_bundle(path)
+    meta = _read_meta(path, meta_raw, stored)
+    n, image = int(meta["count"]), _image_reader(path, get)
     files = lambda key, k: (meta[key]["files"] + [None] * k)[:k]  # noqa: E731
+    lo, hi = np.asarray(meta["means"]["mins"], np.float64), np.asarray(meta["means"]["maxs"], np.float64)
     ml, mu = (image(f, n)[:n].astype(np.uint32) for f in files("means", 2))
     t = (ml[:, :3] | (mu[:, :3] << 8)).astype(np.float64) / 65535.0
     lt = lo + (hi - lo) * t
@@ -259,24 +294,11 @@ def read_sog(path: str | os.PathLike, device: torch.device | str = "cpu") -> Gau
         raise refuse(path, "quats.webp holds a largest-component tag outside 252-255")
     quats = unpack_smallest_three(tag - 252, (qi[:, :3].astype(np.float64) / 255.0 * 2.0 - 1.0) / np.sqrt(2.0), WXYZ)
     si = image(files("scales", 1)[0], n)[:n]
-    log_scales = sbook[si[:, :3]]
+    log_scales = np.asarray(meta["scales"]["codebook"], np.float64)[si[:, :3]]
     ci = image(files("sh0", 1)[0], n)[:n]
-    dc = cbook[ci[:, :3]]
+    dc = np.asarray(meta["sh0"]["codebook"], np.float64)[ci[:, :3]]
     opacity = logit(ci[:, 3].astype(np.float64) / 255.0, 0.5 / 255.0)
     sh = dc[:, None, :].astype(np.float32)
-    if shn:
-        try:
-            bands, k, book = int(shn["bands"]), int(shn["count"]), np.asarray(shn["codebook"], np.float64)
-            coeffs = [0, 3, 8, 15][bands]
-            if book.shape != (256,) or not 0 < k <= 65536:
-                raise ValueError
-        except (ValueError, KeyError, TypeError, IndexError):
-            raise refuse(path, "meta.json shN is not SOG metadata") from None
-        cent = image(files("shN", 2)[0], 64 * coeffs * math.ceil(k / 64), 64 * coeffs)
-        labels = image(files("shN", 2)[1], n)[:n]
-        lab = labels[:, 0].astype(np.int64) | (labels[:, 1].astype(np.int64) << 8)
-        if (lab >= k).any():
-            raise refuse(path, "shN_labels.webp indexes past the palette")
-        pal = book.astype(np.float32)[cent[:, :3]].reshape(-1, coeffs, 3)  # [rows*64, C, 3]
-        sh = np.concatenate([sh, pal[lab]], axis=1)
+    if meta.get("shN"):
+        sh = np.concatenate([sh, _read_shn(path, meta["shN"], files("shN", 2), n, image)], axis=1)
     return Arrays(means, quats, log_scales, opacity, sh).gaussians(device)

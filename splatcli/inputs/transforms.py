@@ -14,6 +14,7 @@ No pycolmap here: this module only parses and validates.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 from dataclasses import dataclass
@@ -123,37 +124,31 @@ def find_transforms(path: Path) -> Path | None:
     return None
 
 
-def read_transforms(path: Path, *, images: bool = True) -> TransformsScene:
-    """Parse a transforms file: the one reader of `process` and `render --cameras`.
-
-    images=True (process): the listed images must exist (missing ones are counted,
-    frames listing one image twice are imported once) and a Blender
-    `transforms_train.json` brings its test/val siblings as the held-out split.
-    images=False (render --cameras): only the cameras are wanted; every frame is
-    kept in file order, with `source` None when its image is absent.
-    Raises SplatError naming the file for anything malformed, and (images=True)
-    when no listed image exists.
-    """
-    path = Path(path)
-    root = path.parent
-    notes: list[str] = []
-    sources: list[tuple[Path, str]] = [(path, "train")]
-    has_test = False
+def _sources(path: Path, images: bool, notes: list[str]) -> list[tuple[Path, str]]:
+    """The files to read with their split: a Blender `transforms_train.json` brings its test (or else val) sibling."""
+    sources = [(path, "train")]
     if images and path.name == "transforms_train.json":
-        test = root / "transforms_test.json"
-        val = root / "transforms_val.json"
+        test, val = path.parent / "transforms_test.json", path.parent / "transforms_val.json"
         if test.is_file():
             sources.append((test, "test"))
-            has_test = True
             if val.is_file():
                 notes.append(f"{val.name} ignored: {test.name} provides the held-out images")
         elif val.is_file():
             sources.append((val, "test"))
-            has_test = True
+    return sources
 
-    raw_frames: list[tuple[Path, int, dict[str, Any], dict[str, Any], str]] = []
-    ply_path: Path | None = None
-    split_lists: dict[str, set[str]] = {}
+
+@dataclass
+class _Raw:
+    """What the files hold, before any frame is checked."""
+
+    frames: list[tuple[Path, int, dict[str, Any], dict[str, Any], str]]  # (file, index, frame, file's object, split)
+    ply_path: Path | None
+    test_set: set[str] | None  # nerfstudio's own held-out file names, where the main file lists them
+
+
+def _read_files(path: Path, sources: list[tuple[Path, str]], notes: list[str]) -> _Raw:
+    raw = _Raw([], None, None)
     for src, split in sources:
         data = read_json_file(src, "transforms file", max_bytes=MAX_TRANSFORMS_BYTES)
         if not isinstance(data, dict):
@@ -164,28 +159,30 @@ def read_transforms(path: Path, *, images: bool = True) -> TransformsScene:
         for i, fr in enumerate(frames):
             if not isinstance(fr, dict):
                 raise SplatError(f"{src}: frame {i} is not a JSON object")
-            raw_frames.append((src, i, fr, data, split))
-        if src == path:
-            if isinstance(data.get("ply_file_path"), str):
-                ply_path = safe_join(root, data["ply_file_path"], src, "ply_file_path")
-                if not ply_path.is_file():
-                    notes.append(f"{src.name}: ply_file_path {data['ply_file_path']} not found; no sparse points")
-                    ply_path = None
-            # nerfstudio may name its own split inside transforms.json
-            for key in ("train_filenames", "test_filenames", "val_filenames"):
-                val_list = data.get(key)
-                if isinstance(val_list, list) and all(isinstance(v, str) for v in val_list):
-                    split_lists[key] = {os.path.normpath(v) for v in val_list}
+            raw.frames.append((src, i, fr, data, split))
+        if src != path:
+            continue
+        if isinstance(data.get("ply_file_path"), str):
+            raw.ply_path = safe_join(path.parent, data["ply_file_path"], src, "ply_file_path")
+            if not raw.ply_path.is_file():
+                notes.append(f"{src.name}: ply_file_path {data['ply_file_path']} not found; no sparse points")
+                raw.ply_path = None
+        # nerfstudio may name its own split inside transforms.json
+        lists = {key: {os.path.normpath(v) for v in data[key]} for key in ("test_filenames", "val_filenames")
+                 if isinstance(data.get(key), list) and all(isinstance(v, str) for v in data[key])}
+        if len(sources) == 1:
+            raw.test_set = lists.get("test_filenames") or lists.get("val_filenames") or None
+    return raw
 
-    test_set = split_lists.get("test_filenames") or split_lists.get("val_filenames")
-    if test_set and len(sources) == 1:
-        has_test = True
 
-    parsed: list[tuple[Path, str, np.ndarray, Intrinsics, str, Path | None]] = []
+def _parse_frames(root: Path, raw: _Raw, images: bool) -> tuple[list[Frame], list[str], int]:
+    """The frames (images=True: those whose image exists, each image once; names to be given), the
+    file_path values whose image is missing, and how many frames listed an image again."""
+    frames: list[Frame] = []
     missing: list[str] = []
     seen: set[Path] = set()
     duplicates = 0
-    for src, i, fr, data, split in raw_frames:
+    for src, i, fr, data, split in raw.frames:
         where = f"{src}: frame {i}"
         fp = fr.get("file_path")
         if not isinstance(fp, str) or not fp.strip():
@@ -199,44 +196,52 @@ def read_transforms(path: Path, *, images: bool = True) -> TransformsScene:
                 duplicates += 1
                 continue
             seen.add(image)
-        viewmat = _viewmat(fr.get("transform_matrix"), where)
-        intr = _intrinsics(fr, data, where)
+        viewmat, intr = _viewmat(fr.get("transform_matrix"), where), _intrinsics(fr, data, where)
         if not images:
-            parsed.append((image, split, viewmat, intr, fp, None))
+            frames.append(Frame(source=image, name=fp, split=split, viewmat=viewmat, intrinsics=intr, file_path=fp))
             continue
         mask = _mask(root, fr.get("mask_path"), src, where, fp)
-        if test_set is not None and len(sources) == 1:
+        if raw.test_set is not None:
             rel = os.path.normpath(os.path.relpath(image, root))
-            split = "test" if rel in test_set or os.path.normpath(fp) in test_set else "train"
-        parsed.append((image, split, viewmat, intr, fp, mask))
+            split = "test" if rel in raw.test_set or os.path.normpath(fp) in raw.test_set else "train"
+        frames.append(Frame(source=image, name="", split=split, viewmat=viewmat, intrinsics=intr, file_path=fp,
+                            mask=mask))
+    return frames, missing, duplicates
+
+
+def read_transforms(path: Path, *, images: bool = True) -> TransformsScene:
+    """Parse a transforms file: the one reader of `process` and `render --cameras`.
+
+    images=True (process): the listed images must exist (missing ones are counted,
+    frames listing one image twice are imported once) and a Blender
+    `transforms_train.json` brings its test/val siblings as the held-out split.
+    images=False (render --cameras): only the cameras are wanted; every frame is
+    kept in file order, with `source` None when its image is absent.
+    Raises SplatError naming the file for anything malformed, and (images=True)
+    when no listed image exists.
+    """
+    path = Path(path)
+    notes: list[str] = []
+    sources = _sources(path, images, notes)
+    raw = _read_files(path, sources, notes)
+    frames, missing, duplicates = _parse_frames(path.parent, raw, images)
     if not images:
-        frames = [Frame(source=img, name=fp, split=split, viewmat=vm, intrinsics=intr, file_path=fp)
-                  for img, split, vm, intr, fp, _ in parsed]
         return TransformsScene(frames=frames, files=[path], missing=[], has_test_split=False, ply_path=None,
                                notes=notes)
     if duplicates:
         notes.append(f"{duplicates} duplicate frame(s) listed twice were imported once")
-    if not parsed:
+    if not frames:
         raise SplatError(
-            f"{path}: none of the {len(raw_frames)} listed images exists (first: {raw_frames[0][2].get('file_path')})"
+            f"{path}: none of the {len(raw.frames)} listed images exists (first: {raw.frames[0][2].get('file_path')})"
         )
-    names = _unique_names([p[0] for p in parsed], root)
-    frames = [
-        Frame(source=img, name=name, split=split, viewmat=vm, intrinsics=intr, file_path=fp, mask=mask)
-        for (img, split, vm, intr, fp, mask), name in zip(parsed, names)
-    ]
-    frames.sort(key=lambda f: f.name)
+    names = _unique_names([f.source for f in frames], path.parent)
+    frames = sorted((dataclasses.replace(f, name=name) for f, name in zip(frames, names)), key=lambda f: f.name)
+    has_test = len(sources) > 1 or raw.test_set is not None
     if has_test and not any(f.split == "test" for f in frames):
         has_test = False
         notes.append("the input's test split has no existing images; holding out every 8th image instead")
-    return TransformsScene(
-        frames=frames,
-        files=[s for s, _ in sources],
-        missing=missing,
-        has_test_split=has_test,
-        ply_path=ply_path,
-        notes=notes,
-    )
+    return TransformsScene(frames=frames, files=[s for s, _ in sources], missing=missing, has_test_split=has_test,
+                           ply_path=raw.ply_path, notes=notes)
 
 
 def _mask(root: Path, mask_path: Any, src: Path, where: str, image: str) -> Path | None:

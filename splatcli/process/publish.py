@@ -45,6 +45,22 @@ def scene_facts(cameras: list[Camera], points: np.ndarray, background: tuple[flo
     }
 
 
+def _move_in(root: Path, stage: Path, spec: InputSpec) -> Project:
+    """The project at `root`, made anew (the output was checked before any work), with the staged
+    images, masks and model moved in and the stage removed."""
+    proj = Project.create(root, source={"path": str(spec.path.absolute()), "kind": spec.kind}, overwrite=True)
+    for d in (proj.images_dir, proj.masks_dir, proj.sfm_dir, proj.checkpoints_dir, proj.renders_dir,
+              proj.exports_dir, proj.reports_dir):
+        if d.exists():
+            shutil.rmtree(d)
+    st = Project(stage)
+    for d in (st.images_dir, st.masks_dir, st.sfm_dir):
+        if d.exists():
+            os.replace(d, root / d.name)
+    shutil.rmtree(stage, ignore_errors=True)
+    return proj
+
+
 def publish(root: Path, stage: Path, spec: InputSpec, cfg: ProcessConfig, ds: Dataset, run: Stages,
              t_start: float) -> ProcessResult:
     st = Project(stage)
@@ -62,52 +78,21 @@ def publish(root: Path, stage: Path, spec: InputSpec, cfg: ProcessConfig, ds: Da
     if facts["init"] == "random":
         run.note("no sparse points: training will initialise Gaussians randomly inside the camera frustums")
 
-    source = {"path": str(spec.path.absolute()), "kind": spec.kind}
-    proj = Project.create(root, source=source, overwrite=True)  # we checked the output before any work
-    for d in (proj.images_dir, proj.masks_dir, proj.sfm_dir, proj.checkpoints_dir, proj.renders_dir,
-              proj.exports_dir, proj.reports_dir):
-        if d.exists():
-            shutil.rmtree(d)
-    for d in (st.images_dir, st.masks_dir, st.sfm_dir):
-        if d.exists():
-            os.replace(d, root / d.name)
-    shutil.rmtree(stage, ignore_errors=True)
+    proj = _move_in(root, stage, spec)
 
     seconds = dict(run.seconds)
     seconds["total"] = time.perf_counter() - t_start
     result = ProcessResult(
-        project=root,
-        input=spec.path,
-        input_kind=spec.kind,
-        registered=len(names),
-        total=ds.total,
-        points=int(len(scene.points)),
-        mean_reprojection_error=ds.mean_reprojection_error,
-        mean_track_length=ds.mean_track_length,
-        seconds={k: round(v, 3) for k, v in seconds.items()},
-        train=len(splits["train"]),
-        test=len(splits["test"]),
-        init=facts["init"],
-        undistorted=ds.undistorted,
-        masks=ds.masks,
-        mask_source=ds.mask_source,
-        matcher=ds.matcher,
-        pairs=ds.pairs,
-        keypoints_median=ds.keypoints_median,
-        model_sizes=ds.model_sizes,
-        unregistered=ds.unregistered,
-        left_out_models=ds.left_out_models,
-        sfm_tried=ds.sfm_tried,
-        consistency=ds.consistency,
-        placed_apart=ds.placed_apart,
-        repeatable=ds.repeatable,
-        skipped=ds.skipped,
-        missing=ds.missing,
-        dropped_blurry=ds.dropped_blurry,
-        triangulated=ds.triangulated,
-        camera_grouping=ds.camera_grouping,
-        cameras=ds.cameras,
-        warnings=list(run.warnings),
+        project=root, input=spec.path, input_kind=spec.kind, registered=len(names), total=ds.total,
+        points=int(len(scene.points)), mean_reprojection_error=ds.mean_reprojection_error,
+        mean_track_length=ds.mean_track_length, seconds={k: round(v, 3) for k, v in seconds.items()},
+        train=len(splits["train"]), test=len(splits["test"]), init=facts["init"], undistorted=ds.undistorted,
+        masks=ds.masks, mask_source=ds.mask_source, matcher=ds.matcher, pairs=ds.pairs,
+        keypoints_median=ds.keypoints_median, model_sizes=ds.model_sizes, unregistered=ds.unregistered,
+        left_out_models=ds.left_out_models, sfm_tried=ds.sfm_tried, consistency=ds.consistency,
+        placed_apart=ds.placed_apart, repeatable=ds.repeatable, skipped=ds.skipped, missing=ds.missing,
+        dropped_blurry=ds.dropped_blurry, triangulated=ds.triangulated, camera_grouping=ds.camera_grouping,
+        cameras=ds.cameras, warnings=list(run.warnings),
     )
     config = asdict(cfg)
     config["background_rgb"] = list(background)

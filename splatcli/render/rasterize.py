@@ -16,10 +16,10 @@ import torch
 from torch import Tensor
 
 from . import timing
-from .blocks import BlockTuner, choose_block, estimate_pairs, extents
+from .blocks import BlockTuner, Meter, choose_block, estimate_pairs, extents
 from .composite import composite, make_plan, median_depth
 from .output import RenderOutput
-from .projection import NEAR, TILE, project
+from .projection import NEAR, TILE, Projection, project
 
 # Above this many (Gaussian, block) pairs the image is rendered in bands of tile rows,
 # each planned on its own and re-planned in backward, so memory stays bounded
@@ -118,10 +118,9 @@ def rasterize(
 
     t0 = time.perf_counter()
     pr = project(means, quats, log_scales, opacity_logits, sh, viewmat, K, width, height, sh_degree, near, antialiased)
-    fp = pr.footprint
     t1 = time.perf_counter()
     timing.add("projection", t1 - t0)
-    meter, ext, chunk = None, extents(fp.cov2d, fp.opacities), None
+    meter, ext, chunk = None, extents(pr.footprint.cov2d, pr.footprint.opacities), None
     if tuner is not None and means.device.type == "cpu":  # timing CUDA work would need syncs
         timed = not tuner.backward or torch.is_grad_enabled()  # else nothing will report a backward
         (block, chunk), meter = tuner.choose(ext, width, height, measure=timed)
@@ -129,21 +128,29 @@ def rasterize(
         block = choose_block(ext, width, height)
     bands = _bands(height, estimate_pairs(ext, block))
     if len(bands) == 1:
-        plan = make_plan(fp, width, height, block, chunk_elems=chunk)
-        t2 = time.perf_counter()
-        timing.add("planning", t2 - t1)
-        timing.add("pairs", plan.n_pairs)
-        backward = meter is not None and tuner.backward
-        plan.meter = meter if backward else None
-        image, alpha, depth = composite(plan, pr.means2d, pr.conics, pr.opacities, pr.colors, pr.depths, background)
-        t3 = time.perf_counter()
-        timing.add("compositing", t3 - t2)
-        if meter is not None:
-            meter.add(t3 - t1, last=not backward)
+        backward = meter is not None and tuner is not None and tuner.backward
+        image, alpha, depth = _whole(pr, width, height, block, chunk, background, meter, backward, t1)
     else:
         image, alpha, depth = _banded(pr, width, height, block, background, bands)
     return RenderOutput(image=image, alpha=alpha, depth=depth, means2d=pr.means2d, radii=pr.radii,
                         visible=pr.visible, depths=pr.depths)
+
+
+def _whole(pr: Projection, width: int, height: int, block: int, chunk: int | None, background: Tensor,
+           meter: Meter | None, backward: bool, t1: float) -> tuple[Tensor, Tensor, Tensor]:
+    """The image in one plan: planned, then composited; the stage clock and the tuner's meter told
+    (from `t1`, when projection ended; with `backward`, the meter's last reading is the backward's)."""
+    plan = make_plan(pr.footprint, width, height, block, chunk_elems=chunk)
+    t2 = time.perf_counter()
+    timing.add("planning", t2 - t1)
+    timing.add("pairs", plan.n_pairs)
+    plan.meter = meter if backward else None
+    image, alpha, depth = composite(plan, pr.means2d, pr.conics, pr.opacities, pr.colors, pr.depths, background)
+    t3 = time.perf_counter()
+    timing.add("compositing", t3 - t2)
+    if meter is not None:
+        meter.add(t3 - t1, last=not backward)
+    return image, alpha, depth
 
 
 def _bands(height: int, est: float) -> list[tuple[int, int]]:

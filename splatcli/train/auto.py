@@ -232,18 +232,24 @@ def choose(project: Project, asked: Asked, nproc: int | None, device: torch.devi
         out.max_gaussians = pick("max_gaussians", int(min(MAX_GAUSSIANS, max(MIN_GAUSSIANS, round(
             max(by_px, by_pts), -3)))), why)
     if nproc is None:
-        cap = min(MAX_PROCESSES, max(1, len(cams) // 8))
-        free = free_cores() if cap > 1 else 1  # one process whatever is free: not sampled
-        k = min(free, cap)
-        if k > 1:
-            out.nproc = k
-            out.choices.append(Choice("nproc", k, f"{free} free cores: {k} training processes (--nproc 1 for one)"))
-            threads = min(MAX_THREADS, free // k)
-            if threads > 1 and torch.get_num_threads() == 1:  # OMP_NUM_THREADS above 1 is the user's: kept
-                out.threads = threads
-                out.choices.append(Choice("threads", threads, f"{free} free cores for {k} processes: "
-                                          f"{threads} torch threads each (OMP_NUM_THREADS to choose)"))
+        _processes(out, len(cams))
     return out
+
+
+def _processes(out: Chosen, views: int) -> None:
+    """Training processes and torch threads for the free cores, into `out` (--nproc not given)."""
+    cap = min(MAX_PROCESSES, max(1, views // 8))
+    free = free_cores() if cap > 1 else 1  # one process whatever is free: not sampled
+    k = min(free, cap)
+    if k <= 1:
+        return
+    out.nproc = k
+    out.choices.append(Choice("nproc", k, f"{free} free cores: {k} training processes (--nproc 1 for one)"))
+    threads = min(MAX_THREADS, free // k)
+    if threads > 1 and torch.get_num_threads() == 1:  # OMP_NUM_THREADS above 1 is the user's: kept
+        out.threads = threads
+        out.choices.append(Choice("threads", threads, f"{free} free cores for {k} processes: "
+                                  f"{threads} torch threads each (OMP_NUM_THREADS to choose)"))
 
 
 # --compile auto: compile when the run is at least this long (seconds of training). The compiled

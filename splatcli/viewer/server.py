@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
 from pathlib import PurePosixPath
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -154,68 +154,74 @@ def is_loopback(host: str) -> bool:
         return False
 
 
-def _handler(store: SceneStore, assets: dict[str, Asset], allowed_hosts: set[str] | None):
-    class Handler(BaseHTTPRequestHandler):
-        server_version = "splatcli"
-        sys_version = ""
+class _Handler(BaseHTTPRequestHandler):
+    """The viewer's requests: its assets, the scene's state, model and points; GET and HEAD only."""
 
-        def log_message(self, *args: Any) -> None:  # the core never prints
+    store: ClassVar[SceneStore]
+    assets: ClassVar[dict[str, Asset]]
+    allowed_hosts: ClassVar[set[str] | None]  # Host headers served (None: any)
+    server_version = "splatcli"
+    sys_version = ""
+
+    def log_message(self, *args: Any) -> None:  # the core never prints
+        pass
+
+    def _send(self, code: int, body: bytes, ctype: str, gz: bool = False, head: bool = False) -> None:
+        self.send_response(code)
+        self.send_header("Content-Type", ctype)
+        self.send_header("Content-Length", str(len(body)))
+        self.send_header("Cache-Control", "no-store")
+        self.send_header("X-Content-Type-Options", "nosniff")
+        if gz:
+            self.send_header("Content-Encoding", "gzip")
+        self.end_headers()
+        if not head:
+            self.wfile.write(body)
+
+    def _route(self, head: bool) -> None:
+        host = (self.headers.get("Host") or "").rsplit(":", 1)[0].strip("[]").lower()
+        if self.allowed_hosts is not None and host not in self.allowed_hosts:
+            return self._send(403, b"forbidden host\n", _TYPES[""], head=head)
+        path = self.path.split("?", 1)[0].split("#", 1)[0]
+        if path in self.assets:
+            a = self.assets[path]
+            if a.gzipped and "gzip" not in (self.headers.get("Accept-Encoding") or ""):
+                return self._send(200, gzip.decompress(a.body), a.content_type, False, head)
+            return self._send(200, a.body, a.content_type, a.gzipped, head)
+        if path == "/api/scene":
+            self.store.asked = time.monotonic()
+            return self._send(200, json.dumps(self.store.state()).encode(), "application/json", head=head)
+        if path == "/api/scene.ply":
+            return self._send(200, self.store.ply(), "application/octet-stream", head=head)
+        if path == "/api/points.bin":
+            return self._send(200, self.store.points(), "application/octet-stream", head=head)
+        return self._send(404, b"not found\n", _TYPES[""], head=head)
+
+    def do_GET(self) -> None:
+        self._guarded(False)
+
+    def do_HEAD(self) -> None:
+        self._guarded(True)
+
+    def _guarded(self, head: bool) -> None:
+        try:
+            self._route(head)
+        except (BrokenPipeError, ConnectionResetError):
             pass
-
-        def _send(self, code: int, body: bytes, ctype: str, gz: bool = False, head: bool = False) -> None:
-            self.send_response(code)
-            self.send_header("Content-Type", ctype)
-            self.send_header("Content-Length", str(len(body)))
-            self.send_header("Cache-Control", "no-store")
-            self.send_header("X-Content-Type-Options", "nosniff")
-            if gz:
-                self.send_header("Content-Encoding", "gzip")
-            self.end_headers()
-            if not head:
-                self.wfile.write(body)
-
-        def _route(self, head: bool) -> None:
-            host = (self.headers.get("Host") or "").rsplit(":", 1)[0].strip("[]").lower()
-            if allowed_hosts is not None and host not in allowed_hosts:
-                return self._send(403, b"forbidden host\n", _TYPES[""], head=head)
-            path = self.path.split("?", 1)[0].split("#", 1)[0]
-            if path in assets:
-                a = assets[path]
-                if a.gzipped and "gzip" not in (self.headers.get("Accept-Encoding") or ""):
-                    return self._send(200, gzip.decompress(a.body), a.content_type, False, head)
-                return self._send(200, a.body, a.content_type, a.gzipped, head)
-            if path == "/api/scene":
-                store.asked = time.monotonic()
-                return self._send(200, json.dumps(store.state()).encode(), "application/json", head=head)
-            if path == "/api/scene.ply":
-                return self._send(200, store.ply(), "application/octet-stream", head=head)
-            if path == "/api/points.bin":
-                return self._send(200, store.points(), "application/octet-stream", head=head)
-            return self._send(404, b"not found\n", _TYPES[""], head=head)
-
-        def do_GET(self) -> None:
-            self._guarded(False)
-
-        def do_HEAD(self) -> None:
-            self._guarded(True)
-
-        def _guarded(self, head: bool) -> None:
+        except Exception:  # a bug in one request must not stop the server
             try:
-                self._route(head)
-            except (BrokenPipeError, ConnectionResetError):
+                self._send(500, b"internal error\n", _TYPES[""], head=head)
+            except OSError:
                 pass
-            except Exception:  # a bug in one request must not stop the server
-                try:
-                    self._send(500, b"internal error\n", _TYPES[""], head=head)
-                except OSError:
-                    pass
 
-        def _refuse(self) -> None:
-            self._send(405, b"method not allowed\n", _TYPES[""])
+    def _refuse(self) -> None:
+        self._send(405, b"method not allowed\n", _TYPES[""])
 
-        do_POST = do_PUT = do_DELETE = do_PATCH = do_OPTIONS = _refuse
+    do_POST = do_PUT = do_DELETE = do_PATCH = do_OPTIONS = _refuse
 
-    return Handler
+
+def _handler(store: SceneStore, assets: dict[str, Asset], allowed_hosts: set[str] | None) -> type[_Handler]:
+    return type("Handler", (_Handler,), {"store": store, "assets": assets, "allowed_hosts": allowed_hosts})
 
 
 class _Server(ThreadingHTTPServer):

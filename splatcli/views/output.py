@@ -27,7 +27,7 @@ from ..files.atomic import atomic_write_bytes
 from ..gaussians import Gaussians
 from ..model import LoadedModel, load_model
 from ..project import Project
-from ..render import Renderer, render_camera, resolve_renderer
+from ..render import Renderer, RenderOutput, render_camera, resolve_renderer
 from .paths import PATHS, cameras_around_points, generate_path
 from .sources import SPLITS, View, choose_antialias, dataset_views, resize_views, transforms_views, zoom_factor
 
@@ -149,6 +149,30 @@ class _VideoOut:
                 pass
 
 
+def _finite(gaussians: Gaussians, on_event: EventSink | None) -> Gaussians:
+    """The Gaussians without NaN or Inf (the rasterizer refuses them; a checkpoint should hold none)."""
+    finite = gaussians.finite_mask()
+    if bool(finite.all()):
+        return gaussians
+    emit(on_event, Note(f"skipping {int((~finite).sum())} Gaussians with NaN/Inf values", "warning"))
+    return gaussians.select(finite)
+
+
+def _write_view(out: RenderOutput, rgb: np.ndarray, out_dir: Path, name: str, config: RenderConfig,
+                near_far: tuple[float, float] | None) -> tuple[float, float] | None:
+    """One view's PNG, and its alpha/ and depth/ images when asked; the depth range (set by the
+    first view: one range for the whole sequence, so no flicker)."""
+    atomic_write_bytes(out_dir / name, encode_png(rgb))
+    if config.alpha:
+        atomic_write_bytes(out_dir / "alpha" / name, encode_png(to_uint8(out.alpha[..., None])[..., 0]))
+    if config.depth:
+        if near_far is None:
+            near_far = _depth_range(out.depth, out.alpha)
+        atomic_write_bytes(out_dir / "depth" / name,
+                           encode_png(np.ascontiguousarray(depth_image(out.depth, out.alpha, near_far))))
+    return near_far
+
+
 def render_views(
     gaussians: Gaussians,
     views: Sequence[View],
@@ -167,15 +191,10 @@ def render_views(
     device = gaussians.device
     bg_rgb = config.background if config.background is not None else (0.0, 0.0, 0.0)
     bg = torch.tensor(bg_rgb, dtype=gaussians.means.dtype, device=device)
-    finite = gaussians.finite_mask()
-    if not bool(finite.all()):  # the rasterizer refuses NaN; a checkpoint should not hold any
-        emit(on_event, Note(f"skipping {int((~finite).sum())} Gaussians with NaN/Inf values", "warning"))
-        gaussians = gaussians.select(finite)
+    gaussians = _finite(gaussians, on_event)
     write = config.write_images and out_dir is not None
-    video = None
-    if config.video is not None:
-        c0 = views[0].camera
-        video = _VideoOut(Path(config.video), config.video_fps, (c0.width, c0.height))
+    c0 = views[0].camera
+    video = _VideoOut(Path(config.video), config.video_fps, (c0.width, c0.height)) if config.video is not None else None
     images: list[Path] = []
     render_s = 0.0
     near_far: tuple[float, float] | None = None
@@ -195,16 +214,8 @@ def render_views(
             rgb = to_uint8(out.image)
             if write:
                 assert out_dir is not None
-                target = out_dir / view.out_name
-                atomic_write_bytes(target, encode_png(rgb))
-                images.append(target)
-                if config.alpha:
-                    atomic_write_bytes(out_dir / "alpha" / view.out_name, encode_png(to_uint8(out.alpha[..., None])[..., 0]))
-                if config.depth:
-                    if near_far is None:  # one range for the whole sequence: no flicker
-                        near_far = _depth_range(out.depth, out.alpha)
-                    atomic_write_bytes(out_dir / "depth" / view.out_name,
-                                       encode_png(np.ascontiguousarray(depth_image(out.depth, out.alpha, near_far))))
+                near_far = _write_view(out, rgb, out_dir, view.out_name, config, near_far)
+                images.append(out_dir / view.out_name)
             if video is not None:
                 video.write(rgb)
             emit(on_event, Progress("render", i + 1, len(views), {"fps": (i + 1) / max(render_s, 1e-9)}))
@@ -213,21 +224,12 @@ def render_views(
         if video is not None:
             video.close(ok)
     emit(on_event, StageDone("render", time.perf_counter() - t_wall))
-    c0 = views[0].camera
     return RenderResult(
-        out_dir=out_dir if write else None,
-        device_name=describe_device(device),
-        num_frames=len(views),
-        width=c0.width,
-        height=c0.height,
-        num_gaussians=len(gaussians),
-        render_seconds=render_s,
-        fps=len(views) / max(render_s, 1e-9),
-        device=str(device),
+        out_dir=out_dir if write else None, device_name=describe_device(device), num_frames=len(views),
+        width=c0.width, height=c0.height, num_gaussians=len(gaussians), render_seconds=render_s,
+        fps=len(views) / max(render_s, 1e-9), device=str(device),
         background=tuple(bg_rgb),  # type: ignore[arg-type]
-        images=images,
-        video=Path(config.video) if config.video is not None else None,
-        antialiased=antialiased,
+        images=images, video=Path(config.video) if config.video is not None else None, antialiased=antialiased,
         renderer=renderer.name,
     )
 
