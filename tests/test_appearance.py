@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 import torch
 
-from splatcli.cli.train_config import make_config, resume_overrides
+from splatcli.cli.train_config import make_config, resumed
 from splatcli.errors import Interrupted, SplatError
 from splatcli.eval.metrics import color_fit, psnr, psnr_color_fit
 from splatcli.events import Progress
@@ -228,8 +228,8 @@ def test_a_checkpoint_without_transforms_resumes_with_them_from_the_identity(tmp
     proj = _tiny(tmp_path)
     train(proj.root, make_config(**{**SMALL, "appearance": "none", "iterations": 6}), CPU)
     assert load_checkpoint(proj.latest_checkpoint()).appearance == {}
-    s = train(proj.root, make_config(**SMALL), CPU, resume=True,
-              overrides=resume_overrides({"appearance": "exposure", "iterations": 10}))
+    s = train(proj.root, resumed(proj, make_config(**SMALL), {"appearance": "exposure", "iterations": 10}), CPU,
+              resume=True)
     assert s.resumed_from == 6 and s.steps == 10
     t = load_checkpoint(proj.latest_checkpoint()).appearance["transforms"]
     assert t.shape == (8, 3, 4) and not torch.equal(t, identity(8, CPU))

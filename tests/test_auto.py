@@ -1,4 +1,4 @@
-"""What `train` chooses when it is not told (splatcli/train/auto.py): on a CPU with no
+"""What `train` chooses when it is not told (splatcli/train/planning.py): on a CPU with no
 schedule given, a time-budgeted run sized to the capture and the machine; every choice
 yields to its option; on CUDA and with a step schedule, nothing is chosen. The choices are
 typed, applied to the config's fields; the processes of `train --nproc` are sent the config."""
@@ -13,10 +13,10 @@ import pytest
 import torch
 
 from splatcli.camera import SceneData
+from splatcli.cli import planning
 from splatcli.cli.train_config import asked, make_config
 from splatcli.errors import SplatError
 from splatcli.project import holdout_split
-from splatcli.train import auto
 from support.tiny_project import make_tiny_project, run_cli
 
 CPU = torch.device("cpu")
@@ -27,32 +27,32 @@ def proj(tmp_path):
     return make_tiny_project(tmp_path / "p", trained=False, photos=False)
 
 
-def _chosen(c: auto.Chosen) -> dict:
+def _chosen(c: planning.Chosen) -> dict:
     return {x.option: x.value for x in c.choices}
 
 
-def _choose(proj, given: dict, nproc=None, device=CPU, resume=False) -> auto.Chosen:
-    return auto.choose(proj, asked(given), nproc, device, resume)
+def _choose(proj, given: dict, nproc=None, device=CPU, resume=False) -> planning.Chosen:
+    return planning.choose(proj, asked(given), nproc, device, resume)
 
 
 def test_a_default_cpu_run_is_planned_into_minutes(proj, monkeypatch):
-    monkeypatch.setattr(auto, "free_cores", lambda: 1)
+    monkeypatch.setattr(planning, "free_cores", lambda: 1)
     c = _choose(proj, {})
     got = _chosen(c)
-    assert got["preset"] == "fast" and got["time_budget"] == auto.BUDGET_S and got["strategy"] == "mcmc"
-    assert got["max_gaussians"] == auto.MIN_GAUSSIANS  # 48x40 px: the smallest budget
+    assert got["preset"] == "fast" and got["time_budget"] == planning.BUDGET_S and got["strategy"] == "mcmc"
+    assert got["max_gaussians"] == planning.MIN_GAUSSIANS  # 48x40 px: the smallest budget
     assert "max_size" not in got  # the images are smaller than 480 px already
     assert c.nproc is None and all(x.why for x in c.choices)
-    assert (c.preset, c.time_budget, c.strategy, c.max_gaussians) == ("fast", auto.BUDGET_S, "mcmc",
-                                                                       auto.MIN_GAUSSIANS)  # typed, as recorded
+    assert (c.preset, c.time_budget, c.strategy, c.max_gaussians) == ("fast", planning.BUDGET_S, "mcmc",
+                                                                       planning.MIN_GAUSSIANS)  # typed, as recorded
     cfg = make_config(chosen=c)  # the choices make a valid config
-    assert cfg.time_budget == auto.BUDGET_S and cfg.mcmc.max_gaussians == auto.MIN_GAUSSIANS
-    line = auto.summary_line(c, cfg.time_budget)
+    assert cfg.time_budget == planning.BUDGET_S and cfg.mcmc.max_gaussians == planning.MIN_GAUSSIANS
+    line = planning.summary_line(c, cfg.time_budget)
     assert "trains for 10 min" in line and "--time-budget" in line
 
 
 def test_every_choice_yields_to_its_option(proj, monkeypatch):
-    monkeypatch.setattr(auto, "free_cores", lambda: 1)
+    monkeypatch.setattr(planning, "free_cores", lambda: 1)
     given = {"strategy": "default", "max_size": 300}
     c = _choose(proj, given)
     got = _chosen(c)
@@ -62,10 +62,10 @@ def test_every_choice_yields_to_its_option(proj, monkeypatch):
     assert cfg.strategy == "default" and cfg.max_size == 300 and cfg.iterations == 7000
     # A step schedule is the user's: nothing is chosen, one process.
     c = _choose(proj, {"iterations": 50})
-    assert c.choices == [] and c.nproc is None and c == auto.Chosen()
+    assert c.choices == [] and c.nproc is None and c == planning.Chosen()
     # An option of the default strategy keeps it: mcmc is not chosen over what was asked.
     got = _chosen(_choose(proj, {"opacity_reset": 500}))
-    assert "strategy" not in got and "max_gaussians" not in got and got["time_budget"] == auto.BUDGET_S
+    assert "strategy" not in got and "max_gaussians" not in got and got["time_budget"] == planning.BUDGET_S
     with pytest.raises(SplatError, match="--max-size 0"):  # what was given is checked first
         _choose(proj, {"max_size": 0})
     # A time budget alone gets the rest of a planned run (the photos are smaller than any size it picks).
@@ -77,12 +77,12 @@ def test_the_training_size_follows_the_time_budget(proj, monkeypatch):
     """480 px up to the default budget, then the side grows with the square root of the time
     (the default's step count, on views with proportionally more pixels); the photos' own
     size is never exceeded: a budget whose size is above it picks none."""
-    assert auto.train_size(90) == auto.train_size(auto.BUDGET_S) == auto.MAX_SIZE == 480
-    assert auto.train_size(4 * auto.BUDGET_S) == 960 and auto.train_size(3 * auto.BUDGET_S) == 830
-    big = auto.read_project_scene(proj).cameras
-    monkeypatch.setattr(auto, "read_project_scene", lambda p: SceneData([c.scaled(40.0) for c in big], np.zeros((0, 3)),
+    assert planning.train_size(90) == planning.train_size(planning.BUDGET_S) == planning.MAX_SIZE == 480
+    assert planning.train_size(4 * planning.BUDGET_S) == 960 and planning.train_size(3 * planning.BUDGET_S) == 830
+    big = planning.read_project_scene(proj).cameras
+    monkeypatch.setattr(planning, "read_project_scene", lambda p: SceneData([c.scaled(40.0) for c in big], np.zeros((0, 3)),
                                                                         np.zeros((0, 3), np.uint8)))  # 40x: 1920x1600 photos
-    monkeypatch.setattr(auto, "free_cores", lambda: 1)
+    monkeypatch.setattr(planning, "free_cores", lambda: 1)
     for budget, size in ((180.0, 480), (2400.0, 960), (None, 480)):
         given = {} if budget is None else {"time_budget": budget}
         got = _chosen(_choose(proj, given))
@@ -93,18 +93,18 @@ def test_a_capture_of_many_views_and_points_gets_more_time_and_gaussians(proj, m
     """Past VIEWS_AT_BUDGET training views the default run grows with the square root of their
     count (capped), at the default training size; the Gaussian budget leaves room for three per
     SfM point where that is more than one view's pixels suggest. A given budget is kept."""
-    assert auto.default_budget(10) == auto.default_budget(100) == auto.BUDGET_S
-    assert auto.default_budget(218) == 890.0 and auto.default_budget(10_000) == auto.MAX_BUDGET_FACTOR * auto.BUDGET_S
-    cam = auto.read_project_scene(proj).cameras[0]
+    assert planning.default_budget(10) == planning.default_budget(100) == planning.BUDGET_S
+    assert planning.default_budget(218) == 890.0 and planning.default_budget(10_000) == planning.MAX_BUDGET_FACTOR * planning.BUDGET_S
+    cam = planning.read_project_scene(proj).cameras[0]
     many = [replace(cam.scaled(20.0), name=f"{i:04d}.png") for i in range(250)]  # 960x800 photos
     proj.update_manifest(splits=holdout_split([c.name for c in many]))  # as process records it: 32 held out
     points = np.zeros((34_000, 3))
-    monkeypatch.setattr(auto, "read_project_scene", lambda p: SceneData(many, points, np.zeros((34_000, 3), np.uint8)))
-    monkeypatch.setattr(auto, "free_cores", lambda: 1)
+    monkeypatch.setattr(planning, "read_project_scene", lambda p: SceneData(many, points, np.zeros((34_000, 3), np.uint8)))
+    monkeypatch.setattr(planning, "free_cores", lambda: 1)
     c = _choose(proj, {})
     got = _chosen(c)
-    assert got["time_budget"] == auto.default_budget(218) > auto.BUDGET_S  # 250 views, every 8th held out
-    assert got["max_size"] == auto.MAX_SIZE  # the time goes to seeing the views, not to a larger size
+    assert got["time_budget"] == planning.default_budget(218) > planning.BUDGET_S  # 250 views, every 8th held out
+    assert got["max_size"] == planning.MAX_SIZE  # the time goes to seeing the views, not to a larger size
     assert got["max_gaussians"] == 102_000 and "SfM point" in next(x.why for x in c.choices if x.option == "max_gaussians")
     assert "218 training views" in next(x.why for x in c.choices if x.option == "time_budget")
     assert "time_budget" not in _chosen(_choose(proj, {"time_budget": 300.0}))
@@ -117,80 +117,80 @@ def test_cuda_and_resume_choose_nothing(proj):
 
 
 def test_free_cores_become_processes_sent_the_config(proj, monkeypatch):
-    monkeypatch.setattr(auto, "free_cores", lambda: 4)
+    monkeypatch.setattr(planning, "free_cores", lambda: 4)
     c = _choose(proj, {})
     assert c.nproc == 1 or c.nproc is None  # 10 views: one process per 8 views at most
-    monkeypatch.setattr(auto, "MAX_PROCESSES", 8)
+    monkeypatch.setattr(planning, "MAX_PROCESSES", 8)
     c = _choose(proj, {}, 3)
     assert c.nproc == 3 and "nproc" not in _chosen(c)  # --nproc given
-    monkeypatch.delenv(auto.CHOSEN_ENV, raising=False)
-    monkeypatch.delenv(auto.CONFIG_ENV, raising=False)
-    back, cfg = auto.inherited()  # under a plain torchrun: nothing sent, each process builds its own
+    monkeypatch.delenv(planning.CHOSEN_ENV, raising=False)
+    monkeypatch.delenv(planning.CONFIG_ENV, raising=False)
+    back, cfg = planning.inherited()  # under a plain torchrun: nothing sent, each process builds its own
     assert back.choices == [] and back.nproc is None and cfg is None
     sent = make_config(chosen=c, device="cpu")
     env = c.env(sent)
-    assert "nproc" not in env[auto.CONFIG_ENV] and "OMP_NUM_THREADS" not in env
-    for k in (auto.CHOSEN_ENV, auto.CONFIG_ENV):
+    assert "nproc" not in env[planning.CONFIG_ENV] and "OMP_NUM_THREADS" not in env
+    for k in (planning.CHOSEN_ENV, planning.CONFIG_ENV):
         monkeypatch.setenv(k, env[k])
-    back, cfg = auto.inherited()  # a launched process: the launcher's record, and the config it trains
+    back, cfg = planning.inherited()  # a launched process: the launcher's record, and the config it trains
     assert [x.option for x in back.choices] == [x.option for x in c.choices] and back.record() == c.record()
     assert cfg == sent and cfg.mcmc.max_gaussians == c.max_gaussians and cfg.preset == "fast"
-    monkeypatch.setenv(auto.CONFIG_ENV, json.dumps({**sent.to_dict(), "iterations": 0}))
+    monkeypatch.setenv(planning.CONFIG_ENV, json.dumps({**sent.to_dict(), "iterations": 0}))
     with pytest.raises(SplatError, match="SPLATCLI_CONFIG: --iterations 0"):
-        auto.inherited()
+        planning.inherited()
 
 
 def test_cores_left_over_become_threads_of_the_processes(proj, monkeypatch):
     """50 views make at most 6 processes; the cores left over give each a second torch
     thread (measured on 16 cores: 27% more steps), never more than MAX_THREADS, and never
     over an OMP_NUM_THREADS the user gave (torch already runs more than one thread)."""
-    cams = auto.read_project_scene(proj).cameras
-    monkeypatch.setattr(auto, "read_project_scene",
+    cams = planning.read_project_scene(proj).cameras
+    monkeypatch.setattr(planning, "read_project_scene",
                         lambda p: SceneData(cams * 5, np.zeros((0, 3)), np.zeros((0, 3), np.uint8)))
-    monkeypatch.setattr(auto.torch, "get_num_threads", lambda: 1)
+    monkeypatch.setattr(planning.torch, "get_num_threads", lambda: 1)
     for free, k, threads in ((2, 2, None), (4, 4, None), (11, 6, None), (12, 6, 2), (16, 6, 2), (64, 6, 2)):
-        monkeypatch.setattr(auto, "free_cores", lambda free=free: free)
+        monkeypatch.setattr(planning, "free_cores", lambda free=free: free)
         c = _choose(proj, {})
         assert c.nproc == k and _chosen(c).get("threads") == threads == c.threads, (free, _chosen(c))
         env = c.env(make_config(chosen=c))
         assert env.get("OMP_NUM_THREADS") == (threads and str(threads))  # what the processes inherit
-        assert "thread" not in env[auto.CONFIG_ENV]  # not a train option
-    assert "threads 2" in auto.summary_line(c, 600.0)
+        assert "thread" not in env[planning.CONFIG_ENV]  # not a train option
+    assert "threads 2" in planning.summary_line(c, 600.0)
     assert "threads" not in _chosen(_choose(proj, {}, 3))  # --nproc given: its processes as asked
-    monkeypatch.setattr(auto.torch, "get_num_threads", lambda: 3)  # OMP_NUM_THREADS=3 given
+    monkeypatch.setattr(planning.torch, "get_num_threads", lambda: 3)  # OMP_NUM_THREADS=3 given
     assert "threads" not in _chosen(_choose(proj, {}))
 
 
 def test_free_cores_leave_busy_cores_alone(monkeypatch):
-    assert 0 <= auto._idle_share(0.05) <= 1  # this machine's, a share
-    monkeypatch.setattr(auto.os, "sched_getaffinity", lambda pid: {0, 1, 2, 3})
-    monkeypatch.setattr(auto.os, "cpu_count", lambda: 4)
-    monkeypatch.setattr(auto.time, "sleep", lambda s: None)
+    assert 0 <= planning._idle_share(0.05) <= 1  # this machine's, a share
+    monkeypatch.setattr(planning.os, "sched_getaffinity", lambda pid: {0, 1, 2, 3})
+    monkeypatch.setattr(planning.os, "cpu_count", lambda: 4)
+    monkeypatch.setattr(planning.time, "sleep", lambda s: None)
     for idle, free in ((0.35, 1), (0.0, 1), (0.98, 4), (0.5, 2)):  # never fewer than one
-        monkeypatch.setattr(auto, "_idle_share", lambda w, idle=idle: idle)
-        assert auto.free_cores() == free, idle
-    monkeypatch.setattr(auto, "_idle_share", lambda w: None)  # no /proc/stat: the load average
-    monkeypatch.setattr(auto.os, "getloadavg", lambda: (2.6, 0.0, 0.0))
-    assert auto.free_cores() == 1
+        monkeypatch.setattr(planning, "_idle_share", lambda w, idle=idle: idle)
+        assert planning.free_cores() == free, idle
+    monkeypatch.setattr(planning, "_idle_share", lambda w: None)  # no /proc/stat: the load average
+    monkeypatch.setattr(planning.os, "getloadavg", lambda: (2.6, 0.0, 0.0))
+    assert planning.free_cores() == 1
 
 
 def test_a_burst_of_load_at_the_start_does_not_take_a_process(monkeypatch):
-    monkeypatch.setattr(auto.os, "sched_getaffinity", lambda pid: {0, 1})
-    monkeypatch.setattr(auto.os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(planning.os, "sched_getaffinity", lambda pid: {0, 1})
+    monkeypatch.setattr(planning.os, "cpu_count", lambda: 2)
     slept = []
-    monkeypatch.setattr(auto.time, "sleep", slept.append)
+    monkeypatch.setattr(planning.time, "sleep", slept.append)
     for shares, free, waits in (([0.5, 0.97], 2, 1),  # one core busy for a moment: both are free
                                 ([0.5, 0.5], 1, 1),  # busy in both windows: it stays busy
                                 ([0.97], 2, 0)):  # all idle: no second window
         seq, slept[:] = iter(shares), []
-        monkeypatch.setattr(auto, "_idle_share", lambda w, seq=seq: next(seq))
-        assert auto.free_cores() == free, shares
+        monkeypatch.setattr(planning, "_idle_share", lambda w, seq=seq: next(seq))
+        assert planning.free_cores() == free, shares
         assert len(slept) == waits, shares  # the gap before a second window (the mocked windows do not sleep)
 
 
 def test_train_with_no_options_says_what_it_chose_and_records_it(proj, monkeypatch):
-    monkeypatch.setattr(auto, "free_cores", lambda: 1)
-    monkeypatch.setattr(auto, "BUDGET_S", 4.0)
+    monkeypatch.setattr(planning, "free_cores", lambda: 1)
+    monkeypatch.setattr(planning, "BUDGET_S", 4.0)
     r = run_cli("train", proj.root, "--json")
     assert r.exit_code == 0, r.output
     assert "trains for 4 s" in r.stderr and "strategy mcmc" in r.stderr

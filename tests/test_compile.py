@@ -16,7 +16,7 @@ from splatcli.cli.train_config import make_config
 from splatcli.render import kernels, rasterize
 from splatcli.render.projection import project
 from splatcli.render.reference import rasterize_reference
-from splatcli.train import auto
+from splatcli.train import compiling
 from splatcli.train.loop import train
 from splatcli.train.plan import TimePlan
 from support.scenes import test_scene as make_scene
@@ -209,12 +209,12 @@ def test_auto_compiles_runs_long_enough_to_repay_it(tmp_path, monkeypatch, budge
         (tmp_path / "inductor").mkdir()
         (tmp_path / "inductor" / "fxgraph").mkdir()
     given = {"time_budget": budget} if budget else {"iterations": steps}
-    got, why = auto.compile_mode(make_config(**given), CPU)
+    got, why = compiling.compile_mode(make_config(**given), CPU)
     assert got == mode and why
-    assert auto.compile_mode(make_config(**given, compile="off"), CPU)[0] == "off"
-    assert auto.compile_mode(make_config(**given), torch.device("meta"))[0] == "off"  # not the CPU: never
+    assert compiling.compile_mode(make_config(**given, compile="off"), CPU)[0] == "off"
+    assert compiling.compile_mode(make_config(**given), torch.device("meta"))[0] == "off"  # not the CPU: never
     monkeypatch.setattr(kernels, "compiler", lambda: None)
-    assert auto.compile_mode(make_config(**given), CPU) == ("off", "no C++ compiler found")
+    assert compiling.compile_mode(make_config(**given), CPU) == ("off", "no C++ compiler found")
 
 
 def test_a_plan_spends_compile_time_from_the_budget_but_not_from_the_speed():

@@ -146,7 +146,8 @@ def test_training_through_the_adapter_densifies_and_resumes_on_the_other_rendere
     gradient from gsplat's means2d, the result matches the PyTorch path's (the fake gsplat
     draws with it; only exp/log and sigmoid/logit round trips differ), and a run started on one
     renderer resumes on the other."""
-    from splatcli.cli.train_config import make_config, resume_overrides
+    from splatcli.cli.train_config import make_config, resumed
+    from splatcli.project import Project
     from splatcli.train.loop import train
     from support.tiny_project import make_tiny_project
 
@@ -170,8 +171,9 @@ def test_training_through_the_adapter_densifies_and_resumes_on_the_other_rendere
     assert abs(b.num_gaussians - a.num_gaussians) <= 0.1 * a.num_gaussians, (a.num_gaussians, b.num_gaussians)
     assert b.num_gaussians > c.num_gaussians + 0.2 * a.num_gaussians, (b.num_gaussians, c.num_gaussians)
     assert abs(b.psnr - a.psnr) < 0.3  # the same model drawn the same way, up to float32 round trips
-    back = train(tmp_path / "gsplat", make_config(**{**small, "iterations": 40}, renderer="torch"), CPU, resume=True,
-                 overrides=resume_overrides({"iterations": 40}))
+    back = train(tmp_path / "gsplat", resumed(Project.open(tmp_path / "gsplat"),
+                                              make_config(**{**small, "iterations": 40}, renderer="torch"),
+                                              {"iterations": 40}), CPU, resume=True)
     assert (back.renderer, back.resumed_from, back.steps) == ("torch", 30, 40)
 
 

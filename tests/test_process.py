@@ -675,7 +675,7 @@ def test_the_same_photos_and_seed_give_the_same_model_byte_for_byte(scene, tmp_p
     monkeypatch.setattr(colmap, "incremental_mapping", spy)
     monkeypatch.setattr(colmap, "run_workers", lambda jobs, *a, **k: (workers.append(len(jobs)),
                                                                        real_workers(jobs, *a, **k))[1])
-    monkeypatch.setattr(colmap, "MIN_PAIRS_PER_WORKER", 20)  # the 120 pairs in two processes (two cores or more)
+    monkeypatch.setattr(colmap, "MIN_WORKER_S", 0.0)  # the 120 pairs in two processes (two cores or more)
     models, results = [], []
     for run in ("a", "b"):
         results.append(process(src, tmp_path / run, ProcessConfig(num_threads=2)))
@@ -705,7 +705,7 @@ def test_matching_in_worker_processes_gives_the_matches_of_one_thread(scene, tmp
     shutil.copyfile(db, two)
     done = []
     colmap.match_pairs(one, pairs, tmp_path, colmap.MatchOptions(num_threads=1))
-    monkeypatch.setattr(colmap, "MIN_PAIRS_PER_WORKER", 20)
+    monkeypatch.setattr(colmap, "MIN_WORKER_S", 0.0)
     colmap.match_pairs(two, pairs, tmp_path, colmap.MatchOptions(num_threads=2), on_progress=done.append)
     assert done and done[-1] == len(pairs) and done == sorted(done)
     a, _ = colmap.read_verified_pairs(one, keypoints=False)

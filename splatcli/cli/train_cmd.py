@@ -10,14 +10,14 @@ import typer
 
 from ..options import RUN
 from ..project import Project
-from ..train.auto import summary_line
 from ..train.config import TrainConfig
 from ..train.distributed import in_worker, join
 from ..train.launch import launch
 from ..train.loop import train as run_train
 from .common import DebugOpt, DeviceOpt, JsonOpt, QuietOpt, RendererOpt, Ui, resolve
 from .options import GIVEN, config_options
-from .train_config import configure, preset_options, resume_overrides
+from .planning import summary_line
+from .train_config import configure, preset_options
 from .view_cmd import live_viewer
 
 
@@ -40,7 +40,7 @@ def train(
     """Fit 3D Gaussians to the training views; checkpoints go to PROJECT/checkpoints, the speed/error log to PROJECT/reports/train_log.jsonl. Ctrl-C saves a checkpoint (exit 130)."""
     dev, drawer = resolve(device, renderer, quiet)
     (proj := Project.open(project)).require_processed()  # input errors before the progress display starts
-    cfg, chosen = configure(proj, given, nproc, dev, drawer.name, resume)  # train/auto.py chooses; given options win
+    cfg, chosen = configure(proj, given, nproc, dev, drawer.name, resume)  # cli/planning.py chooses; given options win
     for line, level in ((drawer.note, "warning"), (chosen.choices and summary_line(chosen, cfg.time_budget), "note")):
         if line and not in_worker():
             Ui(quiet=quiet).note(line, level)
@@ -50,7 +50,7 @@ def train(
     ui = Ui(quiet=quiet or not comm.main, json_out=json_out and comm.main)
     try:
         with ui.progress() as sink, live_viewer(ui, project, viewer and comm.main, viewer_host, viewer_port, sink) as sink:
-            s = run_train(project, cfg, dev, resume=resume, overrides=resume_overrides(given), on_event=sink,
+            s = run_train(project, cfg, dev, resume=resume, on_event=sink,
                           comm=comm, chosen=chosen.record())
     finally:
         comm.close()  # on every path: gloo's threads must be gone before the interpreter exits

@@ -14,10 +14,11 @@ import torch
 
 from .. import options
 from ..errors import SplatError
+from ..files.checkpoint import read_checkpoint_config
 from ..project import Project
-from ..train.auto import Asked, Chosen, choose, inherited
-from ..train.config import PRESETS, Overrides, TrainConfig, preset_config
+from ..train.config import PRESETS, TrainConfig, preset_config
 from ..train.distributed import in_worker
+from .planning import Asked, Chosen, choose, inherited
 
 
 def make_config(preset: str = "default", *, device: str = "cpu", renderer: str = "torch",
@@ -37,31 +38,47 @@ def make_config(preset: str = "default", *, device: str = "cpu", renderer: str =
 
 
 def asked(given: dict[str, Any]) -> Asked:
-    """What train/auto.py's `choose` reads of the options given (checked first)."""
+    """The options given that `planning.choose` decides around, typed (checked first): the last
+    place before planning and training that reads options by name."""
     cfg = options.apply(TrainConfig(), given)
     options.check(cfg)
     mcmc = replace(TrainConfig(), strategy="mcmc")
-    return Asked(cfg, frozenset(given), all(options.resolve(mcmc, k) is not None for k in given))
+    named = {k: options.value(cfg, k) for k in ("preset", "iterations", "time_budget", "max_size", "appearance",
+                                                "strategy", "max_gaussians") if given.get(k) is not None}
+    return Asked(**named, downscale=cfg.downscale,
+                 mcmc_fits=all(options.resolve(mcmc, k) is not None for k in given))
 
 
-def resume_overrides(given: dict[str, Any]) -> Overrides:
-    """What `train --resume` changes in the run's stored config: the options given, but the
-    preset and the seed (the run's own)."""
+def resumed(project: Project, cfg: TrainConfig, given: dict[str, Any]) -> TrainConfig:
+    """What `train --resume` goes on with: the run's stored config (its latest checkpoint's) with
+    the options given on top, but the preset and the seed (the run's own), on `cfg`'s device and
+    renderer (either renderer resumes either's run); `cfg` itself where there is no checkpoint yet."""
+    path = project.latest_checkpoint()
+    if path is None:
+        return cfg
+    stored = TrainConfig.from_dict(read_checkpoint_config(path), where=f"{path}: stored train config")
     named = {k: v for k, v in given.items() if k not in ("preset", "seed") and v is not None}
-    return lambda stored: options.apply(stored, named).checked()
+    new = options.apply(stored, named).checked()
+    if new.compact.enabled and not stored.compact.enabled:
+        # --compact added on resume brings its own settings (this version's), not the ones stored unused with the run
+        new = replace(new, compact=replace(cfg.compact, enabled=True))
+    return replace(new, device=cfg.device, renderer=cfg.renderer)
 
 
 def configure(project: Project, given: dict[str, Any], nproc: int | None, device: torch.device, renderer: str,
               resume: bool) -> tuple[TrainConfig, Chosen]:
-    """The config `train` runs, and what it chose (train/auto.py) with the processes to run. A
-    process the launcher started trains the config it was sent."""
+    """The one config `train` runs (with --resume, the stored one with the options given on
+    top), and what it chose (planning.py) with the processes to run. A process the launcher
+    started trains the config it was sent."""
     if in_worker():
-        chosen, cfg = inherited()
-        if cfg is not None:
-            return replace(cfg, device=str(device), renderer=renderer), chosen
-        return make_config(**given, device=str(device), renderer=renderer), chosen  # a plain torchrun
-    chosen = choose(project, asked(given), nproc, device, resume)
-    return make_config(**given, chosen=chosen, device=str(device), renderer=renderer), chosen
+        chosen, sent = inherited()
+        if sent is not None:  # built and resumed by the launcher
+            return replace(sent, device=str(device), renderer=renderer), chosen
+        cfg = make_config(**given, device=str(device), renderer=renderer)  # a plain torchrun
+    else:
+        chosen = choose(project, asked(given), nproc, device, resume)
+        cfg = make_config(**given, chosen=chosen, device=str(device), renderer=renderer)
+    return (resumed(project, cfg, given) if resume else cfg), chosen
 
 
 def preset_options() -> dict[str, dict[str, Any]]:

@@ -166,6 +166,16 @@ def load_checkpoint(path: str | Path, device: torch.device | str = "cpu") -> Che
     )
 
 
+def read_checkpoint_config(path: str | Path) -> dict[str, Any]:
+    """The train config a checkpoint stores (its tensors mapped, not read), for `train --resume`
+    to build the run's config before the checkpoint is loaded."""
+    path = Path(path)
+    raw = _safe_load(path, mmap=True)
+    if not isinstance(raw, dict) or raw.get("format") != CHECKPOINT_FORMAT or not isinstance(raw.get("config"), dict):
+        raise SplatError(f"{path}: not a splatcli checkpoint with a stored train config")
+    return raw["config"]
+
+
 def load_gaussians(path: str | Path, device: torch.device | str = "cpu") -> Gaussians:
     """The trained model in a checkpoint, truncated to its active SH degree (what
     render, eval and export use)."""
@@ -175,7 +185,7 @@ def load_gaussians(path: str | Path, device: torch.device | str = "cpu") -> Gaus
 # ---- internals ---------------------------------------------------------------
 
 
-def _safe_load(path: Path) -> Any:
+def _safe_load(path: Path, mmap: bool = False) -> Any:
     if not path.exists():
         raise SplatError(f"{path}: checkpoint not found")
     if not path.is_file():
@@ -191,7 +201,7 @@ def _safe_load(path: Path) -> Any:
         # so a crafted file can never run code on load.
         with warnings.catch_warnings():  # torch warns about foreign pickle protocols before refusing
             warnings.simplefilter("ignore")
-            return torch.load(path, map_location="cpu", weights_only=True)
+            return torch.load(path, map_location="cpu", weights_only=True, mmap=mmap)
     except pickle.UnpicklingError as exc:
         # torch's message is a paragraph that suggests weights_only=False; keep only the culprit.
         m = re.search(r"GLOBAL ([\w.]+)", str(exc))

@@ -42,7 +42,7 @@ MAX_SH_DEGREE = 3
 PRESET_NAMES = ("default", "fast", "demo")
 STRATEGIES = ("default", "mcmc")  # --strategy: each is the section of its name
 MASK_MODES = ("auto", "ignore", "background", "off")  # --mask-mode (Project.mask_mode resolves them)
-COMPILE_MODES = ("auto", "on", "off")  # --compile (train/auto.compile_mode resolves auto)
+COMPILE_MODES = ("auto", "on", "off")  # --compile (train/compiling.compile_mode resolves auto)
 BLOCKS = ("auto", "model", "4", "8", "16")  # --block (render/blocks.py)
 
 
@@ -282,7 +282,6 @@ class TrainConfig:
         return cfg
 
 
-Overrides = Callable[[TrainConfig], TrainConfig]  # what `train --resume` changes in the stored config (cli/train_config.py)
 
 
 def _upgrade(d: dict[str, Any]) -> dict[str, Any]:
@@ -399,7 +398,7 @@ class TrainSummary:
     comm_seconds: float | None = None  # time rank 0 spent in collectives (exchanging and waiting)
     rank_checks: int | None = None  # checkpoints at which every rank's parameters equalled rank 0's
     mask_mode: str = "off"  # what was done with the masks (Project.mask_mode); eval scores the same way
-    chosen: list[dict[str, Any]] | None = None  # what `train` chose for options not given, and why (train/auto.py)
+    chosen: list[dict[str, Any]] | None = None  # what `train` chose for options not given, and why (cli/planning.py)
     quantisation: str = "8-bit"  # how psnr/ssim (the held-out log's last figures) were scored (eval/score.py)
     protocol: str = "raw"  # ... and under which protocol: raw, or compensated (TrainConfig.heldout_protocol)
     compiled: dict[str, Any] | None = None  # --compile: mode, why, seconds in first calls, graphs, why it fell back

@@ -1,7 +1,7 @@
 """`splatcli train --nproc K`: K worker processes on this machine through PyTorch's own
 elastic launcher (what `torchrun --standalone` runs), each the same `splatcli train`
-command with one torch thread (or OMP_NUM_THREADS, which train/auto.py may choose). They
-train the config the launcher built, sent in their environment (train/auto.py,
+command with one torch thread (or OMP_NUM_THREADS, which cli/planning.py may choose). They
+train the config the launcher built, sent in their environment (cli/planning.py,
 `Chosen.env`; cli/train_config.py's `configure` reads it back), not rebuilt from words.
 
 The launcher reports one line: rank 0's own result, or, when a rank died, which rank

@@ -15,7 +15,6 @@ import signal
 import threading
 import time
 from collections.abc import Iterator
-from dataclasses import replace
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -34,8 +33,9 @@ from ..render.blocks import BlockTuner
 from ..render.weights import blending_weights
 from ..sfm.colmap import read_project_scene
 from ..strategy import Context, StepInfo
-from . import auto, log
-from .config import Overrides, TrainConfig, TrainSummary
+from . import log
+from .compiling import compile_mode
+from .config import TrainConfig, TrainSummary
 from .data import TrainData, TrainView, load_train_data, subset, views_seeing
 from .distributed import Comm
 from .init import initial_gaussians
@@ -53,32 +53,30 @@ def train(
     device: torch.device,
     *,
     resume: bool = False,
-    overrides: Overrides | None = None,
     on_event: EventSink | None = None,
     comm: Comm | None = None,
     chosen: list[dict[str, Any]] | None = None,
 ) -> TrainSummary:
     """Train (or resume) the project's model; return the summary also recorded in
-    the manifest. `overrides`: what a --resume changes in the run's stored config (the
-    options given explicitly; cli/train_config.py's resume_overrides), checked after.
+    the manifest. `cfg` is the run's one config: with `resume`, the stored config with the
+    options given on top (cli/train_config.py's `resumed`), used as it is.
     `comm`: this process's rank in a data-parallel run (distributed.py); rank 0
-    alone writes the project. `chosen`: what train/auto.py chose and why, for the record.
+    alone writes the project. `chosen`: what cli/planning.py chose and why, for the record.
     SIGINT/SIGTERM: checkpoint, raise Interrupted."""
     project = Project.open(project_dir)
     comm = comm or Comm()
     with writer_lock(project.root, "train") if comm.main else contextlib.nullcontext():
-        return _train(project, cfg, device, resume, overrides, on_event, comm, chosen)
+        return _train(project, cfg, device, resume, on_event, comm, chosen)
 
 
-def _train(project: Project, cfg: TrainConfig, device: torch.device, resume: bool,
-           overrides: Overrides | None, on_event: EventSink | None, comm: Comm,
-           chosen: list[dict[str, Any]] | None) -> TrainSummary:
+def _train(project: Project, cfg: TrainConfig, device: torch.device, resume: bool, on_event: EventSink | None,
+           comm: Comm, chosen: list[dict[str, Any]] | None) -> TrainSummary:
     project.require_processed()
     if comm.main and not resume:
         warning = pose_warning(project)
         if warning:
             emit(on_event, Note(warning, "warning"))
-    ck, cfg = _resumed(project, cfg, device, overrides, on_event) if resume else (None, cfg)
+    ck = _latest(project, device, on_event) if resume else None
     if device.type == "cpu":  # a run that cannot fit stops here, before loading anything
         _check_fits(project, cfg, ck, comm)
     data = load_train_data(project, cfg.downscale, cfg.max_size, device, cfg.eval_max_views, cfg.mask_mode)
@@ -106,22 +104,13 @@ def pose_warning(project: Project) -> str | None:
     return None
 
 
-def _resumed(project: Project, cfg: TrainConfig, device: torch.device, overrides: Overrides | None,
-             on_event: EventSink | None) -> tuple[Checkpoint | None, TrainConfig]:
-    """--resume: the latest checkpoint and the config it goes on with (the stored one, the
-    options given explicitly on top); without a checkpoint yet, a new run of `cfg`."""
+def _latest(project: Project, device: torch.device, on_event: EventSink | None) -> Checkpoint | None:
+    """--resume: the latest checkpoint; without one yet, None (a new run)."""
     path = project.latest_checkpoint()
     if path is None:
         emit(on_event, Note("--resume: no checkpoint yet; starting a new run", "warning"))
-        return None, cfg
-    ck = load_checkpoint(path, device)
-    stored = TrainConfig.from_dict(ck.config, where=f"{path}: stored train config")
-    new = overrides(stored).checked() if overrides is not None else stored
-    if new.compact.enabled and not stored.compact.enabled:
-        # --compact added on resume brings its own settings (this version's),
-        # not the ones stored unused with the run.
-        new = replace(new, compact=replace(cfg.compact, enabled=True))
-    return ck, replace(new, device=str(device), renderer=cfg.renderer)  # either renderer resumes either's run
+        return None
+    return load_checkpoint(path, device)
 
 
 def _check_fits(project: Project, cfg: TrainConfig, ck: Checkpoint | None, comm: Comm) -> None:
@@ -134,7 +123,7 @@ def _check_fits(project: Project, cfg: TrainConfig, ck: Checkpoint | None, comm:
 
 def _compile(cfg: TrainConfig, device: torch.device, on_event: EventSink | None) -> dict[str, Any]:
     """--compile resolved and set for this process (render/kernels.py); the record train.json keeps."""
-    mode, why = auto.compile_mode(cfg, device)
+    mode, why = compile_mode(cfg, device)
     status = kernels.set_mode(mode)
     if status.failed:
         emit(on_event, Note(status.failed, "warning"))

@@ -1,5 +1,5 @@
-"""What `splatcli train` chooses when it is not told: on a CPU, a run that ends in
-minutes, sized to the capture and to the machine (issue 35).
+"""What `splatcli train` chooses when it is not told, before anything trains: on a CPU, a run
+that ends in minutes, sized to the capture and to the machine.
 
 With no schedule given (no --preset, --iterations or --time-budget) a CPU run gets the
 fast preset's shape planned into a time budget that grows with the number of training views
@@ -10,10 +10,11 @@ model, at a training size that grows with the budget beyond the default one
 (`train_size`). Every choice yields to the option given for it; each is recorded with
 its reason (train.json's `chosen`). On CUDA nothing is chosen: the paper's schedule.
 
-What was given comes in typed (`Asked`, which cli/train_config.py builds from the command
-line), and what is chosen goes out typed (`Chosen`: the preset and strategy a config starts
-from, and values `Chosen.applied` sets with `replace`). The processes of `train --nproc`
-are sent the config itself (`Chosen.env`), not the choices as words to parse again.
+What was given comes in typed (`Asked`: a field per option a choice yields to, None where not
+given, which cli/train_config.py builds from the command line), and what is chosen goes out
+typed (`Chosen`: the preset and strategy a config starts from, and values `Chosen.applied`
+sets with `replace`). The processes of `train --nproc` are sent the config itself
+(`Chosen.env`), not the choices as words to parse again. train/ never calls back here.
 """
 
 from __future__ import annotations
@@ -27,9 +28,8 @@ from typing import Any, TypeVar
 import torch
 
 from ..project import Project
-from ..render import kernels
 from ..sfm.colmap import read_project_scene
-from .config import TrainConfig
+from ..train.config import TrainConfig
 
 BUDGET_S = 600.0  # training seconds of a default CPU run: with loading and the last evaluation, ends within 15 min
 MAX_SIZE = 480  # px, the longest side a default CPU run trains at
@@ -55,10 +55,17 @@ T = TypeVar("T")
 
 @dataclass(frozen=True)
 class Asked:
-    """What the command line gave, as `choose` reads it (cli/train_config.py builds it)."""
+    """What the command line gave that `choose` decides around (cli/train_config.py builds it):
+    each option a choice yields to, None where not given."""
 
-    config: TrainConfig  # the options given, on the defaults (no preset applied), checked
-    names: frozenset[str]  # the options given, by name (a choice yields to its option)
+    preset: str | None = None
+    iterations: int | None = None
+    time_budget: float | None = None
+    max_size: int | None = None
+    appearance: str | None = None
+    strategy: str | None = None
+    max_gaussians: int | None = None
+    downscale: float = 1.0  # given or the default: the training size is chosen in its units
     mcmc_fits: bool = True  # every option given applies to --strategy mcmc (none is the default strategy's alone)
 
 
@@ -183,17 +190,17 @@ def train_size(budget_s: float) -> int:
 def choose(project: Project, asked: Asked, nproc: int | None, device: torch.device,
            resume: bool = False) -> Chosen:
     """What to choose for a run of `project` on `device` beside the options `asked`
-    (module docstring); `nproc` as given."""
-    given, out = asked.names, Chosen(nproc)
+    (module docstring); `nproc` as given. Each choice yields to its option given."""
+    out = Chosen(nproc)
     if device.type != "cpu" or resume:
         return out
-    default_run = not given & {"preset", "iterations", "time_budget"}
-    if not default_run and "time_budget" not in given:
+    default_run = asked.preset is None and asked.iterations is None and asked.time_budget is None
+    if not default_run and asked.time_budget is None:
         return out  # a step schedule: what was asked, in one process unless --nproc
 
-    def pick(option: str, value: T, why: str) -> T | None:
-        """`value`, recorded with `why`, unless the option was given (None: its value is the given one)."""
-        if option in given:
+    def pick(given: object, option: str, value: T, why: str) -> T | None:
+        """`value`, recorded with `why`, unless its option was `given` (None: its value is the given one)."""
+        if given is not None:
             return None
         out.choices.append(Choice(option, value, why))
         return value
@@ -203,37 +210,40 @@ def choose(project: Project, asked: Asked, nproc: int | None, device: torch.devi
     longest = max(max(c.width, c.height) for c in cams)
     held = set(project.splits([c.name for c in cams])["test"])
     views = sum(c.name not in held for c in cams)
-    out.preset = pick("preset", "fast", "the fast preset's shape (coarse to fine; grow, then refine a fixed set), "
-                      "planned into the time")
+    out.preset = pick(asked.preset, "preset", "fast", "the fast preset's shape (coarse to fine; grow, then refine a "
+                      "fixed set), planned into the time")
     planned = default_budget(views)
-    out.time_budget = pick("time_budget", planned, f"{planned / 60:.0f} minutes of training on a CPU" + (
-        "; more time, more quality" if planned == BUDGET_S else
-        f" for {views} training views, so that each is seen often enough"))
-    budget = float(asked.config.time_budget if out.time_budget is None else out.time_budget)  # type: ignore[arg-type]
+    out.time_budget = pick(asked.time_budget, "time_budget", planned, f"{planned / 60:.0f} minutes of training on a "
+                           "CPU" + ("; more time, more quality" if planned == BUDGET_S else
+                                    f" for {views} training views, so that each is seen often enough"))
+    budget = float(asked.time_budget if out.time_budget is None else out.time_budget)  # type: ignore[arg-type]
     # (time chosen for the number of views goes to seeing them, not to a larger size)
     size = train_size(budget if out.time_budget is None else BUDGET_S)
-    downscale = float(asked.config.downscale)
-    if longest / downscale > size:
-        out.max_size = pick("max_size", size, f"the photos are {longest} px across; {size} px fits {budget / 60:.0f} "
-                            "min on a CPU")
+    if longest / asked.downscale > size:
+        out.max_size = pick(asked.max_size, "max_size", size, f"the photos are {longest} px across; {size} px fits "
+                            f"{budget / 60:.0f} min on a CPU")
     photos = project.mask_source() != "alpha"  # alpha: a rendered (synthetic) scene, one exposure
     if default_run and photos and len(cams) >= 8:  # (a --time-budget run keeps the appearance it was measured with)
-        out.appearance = pick("appearance", "exposure", "photographs: their exposure and white balance vary from "
-                              "shot to shot")
-    max_size = int(asked.config.max_size if out.max_size is None else out.max_size)
-    train_px = sorted(c.at_resolution(downscale, max_size).width * c.at_resolution(downscale, max_size).height
+        out.appearance = pick(asked.appearance, "appearance", "exposure", "photographs: their exposure and white "
+                              "balance vary from shot to shot")
+    max_size = out.max_size or asked.max_size or TrainConfig().max_size
+    train_px = sorted(c.at_resolution(asked.downscale, max_size).width * c.at_resolution(asked.downscale, max_size).height
                       for c in cams)[len(cams) // 2]
-    if ("strategy" not in given or asked.config.strategy == "mcmc") and asked.mcmc_fits:
-        out.strategy = pick("strategy", "mcmc", "a fixed Gaussian budget, grown on a curve planned to the time")
-        by_px, by_pts = GAUSSIANS_PER_PIXEL * train_px, GAUSSIANS_PER_POINT * len(scene.points)
-        why = (f"{GAUSSIANS_PER_PIXEL} per pixel of a {train_px:,}-pixel training view" if by_px >= by_pts else
-               f"{GAUSSIANS_PER_POINT} per SfM point ({len(scene.points):,}): room to grow beyond what the capture "
-               "holds")
-        out.max_gaussians = pick("max_gaussians", int(min(MAX_GAUSSIANS, max(MIN_GAUSSIANS, round(
-            max(by_px, by_pts), -3)))), why)
+    if asked.strategy in (None, "mcmc") and asked.mcmc_fits:
+        out.strategy = pick(asked.strategy, "strategy", "mcmc", "a fixed Gaussian budget, grown on a curve planned "
+                            "to the time")
+        out.max_gaussians = pick(asked.max_gaussians, "max_gaussians", *_budget(train_px, len(scene.points)))
     if nproc is None:
         _processes(out, len(cams))
     return out
+
+
+def _budget(train_px: int, points: int) -> tuple[int, str]:
+    """MCMC's Gaussian budget for a training view of `train_px` pixels and `points` SfM points, and why."""
+    by_px, by_pts = GAUSSIANS_PER_PIXEL * train_px, GAUSSIANS_PER_POINT * points
+    why = (f"{GAUSSIANS_PER_PIXEL} per pixel of a {train_px:,}-pixel training view" if by_px >= by_pts else
+           f"{GAUSSIANS_PER_POINT} per SfM point ({points:,}): room to grow beyond what the capture holds")
+    return int(min(MAX_GAUSSIANS, max(MIN_GAUSSIANS, round(max(by_px, by_pts), -3)))), why
 
 
 def _processes(out: Chosen, views: int) -> None:
@@ -250,35 +260,6 @@ def _processes(out: Chosen, views: int) -> None:
         out.threads = threads
         out.choices.append(Choice("threads", threads, f"{free} free cores for {k} processes: "
                                   f"{threads} torch threads each (OMP_NUM_THREADS to choose)"))
-
-
-# --compile auto: compile when the run is at least this long (seconds of training). The compiled
-# planner saves a few per cent of a step at most, and on some CPUs nothing, while an empty cache
-# costs tens of seconds of compiling and a warm one a few seconds of loading, all taken from the
-# budget (docs/benchmarks.md, "Time budgets": a 300 s run trained fewer steps compiled than eager).
-COMPILE_COLD_S = 1800.0
-COMPILE_WARM_S = 900.0
-COMPILE_STEPS = 10_000  # a step schedule without a time budget: compile from this many steps
-
-
-def compile_mode(cfg: TrainConfig, device: torch.device) -> tuple[str, str]:
-    """--compile resolved to "on" or "off", and why (train.json)."""
-    if device.type != "cpu":
-        return "off", "the CPU path only (CUDA draws with gsplat's kernels or eagerly)"
-    if cfg.compile != "auto":
-        return cfg.compile, "--compile " + cfg.compile
-    if kernels.compiler() is None:
-        return "off", "no C++ compiler found"
-    warm = kernels.warm_cache()
-    need = COMPILE_WARM_S if warm else COMPILE_COLD_S
-    cache = "the kernels are cached" if warm else "the first run on this machine compiles"
-    if cfg.time_budget is not None:
-        if cfg.time_budget >= need:
-            return "on", f"a {cfg.time_budget:.0f} s run repays compiling ({cache})"
-        return "off", f"a {cfg.time_budget:.0f} s run is too short to repay compiling ({cache}; from {need:.0f} s)"
-    if cfg.total_steps >= COMPILE_STEPS:
-        return "on", f"{cfg.total_steps} steps repay compiling ({cache})"
-    return "off", f"{cfg.total_steps} steps are too few to repay compiling (from {COMPILE_STEPS})"
 
 
 def summary_line(chosen: Chosen, budget_s: float | None) -> str:
