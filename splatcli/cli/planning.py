@@ -227,8 +227,8 @@ def choose(project: Project, asked: Asked, nproc: int | None, device: torch.devi
         out.appearance = pick(asked.appearance, "appearance", "exposure", "photographs: their exposure and white "
                               "balance vary from shot to shot")
     max_size = out.max_size or asked.max_size or TrainConfig().max_size
-    train_px = sorted(c.at_resolution(asked.downscale, max_size).width * c.at_resolution(asked.downscale, max_size).height
-                      for c in cams)[len(cams) // 2]
+    trained = [c.at_resolution(asked.downscale, max_size) for c in cams]
+    train_px = sorted(c.width * c.height for c in trained)[len(cams) // 2]
     if asked.strategy in (None, "mcmc") and asked.mcmc_fits:
         out.strategy = pick(asked.strategy, "strategy", "mcmc", "a fixed Gaussian budget, grown on a curve planned "
                             "to the time")

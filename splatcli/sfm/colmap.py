@@ -252,9 +252,7 @@ PAIR_S, PAIR_KEYPOINTS = 0.058, 3100
 
 def _workers(db: Path, pairs: list[tuple[str, str]], threads: int) -> int:
     """How many processes match `pairs`: one per core, but none with under MIN_WORKER_S of work."""
-    pycolmap = _pc()
-    with pycolmap.Database.open(str(db)) as d:
-        kp = {im.name: int(d.num_keypoints_for_image(im.image_id)) for im in d.read_all_images()}
+    kp = keypoint_counts(db)
     work_s = PAIR_S * sum(kp.get(a, 0) * kp.get(b, 0) for a, b in pairs) / PAIR_KEYPOINTS**2
     return max(1, min(threads, len(pairs), int(work_s // MIN_WORKER_S) if MIN_WORKER_S > 0 else threads))
 
@@ -382,10 +380,17 @@ class DatabaseStats:
     verified_pairs: int  # pairs with a two-view geometry of enough inliers
 
 
-def database_stats(db: Path, min_inliers: int = 15) -> DatabaseStats:
+def keypoint_counts(db: Path) -> dict[str, int]:
+    """Image name -> its keypoints in the database."""
     pycolmap = _pc()
     with pycolmap.Database.open(str(db)) as d:
-        kp = {im.name: int(d.num_keypoints_for_image(im.image_id)) for im in d.read_all_images()}
+        return {im.name: int(d.num_keypoints_for_image(im.image_id)) for im in d.read_all_images()}
+
+
+def database_stats(db: Path, min_inliers: int = 15) -> DatabaseStats:
+    kp = keypoint_counts(db)
+    pycolmap = _pc()
+    with pycolmap.Database.open(str(db)) as d:
         _, geoms = d.read_two_view_geometries()
         verified = sum(1 for g in geoms if len(g.inlier_matches) >= min_inliers)
     return DatabaseStats(keypoints=kp, verified_pairs=verified)

@@ -700,8 +700,8 @@ def _match(db: Path, pairs: list[tuple[str, str]], work_dir: Path, mopts: MatchO
 
 def _keypoint_median(db: Path) -> float:
     """The median keypoint count per image in the database."""
-    stats = colmap.database_stats(db)
-    return float(statistics.median(stats.keypoints.values())) if stats.keypoints else 0.0
+    counts = colmap.keypoint_counts(db)  # (not database_stats: the two-view geometries are not needed here)
+    return float(statistics.median(counts.values())) if counts else 0.0
 
 
 def octave(opts: SfmOptions, min_side: int) -> int:
