@@ -244,6 +244,10 @@ def test_profile_writes_where_the_time_went(tmp_path):
     assert r["stages"]["render, other"]["ms_per_step"] >= 0 and r["stages"]["backward, other"]["ms_per_step"] >= 0
     assert abs(sum(s["share"] for s in r["stages"].values()) - 1) < 1e-3
     assert "| compositing backward |" in proj.profile_md_path.read_text()
+    sl = r["slots"]  # the compositor's dense slots, split by what became of them
+    assert sl["per_step"] > 0 and all(0 <= sl[k] <= 1 for k in ("below", "ended", "padding", "blended"))
+    assert sl["below"] > 0 and sl["blended"] > 0 and abs(sl["below"] + sl["ended"] + sl["padding"] + sl["blended"] - 1) < 1e-3
+    assert "below alpha 1/255" in proj.profile_md_path.read_text()
     plain = make_tiny_project(tmp_path / "q", trained=False)
     train(plain.root, make_config(iterations=3, init_random_points=200, eval_every=0), CPU)
     assert not plain.profile_json_path.exists()

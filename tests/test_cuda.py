@@ -1,6 +1,6 @@
 """The CUDA path: the same rasterizer and the same commands on a GPU (skipped without one).
 
-CI has no GPU; these run where one is lent (docs/benchmarks.md, "CUDA")."""
+CI has no GPU; these run where one is lent (docs/benchmarks.md, "GPU: gsplat against the PyTorch path")."""
 
 from __future__ import annotations
 

@@ -239,7 +239,7 @@ def test_penalties_fall_on_the_gaussians_the_view_draws_alone():
 
 def test_penalties_stop_at_reg_stop():
     """After `reg_stop` the penalties no longer pull opacities and scales down: the fixed set
-    fits the photos alone (lego: +0.27 dB, docs/benchmarks.md "MCMC: findings")."""
+    fits the photos alone (lego: +0.27 dB at the fast preset)."""
     s = MCMCStrategy(MCMCStrategyConfig(opacity_reg=0.5, scale_reg=0.25, max_gaussians=10, refine_start=0,
                                         refine_stop=500, refine_every=100), reg_stop=600)
     sp = _splats(10)

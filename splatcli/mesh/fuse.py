@@ -44,7 +44,7 @@ BYTES_PER_VOXEL = 20  # float32 distance, weight and colour (3)
 CHUNK = 1 << 21  # voxels fused at a time
 FOCUS_REACH = 0.6  # the volume's half side at most, in median camera distances from the focus point
 MIN_VIEWS = 5  # a surface needs voxels fused from at least this many views (a quarter of them when fewer than 20):
-# on the sample scene 5 scored a far higher F-score than 1 (docs/benchmarks.md, "Meshes"). Also tried: not fusing
+# on the sample scene 5 scored a far higher F-score than 1. Also tried: not fusing
 # depth edges (a smaller gain alone, none beside 5 views, and holes in lego); 20% of the views (holes in lego); no
 # free-space carving beyond the band (slightly lower).
 

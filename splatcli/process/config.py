@@ -13,7 +13,7 @@ from .cameras import CAMERA_MODELS, CAMERA_MODES
 
 MIN_IMAGES = 2
 SFM_MAX_SIZE = 1600  # --max-size's default for structure from motion
-POSED_MAX_SIZE = 1000  # and for the points of posed captures (transforms.json, LLFF): docs/benchmarks.md, "process"
+POSED_MAX_SIZE = 1000  # and for the points of posed captures (transforms.json, LLFF)
 
 
 @dataclass(frozen=True)

@@ -7,7 +7,7 @@
 
 Which block is fastest depends on the CPU as much as on the scene: the cost model below was
 fitted on one machine, and on dense scenes another CPU runs 8 px blocks faster than the 4 px the
-model picks (docs/benchmarks.md, "Block size"). A tuner therefore corrects the model
+model picks. A tuner therefore corrects the model
 per block size by what it measures: each render reports the seconds its planning, compositing
 and compositing backward took, divided by the model's predicted cost for the block it used; the
 tuner picks the block whose median ratio times its predicted cost is least. It first measures

@@ -367,6 +367,8 @@ def _seg_forward(rows: Tensor, gid: Tensor, centre: Tensor, featsT: Tensor, Tc: 
     p, czg = _gather(rows, gid)  # [na, k, 6], [na, k, 5]
     coef2, q = _coef(p, centre)
     r, U = _transmittance(_alpha(coef2, featsT, a_min), Tc, t_min)
+    if timing.active():
+        _count_slots(r, U, gid, rows.shape[0] - 1)
     if weight is not None:
         w = weight(r, U)
     else:
@@ -374,6 +376,16 @@ def _seg_forward(rows: Tensor, gid: Tensor, centre: Tensor, featsT: Tensor, Tc: 
         if kept is not None:
             kept.append((r, U, q, czg))
     return torch.bmm(czg.transpose(1, 2), w.transpose(1, 2)), U[:, :, -1]
+
+
+def _count_slots(r: Tensor, U: Tensor, gid: Tensor, pad: int) -> None:  # r, U [na, P, k], gid [na, k]
+    """`train --profile`'s slot counts (render/timing.py) of one forward segment."""
+    padding = int((gid == pad).sum()) * r.shape[1]
+    zero = r == 0
+    timing.add("slots", r.numel())
+    timing.add("slots padding", padding)
+    timing.add("slots below", int(zero.sum()) - padding)
+    timing.add("slots ended", int(((U == 0) & ~zero).sum()))
 
 
 def _seg_backward(rows: Tensor, gid: Tensor, centre: Tensor, feats: Tensor, featsT: Tensor,

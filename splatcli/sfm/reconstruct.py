@@ -109,7 +109,7 @@ LARGE_MAPPER = {"num_threads": -1, "ba_global_frames_ratio": 1.4, "ba_global_poi
 EVERY_PAIR_MIN = 2000
 # One camera each is kept over a shared one when the focal lengths it finds spread by more
 # than this (90th over 10th percentile): far less on fox's photos from one camera, far more on
-# the same photos cropped as four zooms (docs/benchmarks.md, "process").
+# the same photos cropped as four zooms.
 FOCAL_SPREAD = 1.15
 # Every image registered on a shared camera: the focal lengths found for each image alone (its pose
 # with the focal length unknown, from its matches in that model) under this spread (90th over 10th

@@ -35,7 +35,7 @@ EVERY = 100  # steps between full recomputations (their code)
 # they lower small Gaussians' view-space gradients (the 2D filter's opacity compensation,
 # the 3D filter's smoothing), so fewer crossed it: at 1x lego grew fewer Gaussians than plain
 # training and scored lower at the size trained; at 0.8x it matched it there and gained zoomed
-# in (docs/guide.md, "Rendering at other resolutions"; docs/benchmarks.md, "Options, measured").
+# in (docs/guide.md, "Rendering at other resolutions").
 GROW_GRAD2D = 0.8
 
 CameraList = Iterable[tuple[Tensor, Tensor, int, int]]  # (viewmat [4, 4], K [3, 3], width, height)

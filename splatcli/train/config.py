@@ -332,7 +332,7 @@ def _fast(cfg: TrainConfig) -> TrainConfig:
     PSNR-against-time curve stayed above the full-resolution one throughout).
     No opacity reset: with 4k steps of densifying, the reset at 3k leaves too few to win the
     model back (an object capture's held-out PSNR fell at the reset and never recovered; without
-    it, it ends at its best: docs/benchmarks.md, "Options, measured")."""
+    it, it ends at its best)."""
     cfg = replace(cfg, iterations=7000, checkpoint_every=1000, init_random_points=10_000, coarse_scale=0.25,
                   coarse_until=0.5)
     return _no_opacity_reset(cfg.with_refine(refine_stop=4000))

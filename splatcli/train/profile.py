@@ -59,7 +59,8 @@ class StepProfile:
         stages = {k: {"ms_per_step": round(1e3 * t.get(k, 0.0) / n, 3),
                       "share": round(t.get(k, 0.0) / total, 4) if total else 0.0} for k in ORDER}
         return {"steps": self.steps, "ms_per_step": round(1e3 * total / n, 3), "stages": stages,
-                "pairs_per_step": round(t.get("pairs", 0.0) / n), "cpu": cpu_name(), **extra}
+                "pairs_per_step": round(t.get("pairs", 0.0) / n), "slots": slot_shares(t, n), "cpu": cpu_name(),
+                **extra}
 
     def write(self, project: Project, extra: dict[str, Any]) -> None:
         if not self.enabled:
@@ -71,4 +72,19 @@ class StepProfile:
                  f"pairs a step; {r['cpu']}; {', '.join(f'{k} {v}' for k, v in extra.items())}.", "",
                  "| stage | ms a step | share |", "| --- | ---: | ---: |"]
         lines += [f"| {k} | {v['ms_per_step']:.2f} | {100 * v['share']:.1f}% |" for k, v in r["stages"].items()]
+        sl = r["slots"]
+        if sl["per_step"]:
+            lines += ["", f"The compositor's forward evaluated {sl['per_step']:,} (pixel, Gaussian) slots a step: "
+                      f"{100 * sl['below']:.1f}% below alpha 1/255, {100 * sl['ended']:.1f}% behind a pixel whose "
+                      f"transmittance had ended, {100 * sl['padding']:.1f}% padding past the end of a block's list; "
+                      f"{100 * sl['blended']:.1f}% blended."]
         atomic_write_text(project.profile_md_path, "\n".join(lines) + "\n")
+
+
+def slot_shares(totals: dict[str, float], steps: int) -> dict[str, float]:
+    """The compositor's dense slots a step and their shares (render/timing.py): below alpha 1/255,
+    behind an ended transmittance, padding, and blended (the rest)."""
+    n = totals.get("slots", 0.0)
+    shares = {k: round(totals.get(f"slots {k}", 0.0) / n, 4) if n else 0.0 for k in ("below", "ended", "padding")}
+    blended = round(1.0 - sum(shares.values()), 4) if n else 0.0
+    return {"per_step": round(n / max(steps, 1)), **shares, "blended": blended}
