@@ -56,5 +56,5 @@ def train(
         comm.close()  # on every path: gloo's threads must be gone before the interpreter exits
     how = " (appearance compensated)" if s.protocol == "compensated" else ""
     psnr = f", held-out PSNR {s.psnr:.2f} dB{how}" if s.psnr is not None else ""
-    ui.summary(s.to_json(), title=f"trained {s.steps} steps in {s.train_seconds:.0f} s{psnr}", lines=[
-        f"{s.num_gaussians} Gaussians, SH degree {s.sh_degree}, .ply {s.ply_bytes / 1e6:.2f} MB", f"checkpoint: {s.checkpoint}"])
+    ui.summary(s.to_json(), title=f"trained {s.steps} steps in {s.train_seconds:.0f} s{psnr}",
+               lines=[s.model_line(), f"checkpoint: {s.checkpoint}"])

@@ -2,7 +2,17 @@
 and the one set of ops that edits parameters, Adam moments and strategy state together."""
 
 from .base import Context, RefineConfig, RefineStats, RowState, Splats, StepInfo, Strategy
-from .compact import CompactConfig, CompactReport, CompactStep, ShAutoConfig, ShAutoStep, sh_degree_of
+from .compact import (
+                      CompactConfig,
+                      CompactReport,
+                      CompactStep,
+                      IdleConfig,
+                      IdleReport,
+                      IdleStep,
+                      ShAutoConfig,
+                      ShAutoStep,
+                      sh_degree_of,
+)
 from .default import DefaultStrategy, DefaultStrategyConfig, DefaultStrategyState
 from .mcmc import MCMCStrategy, MCMCStrategyConfig, MCMCStrategyState
 from .mip import MipFilter, MipFilterState
@@ -10,6 +20,6 @@ from .regularize import RegularizeStep
 from .support import SupportConfig, SupportPrune
 
 __all__ = ["CompactConfig", "CompactReport", "CompactStep", "Context", "DefaultStrategy", "DefaultStrategyConfig",
-           "DefaultStrategyState", "MCMCStrategy", "MCMCStrategyConfig", "MCMCStrategyState", "MipFilter",
+           "DefaultStrategyState", "IdleConfig", "IdleReport", "IdleStep", "MCMCStrategy", "MCMCStrategyConfig", "MCMCStrategyState", "MipFilter",
            "MipFilterState", "RefineConfig", "RefineStats", "RegularizeStep", "RowState", "ShAutoConfig",
            "ShAutoStep", "Splats", "StepInfo", "Strategy", "SupportConfig", "SupportPrune", "sh_degree_of"]
