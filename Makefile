@@ -60,7 +60,6 @@ demo: setup
 # Each benchmark writes bench/out/<name>.json (command, commit, date, CPU, load, rows) and prints its
 # table; none edits the docs.
 bench: setup
-	$(BIN)/python bench/rasterize.py
 	$(BIN)/python bench/peers.py --source "$(OPENSPLAT_SOURCE)"
 	$(BIN)/python bench/process.py
 	$(BIN)/python bench/train.py

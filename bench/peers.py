@@ -11,7 +11,7 @@ compiled by torch's own extension builder against the libtorch inside the pip
 torch wheel (g++ and ninja are needed; no OpenCV: the peer's image I/O is not timed).
 Where the peer cannot be built, the script says why and exits 0.
 
-Both sides render the issue-7 workloads (bench/workloads.py, as bench/rasterize.py) forward and backward:
+Both sides render the workloads of bench/workloads.py forward and backward:
 the peer as its model.cpp does on CPU (project, SH degree 0 colours, rasterize);
 ours through `splatcli.render.rasterize`. They alternate, rep by rep, at each
 thread count, so both see the same machine; medians are reported with the load

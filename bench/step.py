@@ -12,7 +12,9 @@ split by running it in three parts: the loss, the compositor and the projection.
 Stages as rasterize() runs them: *project* is the fused projection (cull, screen
 ellipses, SH colour, and the planner's per-Gaussian footprint: tile rects, depth
 order); *plan* is the block choice, the pair estimate and make_plan (per block row and
-per pair).
+per pair). With `--blocks 4,8,16` each block size is measured in turn (`model`: the cost model's pick).
+Beside the times, the compositor's dense slots (render/timing.py): the shares below alpha 1/255,
+behind a pixel whose transmittance had ended, and padding.
 Results: bench/out/step.json (common.report), the table printed.
 """
 
@@ -30,17 +32,18 @@ from common import report
 from splatcli.device import tune_allocator
 from splatcli.files.checkpoint import load_checkpoint
 from splatcli.project import Project
-from splatcli.render import kernels
+from splatcli.render import kernels, timing
 from splatcli.render.blocks import choose_block, estimate_pairs, extents
 from splatcli.render.composite import composite, make_plan
 from splatcli.render.projection import project
 from splatcli.train.data import load_train_data
 from splatcli.train.loss import photometric_loss
+from splatcli.train.profile import slot_shares
 
 STAGES = ("project", "plan", "composite", "loss", "loss bwd", "composite bwd", "project bwd")
 
 
-def step_times(p: dict, view, bg) -> tuple[dict, int]:
+def step_times(p: dict, view, bg, block: str = "model") -> tuple[dict, int]:
     """One step's stages (seconds) and its (Gaussian, block) pair count."""
     t, out = time.perf_counter(), {}
     W, H = view.camera.width, view.camera.height
@@ -55,7 +58,7 @@ def step_times(p: dict, view, bg) -> tuple[dict, int]:
     lap("project")
     fp = pr.footprint
     ext = extents(fp.cov2d, fp.opacities)
-    block = choose_block(ext, W, H)
+    block = choose_block(ext, W, H) if block == "model" else int(block)
     estimate_pairs(ext, block)  # rasterize's check for banding
     plan = make_plan(fp, W, H, block)
     lap("plan")
@@ -81,6 +84,7 @@ def main() -> None:
     ap.add_argument("--scales", default="0.25,0.5,1")
     ap.add_argument("--fractions", default="0.25,0.5,1", help="shares of the model's Gaussians")
     ap.add_argument("--views", type=int, default=12)
+    ap.add_argument("--blocks", default="model", help="block sizes to measure: model (the cost model's), 4, 8, 16")
     ap.add_argument("--compile", choices=("on", "off"), default="off", help="the rasterizer's compiled kernels")
     ap.add_argument("--allocator", choices=("tuned", "glibc"), default="tuned", help="tuned: as every splatcli command")
     args = ap.parse_args()
@@ -98,18 +102,22 @@ def main() -> None:
         n = max(1, round(frac * n_all))
         idx = torch.randperm(n_all, generator=torch.Generator().manual_seed(0))[:n]
         p = {k: v[idx].clone().requires_grad_(True) for k, v in full.items()}
-        for scale in [float(x) for x in args.scales.split(",")]:
+        for scale, block in [(float(x), b) for x in args.scales.split(",") for b in args.blocks.split(",")]:
             views = [v.at_scale(scale) for v in data.train[: args.views + 2]]
-            runs, pairs = [], []
+            runs, pairs, slots = [], [], {}
             for i, v in enumerate(views):
-                st, m = step_times(p, v, data.background)
+                timing.collect(slots if i >= 2 else None)
+                st, m = step_times(p, v, data.background, block)
                 if i >= 2:  # two warm-ups
                     runs.append(st)
                     pairs.append(m)
+            timing.collect(None)
             med = {k: 1e3 * statistics.median(r[k] for r in runs) for k in STAGES}
             size = f"{views[0].camera.width}x{views[0].camera.height}"
-            rows.append({"gaussians": n, "image": size, "pairs": statistics.median(pairs),
-                         **{f"{k} ms": med[k] for k in STAGES}, "total ms": sum(med.values())})
+            sl = slot_shares(slots, len(runs))
+            rows.append({"gaussians": n, "image": size, "block": block, "pairs": statistics.median(pairs),
+                         **{f"{k} ms": med[k] for k in STAGES}, "total ms": sum(med.values()),
+                         "slots": sl["per_step"], **{f"{k} %": round(100 * sl[k], 1) for k in ("below", "ended", "padding")}})
             print(rows[-1], flush=True)
     st = kernels.status()
     report("step", rows, project=args.project, max_size=args.max_size, views=args.views, compile=args.compile,

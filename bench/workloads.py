@@ -1,4 +1,4 @@
-"""The rasterizer benchmarks' workloads (issue 7), for bench/rasterize.py, bench/peers.py and
+"""The rasterizer benchmarks' workloads, for bench/peers.py and
 bench/gpu.py: seeded synthetic Gaussians, and garden's real points where the data is present."""
 
 from __future__ import annotations

@@ -5,9 +5,9 @@ text, the range or choices it must lie in, and, when it is on the command line, 
 `--help` heading it goes under. A nested config is a `section`. `table(ConfigClass)`
 flattens such a tree into named options; `apply`, `value` and `check` use it, `load`
 reads a stored (nested) config back, and the CLI builds its Typer options from the same
-table (cli/options.py). Nothing else lists the options. Setting options by name (`apply`)
-is the command line's edge alone (cli/train_config.py): the code past it edits the typed
-fields.
+table (cli/options.py). Nothing else lists the options. Taking options by name (`parse`, once, into a `Given`)
+is the command line's edge alone (cli/train_config.py): the code past it reads and edits the
+typed fields.
 
 Names: an option is named after its field, after the section's `prefix` when it has one
 (`compact_keep`, `mcmc_shrink`); the command line writes it as `--compact-keep`. A section
@@ -202,6 +202,30 @@ def apply(cfg: Any, options: dict[str, Any], *, strict: bool = True) -> Any:
             edits[o.path] = v
         cfg = _set(cfg, edits)
     return cfg
+
+
+@dataclass(frozen=True)
+class Given:
+    """Options given by name (the command line's), parsed once: `values` by name, and `typed`,
+    the root config's defaults with them applied and checked, where they are read by field."""
+
+    values: dict[str, Any]
+    typed: Any
+
+    def over(self, cfg: Any, leave: tuple[str, ...] = ()) -> Any:
+        """`cfg` with the options given set, but those named in `leave`."""
+        return apply(cfg, {k: v for k, v in self.values.items() if k not in leave})
+
+    def __contains__(self, name: str) -> bool:
+        return name in self.values
+
+
+def parse(root: type, given: dict[str, Any]) -> Given:
+    """The options `given` that are not None, text parsed as on the command line, set on `root()`'s
+    defaults and checked there (types, ranges, alternatives chosen: one-line SplatError)."""
+    typed = apply(root(), {k: v for k, v in given.items() if v is not None})
+    check(typed)
+    return Given({k: value(typed, k) for k, v in given.items() if v is not None}, typed)
 
 
 def _set(obj: Any, edits: dict[tuple[str, ...], Any]) -> Any:

@@ -20,7 +20,8 @@ import numpy as np
 import pytest
 import torch
 
-from splatcli.cli.train_config import make_config, resumed
+from splatcli.cli.planning import resumed
+from splatcli.cli.train_config import make_config
 from splatcli.errors import Interrupted, SplatError
 from splatcli.eval.metrics import color_fit, psnr, psnr_color_fit
 from splatcli.events import Progress
@@ -29,8 +30,10 @@ from splatcli.formats.ply import read_ply, write_ply
 from splatcli.formats.registry import write_format
 from splatcli.gaussians import Gaussians
 from splatcli.model import load_model
+from splatcli.options import parse
 from splatcli.render import rasterize
 from splatcli.train.appearance import Exposure, ExposureConfig, identity, smooth_basis
+from splatcli.train.config import TrainConfig
 from splatcli.train.loop import train
 from splatcli.train.loss import photometric_loss
 from splatcli.viewer import open_scene
@@ -228,7 +231,7 @@ def test_a_checkpoint_without_transforms_resumes_with_them_from_the_identity(tmp
     proj = _tiny(tmp_path)
     train(proj.root, make_config(**{**SMALL, "appearance": "none", "iterations": 6}), CPU)
     assert load_checkpoint(proj.latest_checkpoint()).appearance == {}
-    s = train(proj.root, resumed(proj, make_config(**SMALL), {"appearance": "exposure", "iterations": 10}), CPU,
+    s = train(proj.root, resumed(proj, make_config(**SMALL), parse(TrainConfig, {"appearance": "exposure", "iterations": 10})), CPU,
               resume=True)
     assert s.resumed_from == 6 and s.steps == 10
     t = load_checkpoint(proj.latest_checkpoint()).appearance["transforms"]

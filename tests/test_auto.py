@@ -12,11 +12,13 @@ import numpy as np
 import pytest
 import torch
 
+from splatcli import options
 from splatcli.camera import SceneData
 from splatcli.cli import planning
-from splatcli.cli.train_config import asked, make_config
+from splatcli.cli.train_config import make_config
 from splatcli.errors import SplatError
 from splatcli.project import holdout_split
+from splatcli.train.config import TrainConfig
 from support.tiny_project import make_tiny_project, run_cli
 
 CPU = torch.device("cpu")
@@ -32,7 +34,7 @@ def _chosen(c: planning.Chosen) -> dict:
 
 
 def _choose(proj, given: dict, nproc=None, device=CPU, resume=False) -> planning.Chosen:
-    return planning.choose(proj, asked(given), nproc, device, resume)
+    return planning.choose(proj, options.parse(TrainConfig, given), nproc, device, resume)
 
 
 def test_a_default_cpu_run_is_planned_into_minutes(proj, monkeypatch):

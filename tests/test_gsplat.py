@@ -146,8 +146,11 @@ def test_training_through_the_adapter_densifies_and_resumes_on_the_other_rendere
     gradient from gsplat's means2d, the result matches the PyTorch path's (the fake gsplat
     draws with it; only exp/log and sigmoid/logit round trips differ), and a run started on one
     renderer resumes on the other."""
-    from splatcli.cli.train_config import make_config, resumed
+    from splatcli.cli.planning import resumed
+    from splatcli.cli.train_config import make_config
+    from splatcli.options import parse
     from splatcli.project import Project
+    from splatcli.train.config import TrainConfig
     from splatcli.train.loop import train
     from support.tiny_project import make_tiny_project
 
@@ -173,7 +176,7 @@ def test_training_through_the_adapter_densifies_and_resumes_on_the_other_rendere
     assert abs(b.psnr - a.psnr) < 0.3  # the same model drawn the same way, up to float32 round trips
     back = train(tmp_path / "gsplat", resumed(Project.open(tmp_path / "gsplat"),
                                               make_config(**{**small, "iterations": 40}, renderer="torch"),
-                                              {"iterations": 40}), CPU, resume=True)
+                                              parse(TrainConfig, {"iterations": 40})), CPU, resume=True)
     assert (back.renderer, back.resumed_from, back.steps) == ("torch", 30, 40)
 
 

@@ -214,11 +214,12 @@ def test_the_filters_lower_the_growth_threshold_and_plain_training_keeps_it():
     """Under --mip-filter the default strategy grows at GROW_GRAD2D x grow_grad2d (the filters
     lower small Gaussians' view-space gradients), a user-set threshold included."""
     from splatcli.cli.train_config import make_config
-    from splatcli.strategy import Context, DefaultStrategy
+    from splatcli.strategy import DefaultStrategy
     from splatcli.strategy.mip import GROW_GRAD2D
     from splatcli.train.state import make_strategies
+    from support.context import context
 
-    ctx = Context(score=lambda *a: None, weights=lambda: torch.zeros(0), note=lambda m: None, cameras=lambda: [])
+    ctx = context()
 
     def threshold(**opts) -> float:
         (d,) = [s for s in make_strategies(make_config("fast", **opts), 1.0, ctx) if isinstance(s, DefaultStrategy)]

@@ -141,8 +141,7 @@ def test_presets_are_typed_and_leave_out_what_the_strategy_lacks():
 
 
 def _ctx():
-    import torch
 
-    from splatcli.strategy import Context
+    from support.context import context
 
-    return Context(score=lambda *a: None, weights=lambda: torch.zeros(0), note=lambda m: None)
+    return context()

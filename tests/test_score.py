@@ -14,11 +14,11 @@ from splatcli.eval.score import load_target, quantise, score_image
 from splatcli.gaussians import kept_count, top_by_weight
 from splatcli.inputs.images import composite, paint_masked
 from splatcli.project import holdout_split
-from splatcli.strategy import Context
 from splatcli.strategy.base import Splats
 from splatcli.strategy.compact import CompactConfig, CompactState, CompactStep
 from splatcli.train.data import load_train_data
 from splatcli.views.sources import dataset_views
+from support.context import context
 from support.tiny_project import make_tiny_project, tiny_gaussians
 
 CPU = torch.device("cpu")
@@ -200,7 +200,7 @@ def test_top_by_weight_ties_and_compact_agrees_with_eval() -> None:
     assert len(kept) == kept_count(200, 1 / 3) == 67
     params = {"means": torch.nn.Parameter(g.means.clone())}
     splats = Splats(params, {"means": torch.optim.Adam(params.values())})
-    ctx = Context(score=lambda which, degree: None, weights=lambda: weight, note=lambda m: None)
+    ctx = context(weight)
     step = CompactStep(CompactConfig(enabled=True, keep=1 / 3, finetune=0, rounds=1), 10, ctx)
     step.catch_up(splats, CompactState(), 10)  # the one cut of a resumed run
     assert torch.equal(splats.params["means"].detach(), kept.means)

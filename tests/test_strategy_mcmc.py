@@ -299,10 +299,11 @@ def test_opacity_and_scale_reg_are_a_step_of_their_own_for_the_default_strategy(
     """--opacity-reg / --scale-reg add the same penalties to a default-strategy run (a
     RegularizeStep after density control), and none when they are 0 (the default)."""
     from splatcli.cli.train_config import make_config
-    from splatcli.strategy import Context, RegularizeStep
+    from splatcli.strategy import RegularizeStep
     from splatcli.train.state import make_strategies
+    from support.context import context
 
-    ctx = Context(score=lambda *a: None, weights=lambda: torch.zeros(0), note=lambda m: None)
+    ctx = context()
     assert not any(isinstance(s, RegularizeStep) for s in make_strategies(make_config("fast"), 1.0, ctx))
     strategies = make_strategies(make_config("fast", opacity_reg=0.5, scale_reg=0.25), 1.0, ctx)
     (step,) = [s for s in strategies if isinstance(s, RegularizeStep)]

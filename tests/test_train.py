@@ -15,15 +15,18 @@ from typer.testing import CliRunner
 
 import splatcli.train.loop as train_mod
 from splatcli.cli.main import app
-from splatcli.cli.train_config import make_config, resumed
+from splatcli.cli.planning import resumed
+from splatcli.cli.train_config import make_config
 from splatcli.errors import Interrupted, SplatError, TrainingDiverged
 from splatcli.eval.evaluate import EvalConfig, plan_eval, run_eval
 from splatcli.eval.score import REPORTED
 from splatcli.events import Progress
 from splatcli.files.checkpoint import load_checkpoint, load_gaussians
 from splatcli.formats.ply import ply_bytes
+from splatcli.options import parse
 from splatcli.project import Project
 from splatcli.render import rasterize
+from splatcli.train.config import TrainConfig
 from splatcli.train.log import read_log
 from splatcli.train.loop import train
 from support.tiny_project import make_tiny_project
@@ -223,7 +226,7 @@ def test_finished_run_resumed_with_compact_equals_a_compact_run(tmp_path, uninte
     # ... compacted afterwards. The stored config holds the default compact_finetune;
     # --compact given on resume brings the resuming invocation's setting (8) with it.
     assert make_config(**SMALL).compact.finetune != 8
-    sb = train(b.root, resumed(b, make_config(**SMALL, compact_finetune=8), {"compact": True, "sh_degree": "auto"}),
+    sb = train(b.root, resumed(b, make_config(**SMALL, compact_finetune=8), parse(TrainConfig, {"compact": True, "sh_degree": "auto"})),
                CPU, resume=True)
     assert sb.steps == sa.steps and sb.compact.before_count == sa.compact.before_count
     _, pa = _params(a.latest_checkpoint())
@@ -344,11 +347,11 @@ def test_a_finished_planned_run_resumed_with_more_time_trains_on_to_the_new_budg
     template = {**SMALL, "iterations": 3000, "refine_start": 300, "refine_every": 100, "refine_stop": 2000}
     first = train(proj.root, make_config(**template, time_budget=2.0), CPU)
     notes = []
-    more = train(proj.root, resumed(proj, make_config(**template, time_budget=4.0), {"time_budget": 4.0}), CPU,
+    more = train(proj.root, resumed(proj, make_config(**template, time_budget=4.0), parse(TrainConfig, {"time_budget": 4.0})), CPU,
                  resume=True, on_event=notes.append)
     assert more.steps > first.steps and 2.0 < more.train_seconds <= 1.25 * 4.0
     assert any("extending the run to 4 s" in getattr(n, "message", "") for n in notes)
-    again = train(proj.root, resumed(proj, make_config(**template, time_budget=4.0), {"time_budget": 4.0}), CPU,
+    again = train(proj.root, resumed(proj, make_config(**template, time_budget=4.0), parse(TrainConfig, {"time_budget": 4.0})), CPU,
                   resume=True)
     assert again.steps == more.steps
 

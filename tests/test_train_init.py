@@ -267,11 +267,11 @@ def test_views_seeing_counts_frustums_and_prune_views_drops_the_rest(tmp_path):
 def test_support_prune_drops_what_few_views_see_on_the_refinement_schedule():
     from torch import nn
 
-    from splatcli.strategy import Context, Splats, SupportConfig, SupportPrune
+    from splatcli.strategy import Splats, SupportConfig, SupportPrune
+    from support.context import context
 
     seen = torch.tensor([5, 1, 3, 0], dtype=torch.int32)
-    ctx = Context(score=lambda *a: None, weights=lambda: torch.zeros(0), note=lambda m: None,
-                  views_seeing=lambda means: seen[: len(means)])
+    ctx = context(seeing=lambda means: seen[: len(means)])
     params = {"means": nn.Parameter(torch.arange(4.0)[:, None].repeat(1, 3))}
     sp = Splats(params, {"means": torch.optim.Adam([params["means"]])}, [])
     s = SupportPrune(SupportConfig(prune_views=3), 100, 400, 100, ctx)

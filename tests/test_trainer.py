@@ -9,10 +9,10 @@ import pytest
 import torch
 
 from splatcli.cli.train_config import make_config
-from splatcli.strategy import Context
 from splatcli.train.data import load_train_data
 from splatcli.train.state import means_lr, new_state
 from splatcli.train.trainer import Trainer, _all_finite
+from support.context import context
 from support.tiny_project import make_tiny_project, tiny_gaussians
 
 REPO = Path(__file__).resolve().parents[1]
@@ -29,7 +29,7 @@ def _trainer(tmp_path, **opts) -> Trainer:
     gen = torch.Generator().manual_seed(3)
     g.means += torch.randn(g.means.shape, generator=gen) * 0.05
     g.sh[:, 0] += torch.randn(g.sh[:, 0].shape, generator=gen) * 0.5
-    ctx = Context(score=lambda *a: None, weights=lambda: torch.zeros(0), note=lambda m: None)
+    ctx = context()
     return Trainer(new_state(g, cfg, data.extent, CPU, len(data.train), ctx), cfg, data, ctx)
 
 

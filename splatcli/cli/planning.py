@@ -11,9 +11,9 @@ model, at a training size that grows with the budget beyond the default one
 its reason (train.json's `chosen`). On CUDA nothing is chosen: the paper's schedule.
 
 What was given comes in typed (`Asked`: a field per option a choice yields to, None where not
-given, which cli/train_config.py builds from the command line), and what is chosen goes out
+given, read by field from the options cli/train_config.py parsed: `Asked.of`), and what is chosen goes out
 typed (`Chosen`: the preset and strategy a config starts from, and values `Chosen.applied`
-sets with `replace`). The processes of `train --nproc` are sent the config itself
+sets with `replace`); `build` makes the one config a run trains. The processes of `train --nproc` are sent the config itself
 (`Chosen.env`), not the choices as words to parse again. train/ never calls back here.
 """
 
@@ -27,9 +27,11 @@ from typing import Any, TypeVar
 
 import torch
 
+from .. import options
+from ..files.checkpoint import read_checkpoint_config
 from ..project import Project
 from ..sfm.colmap import read_project_scene
-from ..train.config import TrainConfig
+from ..train.config import TrainConfig, preset_config
 
 BUDGET_S = 600.0  # training seconds of a default CPU run: with loading and the last evaluation, ends within 15 min
 MAX_SIZE = 480  # px, the longest side a default CPU run trains at
@@ -55,7 +57,7 @@ T = TypeVar("T")
 
 @dataclass(frozen=True)
 class Asked:
-    """What the command line gave that `choose` decides around (cli/train_config.py builds it):
+    """What the command line gave that `choose` decides around (`of` the options parsed):
     each option a choice yields to, None where not given."""
 
     preset: str | None = None
@@ -67,6 +69,19 @@ class Asked:
     max_gaussians: int | None = None
     downscale: float = 1.0  # given or the default: the training size is chosen in its units
     mcmc_fits: bool = True  # every option given applies to --strategy mcmc (none is the default strategy's alone)
+
+    @classmethod
+    def of(cls, given: options.Given) -> Asked:
+        """The options given that a choice yields to, read by field from the parsed options."""
+        t, mcmc = given.typed, replace(TrainConfig(), strategy="mcmc")
+        return cls(preset=t.preset if "preset" in given else None,
+                   iterations=t.iterations if "iterations" in given else None,
+                   time_budget=t.time_budget if "time_budget" in given else None,
+                   max_size=t.max_size if "max_size" in given else None,
+                   appearance=t.appearance if "appearance" in given else None,
+                   strategy=t.strategy if "strategy" in given else None,
+                   max_gaussians=options.value(t, "max_gaussians") if "max_gaussians" in given else None,
+                   downscale=t.downscale, mcmc_fits=all(options.resolve(mcmc, k) is not None for k in given.values))
 
 
 @dataclass(frozen=True)
@@ -81,7 +96,7 @@ class Chosen:
     """What `choose` chose for options not given (None: not chosen), typed; the processes to
     run; and each choice with its reason, in the order made (train.json's `chosen`). A config
     starts from the preset and strategy chosen (config.preset_config) and takes the rest
-    from `applied`; the options given go on top (cli/train_config.py)."""
+    from `applied`; the options given go on top (`build`)."""
 
     nproc: int | None = None  # data-parallel processes, given or chosen (None: one, in this process)
     preset: str | None = None
@@ -187,11 +202,37 @@ def train_size(budget_s: float) -> int:
     return int(round(MAX_SIZE * max(1.0, (budget_s / BUDGET_S) ** 0.5), -1))
 
 
-def choose(project: Project, asked: Asked, nproc: int | None, device: torch.device,
+def build(given: options.Given, chosen: Chosen, device: str, renderer: str) -> TrainConfig:
+    """The config a run trains: the preset and strategy given (else chosen, else the defaults'),
+    what else was `chosen`, then every option given on top, for `device` and `renderer`; checked."""
+    t = given.typed
+    cfg = preset_config(t.preset if "preset" in given else chosen.preset or "default",
+                        t.strategy if "strategy" in given else chosen.strategy or "default",
+                        device=device, renderer=renderer)
+    return given.over(chosen.applied(cfg)).checked()
+
+
+def resumed(project: Project, cfg: TrainConfig, given: options.Given) -> TrainConfig:
+    """What `train --resume` goes on with: the run's stored config (its latest checkpoint's) with
+    the options given on top, but the preset and the seed (the run's own), on `cfg`'s device and
+    renderer (either renderer resumes either's run); `cfg` itself where there is no checkpoint yet."""
+    path = project.latest_checkpoint()
+    if path is None:
+        return cfg
+    stored = TrainConfig.from_dict(read_checkpoint_config(path), where=f"{path}: stored train config")
+    new = given.over(stored, leave=("preset", "seed")).checked()
+    if new.compact.enabled and not stored.compact.enabled:
+        # --compact added on resume brings its own settings (this version's), not the ones stored unused with the run
+        new = replace(new, compact=replace(cfg.compact, enabled=True))
+    return replace(new, device=cfg.device, renderer=cfg.renderer)
+
+
+def choose(project: Project, given: options.Given, nproc: int | None, device: torch.device,
            resume: bool = False) -> Chosen:
-    """What to choose for a run of `project` on `device` beside the options `asked`
-    (module docstring); `nproc` as given. Each choice yields to its option given."""
+    """What to choose for a run of `project` on `device` beside the options `given` (module
+    docstring); `nproc` as given. Each choice yields to its option given."""
     out = Chosen(nproc)
+    asked = Asked.of(given)
     if device.type != "cpu" or resume:
         return out
     default_run = asked.preset is None and asked.iterations is None and asked.time_budget is None

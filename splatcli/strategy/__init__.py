@@ -1,7 +1,7 @@
 """Density and model control: when to clone, split, prune, reset and compact Gaussians,
 and the one set of ops that edits parameters, Adam moments and strategy state together."""
 
-from .base import Context, RefineConfig, RefineStats, RowState, Splats, StepInfo, Strategy
+from .base import Context, Evaluator, RefineConfig, RefineStats, RowState, Splats, StepInfo, Strategy, TrainViews
 from .compact import (
                       CompactConfig,
                       CompactReport,
@@ -20,6 +20,6 @@ from .regularize import RegularizeStep
 from .support import SupportConfig, SupportPrune
 
 __all__ = ["CompactConfig", "CompactReport", "CompactStep", "Context", "DefaultStrategy", "DefaultStrategyConfig",
-           "DefaultStrategyState", "IdleConfig", "IdleReport", "IdleStep", "MCMCStrategy", "MCMCStrategyConfig", "MCMCStrategyState", "MipFilter",
+           "DefaultStrategyState", "Evaluator", "IdleConfig", "IdleReport", "IdleStep", "MCMCStrategy", "MCMCStrategyConfig", "MCMCStrategyState", "MipFilter",
            "MipFilterState", "RefineConfig", "RefineStats", "RegularizeStep", "RowState", "ShAutoConfig",
-           "ShAutoStep", "Splats", "StepInfo", "Strategy", "SupportConfig", "SupportPrune", "sh_degree_of"]
+           "ShAutoStep", "Splats", "StepInfo", "Strategy", "SupportConfig", "SupportPrune", "TrainViews", "sh_degree_of"]

@@ -18,7 +18,7 @@ import dataclasses
 import hashlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Protocol
 
 import torch
 from torch import Tensor, nn
@@ -128,23 +128,37 @@ class RefineStats:
         return self.cloned + self.split + self.pruned > 0 or self.reset_opacity
 
 
+class Evaluator(Protocol):
+    """Scores and weighs the model a run is training (the loop gives one; strategies never
+    import the trainer). Every rank gets the same answers."""
+
+    def score(self, views: str, sh_degree: int) -> tuple[float, float] | None:
+        """Mean (PSNR, SSIM) on `views`: "test", or "val:K" (K evenly spaced training views); None
+        when there are no such views."""
+
+    def weights(self) -> Tensor:
+        """[N] each Gaussian's blending weight summed over the training views (pixels)."""
+
+
+@dataclass(frozen=True)
+class TrainViews:
+    """The training views, as a strategy sees them."""
+
+    cameras: list[tuple[Tensor, Tensor, int, int]] = field(default_factory=list)  # (viewmat, K, width, height) each
+    centres: Tensor | None = None  # [n_train, 3] the cameras' centres (Camera.center), in training-view order
+    center: Tensor | None = None  # [3] their centre (far content is judged by distance from it)
+    # means [N, 3] -> [N] how many training views hold each point in their frustum
+    seeing: Callable[[Tensor], Tensor] = lambda means: torch.zeros(len(means))
+
+
 @dataclass(frozen=True)
 class Context:
-    """What a step acting on the whole model may ask of the run (the loop provides it,
-    so strategies never import the trainer)."""
+    """What a step acting on the whole model is given: the run's evaluator, the training views,
+    and a way to tell the user a line."""
 
-    # (views, SH degree) -> mean held-out (PSNR, SSIM); views are "test", or "val:K"
-    # (K evenly spaced training views); None when there are no such views.
-    score: Callable[[str, int], tuple[float, float] | None]
-    weights: Callable[[], Tensor]  # -> [N] total blending weight of each Gaussian over the training views
-    note: Callable[[str], None]  # a line for the user
-    center: Tensor | None = None  # [3] the training cameras' centre (far content is judged by distance from it)
-    # means [N, 3] -> [N] how many training views hold each point in their frustum
-    views_seeing: Callable[[Tensor], Tensor] = lambda means: torch.zeros(len(means))
-    # -> (viewmat [4, 4], K [3, 3], width, height) of every training view at the training resolution
-    cameras: Callable[[], list[tuple[Tensor, Tensor, int, int]]] = lambda: []
-    # -> [n_train, 3] the training cameras' centres (Camera.center), in training-view order
-    centres: Callable[[], Tensor | None] = lambda: None
+    evaluator: Evaluator
+    views: TrainViews = field(default_factory=TrainViews)
+    note: Callable[[str], None] = lambda line: None
 
 
 class Strategy:

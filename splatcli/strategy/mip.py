@@ -17,7 +17,7 @@ since (their `known` row is 0), before the next render and after each step.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -85,7 +85,7 @@ class MipFilter(Strategy):
     name = "mip"
     antialiased = True
 
-    def __init__(self, cameras: Callable[[], CameraList]) -> None:
+    def __init__(self, cameras: CameraList) -> None:
         self.cameras = cameras  # the training views at the training resolution
 
     def initial_state(self, n: int, device: torch.device, seed: int = 0) -> MipFilterState:
@@ -110,11 +110,11 @@ class MipFilter(Strategy):
             return
         means = splats.params["means"].detach()
         if bool(todo.all()):
-            f = filter_from_rate(sampling_rate(means, self.cameras()))
+            f = filter_from_rate(sampling_rate(means, self.cameras))
         else:
             idx = todo.nonzero().squeeze(1)
             old = state.filter3d[~todo]
-            f = filter_from_rate(sampling_rate(means[idx], self.cameras()), float(old.max()) if old.numel() else None)
+            f = filter_from_rate(sampling_rate(means[idx], self.cameras), float(old.max()) if old.numel() else None)
             f = state.filter3d.index_put((idx,), f.to(state.filter3d))
         state.filter3d = f.to(state.filter3d)
         state.known = torch.ones_like(state.known)

@@ -31,7 +31,7 @@ class SupportPrune(Strategy):
         if not (self.refine_start < step <= self.refine_stop and step % self.refine_every == 0):
             return None
         n = len(splats)
-        seen = self.ctx.views_seeing(splats.params["means"].detach())
+        seen = self.ctx.views.seeing(splats.params["means"].detach())
         drop = seen < self.config.prune_views
         stats = RefineStats(step=step, before=n, pruned=int(drop.sum()), after=n)
         if stats.pruned and stats.pruned < n:

@@ -42,7 +42,6 @@ file see the scene alone.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -97,9 +96,9 @@ class ImageModel:
 
 
 def make_image_model(cfg: Any, n: int, device: torch.device,
-                     centres: Callable[[], Tensor | None]) -> ImageModel:  # -> [n, 3]: the training cameras'
+                     centres: Tensor | None) -> ImageModel:  # centres [n, 3]: the training cameras'
     """The image model a TrainConfig's --appearance names, for `n` training images."""
-    return Exposure(n, cfg.exposure, device, centres()) if cfg.appearance == "exposure" else ImageModel()
+    return Exposure(n, cfg.exposure, device, centres) if cfg.appearance == "exposure" else ImageModel()
 
 
 class Exposure(ImageModel):

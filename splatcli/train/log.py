@@ -246,8 +246,9 @@ def finish(project: Project, cfg: TrainConfig, state: TrainState, resumed_from: 
         chosen=chosen or None,
         quantisation=REPORTED,
         protocol=cfg.heldout_protocol,
-        compiled=state.compiled,
-        blocks=state.block.summary() if isinstance(state.block, BlockTuner) and state.block.calls else None,
+        compiled=state.render.compiled,
+        blocks=state.render.block.summary() if isinstance(state.render.block, BlockTuner) and state.render.block.calls
+        else None,
         **owned,
     )
     if not comm.main:

@@ -32,7 +32,7 @@ from ..render.backends import rasterizer
 from ..render.blocks import BlockTuner
 from ..render.weights import blending_weights
 from ..sfm.colmap import read_project_scene
-from ..strategy import Context, StepInfo
+from ..strategy import Context, StepInfo, TrainViews
 from . import log
 from .compiling import compile_mode
 from .config import TrainConfig, TrainSummary
@@ -41,7 +41,7 @@ from .distributed import Comm
 from .init import initial_gaussians
 from .memory import check_memory, is_out_of_memory, plan_memory
 from .profile import StepProfile
-from .state import TrainState, new_state, save_state, state_from_checkpoint, time_plan
+from .state import RenderSettings, TrainState, new_state, save_state, state_from_checkpoint, time_plan
 from .trainer import Trainer, render_view
 
 STAGE = "train"
@@ -139,7 +139,7 @@ def _compile(cfg: TrainConfig, device: torch.device, on_event: EventSink | None)
 
 def _compiled_record(state: TrainState, on_event: EventSink | None) -> None:
     """The compile's figures into the run's record; a fallback to eager said once."""
-    rec, st = state.compiled, kernels.status()
+    rec, st = state.render.compiled, kernels.status()
     if rec is None or rec["mode"] != "on":
         return
     if st.failed and not rec.get("failed"):
@@ -172,12 +172,15 @@ class _Run:
         if plan is not None:
             self.base = plan.tuned(self.base)  # (its learning rates from the first step)
         data, comm, run = self.data, self.comm, self.base.for_world(self.comm.world)  # the schedule K ranks follow
+        render = RenderSettings(rasterizer(self.base.renderer), BlockTuner() if self.base.block == "auto" else (
+            "auto" if self.base.block == "model" else int(self.base.block)),
+            _compile(self.base, device, self.on_event if comm.main else None))
         if ck is None:
             state = new_state(initial_gaussians(self.base, data, device), run, data.extent, device, len(data.train),
-                              self.ctx, comm.world)
+                              self.ctx, comm.world, plan, render)
         else:
-            state = state_from_checkpoint(ck, run, data.extent, device, len(data.train), self.ctx, comm.world)
-        state.plan = plan
+            state = state_from_checkpoint(ck, run, data.extent, device, len(data.train), self.ctx, comm.world, plan,
+                                          render)
         self.trainer = Trainer(state, run, data, self.ctx, comm, self.prof)
         if ck is not None:
             self._extend()
@@ -185,10 +188,6 @@ class _Run:
                 log.trim_log(self.project.train_log_path, ck.step)
         elif comm.main:
             log.start_fresh(self.project, self.on_event)
-        state.draw = rasterizer(self.base.renderer)
-        state.block = BlockTuner() if self.base.block == "auto" else (
-            "auto" if self.base.block == "model" else int(self.base.block))
-        state.compiled = _compile(self.base, device, self.on_event if comm.main else None)
         comm.broadcast_params(state.trainable())  # identical from the first step, whatever each rank computed
 
     def _extend(self) -> None:
@@ -217,7 +216,7 @@ class _Run:
             self._step(t.state.step + 1)
         emit(self.on_event, StageDone(STAGE, t.state.elapsed_s))
         if comm.main:
-            self.prof.write(self.project, {"nproc": comm.world, "compile": (t.state.compiled or {}).get("mode", "off")})
+            self.prof.write(self.project, {"nproc": comm.world, "compile": (t.state.render.compiled or {}).get("mode", "off")})
 
     def _step(self, step: int) -> None:
         """Step `step` and what follows it."""
@@ -330,31 +329,37 @@ class _Run:
             raise _out_of_memory_error(self.project, self.base, self.trainer.state, step, exc, whole) from None
 
     def _context(self) -> Context:
-        """What the strategies may ask of this run; the ranks share the views and combine
-        the answers, so every rank gets the same one."""
+        """What the strategies are given: this run's evaluator and training views (the ranks share
+        the views and combine the answers, so every rank gets the same ones)."""
         data = self.data
         center = torch.as_tensor(data.center, dtype=torch.float32, device=data.background.device)
-        return Context(score=self._score, weights=self._weights, note=lambda m: emit(self.on_event, Note(m)),
-                       center=center, views_seeing=lambda means: views_seeing(data.train, means),
-                       cameras=lambda: [(v.viewmat, v.K, v.camera.width, v.camera.height) for v in data.train],
-                       centres=lambda: torch.from_numpy(np.stack([v.camera.center for v in data.train])))
+        views = TrainViews(cameras=[(v.viewmat, v.K, v.camera.width, v.camera.height) for v in data.train],
+                           centres=torch.from_numpy(np.stack([v.camera.center for v in data.train])), center=center,
+                           seeing=lambda means: views_seeing(data.train, means))
+        return Context(_RunEvaluator(self), views, note=lambda m: emit(self.on_event, Note(m)))
 
-    def _score(self, which: str, sh_degree: int) -> tuple[float, float] | None:
-        """Context.score: "test", or "val:K": K evenly spaced training views, each through its own colour transform."""
-        data = self.data
-        if which == "test":
-            return evaluate_views(self.trainer.state, data.test, data.background, sh_degree, self.comm,
-                                  compensated=self.trainer.cfg.heldout_protocol == "compensated") if data.test else None
-        idx = subset(list(range(len(data.train))), int(which.split(":")[1]))
-        return evaluate_views(self.trainer.state, [data.train[i] for i in idx], data.background, sh_degree, self.comm,
-                              idx)
 
-    def _weights(self) -> Tensor:  # [N]
-        """Context.weights: each Gaussian's blending weight summed over the training views."""
-        p = self.trainer.state.params
-        return self.comm.total(blending_weights(p["means"], p["quats"], p["log_scales"], p["opacity_logits"],
-                                                ((v.viewmat, v.K, v.camera.width, v.camera.height)
-                                                 for v in self.comm.share(self.data.train))))
+class _RunEvaluator:
+    """The run's strategy.Evaluator: held-out and training-view scores, blending weights."""
+
+    def __init__(self, run: _Run) -> None:
+        self.run = run
+
+    def score(self, views: str, sh_degree: int) -> tuple[float, float] | None:
+        """"test", or "val:K": K evenly spaced training views, each through its own colour transform."""
+        data, trainer, comm = self.run.data, self.run.trainer, self.run.comm
+        if views == "test":
+            return evaluate_views(trainer.state, data.test, data.background, sh_degree, comm,
+                                  compensated=trainer.cfg.heldout_protocol == "compensated") if data.test else None
+        idx = subset(list(range(len(data.train))), int(views.split(":")[1]))
+        return evaluate_views(trainer.state, [data.train[i] for i in idx], data.background, sh_degree, comm, idx)
+
+    def weights(self) -> Tensor:  # [N]
+        """Each Gaussian's blending weight summed over the training views."""
+        p, comm = self.run.trainer.state.params, self.run.comm
+        return comm.total(blending_weights(p["means"], p["quats"], p["log_scales"], p["opacity_logits"],
+                                           ((v.viewmat, v.K, v.camera.width, v.camera.height)
+                                            for v in comm.share(self.run.data.train))))
 
 
 def _agreed_stop(comm: Comm, stop: threading.Event) -> bool:

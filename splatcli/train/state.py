@@ -42,6 +42,15 @@ from .config import TrainConfig
 from .plan import TimePlan
 
 
+@dataclass(frozen=True)
+class RenderSettings:
+    """How a run draws its training views, fixed when the run starts."""
+
+    draw: Rasterizer = rasterize  # the renderer (render/backends.py): rasterize's signature and result
+    block: int | str | BlockTuner = "auto"  # --block: rasterize's block= (a size, "auto": the cost model's, or a tuner)
+    compiled: dict[str, Any] | None = None  # --compile: what was resolved, and the compile's figures (train.json)
+
+
 @dataclass
 class TrainState:
     splats: Splats  # parameters, Adam, and the strategies' rows (states[i] belongs to strategies[i])
@@ -58,9 +67,7 @@ class TrainState:
     refine_acc: dict[str, int] = field(default_factory=dict)  # cloned / split / pruned since the last log line
     plan: TimePlan | None = None  # --time-budget
     image_model: ImageModel = field(default_factory=ImageModel)  # --appearance: between a render and its photo
-    draw: Rasterizer = rasterize  # the renderer (render/backends.py): rasterize's signature and result
-    compiled: dict[str, Any] | None = None  # --compile: what was resolved, and the compile's figures (train.json)
-    block: int | str | BlockTuner = "auto"  # --block: rasterize's block= (a size, "auto": the cost model's, or a tuner)
+    render: RenderSettings = field(default_factory=RenderSettings)
 
     @property
     def params(self) -> dict[str, nn.Parameter]:
@@ -139,12 +146,12 @@ def make_strategies(cfg: TrainConfig, extent: float, ctx: Context) -> list[Strat
     if cfg.strategy == "mcmc":
         density: Strategy = MCMCStrategy(replace(cfg.mcmc, refine_stop=stop),
                                          min(cfg.iterations, round(cfg.mcmc.relocate_until * cfg.iterations)),
-                                         round(cfg.mcmc.reg_until * cfg.iterations), views=len(ctx.cameras()))
+                                         round(cfg.mcmc.reg_until * cfg.iterations), views=len(ctx.views.cameras))
     else:
         # With far points (--init-far) the size limit is an angle: far Gaussians may be large.
         grow = cfg.default.grow_grad2d * (MIP_GROW_GRAD2D if cfg.mip_filter else 1.0)
         density = DefaultStrategy(replace(cfg.default, refine_stop=stop, grow_grad2d=grow), extent,
-                                  ctx.center if cfg.init_far else None)
+                                  ctx.views.center if cfg.init_far else None)
     out: list[Strategy] = [density]
     if cfg.strategy == "default" and (cfg.default.opacity_reg > 0 or cfg.default.scale_reg > 0):
         out.append(RegularizeStep(cfg.default.opacity_reg, cfg.default.scale_reg))  # mcmc applies its own
@@ -157,7 +164,7 @@ def make_strategies(cfg: TrainConfig, extent: float, ctx: Context) -> list[Strat
     if cfg.compact.enabled:
         out.append(CompactStep(cfg.compact, cfg.iterations, ctx))
     if cfg.mip_filter:  # last: it filters the Gaussians the others left
-        out.append(MipFilter(ctx.cameras))
+        out.append(MipFilter(ctx.views.cameras))
     return out
 
 
@@ -196,7 +203,8 @@ def _params(g: Gaussians, names: list[str]) -> dict[str, nn.Parameter]:
 
 
 def new_state(g: Gaussians, cfg: TrainConfig, extent: float, device: torch.device, n_train: int,
-              ctx: Context, world: int = 1) -> TrainState:
+              ctx: Context, world: int = 1, plan: TimePlan | None = None,
+              render: RenderSettings = RenderSettings()) -> TrainState:
     """A fresh run from initial Gaussians `g` (SH at the trained degree)."""
     g = g.with_sh_degree(cfg.max_sh_degree).to(device, torch.float32)
     names = ["means", "quats", "log_scales", "opacity_logits", "sh0"] + (["shN"] if cfg.max_sh_degree > 0 else [])
@@ -208,7 +216,7 @@ def new_state(g: Gaussians, cfg: TrainConfig, extent: float, device: torch.devic
     return TrainState(splats=splats, strategies=strategies, view_gen=view_gen,
                       perm=torch.randperm(n_train, generator=view_gen), pos=0, world=world,
                       loss_acc=torch.zeros(2, dtype=torch.float64, device=device),
-                      image_model=make_image_model(cfg, n_train, device, ctx.centres))
+                      image_model=make_image_model(cfg, n_train, device, ctx.views.centres), plan=plan, render=render)
 
 
 def save_state(path: Path, state: TrainState, cfg: TrainConfig) -> Path:
@@ -238,7 +246,8 @@ def save_state(path: Path, state: TrainState, cfg: TrainConfig) -> Path:
 
 
 def state_from_checkpoint(ck: Checkpoint, cfg: TrainConfig, extent: float, device: torch.device, n_train: int,
-                          ctx: Context, world: int = 1) -> TrainState:
+                          ctx: Context, world: int = 1, plan: TimePlan | None = None,
+                          render: RenderSettings = RenderSettings()) -> TrainState:
     """Rebuild the exact state a checkpoint was written from (strategies the
     checkpoint has no state for, such as --compact or --appearance added on resume,
     start fresh; `n_train` training views),
@@ -265,7 +274,7 @@ def state_from_checkpoint(ck: Checkpoint, cfg: TrainConfig, extent: float, devic
         torch.set_rng_state(ck.rng["torch"])
     if "cuda" in ck.rng and torch.cuda.is_available() and device.type == "cuda":
         torch.cuda.set_rng_state_all(ck.rng["cuda"])
-    image_model = make_image_model(cfg, n_train, device, ctx.centres)
+    image_model = make_image_model(cfg, n_train, device, ctx.views.centres)
     if ck.appearance.get("kind") == image_model.name:  # (a model added on resume starts fresh)
         image_model.load_state_dict(ck.appearance, str(ck.path))
     return TrainState(
@@ -282,6 +291,8 @@ def state_from_checkpoint(ck: Checkpoint, cfg: TrainConfig, extent: float, devic
         loss_acc=ex.get("loss_acc", torch.zeros(2, dtype=torch.float64)).to(device),
         refine_acc={k: int(v) for k, v in (ex.get("refine_acc") or {}).items()},
         image_model=image_model,
+        plan=plan,
+        render=render,
     )
 
 

@@ -49,9 +49,9 @@ class StepStats:
 def render_view(state: TrainState, view: TrainView, bg: Tensor, sh_degree: int) -> RenderOutput:  # bg [3]
     """The current Gaussians seen from `view` at the training resolution."""
     g = state.drawn()
-    return state.draw(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh, view.viewmat, view.K,
+    return state.render.draw(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh, view.viewmat, view.K,
                       view.camera.width, view.camera.height, bg, sh_degree=sh_degree, antialiased=state.antialiased,
-                      block=state.block, check=False)  # the step checks every gradient for non-finite values
+                      block=state.render.block, check=False)  # the step checks every gradient for non-finite values
 
 
 class Trainer:
