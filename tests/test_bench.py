@@ -16,7 +16,7 @@ SCRIPTS = sorted(p.stem for p in BENCH.glob("*.py") if "\ndef main(" in p.read_t
 
 
 def test_the_scripts_are_found():
-    assert set(SCRIPTS) == {"distributed", "formats", "gpu", "peers", "poses", "process", "rasterize", "step", "train"}
+    assert set(SCRIPTS) == {"distributed", "formats", "gpu", "peer_train", "peers", "poses", "process", "step", "train"}
 
 
 @pytest.mark.parametrize("name", SCRIPTS)

@@ -128,7 +128,7 @@ def _splats(g: Gaussians) -> Splats:
 def test_filter_rows_follow_ops_and_new_rows_are_computed_before_drawing():
     g = tiny_gaussians(50)
     cams = _cams(torch.float32)
-    mip = MipFilter(lambda: cams)
+    mip = MipFilter(cams)
     sp = _splats(g)
     st = mip.initial_state(len(sp), CPU)
     sp.states.append(st)
