@@ -478,16 +478,3 @@ def test_resume_from_a_checkpoint_with_a_garbled_config_is_one_line(tmp_path, ke
     assert len(lines) == 1 and str(path) in lines[0], r.stderr
     assert key in lines[0] or key.replace("_", "-") in lines[0], r.stderr
 
-
-def test_idle_gaussians_are_dropped_near_the_end(tmp_path):
-    """--prune-idle-px: at `idle_at` of the run, the Gaussians under that much blending weight over
-    the training views leave the model, and the summary says how many and what weight they held."""
-    proj = tiny(tmp_path)
-    s = train(proj.root, make_config(**{**SMALL, "refine_stop": 12}, prune_idle_px=2.0, idle_at=0.5), CPU)
-    r = s.idle
-    assert r is not None and 0 < r.dropped < r.before and s.num_gaussians == r.before - r.dropped
-    assert 0 <= r.weight_share < 0.5 and r.min_px == 2.0
-    counts = {x["step"]: x["num_gaussians"] for x in read_log(proj.train_log_path)}
-    assert counts[15] == r.before - r.dropped  # dropped at step 15 of 30
-    off = tiny(tmp_path, "off")
-    assert train(off.root, make_config(**SMALL, prune_idle_px=0), CPU).idle is None

@@ -6,9 +6,6 @@ from .compact import (
                       CompactConfig,
                       CompactReport,
                       CompactStep,
-                      IdleConfig,
-                      IdleReport,
-                      IdleStep,
                       ShAutoConfig,
                       ShAutoStep,
                       sh_degree_of,
@@ -20,6 +17,6 @@ from .regularize import RegularizeStep
 from .support import SupportConfig, SupportPrune
 
 __all__ = ["CompactConfig", "CompactReport", "CompactStep", "Context", "DefaultStrategy", "DefaultStrategyConfig",
-           "DefaultStrategyState", "Evaluator", "IdleConfig", "IdleReport", "IdleStep", "MCMCStrategy", "MCMCStrategyConfig", "MCMCStrategyState", "MipFilter",
+           "DefaultStrategyState", "Evaluator", "MCMCStrategy", "MCMCStrategyConfig", "MCMCStrategyState", "MipFilter",
            "MipFilterState", "RefineConfig", "RefineStats", "RegularizeStep", "RowState", "ShAutoConfig",
            "ShAutoStep", "Splats", "StepInfo", "Strategy", "SupportConfig", "SupportPrune", "TrainViews", "sh_degree_of"]

@@ -8,11 +8,9 @@
   sum_pixels alpha_i T_i over the training views and keep the top `keep` fraction,
   in `rounds` cuts spread over the first half of a `finetune`-step fine-tune (no
   densification: the default strategy stops at the end of the main schedule).
-`IdleStep` (--prune-idle-px): at `at` of the run, drop the Gaussians whose total blending weight
-  over the training views is under `min_px` pixels. Off by default: on fox at 58,000 Gaussians
-  17% held under one pixel of weight between them all (0.06% of the total), yet dropping them
-  cost 0.12 dB on the held-out views (0.01 px: 2% of them, 0.02 dB), which see what the
-  training views hardly do.
+What a plain weight threshold would drop is not free: on fox at 58,000 Gaussians, the 17% under
+one pixel of training-view weight between them all (0.06% of the total) cost 0.12 dB on the
+held-out views (docs/benchmarks.md, "Model size"), so nothing is dropped unless asked.
 """
 
 from __future__ import annotations
@@ -160,62 +158,3 @@ class CompactStep(ModelStep):
                                          before_psnr=state.before_psnr, after_count=num_gaussians,
                                          after_bytes=ply_bytes(num_gaussians, sh_degree), after_psnr=psnr)}
 
-
-@dataclass(frozen=True)
-class IdleConfig:
-    min_px: float = opt(0.0, "Near the end of training, drop the Gaussians whose blending weight summed over every "
-                        "training view and pixel is under this (pixels; 0: keep them all). fox: 1 px drops 17% of "
-                        "them for 0.12 dB held out.", name="prune_idle_px", group=MODEL, at_least=0)
-    at: float = opt(0.95, "... at this fraction of the run (the rest fine-tunes the Gaussians kept).", more_than=0,
-                    at_most=1)
-
-
-@dataclass
-class IdleState(RowState):
-    before: int = 0  # the count when idle Gaussians were dropped (0: not yet)
-    dropped: int = 0
-    weight_share: float = 0.0  # the share of the total blending weight they held
-
-
-@dataclass
-class IdleReport:
-    """What dropping the idle Gaussians did: the count before and after, and their share of the weight."""
-
-    before: int
-    dropped: int
-    min_px: float
-    weight_share: float
-
-
-class IdleStep(ModelStep):
-    name = "idle"
-    state_type = IdleState
-    config: IdleConfig
-
-    def step_post_backward(self, splats: Splats, state: IdleState, step: int, info: StepInfo) -> RefineStats | None:
-        return self.catch_up(splats, state, step)
-
-    def catch_up(self, splats: Splats, state: IdleState, step: int) -> RefineStats | None:
-        if step < self.at or state.before:  # (a replanned run may move `at` behind the step: done at once)
-            return None
-        weight = self.ctx.evaluator.weights()  # [N] pixels, summed over every training view
-        idle = weight < self.config.min_px
-        n = len(splats)
-        state.before, state.dropped = n, int(idle.sum())
-        state.weight_share = float(weight[idle].sum() / weight.sum().clamp_min(1e-12))
-        stats = RefineStats(step=step, before=n, after=n)
-        if 0 < state.dropped < n:
-            ops.keep(splats, ~idle)
-            stats.pruned, stats.after = state.dropped, n - state.dropped
-        else:
-            state.dropped = 0
-        self.ctx.note(f"kept {stats.after:,} of {n:,} Gaussians: {state.dropped:,} drew under "
-                      f"{self.config.min_px:g} px of blending weight over all the training views "
-                      f"({100 * state.weight_share:.3f}% of the total)")
-        return stats
-
-    def summary(self, state: IdleState, num_gaussians: int, sh_degree: int, psnr: float | None) -> dict:
-        if not state.before:
-            return {}
-        return {"idle": IdleReport(before=state.before, dropped=state.dropped, min_px=self.config.min_px,
-                                   weight_share=round(state.weight_share, 6))}

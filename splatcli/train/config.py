@@ -30,8 +30,6 @@ from ..strategy import (
     CompactConfig,
     CompactReport,
     DefaultStrategyConfig,
-    IdleConfig,
-    IdleReport,
     MCMCStrategyConfig,
     RefineConfig,
     ShAutoConfig,
@@ -109,7 +107,6 @@ class TrainConfig:
     support: SupportConfig = section(SupportConfig, "--prune-views")
     sh_auto: ShAutoConfig = section(ShAutoConfig, "--sh-degree auto", prefix="sh_auto_")
     compact: CompactConfig = section(CompactConfig, "--compact", prefix="compact_")
-    idle: IdleConfig = section(IdleConfig, "--prune-idle-px", prefix="idle_")
     mip_filter: bool = opt(False, "Mip-Splatting's filters (Yu et al. 2024): no Gaussian finer than the training "
                            "views sample it (a 3D filter, folded into the exported scales and opacities), drawn with "
                            "the 2D antialiasing filter: renders at other resolutions keep their look.", group=MODEL)
@@ -395,7 +392,6 @@ class TrainSummary:
     checkpoint: str = ""  # path of the final checkpoint
     sh_auto_psnr: dict[str, float] | None = None  # --sh-degree auto: validation PSNR per degree
     compact: CompactReport | None = None
-    idle: IdleReport | None = None  # the Gaussians dropped for drawing under --prune-idle-px of blending weight
     resumed_from: int | None = None  # step of the checkpoint a --resume started from
     plan: dict[str, Any] | None = None  # --time-budget: the budget, the template schedule and every plan made
     nproc: int = 1  # data-parallel training processes (steps count views seen, whatever this is)
@@ -412,11 +408,8 @@ class TrainSummary:
         return asdict(self)
 
     def model_line(self) -> str:
-        """The model in one line: its count (and where the count settled), SH degree and .ply size."""
-        i = self.idle
-        settled = (f" (of {i.before:,}: {i.dropped:,} drew under {i.min_px:g} px of blending weight over the "
-                   f"training views)" if i is not None and i.dropped else "")
-        return f"{self.num_gaussians:,} Gaussians{settled}, SH degree {self.sh_degree}, .ply {self.ply_bytes / 1e6:.2f} MB"
+        """The model in one line: its count, SH degree and .ply size."""
+        return f"{self.num_gaussians:,} Gaussians, SH degree {self.sh_degree}, .ply {self.ply_bytes / 1e6:.2f} MB"
 
 
 @dataclass

@@ -26,7 +26,6 @@ from ..strategy import (
     CompactStep,
     Context,
     DefaultStrategy,
-    IdleStep,
     MCMCStrategy,
     MipFilter,
     RegularizeStep,
@@ -159,8 +158,6 @@ def make_strategies(cfg: TrainConfig, extent: float, ctx: Context) -> list[Strat
         out.append(SupportPrune(cfg.support, r.refine_start, stop, r.refine_every, ctx))
     if cfg.sh_degree == "auto":
         out.append(ShAutoStep(cfg.sh_auto, cfg.iterations, ctx))
-    if cfg.idle.min_px > 0:
-        out.append(IdleStep(cfg.idle, max(1, round(cfg.idle.at * cfg.iterations)), ctx))
     if cfg.compact.enabled:
         out.append(CompactStep(cfg.compact, cfg.iterations, ctx))
     if cfg.mip_filter:  # last: it filters the Gaussians the others left
