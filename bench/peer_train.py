@@ -63,20 +63,21 @@ def peer(binary: str, project: Project, scored: Path, work: Path, downscale: flo
     """OpenSplat for `minutes` of wall time; each saved splat's step, seconds and held-out scores (as `eval`
     scores project `scored`: its views, at the size it trained at)."""
     training_model(project, work)
-    log, saved, t0 = (work / "opensplat.log").open("w"), [], time.monotonic()
-    p = subprocess.Popen([binary, str(work), "-o", str(work / "splat.ply"), "-s", str(save_every), "-n", "100000",
-                          "-d", str(downscale), "--keep-crs", "--cpu"], stdout=subprocess.PIPE, stderr=log, text=True)
-    for line in p.stdout:  # its "Step N: loss (x%)" lines, and a file written at every save
-        log.write(line)
-        m = re.match(r"Step (\d+):", line)
-        if m and int(m.group(1)) % save_every == 0:
-            saved.append((int(m.group(1)), time.monotonic() - t0))
-        if time.monotonic() - t0 > 60 * minutes:
-            p.kill()
-            break
-    p.wait()
+    saved, t0 = [], time.monotonic()
+    with (work / "opensplat.log").open("w") as log:
+        p = subprocess.Popen([binary, str(work), "-o", str(work / "splat.ply"), "-s", str(save_every), "-n", "100000",
+                              "-d", str(downscale), "--keep-crs", "--cpu"], stdout=subprocess.PIPE, stderr=log, text=True)
+        for line in p.stdout:  # its "Step N: loss (x%)" lines, and a file written at every save
+            log.write(line)
+            m = re.match(r"Step (\d+):", line)
+            if m and int(m.group(1)) % save_every == 0:
+                saved.append((int(m.group(1)), time.monotonic() - t0))
+            if time.monotonic() - t0 > 60 * minutes:
+                p.kill()
+                break
+        p.wait()
     rows = []
-    for step, seconds in saved[1::max(1, len(saved) // 6)] + saved[-1:]:
+    for step, seconds in sorted(set(saved[1::max(1, len(saved) // 6)] + saved[-1:])):
         ply = work / f"splat_{step}.ply"
         if ply.exists():
             s = splatcli(["eval", str(scored), "--model", str(ply), "--budgets", "1", "--out",
@@ -101,7 +102,7 @@ def main() -> None:
         t = splatcli(["train", str(ours)], ours.parent / "train.log").summary
         e = splatcli(["eval", str(ours), "--budgets", "1"], ours.parent / "eval.log").summary
         curve = psnr_curve(ours)
-        rows += [{"scene": scene, "trainer": "splatcli", "steps": t["steps"], "seconds": round(s), "psnr": v}
+        rows += [{"scene": scene, "trainer": "splatcli", "seconds": round(s), "psnr": v}  # (held-out, as train logs it)
                  for s, v in curve[1::max(1, len(curve) // 6)]]
         rows.append({"scene": scene, "trainer": "splatcli", "steps": t["steps"], "seconds": round(t["train_seconds"]),
                      "psnr": e["psnr"], "compensated": e.get("compensated_psnr"), "gaussians": e["num_gaussians"],

@@ -22,7 +22,7 @@ from __future__ import annotations
 import json
 import os
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any, TypeVar
 
 import torch
@@ -73,15 +73,10 @@ class Asked:
     @classmethod
     def of(cls, given: options.Given) -> Asked:
         """The options given that a choice yields to, read by field from the parsed options."""
-        t, mcmc = given.typed, replace(TrainConfig(), strategy="mcmc")
-        return cls(preset=t.preset if "preset" in given else None,
-                   iterations=t.iterations if "iterations" in given else None,
-                   time_budget=t.time_budget if "time_budget" in given else None,
-                   max_size=t.max_size if "max_size" in given else None,
-                   appearance=t.appearance if "appearance" in given else None,
-                   strategy=t.strategy if "strategy" in given else None,
-                   max_gaussians=options.value(t, "max_gaussians") if "max_gaussians" in given else None,
-                   downscale=t.downscale, mcmc_fits=all(options.resolve(mcmc, k) is not None for k in given.values))
+        mcmc = replace(TrainConfig(), strategy="mcmc")
+        named = {f.name: given.values[f.name] for f in fields(cls) if f.name in given}  # (parsed once, by parse)
+        return cls(**{**named, "downscale": given.typed.downscale,
+                      "mcmc_fits": all(options.resolve(mcmc, k) is not None for k in given.values)})
 
 
 @dataclass(frozen=True)

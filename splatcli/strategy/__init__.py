@@ -2,14 +2,7 @@
 and the one set of ops that edits parameters, Adam moments and strategy state together."""
 
 from .base import Context, Evaluator, RefineConfig, RefineStats, RowState, Splats, StepInfo, Strategy, TrainViews
-from .compact import (
-                      CompactConfig,
-                      CompactReport,
-                      CompactStep,
-                      ShAutoConfig,
-                      ShAutoStep,
-                      sh_degree_of,
-)
+from .compact import CompactConfig, CompactReport, CompactStep, ShAutoConfig, ShAutoStep, sh_degree_of
 from .default import DefaultStrategy, DefaultStrategyConfig, DefaultStrategyState
 from .mcmc import MCMCStrategy, MCMCStrategyConfig, MCMCStrategyState
 from .mip import MipFilter, MipFilterState

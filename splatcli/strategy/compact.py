@@ -157,4 +157,3 @@ class CompactStep(ModelStep):
         return {"compact": CompactReport(before_count=state.before_count, before_bytes=state.before_bytes,
                                          before_psnr=state.before_psnr, after_count=num_gaussians,
                                          after_bytes=ply_bytes(num_gaussians, sh_degree), after_psnr=psnr)}
-
