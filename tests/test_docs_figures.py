@@ -124,20 +124,15 @@ def test_benchmarks_is_short_current_and_stamped():
     assert not problems, "\n".join(problems)
 
 
-# Sections whose tables were measured before stamps named the CPU; bench/distributed.py is
-# to measure them again. Take a section out once its stamps name the CPU.
-AWAITING_RERUN = ("Many processes",)
 _CPU = re.compile(r"\b(?:AMD|EPYC|Ryzen|Intel|Xeon|Apple M\d|Graviton|Neoverse)\b")
 
 
 def test_stamps_name_the_cpu_and_a_script_that_exists():
-    section, problems = "", []
+    problems = []
     for n, line in enumerate(BENCHMARKS.read_text(encoding="utf-8").splitlines(), 1):
-        if line.startswith("## "):
-            section = line[3:].strip()
         problems += [f"{n}: {s} is not in the repository" for s in re.findall(r"\bbench/[\w/]+\.py\b", line)
                      if not (REPO / s).is_file()]
-        if line.startswith("Stamp:") and not _CPU.search(line) and section not in AWAITING_RERUN:
+        if line.startswith("Stamp:") and not _CPU.search(line):
             problems.append(f"{n}: a stamp without the CPU's model: {line[:80]}")
     assert not problems, "\n".join(problems)
 
