@@ -7,11 +7,8 @@ two speed-against-error curves:
 
 * held-out PSNR against training seconds (from reports/train_log.jsonl);
 * render time against PSNR at several Gaussian budgets (100%, 50%, 25%, 10%),
-  keeping the Gaussians that contribute most. A Gaussian's contribution is its
-  total blending weight sum_pixels alpha_i T_i over the training views, obtained
-  exactly by autograd: with every colour at 0.5 (DC = 0, degree 0, so the
-  clamp at 0 is inactive) the image is sum_i w_i c_i + T bg, linear in c_i, so
-  d(sum image_R) / d(dc_i,R) = SH_C0 * sum_pixels w_i.
+  keeping the Gaussians that contribute most: the largest total blending weight
+  over the training views (budgets.py).
 
 Views are scored by score.py, as training's held-out log scores them: renders
 quantised to 8 bits by default, as the PNGs a user sees (and the original 3DGS
@@ -34,8 +31,9 @@ import contextlib
 import math
 import tempfile
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, replace
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -148,8 +146,8 @@ def _ground_truth(project: Project, views: Sequence[View], bg_rgb: tuple[float, 
     return gts, keeps
 
 
-def _score_views(g: Gaussians, views: Sequence[View], gts: Sequence[Tensor], keeps: Sequence[Tensor | None],
-                 bg: Tensor, lp: Lpips | None, on_event: EventSink | None, stage: str,
+def _score_views(g: Gaussians, *, stage: str, views: Sequence[View], gts: Sequence[Tensor],
+                 keeps: Sequence[Tensor | None], bg: Tensor, lp: Lpips | None, on_event: EventSink | None,
                  antialiased: bool, quantisation: str, renderer: Renderer) -> tuple[list[ImageScore], float]:
     """Render and score every view (quantised: score.py); returns scores and the median
     render seconds per frame (the median: other processes sharing the CPU make
@@ -166,15 +164,16 @@ def _score_views(g: Gaussians, views: Sequence[View], gts: Sequence[Tensor], kee
         synchronize(g.device)
         times.append(time.perf_counter() - t0)
         scores.append(score(v.camera.name, out.image, gt, lp, keep, quantisation))
-        emit(on_event, Progress(stage, i + 1, len(views), {"psnr": float(np.mean([x.psnr for x in scores]))}))
+        emit(on_event, Progress(stage, i + 1, len(views), {"psnr": _mean(scores, "psnr")}))
     emit(on_event, StageDone(stage, time.perf_counter() - t_all))
     return scores, float(np.median(times))
 
 
-def _score_formats(g: Gaussians, formats: Sequence[str], views: Sequence[View], gts: Sequence[Tensor],
-                   keeps: Sequence[Tensor | None], bg: Tensor, lp: Lpips | None, full_psnr: float,
-                   on_event: EventSink | None, antialiased: bool, quantisation: str,
-                   renderer: Renderer) -> list[FormatPoint]:
+ScoreViews = Callable[..., tuple[list[ImageScore], float]]  # _score_views with all but the model and stage bound
+
+
+def _score_formats(g: Gaussians, formats: Sequence[str], score_views: ScoreViews,
+                   full_psnr: float) -> list[FormatPoint]:
     """Each format: write the model, read it back through our reader, score the views."""
     out = []
     ply_size = ply_bytes(len(g), g.sh_degree)
@@ -186,29 +185,25 @@ def _score_formats(g: Gaussians, formats: Sequence[str], views: Sequence[View], 
             t1 = time.perf_counter()
             back = read_format(path, g.device, fmt).gaussians
             t2 = time.perf_counter()
-            sc, _ = _score_views(back, views, gts, keeps, bg, lp, on_event, f"format {fmt}", antialiased,
-                                 quantisation, renderer)
-            p = _mean_psnr(sc)
+            sc, _ = score_views(back, stage=f"format {fmt}")
+            p = _mean(sc, "psnr")
             out.append(FormatPoint(format=fmt, bytes=w.bytes, bytes_per_gaussian=w.bytes / max(len(g), 1),
-                                   ratio=ply_size / max(w.bytes, 1), psnr=p, ssim=float(np.mean([x.ssim for x in sc])),
-                                   db_lost=full_psnr - p, encode_s=t1 - t0, decode_s=t2 - t1, lpips=_mean_lpips(sc)))
+                                   ratio=ply_size / max(w.bytes, 1), psnr=p, ssim=_mean(sc, "ssim"),
+                                   db_lost=full_psnr - p, encode_s=t1 - t0, decode_s=t2 - t1, lpips=_mean(sc, "lpips")))
             path.unlink(missing_ok=True)
     return out
 
 
-def _mean_psnr(scores: Sequence[ImageScore]) -> float:
-    """Mean of per-image PSNR (the 3DGS convention), dB."""
-    return float(np.mean([s.psnr for s in scores]))
+def _mean(scores: Sequence[ImageScore], key: str) -> Any:  # -> float, or None when some image has none (LPIPS)
+    """Mean over the images of one score (PSNR: of per-image dB, the 3DGS convention)."""
+    values = [getattr(s, key) for s in scores]
+    return None if any(v is None for v in values) else float(np.mean(values))
 
 
-def _learnt_appearance(project: Project) -> bool:
-    """Whether the project's training learnt each photo's appearance (an image model)."""
-    return ((project.step("train") or {}).get("config") or {}).get("appearance", "none") != "none"
-
-
-def _mean_lpips(scores: Sequence[ImageScore]) -> float | None:
-    """Mean LPIPS, or None when some image has none."""
-    return None if any(s.lpips is None for s in scores) else float(np.mean([s.lpips for s in scores]))
+def _budget_point(fraction: float, g: Gaussians, scores: Sequence[ImageScore], secs: float) -> BudgetPoint:
+    return BudgetPoint(fraction=fraction, num_gaussians=len(g), ply_bytes=ply_bytes(len(g), g.sh_degree),
+                       psnr=_mean(scores, "psnr"), ssim=_mean(scores, "ssim"), render_fps=1.0 / max(secs, 1e-9),
+                       ms_per_frame=1000 * secs, lpips=_mean(scores, "lpips"))
 
 
 
@@ -281,14 +276,10 @@ def plan_eval(root: str | Path, config: EvalConfig, device: torch.device) -> Eva
         g = g.select(finite)
 
     tsum = ((project.step("train") or {}).get("summary") or {}) if config.model is None else {}
-    if config.downscale is not None:
-        downscale, max_size = config.downscale, None
-    else:  # the resolution trained, also for a .ply scored against this project
-        downscale, max_size = project.trained_resolution()
-    drawn = [replace(v, camera=v.camera.at_resolution(downscale, max_size)) for v in views]
-    antialiased, why = choose_antialias(config.antialias, m.antialiased, zoom_factor(project, drawn, views))
-    notes += [why] if why else []
-    views = drawn
+    # else the resolution trained, also for a .ply scored against this project
+    downscale, max_size = (config.downscale, None) if config.downscale is not None else project.trained_resolution()
+    base, views = views, [replace(v, camera=v.camera.at_resolution(downscale, max_size)) for v in views]
+    antialiased, why = choose_antialias(config.antialias, m.antialiased, zoom_factor(project, views, base))
     small = [v.camera for v in views if min(v.camera.width, v.camera.height) < 11]
     if small:
         raise SplatError(f"{small[0].name}: {small[0].width}x{small[0].height} at eval resolution is too small "
@@ -298,8 +289,7 @@ def plan_eval(root: str | Path, config: EvalConfig, device: torch.device) -> Eva
     c = views[0].camera
     if lp is not None and min(c.width, c.height) < LPIPS_MIN_SIZE:
         lp, why_not = None, f"LPIPS skipped: {c.width}x{c.height} views are smaller than AlexNet's {LPIPS_MIN_SIZE} pixels"
-    notes += [why_not] if why_not else []
-    notes += [renderer.note] if renderer.note else []
+    notes += [n for n in (why, why_not, renderer.note) if n]
     return EvalPlan(project=project, config=config, gaussians=g, step=step, model_name=model_name, views=views,
                     background=tuple(bg_rgb), downscale=downscale,  # type: ignore[arg-type]
                     max_size=max_size, train_summary=tsum, notes=notes, lpips=lp, antialiased=antialiased,
@@ -329,41 +319,33 @@ def _mask_mode(project: Project, tsum: dict[str, Any]) -> tuple[str, str | None]
 def _run_eval(plan: EvalPlan, on_event: EventSink | None) -> EvalReport:
     project, config, g, views = plan.project, plan.config, plan.gaussians, plan.views
     step, model_name, notes, tsum = plan.step, plan.model_name, list(plan.notes), plan.train_summary
-    bg_rgb = plan.background
-    bg = torch.tensor(bg_rgb, dtype=g.means.dtype, device=g.device)
+    bg = torch.tensor(plan.background, dtype=g.means.dtype, device=g.device)
 
     mode, masks = _mask_mode(project, tsum)
-    gts, keeps = _ground_truth(project, views, bg_rgb, mode, on_event)
-
-    lp, aa, q, r = plan.lpips, plan.antialiased, config.quantisation, plan.renderer
-    per_image, secs = _score_views(g, views, gts, keeps, bg, lp, on_event, "eval", aa, q, r)
-    fps = 1.0 / max(secs, 1e-9)
-    mean_psnr = _mean_psnr(per_image)
-    mean_ssim = float(np.mean([s.ssim for s in per_image]))
-    mean_lpips = _mean_lpips(per_image)
-
-    first = BudgetPoint(fraction=1.0, num_gaussians=len(g), ply_bytes=ply_bytes(len(g), g.sh_degree),
-                        psnr=mean_psnr, ssim=mean_ssim, render_fps=fps, ms_per_frame=1000 * secs, lpips=mean_lpips)
-    budgets = _budget_points(plan, first, gts, keeps, bg, on_event)
-    formats = _score_formats(g, config.formats, views, gts, keeps, bg, lp, mean_psnr, on_event, aa, q, r)
+    gts, keeps = _ground_truth(project, views, plan.background, mode, on_event)
+    score_views = partial(_score_views, views=views, gts=gts, keeps=keeps, bg=bg, lp=plan.lpips, on_event=on_event,
+                          antialiased=plan.antialiased, quantisation=config.quantisation, renderer=plan.renderer)
+    per_image, secs = score_views(g, stage="eval")
+    first = _budget_point(1.0, g, per_image, secs)
+    budgets = _budget_points(plan, first, score_views, on_event)
+    formats = _score_formats(g, config.formats, score_views, first.psnr)
     curve = read_curve(project.train_log_path) if config.model is None else []
     # the log's scores: 8-bit since train recorded its quantisation, unquantised before
     curve_q = str(tsum.get("quantisation", "none")) if curve else None
     curve_p = str(tsum.get("protocol", "raw")) if curve else None
+    # whether training learnt each photo's appearance (an image model): then the compensated score leads
+    learnt = ((project.step("train") or {}).get("config") or {}).get("appearance", "none") != "none"
     report = EvalReport(
-        psnr=mean_psnr, ssim=mean_ssim, lpips=mean_lpips, per_image=per_image, num_gaussians=len(g),
-        sh_degree=g.sh_degree, ply_bytes=ply_bytes(len(g), g.sh_degree),
+        psnr=first.psnr, ssim=first.ssim, lpips=first.lpips, per_image=per_image, num_gaussians=len(g),
+        sh_degree=g.sh_degree, ply_bytes=first.ply_bytes,
         train_seconds=float(tsum["train_seconds"]) if isinstance(tsum.get("train_seconds"), (int, float)) else None,
-        train_steps=int(tsum["steps"]) if isinstance(tsum.get("steps"), int) else step, render_fps=fps,
-        device=describe_device(g.device), renderer=r.name, split=config.split, width=views[0].camera.width,
-        height=views[0].camera.height, step=step, model=model_name,
-        psnr_color_fit=float(np.mean([s.psnr_color_fit for s in per_image])),
-        compensated_psnr=float(np.mean([s.compensated_psnr for s in per_image])),
-        compensated_ssim=float(np.mean([s.compensated_ssim for s in per_image])),
-        compensated_lpips=(None if any(s.compensated_lpips is None for s in per_image)
-                           else float(np.mean([s.compensated_lpips for s in per_image]))),
-        headline="compensated" if _learnt_appearance(project) and config.model is None else "raw", budgets=budgets,
-        formats=formats, training_curve=curve, masks=masks, quantisation=q, curve_quantisation=curve_q,
+        train_steps=int(tsum["steps"]) if isinstance(tsum.get("steps"), int) else step, render_fps=first.render_fps,
+        device=describe_device(g.device), renderer=plan.renderer.name, split=config.split,
+        width=views[0].camera.width, height=views[0].camera.height, step=step, model=model_name,
+        **{k: _mean(per_image, k) for k in ("psnr_color_fit", "compensated_psnr", "compensated_ssim",
+                                            "compensated_lpips")},
+        headline="compensated" if learnt and config.model is None else "raw", budgets=budgets, formats=formats,
+        training_curve=curve, masks=masks, quantisation=config.quantisation, curve_quantisation=curve_q,
         curve_protocol=curve_p, stats=model_stats(g), notes=notes,
     )
     for n in notes:
@@ -373,12 +355,11 @@ def _run_eval(plan: EvalPlan, on_event: EventSink | None) -> EvalReport:
     return report
 
 
-def _budget_points(plan: EvalPlan, first: BudgetPoint, gts: list[Tensor], keeps: list[Tensor | None], bg: Tensor,
+def _budget_points(plan: EvalPlan, first: BudgetPoint, score_views: ScoreViews,
                    on_event: EventSink | None) -> list[BudgetPoint]:
     """Speed against error at smaller budgets: the model pruned to each fraction of --budgets by
     its contribution to the training views, scored on the same views as the whole (`first`)."""
-    project, config, g, views = plan.project, plan.config, plan.gaussians, plan.views
-    lp, aa, q, r = plan.lpips, plan.antialiased, config.quantisation, plan.renderer
+    project, config, g = plan.project, plan.config, plan.gaussians
     budgets = [first]
     fractions = sorted({float(b) for b in config.budgets if b < 1.0}, reverse=True)
     if fractions:
@@ -392,10 +373,7 @@ def _budget_points(plan: EvalPlan, first: BudgetPoint, gts: list[Tensor], keeps:
         emit(on_event, StageDone("rank Gaussians", time.perf_counter() - t0))
         for f in fractions:
             gp = prune_to(g, weight, f)
-            sc, s = _score_views(gp, views, gts, keeps, bg, lp, on_event, f"budget {f:.0%}", aa, q, r)
-            budgets.append(BudgetPoint(fraction=f, num_gaussians=len(gp), ply_bytes=ply_bytes(len(gp), gp.sh_degree),
-                                       psnr=_mean_psnr(sc), ssim=float(np.mean([x.ssim for x in sc])),
-                                       render_fps=1.0 / max(s, 1e-9), ms_per_frame=1000 * s, lpips=_mean_lpips(sc)))
+            budgets.append(_budget_point(f, gp, *score_views(gp, stage=f"budget {f:.0%}")))
     return budgets if 1.0 in config.budgets else budgets[1:]
 
 
@@ -446,8 +424,7 @@ def compare_folders(pred_dir: str | Path, gt_dir: str | Path, *, background: Seq
     scores = []
     emit(on_event, Stage("compare", total=len(pairs)))
     for i, (p, q) in enumerate(pairs):
-        a = load_image(p, background)
-        b = load_image(q, background)
+        a, b = load_image(p, background), load_image(q, background)
         if a.shape != b.shape:
             raise SplatError(f"{p}: size {a.shape[1]}x{a.shape[0]} differs from {q} ({b.shape[1]}x{b.shape[0]})")
         if min(a.shape[0], a.shape[1]) < 11:
@@ -455,9 +432,9 @@ def compare_folders(pred_dir: str | Path, gt_dir: str | Path, *, background: Seq
         scores.append(score(p.name, a, b, lp))
         emit(on_event, Progress("compare", i + 1, len(pairs)))
     emit(on_event, StageDone("compare", 0.0))
-    if lp is not None and _mean_lpips(scores) is None:
+    if lp is not None and _mean(scores, "lpips") is None:
         why_not = f"LPIPS skipped: some images are smaller than AlexNet's {LPIPS_MIN_SIZE} pixels a side"
     if why_not:
         emit(on_event, Note(why_not))
-    return FolderReport(psnr=_mean_psnr(scores), ssim=float(np.mean([s.ssim for s in scores])),
-                        lpips=_mean_lpips(scores), per_image=scores, pred_dir=pred_dir, gt_dir=gt_dir, missing=missing)
+    return FolderReport(psnr=_mean(scores, "psnr"), ssim=_mean(scores, "ssim"), lpips=_mean(scores, "lpips"),
+                        per_image=scores, pred_dir=pred_dir, gt_dir=gt_dir, missing=missing)

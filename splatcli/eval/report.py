@@ -145,8 +145,7 @@ class EvalReport:
 
 def used_sh_degree(sh: Tensor) -> Tensor:  # [N, K, 3] -> [N] int
     """Highest band with a coefficient larger than SH_USED_TOL (0 when only DC)."""
-    k = sh.shape[1]
-    d = int(round(math.sqrt(k))) - 1
+    d = int(round(math.sqrt(sh.shape[1]))) - 1
     used = torch.zeros(sh.shape[0], dtype=torch.long, device=sh.device)
     for l in range(1, d + 1):
         band = sh[:, l * l:(l + 1) * (l + 1), :].abs().amax(dim=(1, 2))
@@ -295,7 +294,7 @@ def _lp(v: float | None) -> str:
 
 def _md_summary(r: EvalReport, project: Project) -> list[str]:
     """The title, what was scored, and the summary table."""
-    lines = [
+    return [
         f"# Evaluation of `{project.root.name}`",
         "",
         f"Model: {r.model}. {r.split[0].upper() + r.split[1:]} split ({len(r.per_image)} views at {r.width}x{r.height}), "
@@ -328,14 +327,11 @@ def _md_summary(r: EvalReport, project: Project) -> list[str]:
         "## Speed against error",
         "",
     ]
-    return lines
 
 
 def _md_budgets(r: EvalReport) -> list[str]:
     """Speed against error: the model pruned to smaller budgets."""
-    lines: list[str] = []
-    if "speed_vs_error.png" in r.plots:
-        lines += ["![speed against error](speed_vs_error.png)", ""]
+    lines = ["![speed against error](speed_vs_error.png)", ""] if "speed_vs_error.png" in r.plots else []
     if r.budgets:
         lines += [
             "What a smaller model costs: the least-contributing Gaussians (smallest total blending weight over "
@@ -343,58 +339,48 @@ def _md_budgets(r: EvalReport) -> list[str]:
             "",
             "| budget | Gaussians | .ply size | PSNR (dB) | SSIM | LPIPS | ms/frame | frames/s |",
             "| --- | --- | --- | --- | --- | --- | --- | --- |",
+            *(f"| {b.fraction:.0%} | {b.num_gaussians:,} | {_mb(b.ply_bytes)} | {b.psnr:.2f} | "
+              f"{b.ssim:.4f} | {_lp(b.lpips)} | {b.ms_per_frame:.1f} | {b.render_fps:.2f} |"
+              for b in sorted(r.budgets, key=lambda p: -p.fraction)),
+            "",
         ]
-        for b in sorted(r.budgets, key=lambda p: -p.fraction):
-            lines.append(f"| {b.fraction:.0%} | {b.num_gaussians:,} | {_mb(b.ply_bytes)} | {b.psnr:.2f} | "
-                         f"{b.ssim:.4f} | {_lp(b.lpips)} | {b.ms_per_frame:.1f} | {b.render_fps:.2f} |")
-        lines.append("")
     return lines
 
 
 def _md_formats(r: EvalReport) -> list[str]:
     """Size against error, by file format."""
-    lines: list[str] = []
-    if r.formats:
-        lines += ["## Size against error, by file format", ""]
-        if "formats.png" in r.plots:
-            lines += ["![size against error](formats.png)", ""]
-        lines += ["The model written in each format, read back by splatcli's reader and scored on the same views "
-                  "(*lost*: dB below full precision).", "",
-                  "| format | size | bytes/Gaussian | smaller than .ply | PSNR (dB) | SSIM | LPIPS | lost (dB) | encode s "
-                  "| decode s |",
-                  "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
-        for p in r.formats:
-            lines.append(f"| {p.format} | {_mb(p.bytes)} | {p.bytes_per_gaussian:.1f} | {p.ratio:.1f}x | {p.psnr:.2f} | "
-                         f"{p.ssim:.4f} | {_lp(p.lpips)} | {p.db_lost:.2f} | {p.encode_s:.2f} | {p.decode_s:.2f} |")
-        lines.append("")
-    return lines
+    if not r.formats:
+        return []
+    return ["## Size against error, by file format", "",
+            *(["![size against error](formats.png)", ""] if "formats.png" in r.plots else []),
+            "The model written in each format, read back by splatcli's reader and scored on the same views "
+            "(*lost*: dB below full precision).", "",
+            "| format | size | bytes/Gaussian | smaller than .ply | PSNR (dB) | SSIM | LPIPS | lost (dB) | encode s "
+            "| decode s |",
+            "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+            *(f"| {p.format} | {_mb(p.bytes)} | {p.bytes_per_gaussian:.1f} | {p.ratio:.1f}x | {p.psnr:.2f} | "
+              f"{p.ssim:.4f} | {_lp(p.lpips)} | {p.db_lost:.2f} | {p.encode_s:.2f} | {p.decode_s:.2f} |"
+              for p in r.formats),
+            ""]
 
 
 def _md_curve(r: EvalReport) -> list[str]:
     """Held-out PSNR while training, from the log."""
-    lines: list[str] = []
-    if r.training_curve:
-        q = QUANTISATION_WORDS.get(r.curve_quantisation or "", r.curve_quantisation)
-        how = f"{q}; appearance compensated" if r.curve_protocol == "compensated" else q
-        lines += [f"Held-out PSNR while training (reports/train_log.jsonl; {how}):", "",
-                  "| step | training time (s) | PSNR (dB) | SSIM | Gaussians |", "| --- | --- | --- | --- | --- |"]
-        for p in r.training_curve:
-            lines.append(f"| {p.step} | {p.elapsed_s:.1f} | {p.psnr:.2f} | {_opt(p.ssim, '.4f')} | "
-                         f"{_opt(p.num_gaussians, ',')} |")
-        lines.append("")
-    else:
-        lines += ["No held-out PSNR was logged during training (reports/train_log.jsonl).", ""]
-
-    return lines
+    if not r.training_curve:
+        return ["No held-out PSNR was logged during training (reports/train_log.jsonl).", ""]
+    q = QUANTISATION_WORDS.get(r.curve_quantisation or "", r.curve_quantisation)
+    how = f"{q}; appearance compensated" if r.curve_protocol == "compensated" else q
+    return [f"Held-out PSNR while training (reports/train_log.jsonl; {how}):", "",
+            "| step | training time (s) | PSNR (dB) | SSIM | Gaussians |", "| --- | --- | --- | --- | --- |",
+            *(f"| {p.step} | {p.elapsed_s:.1f} | {p.psnr:.2f} | {_opt(p.ssim, '.4f')} | {_opt(p.num_gaussians, ',')} |"
+              for p in r.training_curve),
+            ""]
 
 
 def _md_views(r: EvalReport) -> list[str]:
     """The worst five views, the model's statistics, the notes, and every view."""
-    lines: list[str] = []
-    lines += ["## Worst five views", "", "| view | PSNR (dB) | SSIM | LPIPS |", "| --- | --- | --- | --- |"]
-    for s in r.worst(5):
-        lines.append(f"| {s.name} | {s.psnr:.2f} | {s.ssim:.4f} | {_lp(s.lpips)} |")
-    lines.append("")
+    lines = ["## Worst five views", "", "| view | PSNR (dB) | SSIM | LPIPS |", "| --- | --- | --- | --- |"]
+    lines += [f"| {s.name} | {s.psnr:.2f} | {s.ssim:.4f} | {_lp(s.lpips)} |" for s in r.worst(5)] + [""]
 
     st = r.stats
     if st is not None:

@@ -87,9 +87,7 @@ def score_image(pred: Tensor, target: Tensor, keep: Tensor | None = None, *, qua
     p = quantise(pred, quantisation).to(t.device)
     if keep is not None:
         keep = keep.to(t.device)
-    lp = None
-    if lpips is not None:
-        lp = _lpips_kept(lpips, p, t, keep)
+    lp = _lpips_kept(lpips, p, t, keep) if lpips is not None else None
     half = None
     if compensated:  # (its 8-bit render fitted in float64: the fit is part of the protocol, not of the image)
         hp, ht, hk = half_fit(p, t, keep)
