@@ -15,7 +15,7 @@ import torch
 from ..events import Event, EventSink, Progress, Snapshot
 from ..model import load_model
 from ..project import Project
-from ..views.sources import project_cameras
+from ..sfm.colmap import read_project_scene
 from .server import CameraInfo, SceneStore, ViewerServer, is_loopback
 
 __all__ = ["SceneStore", "ViewerServer", "is_loopback", "open_scene", "project_scene", "LiveSink"]
@@ -23,9 +23,8 @@ __all__ = ["SceneStore", "ViewerServer", "is_loopback", "open_scene", "project_s
 
 def project_scene(project: Project, source: str) -> SceneStore:
     """A store with the project's cameras (train/test), background and up direction; no Gaussians yet."""
-    cams = project_cameras(project)
-    splits = project.splits()
-    test = set(splits.get("test", []))
+    cams = read_project_scene(project).cameras
+    test = set(project.splits().get("test", []))
     infos = [CameraInfo(name=c.name, split="test" if c.name in test else "train", width=c.width, height=c.height,
                         K=[float(x) for x in c.K.reshape(-1)], viewmat=[float(x) for x in c.viewmat.reshape(-1)])
              for c in cams]

@@ -110,8 +110,7 @@ class SceneStore:
             radius = float(torch.quantile((g.means[:100_000] - centre).norm(dim=1), 0.9))
             bounds = {"center": centre.tolist(), "radius": max(radius, 1e-3)}
         with self._lock:
-            self._g, self._info, self._ply, self._points = g, dict(info or {}), None, None
-            self._bounds = bounds
+            self._g, self._info, self._ply, self._points, self._bounds = g, dict(info or {}), None, None, bounds
             self.version += 1
 
     def ply(self) -> bytes:
@@ -138,8 +137,7 @@ class SceneStore:
     def state(self) -> dict[str, Any]:
         with self._lock:
             g = self._g
-            n = 0 if g is None else len(g)
-            d = 0 if g is None else g.sh_degree
+            n, d = (0, 0) if g is None else (len(g), g.sh_degree)
             return {"source": self.source, "version": self.version, "num_gaussians": n, "sh_degree": d,
                     "ply_bytes": ply_bytes(n, d), "file_bytes": self.file_bytes, "near": NEAR, "background": list(self.background), "up": self.up,
                     "cameras": [c.__dict__ for c in self.cameras], "live": dict(self._info), **self._bounds}
@@ -168,12 +166,10 @@ class _Handler(BaseHTTPRequestHandler):
 
     def _send(self, code: int, body: bytes, ctype: str, gz: bool = False, head: bool = False) -> None:
         self.send_response(code)
-        self.send_header("Content-Type", ctype)
-        self.send_header("Content-Length", str(len(body)))
-        self.send_header("Cache-Control", "no-store")
-        self.send_header("X-Content-Type-Options", "nosniff")
-        if gz:
-            self.send_header("Content-Encoding", "gzip")
+        headers = {"Content-Type": ctype, "Content-Length": str(len(body)), "Cache-Control": "no-store",
+                   "X-Content-Type-Options": "nosniff", **({"Content-Encoding": "gzip"} if gz else {})}
+        for name, value in headers.items():
+            self.send_header(name, value)
         self.end_headers()
         if not head:
             self.wfile.write(body)
@@ -191,10 +187,9 @@ class _Handler(BaseHTTPRequestHandler):
         if path == "/api/scene":
             self.store.asked = time.monotonic()
             return self._send(200, json.dumps(self.store.state()).encode(), "application/json", head=head)
-        if path == "/api/scene.ply":
-            return self._send(200, self.store.ply(), "application/octet-stream", head=head)
-        if path == "/api/points.bin":
-            return self._send(200, self.store.points(), "application/octet-stream", head=head)
+        data = {"/api/scene.ply": self.store.ply, "/api/points.bin": self.store.points}.get(path)
+        if data is not None:
+            return self._send(200, data(), "application/octet-stream", head=head)
         return self._send(404, b"not found\n", _TYPES[""], head=head)
 
     def do_GET(self) -> None:
@@ -237,8 +232,7 @@ class ViewerServer:
     the default port or the next free one, 0: any free port."""
 
     def __init__(self, store: SceneStore, host: str = "127.0.0.1", port: int | None = None) -> None:
-        self.store = store
-        self.host = host
+        self.store, self.host = store, host
         allowed = {host.lower(), "localhost", "127.0.0.1", "::1"} if is_loopback(host) else None
         handler = _handler(store, assets(), allowed)
         self._httpd = _bind(host, port, handler)
@@ -268,9 +262,7 @@ class ViewerServer:
 
 def _bind(host: str, port: int, handler) -> _Server:
     """`port`, or with port None the default port or the next free one after it."""
-    cls = _Server
-    if ":" in host:
-        cls = type("_Server6", (_Server,), {"address_family": socket.AF_INET6})
+    cls = type("_Server6", (_Server,), {"address_family": socket.AF_INET6}) if ":" in host else _Server
     tries = [port] if port is not None else [DEFAULT_PORT + i for i in range(PORT_TRIES)]
     last: OSError | None = None
     for p in tries:

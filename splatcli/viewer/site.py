@@ -54,11 +54,10 @@ def export_site(m: LoadedModel, out: Path, config: ExportConfig, on_event: Event
             os.replace(out, old)
         os.replace(tmp, out)
         shutil.rmtree(old, ignore_errors=True)
-    except OSError as exc:
+    except BaseException as exc:
         shutil.rmtree(tmp, ignore_errors=True)
-        raise SplatError(f"cannot write {out}: {exc.strerror or exc}") from exc
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+        if isinstance(exc, OSError):
+            raise SplatError(f"cannot write {out}: {exc.strerror or exc}") from exc
         raise
     size = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
     return dataclasses.replace(r, path=out, format="web", bytes=size)

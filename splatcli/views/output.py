@@ -9,6 +9,7 @@ encoding or disk writes, so it is the figure a viewer would get from this render
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import time
@@ -143,10 +144,8 @@ class _VideoOut:
         if ok:
             os.replace(self.tmp, self.path)
         else:
-            try:
+            with contextlib.suppress(OSError):
                 self.tmp.unlink()
-            except OSError:
-                pass
 
 
 def _finite(gaussians: Gaussians, on_event: EventSink | None) -> Gaussians:
@@ -168,8 +167,7 @@ def _write_view(out: RenderOutput, rgb: np.ndarray, out_dir: Path, name: str, co
     if config.depth:
         if near_far is None:
             near_far = _depth_range(out.depth, out.alpha)
-        atomic_write_bytes(out_dir / "depth" / name,
-                           encode_png(np.ascontiguousarray(depth_image(out.depth, out.alpha, near_far))))
+        atomic_write_bytes(out_dir / "depth" / name, encode_png(depth_image(out.depth, out.alpha, near_far)))
     return near_far
 
 
@@ -283,18 +281,14 @@ def select_views(model: LoadedModel, config: RenderConfig, notes: list[str]) -> 
     else:
         if config.split is not None:
             raise SplatError(f"{model.path}: --split needs a project; pass --project PROJ or --cameras transforms.json")
-        base = []
-        name = "orbit"
-    kind = config.path
+        base, name = [], "orbit"
+    kind, views = config.path, base
     if not base and kind is None:
         kind = "orbit"
         notes.append(f"{model.path.name}: no cameras given; rendering an orbit around the Gaussians (world -y up)")
     if kind is not None:
         cams = [v.camera for v in base] or cameras_around_points(model.gaussians.means.detach().cpu().numpy().astype(np.float64))
-        views = generate_path(kind, cams, config.frames)
-        name = kind
-    else:
-        views = base
+        views, name = generate_path(kind, cams, config.frames), kind
     views = resize_views(views, width=config.width, height=config.height, downscale=config.downscale or 1.0)
     return views, name, project
 
@@ -339,15 +333,9 @@ def plan_render(source: str | os.PathLike, config: RenderConfig, device: torch.d
         out_dir = model.path.parent / "renders" / f"{model.path.stem}_{name}"
     if out_dir.exists() and not out_dir.is_dir():
         raise SplatError(f"--out {out_dir}: exists and is not a directory")
-    if name in ("orbit", "spiral", "interpolate"):
-        what = f"{name} path"
-    elif config.cameras:
-        what = Path(config.cameras).name
-    else:
-        what = f"{name} split"
+    what = f"{name} path" if name in PATHS else Path(config.cameras).name if config.cameras else f"{name} split"
     antialiased, why = choose_antialias(config.antialias, model.antialiased, _zoom(project, config, views))
-    notes += [why] if why else []
-    notes += [renderer.note] if renderer.note else []
+    notes += [n for n in (why, renderer.note) if n]
     return RenderPlan(model=model, views=views, out_dir=out_dir, config=replace(config, background=background),
                       cameras=what, notes=notes, antialiased=antialiased, renderer=renderer)
 
@@ -358,9 +346,7 @@ def run_render(plan: RenderPlan, *, on_event: EventSink | None = None) -> Render
         emit(on_event, Note(n))
     result = render_views(plan.model.gaussians, plan.views, plan.config, plan.out_dir, on_event=on_event,
                           antialiased=plan.antialiased, renderer=plan.renderer)
-    m = plan.model
-    result.source = m.name
-    result.cameras = plan.cameras
+    result.source, result.cameras = plan.model.name, plan.cameras
     return result
 
 

@@ -46,16 +46,11 @@ def out_name_for(name: str) -> str:
 # ---------------------------------------------------------------------------
 
 
-def project_cameras(project: Project) -> list[Camera]:
-    """All registered cameras of a processed project, sorted by image name."""
-    return read_project_scene(project).cameras
-
-
 def dataset_views(project: Project, split: str) -> list[View]:
     """The cameras of `split` (test | train | all) with their ground-truth images."""
     if split not in SPLITS:
         raise SplatError(f"--split {split!r} is not known; allowed values: {', '.join(SPLITS)}")
-    cams = project_cameras(project)
+    cams = read_project_scene(project).cameras  # sorted by image name
     if split != "all":
         wanted = set(project.splits([c.name for c in cams])[split])
         cams = [c for c in cams if c.name in wanted]
