@@ -16,6 +16,7 @@ from ..gaussians import Gaussians, num_sh_bases, sh_degree_from_bases
 
 # Signs of (x, y, z) between OpenCV's right-down-front frame and the right-up-back frame of SPZ.
 YZ = (1.0, -1.0, -1.0)
+MAX_RATIO = 1100  # decoded bytes per stored byte a real file can reach (deflate: ~1032); beyond it a file lies
 
 
 def sh_signs(s: tuple[float, float, float]) -> np.ndarray:
@@ -93,7 +94,7 @@ def logit(p: np.ndarray, eps: float) -> np.ndarray:
     return np.log(p) - np.log1p(-p)
 
 
-def pack_smallest_three(q: np.ndarray, order: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+def pack_smallest_three(q: np.ndarray, order: tuple[int, ...] = (0, 1, 2, 3)) -> tuple[np.ndarray, np.ndarray]:
     """Quaternions [N, 4] (w, x, y, z) -> (index of the largest component in `order`,
     [N, 3] the other three in `order`, each in [-1/sqrt2, 1/sqrt2]). The quaternion is
     negated where needed so that the dropped component is positive."""
@@ -105,7 +106,7 @@ def pack_smallest_three(q: np.ndarray, order: tuple[int, ...]) -> tuple[np.ndarr
     return big, a[keep].reshape(-1, 3)
 
 
-def unpack_smallest_three(big: np.ndarray, rest: np.ndarray, order: tuple[int, ...]) -> np.ndarray:
+def unpack_smallest_three(big: np.ndarray, rest: np.ndarray, order: tuple[int, ...] = (0, 1, 2, 3)) -> np.ndarray:
     """Inverse of pack_smallest_three: -> [N, 4] (w, x, y, z)."""
     n = len(big)
     a = np.zeros((n, 4))

@@ -36,7 +36,6 @@ CHUNK_PROPS = ["min_x", "min_y", "min_z", "max_x", "max_y", "max_z",
                "min_scale_x", "min_scale_y", "min_scale_z", "max_scale_x", "max_scale_y", "max_scale_z",
                "min_r", "min_g", "min_b", "max_r", "max_g", "max_b"]
 VERTEX_PROPS = ["packed_position", "packed_rotation", "packed_scale", "packed_color"]
-WXYZ = (0, 1, 2, 3)
 MAX_HEADER = 64 * 1024
 
 
@@ -45,18 +44,13 @@ def _unorm(x: np.ndarray, bits: int) -> np.ndarray:
     return np.clip(np.floor(x * t + 0.5), 0, t).astype(np.uint32)
 
 
-def _chunk_range(v: np.ndarray, n_chunks: int) -> tuple[np.ndarray, np.ndarray]:  # [C*256, D] -> [C, D] x 2
+def _chunked(v: np.ndarray, n_chunks: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """v [C*256, D] -> each chunk's range lo, hi [C, D], and v within it in [0, 1] (0 where the range is empty)."""
     c = v.reshape(n_chunks, CHUNK, -1)
-    return c.min(1), c.max(1)
-
-
-def _normalise(v: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """v [C*256, D] within its chunk's [lo, hi] [C, D] -> [0, 1] (0 where the range is empty)."""
-    n_chunks = len(lo)
-    c = v.reshape(n_chunks, CHUNK, -1)
+    lo, hi = c.min(1), c.max(1)
     span = (hi - lo)[:, None]
     out = np.where(span < 1e-5, 0.0, (c - lo[:, None]) / np.where(span < 1e-5, 1.0, span))
-    return np.clip(out, 0.0, 1.0).reshape(v.shape)
+    return lo, hi, np.clip(out, 0.0, 1.0).reshape(v.shape)
 
 
 def encode_compressed_ply(g: Gaussians) -> tuple[bytes, int]:
@@ -69,14 +63,13 @@ def encode_compressed_ply(g: Gaussians) -> tuple[bytes, int]:
     means, ls = a.means[pad], np.clip(a.log_scales[pad], -20.0, 20.0)
     rgb = a.sh[pad, 0] * SH_C0 + 0.5
     alpha = sigmoid(a.opacity_logits[pad])
-    pmin, pmax = _chunk_range(means, n_chunks)
-    smin, smax = _chunk_range(ls, n_chunks)
-    cmin, cmax = _chunk_range(rgb, n_chunks)
-    p, s, c = _normalise(means, pmin, pmax), _normalise(ls, smin, smax), _normalise(rgb, cmin, cmax)
+    pmin, pmax, p = _chunked(means, n_chunks)
+    smin, smax, s = _chunked(ls, n_chunks)
+    cmin, cmax, c = _chunked(rgb, n_chunks)
     position = _unorm(p[:, 0], 11) << 21 | _unorm(p[:, 1], 10) << 11 | _unorm(p[:, 2], 11)
     scale = _unorm(s[:, 0], 11) << 21 | _unorm(s[:, 1], 10) << 11 | _unorm(s[:, 2], 11)
     color = _unorm(c[:, 0], 8) << 24 | _unorm(c[:, 1], 8) << 16 | _unorm(c[:, 2], 8) << 8 | _unorm(alpha, 8)
-    big, rest = pack_smallest_three(a.quats[pad], WXYZ)
+    big, rest = pack_smallest_three(a.quats[pad])
     rotation = big.astype(np.uint32)
     for j in range(3):
         rotation = (rotation << 10) | _unorm(rest[:, j] / np.sqrt(2.0) + 0.5, 10)
@@ -177,7 +170,7 @@ def read_compressed_ply(path: str | os.PathLike, device: torch.device | str = "c
     means = three(v[:, 0], chunks[:, 0:3], chunks[:, 3:6])
     log_scales = three(v[:, 2], chunks[:, 6:9], chunks[:, 9:12])
     rest = np.stack([unorm(v[:, 1] >> 20, 10), unorm(v[:, 1] >> 10, 10), unorm(v[:, 1], 10)], axis=1)
-    quats = unpack_smallest_three((v[:, 1] >> 30).astype(np.int64), (rest - 0.5) * np.sqrt(2.0), WXYZ)
+    quats = unpack_smallest_three((v[:, 1] >> 30).astype(np.int64), (rest - 0.5) * np.sqrt(2.0))
     c = v[:, 3]
     rgb = np.stack([unorm(c >> 24, 8), unorm(c >> 16, 8), unorm(c >> 8, 8)], axis=1)
     if len(cnames) == 18:

@@ -2,21 +2,11 @@
 
 splatcli/model.py's export_project picks the source (a project's latest checkpoint, or a
 splat file of any format splatcli reads, so `export` also converts between formats) and
-the output; this module checks the options and writes. Formats (formats/registry.py; their
-sizes and losses: docs/benchmarks.md, "formats"):
-
-* `ply`: the original 3DGS layout, byte-compatible with its writer (formats/ply.py);
-  every 3DGS viewer and tool reads it. Lossless.
-* `spz`: Niantic's SPZ: positions in 24-bit fixed point, colour, opacity and
-  scale in 8 bits, rotations in 32, SH in 6/5 bits; version 4 (zstd) or 3 (gzip)
-  (formats/spz.py).
-* `compressed-ply`: SuperSplat's chunked layout for the PlayCanvas viewers (formats/compressed_ply.py).
-* `sog`: PlayCanvas's SOG, the smallest: lossless WebP images of 8-16-bit values
-  and k-means codebooks, the SH as a palette of SH vectors (formats/sog.py).
-* `splat`: the 32-byte-per-Gaussian web-viewer format (formats/splat.py). SH bands above
-  degree 0 are dropped and colour, opacity and rotation are 8-bit.
-* `web`: a folder, not a file: `view`'s page with the scene as .sog, for any static web
-  server (viewer/site.py, passed to model.export_project as its writer by the CLI).
+the output; this module checks the options and writes. The file formats are registry.py's,
+one module each (their sizes and losses: docs/benchmarks.md, "formats"); only `ply`, the
+3DGS layout every viewer reads, is lossless. `web` is a folder, not a file: `view`'s page
+with the scene as .sog, for any static web server (viewer/site.py, passed to
+model.export_project as its writer by the CLI).
 
 Rows with NaN/Inf values are dropped and counted. Every write is atomic.
 """

@@ -97,11 +97,8 @@ def gaussians_to_rows(g: Gaussians) -> np.ndarray:
     dc = sh[:, 0, :]  # [N, 3]
     # channel-major f_rest: [N, K-1, 3] -> [N, 3, K-1] -> [N, 3(K-1)]
     rest = sh[:, 1:, :].transpose(1, 2).reshape(n, 3 * (k - 1))
-    rows = torch.cat(
-        [cpu(g.means), torch.zeros(n, 3), dc, rest, cpu(g.opacity_logits), cpu(g.log_scales), cpu(g.quats)],
-        dim=1,
-    )
-    return rows.numpy()
+    rows = [cpu(g.means), torch.zeros(n, 3), dc, rest, cpu(g.opacity_logits), cpu(g.log_scales), cpu(g.quats)]
+    return torch.cat(rows, dim=1).numpy()
 
 
 @dataclass(frozen=True)
@@ -223,10 +220,7 @@ def _sh_layout(path: Path, names: list[str]) -> int:
     for d in range(MAX_SH_DEGREE + 1):
         if m == 3 * (num_sh_bases(d) - 1):
             return d
-    raise PlyError(
-        f"{path}: {m} f_rest_* properties match no SH degree 0..{MAX_SH_DEGREE} "
-        f"(expected 0, 9, 24 or 45)"
-    )
+    raise PlyError(f"{path}: {m} f_rest_* properties match no SH degree 0..{MAX_SH_DEGREE} (expected 0, 9, 24 or 45)")
 
 
 def _check_vertex(path: Path, ply: plyfile.PlyData) -> tuple[plyfile.PlyElement, int]:
@@ -237,10 +231,8 @@ def _check_vertex(path: Path, ply: plyfile.PlyData) -> tuple[plyfile.PlyElement,
     vertex = ply["vertex"]
     names = [p.name for p in vertex.properties]
     if not any(n in names for n in _SPLAT_MARKERS):
-        raise PlyError(
-            f"{path}: a plain point cloud, not a Gaussian splat "
-            f"(no f_dc_0, opacity, scale_0 or rot_0 properties; it has {', '.join(names[:8]) or 'none'})"
-        )
+        raise PlyError(f"{path}: a plain point cloud, not a Gaussian splat (no f_dc_0, opacity, scale_0 or rot_0 "
+                       f"properties; it has {', '.join(names[:8]) or 'none'})")
     missing = [n for n in _REQUIRED if n not in names]
     if missing:
         raise PlyError(f"{path}: not a 3DGS splat: vertex properties missing: {', '.join(missing)}")
@@ -305,12 +297,5 @@ def read_ply(path: str | os.PathLike, device: torch.device | str = "cpu") -> Ply
     dev = torch.device(device)
     t = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32)).to(dev)  # noqa: E731
     g = Gaussians(means=t(means), quats=t(quats), log_scales=t(scales), opacity_logits=t(opac), sh=t(sh))
-    return PlyRead(
-        gaussians=g,
-        sh_degree=d,
-        num_vertices=int(len(table)),
-        num_dropped=n_bad,
-        has_normals=all(n in names for n in _NORMALS),
-        extra_properties=extra,
-        notes=notes,
-    )
+    return PlyRead(gaussians=g, sh_degree=d, num_vertices=int(len(table)), num_dropped=n_bad,
+                   has_normals=all(n in names for n in _NORMALS), extra_properties=extra, notes=notes)

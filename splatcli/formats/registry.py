@@ -100,12 +100,8 @@ def read_format(path: str | os.PathLike, device: torch.device | str = "cpu", fmt
     if fmt == "ply":
         r = read_ply(path, device)
         return ReadResult(r.gaussians, fmt, list(r.notes))
-    if fmt == "compressed-ply":
-        return ReadResult(read_compressed_ply(path, device), fmt, [])
-    if fmt == "spz":
-        return ReadResult(read_spz(path, device), fmt, [])
-    if fmt == "sog":
-        return ReadResult(read_sog(path, device), fmt, [])
-    if fmt == "splat":
-        return ReadResult(splat_gaussians(read_splat(path), device), fmt, [])
-    raise SplatError(f"{path}: not a splat file splatcli reads ({', '.join(SUFFIXES.values())})")
+    read = {"compressed-ply": read_compressed_ply, "spz": read_spz, "sog": read_sog,
+            "splat": lambda p, d: splat_gaussians(read_splat(p), d)}.get(fmt)
+    if read is None:
+        raise SplatError(f"{path}: not a splat file splatcli reads ({', '.join(SUFFIXES.values())})")
+    return ReadResult(read(path, device), fmt, [])

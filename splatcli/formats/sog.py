@@ -37,11 +37,9 @@ import torch
 from .. import __version__
 from ..files.atomic import atomic_write_bytes
 from ..gaussians import Gaussians, morton_order
-from .codec import Arrays, logit, pack_smallest_three, refuse, sigmoid, unpack_smallest_three
+from .codec import MAX_RATIO, Arrays, logit, pack_smallest_three, refuse, sigmoid, unpack_smallest_three
 
-WXYZ = (0, 1, 2, 3)
 MAX_META = 64 << 20
-MAX_RATIO = 1100  # decoded bytes per stored byte a real file can reach; beyond it a file lies
 
 
 @dataclass(frozen=True)
@@ -117,10 +115,9 @@ def _webp(rgba: np.ndarray) -> bytes:  # [H, W, 4] uint8
     return b.getvalue()
 
 
-def _texture(n: int, w: int, h: int, channels: list[np.ndarray], alpha: np.ndarray | int = 255) -> bytes:
+def _texture(n: int, w: int, h: int, channels: np.ndarray, alpha: np.ndarray | int = 255) -> bytes:  # [n, <= 3]
     img = np.zeros((w * h, 4), np.uint8)
-    for j, ch in enumerate(channels):
-        img[:n, j] = ch
+    img[:n, :channels.shape[1]] = channels
     img[:n, 3] = alpha
     return _webp(img.reshape(h, w, 4))
 
@@ -138,24 +135,22 @@ def encode_sog(g: Gaussians, options: SogOptions = SogOptions()) -> tuple[bytes,
     lt = np.sign(a.means[order]) * np.log1p(np.abs(a.means[order]))
     lo, hi = (lt.min(0), lt.max(0)) if n else (np.zeros(3), np.zeros(3))
     u = np.round((lt - lo) / np.where(hi > lo, hi - lo, 1.0) * 65535).astype(np.uint32)
-    files["means_l.webp"] = _texture(n, w, h, [u[:, j] & 255 for j in range(3)])
-    files["means_u.webp"] = _texture(n, w, h, [u[:, j] >> 8 for j in range(3)])
+    files["means_l.webp"] = _texture(n, w, h, u & 255)
+    files["means_u.webp"] = _texture(n, w, h, u >> 8)
     meta["means"] = {"mins": lo.tolist(), "maxs": hi.tolist(), "files": ["means_l.webp", "means_u.webp"]}
 
-    big, rest = pack_smallest_three(a.quats[order], WXYZ)
+    big, rest = pack_smallest_three(a.quats[order])
     q = np.clip(np.round((rest * np.sqrt(2.0) + 1.0) / 2.0 * 255.0), 0, 255).astype(np.uint8)
-    files["quats.webp"] = _texture(n, w, h, [q[:, j] for j in range(3)], (252 + big).astype(np.uint8))
+    files["quats.webp"] = _texture(n, w, h, q, (252 + big).astype(np.uint8))
     meta["quats"] = {"files": ["quats.webp"]}
 
     book, idx = kmeans_1d(a.log_scales[order], 256, options.iterations)
-    idx = idx.reshape(n, 3)
-    files["scales.webp"] = _texture(n, w, h, [idx[:, j] for j in range(3)])
+    files["scales.webp"] = _texture(n, w, h, idx.reshape(n, 3))
     meta["scales"] = {"codebook": book.tolist(), "files": ["scales.webp"]}
 
     book, idx = kmeans_1d(a.sh[order, 0], 256, options.iterations)
-    idx = idx.reshape(n, 3)
     opacity = np.clip(np.round(sigmoid(a.opacity_logits[order]) * 255.0), 0, 255).astype(np.uint8)
-    files["sh0.webp"] = _texture(n, w, h, [idx[:, j] for j in range(3)], opacity)
+    files["sh0.webp"] = _texture(n, w, h, idx.reshape(n, 3), opacity)
     meta["sh0"] = {"codebook": book.tolist(), "files": ["sh0.webp"]}
 
     coeffs = a.sh.shape[1] - 1
@@ -172,7 +167,7 @@ def encode_sog(g: Gaussians, options: SogOptions = SogOptions()) -> tuple[bytes,
         cimg[:, :, 3] = 255
         files["shN_centroids.webp"] = _webp(cimg.reshape(rows, 64 * coeffs, 4))
         lab = labels.numpy().astype(np.uint32)
-        files["shN_labels.webp"] = _texture(n, w, h, [lab & 255, lab >> 8])
+        files["shN_labels.webp"] = _texture(n, w, h, np.stack([lab & 255, lab >> 8], 1))
         meta["shN"] = {"count": int(k), "bands": int(round(math.sqrt(coeffs + 1))) - 1, "codebook": book.tolist(),
                        "files": ["shN_centroids.webp", "shN_labels.webp"]}
 
@@ -292,7 +287,7 @@ def read_sog(path: str | os.PathLike, device: torch.device | str = "cpu") -> Gau
     tag = qi[:, 3].astype(np.int64)
     if ((tag < 252) | (tag > 255)).any():
         raise refuse(path, "quats.webp holds a largest-component tag outside 252-255")
-    quats = unpack_smallest_three(tag - 252, (qi[:, :3].astype(np.float64) / 255.0 * 2.0 - 1.0) / np.sqrt(2.0), WXYZ)
+    quats = unpack_smallest_three(tag - 252, (qi[:, :3].astype(np.float64) / 255.0 * 2.0 - 1.0) / np.sqrt(2.0))
     si = image(files("scales", 1)[0], n)[:n]
     log_scales = np.asarray(meta["scales"]["codebook"], np.float64)[si[:, :3]]
     ci = image(files("sh0", 1)[0], n)[:n]

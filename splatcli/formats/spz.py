@@ -60,6 +60,7 @@ import zstandard
 from ..files.atomic import atomic_write_bytes
 from ..gaussians import Gaussians
 from .codec import (
+    MAX_RATIO,
     Arrays,
     blocks,
     check_sh_degree,
@@ -82,7 +83,6 @@ ZSTD_LEVEL = 12  # the reference encoder's
 COLOR_SCALE = 0.15
 XYZW = (1, 2, 3, 0)  # positions of x, y, z, w in (w, x, y, z)
 COMPRESS_LEVEL = 6  # zlib default; 9 is many times slower on quantised SH runs for barely smaller files
-MAX_RATIO = 1100  # deflate expands at most ~1032x: a larger claimed payload is a lie
 
 
 @dataclass(frozen=True)
