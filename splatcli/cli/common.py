@@ -11,7 +11,7 @@ import json
 import math
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import torch
@@ -149,8 +149,8 @@ class _LogLines:
 class _BarSink:
     """An EventSink drawing rich progress bars, and a log line per event off a terminal."""
 
-    def __init__(self, bars: RichProgress, err: Console, lines: _LogLines | None) -> None:
-        self.bars, self.err, self.lines = bars, err, lines
+    def __init__(self, bars: RichProgress, note: Callable[[str, str], None], lines: _LogLines | None) -> None:
+        self.bars, self.note, self.lines = bars, note, lines
         self.tasks: dict[str, TaskID] = {}
         self.started = False
 
@@ -181,9 +181,7 @@ class _BarSink:
                 total = t.total if t is not None and t.total is not None else (t.completed if t else 1)
                 bars.update(tid, total=total, completed=total)
         elif isinstance(ev, Note):
-            self.err.print(
-                ("[yellow]warning:[/yellow] " if ev.level == "warning" else "[dim]note:[/dim] ") + escape(ev.message)
-            )
+            self.note(ev.message, ev.level)
 
 
 class Ui:
@@ -205,19 +203,10 @@ class Ui:
     @contextlib.contextmanager
     def progress(self) -> Iterator[EventSink]:
         """An EventSink that draws rich progress bars (spinners when the total is unknown)."""
-        bars = RichProgress(
-            SpinnerColumn(),
-            TextColumn("[bold]{task.description}"),
-            BarColumn(),
-            _Count(),
-            TimeElapsedColumn(),
-            _Remaining(),
-            TextColumn("{task.fields[info]}"),
-            console=self.err,
-            transient=False,
-            disable=self.quiet,
-        )
-        sink = _BarSink(bars, self.err, _LogLines(self.err) if not self.err.is_terminal and not self.quiet else None)
+        bars = RichProgress(SpinnerColumn(), TextColumn("[bold]{task.description}"), BarColumn(), _Count(),
+                            TimeElapsedColumn(), _Remaining(), TextColumn("{task.fields[info]}"),
+                            console=self.err, disable=self.quiet)
+        sink = _BarSink(bars, self.note, _LogLines(self.err) if not self.err.is_terminal and not self.quiet else None)
         erase = False
         try:
             yield sink

@@ -8,6 +8,7 @@ from typing import Optional
 
 import typer
 
+from ..errors import SplatError
 from ..events import Note
 from ..formats.export import ExportConfig
 from ..formats.sog import SogOptions
@@ -83,8 +84,6 @@ def export(
 
 
 def _bits(text: str) -> tuple[int, int]:
-    from ..errors import SplatError
-
     try:
         a, b = (int(x) for x in text.split(","))
     except ValueError:

@@ -87,9 +87,7 @@ def config_options(root: type, presets: dict[str, dict[str, Any]] | None = None)
 
         @functools.wraps(func)
         def command(**kw: Any) -> Any:
-            given = {n: kw.pop(n) for n in names if kw.get(n) is not None}
-            for n in names:
-                kw.pop(n, None)
+            given = {n: v for n in names if (v := kw.pop(n, None)) is not None}
             return func(**kw, given=given)
 
         command.__signature__ = inspect.Signature(params)  # type: ignore[attr-defined]

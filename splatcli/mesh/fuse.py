@@ -209,10 +209,8 @@ def write_mesh(path: Path, mesh: Mesh) -> list[Path]:
     """`path` (.ply: binary triangles with vertex colours) and the same mesh as .obj beside it."""
     v = np.empty(len(mesh.verts), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"),
                                          ("red", "u1"), ("green", "u1"), ("blue", "u1")])
-    for i, k in enumerate("xyz"):
-        v[k] = mesh.verts[:, i]
-    for i, k in enumerate(("red", "green", "blue")):
-        v[k] = mesh.colors[:, i]
+    for k, column in zip(v.dtype.names, (*mesh.verts.T, *mesh.colors.T)):
+        v[k] = column
     f = np.empty(len(mesh.faces), dtype=[("vertex_indices", "i4", (3,))])
     f["vertex_indices"] = mesh.faces
     buf = io.BytesIO()

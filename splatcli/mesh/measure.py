@@ -62,8 +62,7 @@ def read_surface(path: str | Path, seed: int = 0) -> np.ndarray:  # [n, 3]
         verts = np.stack([v["x"], v["y"], v["z"]], 1).astype(np.float64)
     except (OSError, ValueError, KeyError) as e:
         raise SplatError(f"{path}: not a readable .ply with vertices ({type(e).__name__})") from None
-    names = [e.name for e in ply.elements]
-    if "face" in names and len(ply["face"].data):
+    if "face" in ply and len(ply["face"].data):
         faces = np.stack(ply["face"].data["vertex_indices"]).astype(np.int64)
         return sample_surface(verts, faces, seed=seed)
     return verts
