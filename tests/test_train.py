@@ -388,10 +388,10 @@ def test_the_eta_of_a_step_schedule_prices_the_steps_left_by_their_resolution():
     def told(cfg, step, elapsed, world=1):
         notes = []
         eta = log.Eta(SimpleNamespace(step=0, elapsed_s=0.0, world=world), cfg)
-        eta.tell(SimpleNamespace(step=step, elapsed_s=log.ETA_AFTER_S / 2, world=world), notes.append)
+        eta.tell(SimpleNamespace(step=step, elapsed_s=log.ETA_AFTER_S / 2, world=world), 0, notes.append)
         assert notes == []  # too soon
-        eta.tell(SimpleNamespace(step=step, elapsed_s=elapsed, world=world), notes.append)
-        eta.tell(SimpleNamespace(step=step + 1, elapsed_s=elapsed + 1, world=world), notes.append)
+        eta.tell(SimpleNamespace(step=step, elapsed_s=elapsed, world=world), 0, notes.append)
+        eta.tell(SimpleNamespace(step=step + 1, elapsed_s=elapsed + 1, world=world), 0, notes.append)
         assert len(notes) == 1 and isinstance(notes[0], Note)  # once
         return notes[0].message
 
@@ -434,7 +434,7 @@ def test_a_second_eta_comes_once_the_model_has_stopped_growing():
     eta = log.Eta(SimpleNamespace(step=0, elapsed_s=0.0, world=1), demo)
     for step, elapsed in ((200, 20.0), (899, 90.0), (950, 100.0), (990, 100.0 + log.ETA_AFTER_S / 2),
                           (1000, 100.0 + log.ETA_AFTER_S), (1100, 200.0)):
-        eta.tell(SimpleNamespace(step=step, elapsed_s=elapsed, world=1, num_gaussians=20_000), notes.append)
+        eta.tell(SimpleNamespace(step=step, elapsed_s=elapsed, world=1), 20_000, notes.append)
     said = [n.message for n in notes]
     assert len(said) == 2 and said[0].startswith("at least "), said
     rate = 50 / log.ETA_AFTER_S  # steps 950..1000 in ETA_AFTER_S seconds

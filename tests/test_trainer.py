@@ -41,7 +41,7 @@ def test_a_step_alone_updates_the_model_and_the_loss_falls(tmp_path):
         before = {k: p.detach().clone() for k, p in t.state.params.items()}
         batch = t.next_batch(step)
         stats = t.step(step, batch)
-        assert stats.finite and not stats.stopping and t.state.step == step
+        assert stats.finite and not stats.stopping and t.state.counts.step == step
         assert stats.loss.shape == () and not stats.loss.requires_grad and 0.0 < float(stats.loss) < 1.0
         assert (stats.info.width, stats.info.height) == (batch.view.camera.width, batch.view.camera.height)
         assert stats.info.render.image.shape == batch.target.shape == (40, 48, 3)
@@ -53,7 +53,7 @@ def test_a_step_alone_updates_the_model_and_the_loss_falls(tmp_path):
         losses.append(float(stats.loss))
     epochs = [sum(losses[i:i + n_views]) / n_views for i in range(0, len(losses), n_views)]  # mean loss of each
     assert all(b < a for a, b in zip(epochs, epochs[1:])) and epochs[-1] < 0.9 * epochs[0], epochs
-    assert t.state.bad_steps == 0
+    assert t.state.counts.bad_steps == 0
 
 
 def test_a_non_finite_step_changes_nothing_and_is_counted(tmp_path):
@@ -63,7 +63,7 @@ def test_a_non_finite_step_changes_nothing_and_is_counted(tmp_path):
     before = {k: p.detach().clone() for k, p in t.state.params.items()}
     stats = t.step(1, batch, stop=True)
     assert not stats.finite and not stats.info.finite and stats.stopping  # (one process: its own signal)
-    assert (t.state.bad_steps, t.state.bad_run) == (1, 1)
+    assert (t.state.counts.bad_steps, t.state.counts.bad_run) == (1, 1)
     for k, p in t.state.params.items():
         assert torch.equal(before[k], p), k
 

@@ -24,7 +24,7 @@ from ..strategy import RefineStats
 from .config import TrainConfig, TrainReport, TrainSummary
 from .distributed import Comm
 from .plan import step_costs
-from .state import TrainState
+from .state import Counters, TrainState
 
 PROGRESS_PERIOD_S = 0.25  # progress-bar refresh; a loss read is a host sync on CUDA
 ETA_AFTER_S = 20.0  # training seconds measured before a run without a time budget says when it ends
@@ -44,13 +44,13 @@ class LogWriter:
         self.loss = last[-1].get("loss") if last else None
         self.last_refine = ""  # the latest refinement, for the progress bar
         self._t_info = 0.0
-        self._rate = (time.perf_counter(), state.elapsed_s, state.images)
+        self._rate = (time.perf_counter(), state.counts.elapsed_s, state.counts.images)
         self._steps_per_s: float | None = None
         self._info: dict[str, Any] = {}
 
     def add(self, loss: torch.Tensor | None) -> None:
         if loss is not None:
-            acc = self.state.loss_acc
+            acc = self.state.counts.loss_acc
             acc[0] += loss.to(acc.dtype)
             acc[1] += 1
 
@@ -58,13 +58,13 @@ class LogWriter:
         """Count what a strategy call changed."""
         if stats is None or not (stats.cloned or stats.split or stats.pruned):
             return
-        acc = self.state.refine_acc
+        acc = self.state.counts.refine_acc
         for k in REFINED:
             acc[k] = acc.get(k, 0) + getattr(stats, k)
         self.last_refine = f"+{stats.cloned}/+{stats.split}/-{stats.pruned}"
 
     def _mean_loss(self) -> float | None:
-        s, n = self.state.loss_acc.tolist()
+        s, n = self.state.counts.loss_acc.tolist()
         return s / n if n else self.loss
 
     def line(self, step: int, state: TrainState, evaluated: tuple[float, float] | None,
@@ -74,11 +74,11 @@ class LogWriter:
         if not (force or evaluated is not None or (log_every and step % log_every == 0)):
             return
         loss = self._mean_loss()
-        rec = TrainLogLine(step=state.images, elapsed_s=round(state.elapsed_s, 4),
+        rec = TrainLogLine(step=state.counts.images, elapsed_s=round(state.counts.elapsed_s, 4),
                            loss=float("nan") if loss is None else round(loss, 6),
-                           num_gaussians=state.num_gaussians, bad_steps=state.bad_steps, rss_mb=rss_mb(),
+                           num_gaussians=state.num_gaussians, bad_steps=state.counts.bad_steps, rss_mb=rss_mb(),
                            open_fds=open_fds(),
-                           **{k: state.refine_acc.get(k, 0) for k in REFINED})
+                           **{k: state.counts.refine_acc.get(k, 0) for k in REFINED})
         if evaluated is not None:
             rec.psnr, rec.ssim = round(evaluated[0], 4), round(evaluated[1], 5)
             self.psnr = rec.psnr
@@ -87,8 +87,8 @@ class LogWriter:
         if self.enabled:
             append_line(self.path, json.dumps(rec.to_json()))
         self.loss = loss
-        self.state.loss_acc.zero_()
-        self.state.refine_acc.clear()
+        self.state.counts.loss_acc.zero_()
+        self.state.counts.refine_acc.clear()
 
     def info(self, state: TrainState) -> dict[str, Any]:
         """Live figures for the progress bar, refreshed at most every PROGRESS_PERIOD_S."""
@@ -97,9 +97,9 @@ class LogWriter:
             return self._info
         self._t_info = now
         _, e0, s0 = self._rate
-        if state.elapsed_s - e0 > 1.0:  # training-time rate over the last second or more
-            self._steps_per_s = (state.images - s0) / (state.elapsed_s - e0)
-            self._rate = (now, state.elapsed_s, state.images)
+        if state.counts.elapsed_s - e0 > 1.0:  # training-time rate over the last second or more
+            self._steps_per_s = (state.counts.images - s0) / (state.counts.elapsed_s - e0)
+            self._rate = (now, state.counts.elapsed_s, state.counts.images)
         info: dict[str, Any] = {}
         if self._steps_per_s is not None:
             info["steps/s"] = round(self._steps_per_s, 2)
@@ -121,42 +121,42 @@ class Eta:
     budget's plans price them (train/plan.py). The first is a lower bound (a growing model
     slows it); a second comes once the model has stopped growing (the strategy's refine_stop)."""
 
-    def __init__(self, state: TrainState, cfg: TrainConfig) -> None:
-        self.start = (state.step, state.elapsed_s)
+    def __init__(self, counts: Counters, cfg: TrainConfig) -> None:
+        self.start = (counts.step, counts.elapsed_s)
         self.cfg = cfg
         self.told = False
         self.grown = cfg.refine.refine_stop  # the step growth ends at
-        self.again = state.step < self.grown < cfg.total_steps  # a second note is due then
+        self.again = counts.step < self.grown < cfg.total_steps  # a second note is due then
         self.since: tuple[int, float] | None = None  # (step, elapsed) once grown
         self.last: tuple[float, float | None] = (-1.0, None)  # (elapsed, seconds left) of the latest estimate
 
-    def left(self, state: TrainState) -> float | None:
+    def left(self, counts: Counters) -> float | None:
         """Training seconds left: the steps left priced by their resolution at the speed measured
         since the model stopped growing (once it has), else since the start; None until
         ETA_AFTER_S seconds are measured. Estimated again at most once a training second."""
-        if state.elapsed_s - self.last[0] >= 1.0:
-            est = self._left(state, self.since or self.start)
-            self.last = (state.elapsed_s, None if est is None else est[0])
+        if counts.elapsed_s - self.last[0] >= 1.0:
+            est = self._left(counts, self.since or self.start)
+            self.last = (counts.elapsed_s, None if est is None else est[0])
         return self.last[1]
 
-    def _left(self, state: TrainState, start: tuple[int, float]) -> tuple[float, float] | None:
+    def _left(self, counts: Counters, start: tuple[int, float]) -> tuple[float, float] | None:
         """(seconds left, steps/s) measured from `start`, once ETA_AFTER_S seconds have passed."""
-        done, elapsed = state.step - start[0], state.elapsed_s - start[1]
+        done, elapsed = counts.step - start[0], counts.elapsed_s - start[1]
         if elapsed < ETA_AFTER_S or done <= 0:
             return None
         total = self.cfg.total_steps
-        spent = float(step_costs(self.cfg, total, start[0], state.step).sum())
-        return elapsed * float(step_costs(self.cfg, total, state.step, total).sum()) / spent, done * state.world / elapsed
+        spent = float(step_costs(self.cfg, total, start[0], counts.step).sum())
+        return elapsed * float(step_costs(self.cfg, total, counts.step, total).sum()) / spent, done * counts.world / elapsed
 
-    def tell(self, state: TrainState, on_event: EventSink | None) -> None:
-        if self.again and state.step >= self.grown:
-            self.since = self.since or (state.step, state.elapsed_s)
-            est = self._left(state, self.since)
+    def tell(self, counts: Counters, gaussians: int, on_event: EventSink | None) -> None:
+        if self.again and counts.step >= self.grown:
+            self.since = self.since or (counts.step, counts.elapsed_s)
+            est = self._left(counts, self.since)
             if est is not None:
                 self.again = False
-                emit(on_event, Note(f"the model has stopped growing ({state.num_gaussians:,} Gaussians): about "
+                emit(on_event, Note(f"the model has stopped growing ({gaussians:,} Gaussians): about "
                                     f"{duration(est[0])} of training left at {est[1]:.2f} steps/s"))
-        if self.told or (est := self._left(state, self.start)) is None:
+        if self.told or (est := self._left(counts, self.start)) is None:
             return
         self.told = True
         emit(on_event, Note(f"at least {duration(est[0])} of training left at {est[1]:.2f} "
@@ -217,7 +217,7 @@ def finish(project: Project, cfg: TrainConfig, state: TrainState, resumed_from: 
     data-parallel run; the others only return it). Steps count views seen."""
     comm = comm or Comm()
     g = state.model()  # as drawn and exported (--mip-filter folded in)
-    deg = state.active_sh_degree(state.images, cfg.sh_degree_interval)
+    deg = state.active_sh_degree(state.counts.images, cfg.sh_degree_interval)
     log = read_log(project.train_log_path)
     last_eval = next((r for r in reversed(log) if "psnr" in r), None)
     psnr = last_eval.get("psnr") if last_eval else None
@@ -225,8 +225,8 @@ def finish(project: Project, cfg: TrainConfig, state: TrainState, resumed_from: 
     for s, st in zip(state.strategies, state.splats.states):
         owned.update(s.summary(st, len(g), deg, psnr))
     summary = TrainSummary(
-        steps=state.images,
-        train_seconds=round(state.elapsed_s, 3),
+        steps=state.counts.images,
+        train_seconds=round(state.counts.elapsed_s, 3),
         num_gaussians=len(g),
         sh_degree=deg,
         ply_bytes=ply_bytes(len(g), deg),
@@ -235,7 +235,7 @@ def finish(project: Project, cfg: TrainConfig, state: TrainState, resumed_from: 
         final_loss=float(log[-1]["loss"]) if log else math.nan,
         psnr=psnr,
         ssim=last_eval.get("ssim") if last_eval else None,
-        bad_steps=state.bad_steps,
+        bad_steps=state.counts.bad_steps,
         checkpoint=str(project.latest_checkpoint() or ""),
         resumed_from=resumed_from,
         plan=state.plan.record() if state.plan is not None else None,

@@ -193,28 +193,28 @@ class _Run:
     def _extend(self) -> None:
         """A finished planned run resumed with more time (--resume --time-budget) plans on."""
         state = self.trainer.state
-        more = state.plan.extend(self.base, state.images, state.elapsed_s) if state.plan is not None else None
+        more = state.plan.extend(self.base, state.counts.images, state.counts.elapsed_s) if state.plan is not None else None
         if more is not None:
             self.base = more
             self.trainer.reschedule(more.for_world(self.comm.world))
             emit(self.on_event, Note(f"extending the run to {state.plan.budget_s:.0f} s of training: "
-                                     f"{more.iterations} steps planned (from step {state.images})"))
+                                     f"{more.iterations} steps planned (from step {state.counts.images})"))
 
     def loop(self) -> None:
         """Run the trainer's schedule to its end (a --time-budget plan changes it on the way)."""
         t, comm = self.trainer, self.comm
         emit(self.on_event, Stage(STAGE, t.cfg.total_steps * comm.world))
         self.writer = log.LogWriter(self.project.train_log_path, t.state, enabled=comm.main)
-        self.eta = log.Eta(t.state, t.cfg)
+        self.eta = log.Eta(t.state.counts, t.cfg)
         for stats in t.catch_up():  # a resumed run: what is due now
             self.writer.refined(stats)
         if _agreed_stop(comm, self.stop):  # signalled during setup: keep what there is (a resume starts here)
             self._interrupt()
         plan = t.state.plan
         self.stalled = plan.history[-1].get("stalled_s", 0.0) if plan is not None and plan.history else 0.0
-        while t.state.step < t.cfg.total_steps:
-            self._step(t.state.step + 1)
-        emit(self.on_event, StageDone(STAGE, t.state.elapsed_s))
+        while t.state.counts.step < t.cfg.total_steps:
+            self._step(t.state.counts.step + 1)
+        emit(self.on_event, StageDone(STAGE, t.state.counts.elapsed_s))
         if comm.main:
             self.prof.write(self.project, {"nproc": comm.world, "compile": (t.state.render.compiled or {}).get("mode", "off")})
 
@@ -225,11 +225,11 @@ class _Run:
         batch = t.next_batch(step)
         with self._out_of_memory(step, save=True):  # until the update, the state is the last whole step's
             stats = t.step(step, batch, self.stop.is_set())
-        state.elapsed_s += time.perf_counter() - t0
+        state.counts.elapsed_s += time.perf_counter() - t0
         self.stalled += kernels.status().compile_s - c0  # (not evaluation's compiles: evaluation is not training time)
         self.writer.add(stats.loss if stats.finite else None)
         _compiled_record(state, self.on_event if self.comm.main else None)
-        if state.bad_run >= t.cfg.max_bad_steps:
+        if state.counts.bad_run >= t.cfg.max_bad_steps:
             self._diverged()
         fitted = self._measure_update(step, stats.info)
         self._refine(step, stats.info)
@@ -255,7 +255,7 @@ class _Run:
         with self._out_of_memory(step, save=False):  # may be half edited: keep the last checkpoint
             for stats in self.trainer.refine(step, info):
                 self.writer.refined(stats)
-        self.trainer.state.elapsed_s += time.perf_counter() - t1
+        self.trainer.state.counts.elapsed_s += time.perf_counter() - t1
         self.prof.step_done()
 
     def _replan(self) -> None:
@@ -264,10 +264,10 @@ class _Run:
         if state.plan is None:
             return
         if k > 1:  # every rank plans from the same clock
-            state.elapsed_s, self.stalled = self.comm.mean(
-                torch.tensor([state.elapsed_s, self.stalled, 1.0], dtype=torch.float64)).tolist()
-        planned = (state.plan.replan(self.base, state.images, state.elapsed_s, self.stalled)
-                   if state.plan.due(state.elapsed_s, self.stalled) else None)
+            state.counts.elapsed_s, self.stalled = self.comm.mean(
+                torch.tensor([state.counts.elapsed_s, self.stalled, 1.0], dtype=torch.float64)).tolist()
+        planned = (state.plan.replan(self.base, state.counts.images, state.counts.elapsed_s, self.stalled)
+                   if state.plan.due(state.counts.elapsed_s, self.stalled) else None)
         if planned is not None:
             self.base = planned
             self.trainer.reschedule(planned.for_world(k))
@@ -281,12 +281,12 @@ class _Run:
             evaluated = _measure(t.cfg, self.data, state, step, total, comm, force=True)
             fitted = _measure_fit(t.cfg, self.data, state, step, comm) if evaluated is not None else None
         self.writer.line(step, state, evaluated, fitted, t.cfg.log_every, force=step == total)
-        eta = max(state.plan.budget_s - state.elapsed_s, 0.0) if state.plan is not None else self.eta.left(state)
-        emit(self.on_event, Progress(STAGE, state.images, total * comm.world, self.writer.info(state), eta))
+        eta = max(state.plan.budget_s - state.counts.elapsed_s, 0.0) if state.plan is not None else self.eta.left(state.counts)
+        emit(self.on_event, Progress(STAGE, state.counts.images, total * comm.world, self.writer.info(state), eta))
         if comm.main and state.plan is None:
-            self.eta.tell(state, self.on_event)
+            self.eta.tell(state.counts, state.num_gaussians, self.on_event)
         if comm.main:
-            emit(self.on_event, Snapshot(state.images, state.model))  # for live displays (train --viewer)
+            emit(self.on_event, Snapshot(state.counts.images, state.model))  # for live displays (train --viewer)
 
     def _save(self) -> Path:
         """A checkpoint of the run as one process would have written it: every rank folds its
@@ -294,7 +294,7 @@ class _Run:
         state, comm = self.trainer.state, self.comm
         comm.fold_rows(state.splats.states)
         comm.check_agree(state.trainable())
-        path = self.project.checkpoint_path(state.images)
+        path = self.project.checkpoint_path(state.counts.images)
         if comm.main:
             save_state(path, state, self.base)
             log.prune_checkpoints(self.project, self.base.keep_checkpoints)
@@ -303,15 +303,15 @@ class _Run:
     def _interrupt(self) -> NoReturn:
         """Checkpoint the last whole step and stop (the CLI exits 130)."""
         path = self._save()
-        raise Interrupted(f"interrupted at step {self.trainer.state.images}; saved {path}; "
+        raise Interrupted(f"interrupted at step {self.trainer.state.counts.images}; saved {path}; "
                           f"continue with `splatcli train {self.project.root} --resume`")
 
     def _diverged(self) -> NoReturn:
         state = self.trainer.state
         path = self._save()
         raise TrainingDiverged(
-            f"training diverged: {state.bad_run} consecutive steps with a non-finite loss or gradient "
-            f"(step {state.images}); the last good parameters are in {path}; try a lower learning rate or --resume"
+            f"training diverged: {state.counts.bad_run} consecutive steps with a non-finite loss or gradient "
+            f"(step {state.counts.images}); the last good parameters are in {path}; try a lower learning rate or --resume"
         )
 
     @contextlib.contextmanager
@@ -374,14 +374,14 @@ def _out_of_memory_error(project: Project, cfg: TrainConfig, state: TrainState, 
     for opt in state.optimizers.values():
         opt.zero_grad(set_to_none=True)  # frees the gradients before writing
     path = None
-    if save and state.step > 0:
+    if save and state.counts.step > 0:
         try:
-            path = save_state(project.checkpoint_path(state.images), state, cfg)
+            path = save_state(project.checkpoint_path(state.counts.images), state, cfg)
         except (OSError, SplatError, RuntimeError, MemoryError):
             path = None
     path = path or project.latest_checkpoint()
     kept = f"the last good checkpoint is {path}" if path else "no checkpoint was written yet"
-    return SplatError(f"out of memory at step {step * state.world} with {len(state.splats):,} Gaussians "
+    return SplatError(f"out of memory at step {step * state.counts.world} with {len(state.splats):,} Gaussians "
                       f"({type(exc).__name__}); {kept}",
                       hint=f"lower --max-size or set --max-gaussians, then `splatcli train {project.root} --resume`")
 

@@ -1,8 +1,8 @@
 """Everything a training run carries from step to step, and its checkpoint form.
 
-`TrainState` = the trainable set (`Splats`: parameters, one Adam per attribute,
-every strategy's per-Gaussian state), the strategies, the view sampler and the
-loop's counters. `save_state` / `state_from_checkpoint` convert it to and from
+`TrainState` = the model (`Splats`: parameters, one Adam per attribute, every
+strategy's per-Gaussian state; the strategies; the image model), the view order
+(`ViewOrder`), the loop's `Counters`, the time plan and the `RenderSettings`. `save_state` / `state_from_checkpoint` convert it to and from
 plain tensors losslessly, which is what makes an interrupted-and-resumed CPU run
 end bitwise equal to an uninterrupted one.
 """
@@ -51,12 +51,9 @@ class RenderSettings:
 
 
 @dataclass
-class TrainState:
-    splats: Splats  # parameters, Adam, and the strategies' rows (states[i] belongs to strategies[i])
-    strategies: list[Strategy]
-    view_gen: torch.Generator  # view order only
-    perm: Tensor  # [n_train] current epoch's view order
-    pos: int  # next index into perm
+class Counters:
+    """The loop's counts, carried from step to step and through a checkpoint."""
+
     step: int = 0  # optimiser steps done
     world: int = 1  # data-parallel ranks: each step sees this many views
     elapsed_s: float = 0.0  # training seconds so far (evaluation excluded)
@@ -64,8 +61,53 @@ class TrainState:
     bad_run: int = 0  # ... consecutive
     loss_acc: Tensor = field(default_factory=lambda: torch.zeros(2, dtype=torch.float64))  # [sum, count] since the last log line
     refine_acc: dict[str, int] = field(default_factory=dict)  # cloned / split / pruned since the last log line
+
+    @property
+    def images(self) -> int:
+        """Views seen so far: the step a one-process run would be at (what checkpoints,
+        logs and reports count, whatever the number of ranks)."""
+        return self.step * self.world
+
+    def record(self) -> dict[str, Any]:
+        return {"elapsed_s": self.elapsed_s, "bad_steps": self.bad_steps, "bad_run": self.bad_run,
+                "loss_acc": self.loss_acc, "refine_acc": dict(self.refine_acc)}
+
+    @classmethod
+    def from_record(cls, ex: dict[str, Any], images: int, world: int, device: torch.device) -> Counters:
+        return cls(step=images // world, world=world, elapsed_s=float(ex.get("elapsed_s", 0.0)),
+                   bad_steps=int(ex.get("bad_steps", 0)), bad_run=int(ex.get("bad_run", 0)),
+                   loss_acc=ex.get("loss_acc", torch.zeros(2, dtype=torch.float64)).to(device),
+                   refine_acc={k: int(v) for k, v in (ex.get("refine_acc") or {}).items()})
+
+
+@dataclass
+class ViewOrder:
+    """Training views in shuffled epochs, like 3DGS's refilled camera stack."""
+
+    gen: torch.Generator  # view order only
+    perm: Tensor  # [n_train] current epoch's view order
+    pos: int = 0  # next index into perm
+
+    def next(self, n: int) -> int:
+        if self.pos >= self.perm.numel():
+            self.perm = torch.randperm(n, generator=self.gen)
+            self.pos = 0
+        i = int(self.perm[self.pos])
+        self.pos += 1
+        return i
+
+
+@dataclass
+class TrainState:
+    """The model (`splats`, `strategies`, `image_model`), the view order, the counters,
+    the time plan and the render settings: each complete when built."""
+
+    splats: Splats  # parameters, Adam, and the strategies' rows (states[i] belongs to strategies[i])
+    strategies: list[Strategy]
+    image_model: ImageModel  # --appearance: between a render and its photo
+    views: ViewOrder
+    counts: Counters
     plan: TimePlan | None = None  # --time-budget
-    image_model: ImageModel = field(default_factory=ImageModel)  # --appearance: between a render and its photo
     render: RenderSettings = field(default_factory=RenderSettings)
 
     @property
@@ -83,12 +125,6 @@ class TrainState:
 
     def all_optimizers(self) -> list[torch.optim.Optimizer]:
         return list(self.optimizers.values()) + self.image_model.optimizers()
-
-    @property
-    def images(self) -> int:
-        """Views seen so far: the step a one-process run would be at (what checkpoints,
-        logs and reports count, whatever the number of ranks)."""
-        return self.step * self.world
 
     @property
     def num_gaussians(self) -> int:
@@ -125,15 +161,6 @@ class TrainState:
     def antialiased(self) -> bool:
         """Whether the model is drawn with the 2D filter (rasterize(antialiased=True))."""
         return any(s.antialiased for s in self.strategies)
-
-    def next_view(self, n: int) -> int:
-        """Views in shuffled epochs, like 3DGS's refilled camera stack."""
-        if self.pos >= self.perm.numel():
-            self.perm = torch.randperm(n, generator=self.view_gen)
-            self.pos = 0
-        i = int(self.perm[self.pos])
-        self.pos += 1
-        return i
 
 
 def make_strategies(cfg: TrainConfig, extent: float, ctx: Context) -> list[Strategy]:
@@ -209,36 +236,31 @@ def new_state(g: Gaussians, cfg: TrainConfig, extent: float, device: torch.devic
     strategies = make_strategies(cfg, extent, ctx)
     splats = Splats(params, _make_optimizers(params, cfg, extent),
                     [s.initial_state(len(g), device, cfg.seed) for s in strategies])
-    view_gen = torch.Generator().manual_seed(int(cfg.seed) + 1)
-    return TrainState(splats=splats, strategies=strategies, view_gen=view_gen,
-                      perm=torch.randperm(n_train, generator=view_gen), pos=0, world=world,
-                      loss_acc=torch.zeros(2, dtype=torch.float64, device=device),
-                      image_model=make_image_model(cfg, n_train, device, ctx.views.centres), plan=plan, render=render)
+    gen = torch.Generator().manual_seed(int(cfg.seed) + 1)
+    return TrainState(splats, strategies, make_image_model(cfg, n_train, device, ctx.views.centres),
+                      ViewOrder(gen, torch.randperm(n_train, generator=gen)),
+                      Counters(world=world, loss_acc=torch.zeros(2, dtype=torch.float64, device=device)), plan, render)
 
 
 def save_state(path: Path, state: TrainState, cfg: TrainConfig) -> Path:
     """Write the state as a checkpoint (atomic), counting steps in views seen, with `cfg`
     the run's config as given (for one process). The active SH degree recorded is
     the one the model renders with now, so `Checkpoint.model()` drops unused bands."""
-    rng: dict[str, Any] = {"torch": torch.get_rng_state(), "view": state.view_gen.get_state()}
+    rng: dict[str, Any] = {"torch": torch.get_rng_state(), "view": state.views.gen.get_state()}
     if torch.cuda.is_available() and state.params["means"].is_cuda:
         rng["cuda"] = torch.cuda.get_rng_state_all()
     return save_checkpoint(
         path,
-        step=state.images,
+        step=state.counts.images,
         gaussians=state.gaussians(),
-        sh_degree=state.active_sh_degree(state.images, cfg.sh_degree_interval),
+        sh_degree=state.active_sh_degree(state.counts.images, cfg.sh_degree_interval),
         optimizer={k: o.state_dict() for k, o in state.optimizers.items()},
         strategy={s.name: st.state_dict() for s, st in zip(state.strategies, state.splats.states)},
         rng=rng,
         config=cfg.to_dict(),
         appearance=state.image_model.state_dict() or None,
-        extra={
-            "perm": state.perm, "pos": state.pos, "elapsed_s": state.elapsed_s, "bad_steps": state.bad_steps,
-            "bad_run": state.bad_run, "param_names": list(state.params), "loss_acc": state.loss_acc,
-            "refine_acc": dict(state.refine_acc),
-            "plan": state.plan.record() if state.plan is not None else None,
-        },
+        extra={"perm": state.views.perm, "pos": state.views.pos, **state.counts.record(),
+               "param_names": list(state.params), "plan": state.plan.record() if state.plan is not None else None},
     )
 
 
@@ -264,9 +286,9 @@ def state_from_checkpoint(ck: Checkpoint, cfg: TrainConfig, extent: float, devic
     for s, st in zip(strategies, states):
         if isinstance(ck.strategy.get(s.name), dict):
             st.load_state_dict(ck.strategy[s.name])
-    view_gen = torch.Generator()
+    gen = torch.Generator()
     if "view" in ck.rng:
-        view_gen.set_state(ck.rng["view"])
+        gen.set_state(ck.rng["view"])
     if "torch" in ck.rng:
         torch.set_rng_state(ck.rng["torch"])
     if "cuda" in ck.rng and torch.cuda.is_available() and device.type == "cuda":
@@ -274,23 +296,9 @@ def state_from_checkpoint(ck: Checkpoint, cfg: TrainConfig, extent: float, devic
     image_model = make_image_model(cfg, n_train, device, ctx.views.centres)
     if ck.appearance.get("kind") == image_model.name:  # (a model added on resume starts fresh)
         image_model.load_state_dict(ck.appearance, str(ck.path))
-    return TrainState(
-        splats=Splats(params, optimizers, states),
-        strategies=strategies,
-        view_gen=view_gen,
-        perm=ex.get("perm", torch.zeros(0, dtype=torch.long)),
-        pos=int(ex.get("pos", 0)),
-        step=ck.step // world,
-        world=world,
-        elapsed_s=float(ex.get("elapsed_s", 0.0)),
-        bad_steps=int(ex.get("bad_steps", 0)),
-        bad_run=int(ex.get("bad_run", 0)),
-        loss_acc=ex.get("loss_acc", torch.zeros(2, dtype=torch.float64)).to(device),
-        refine_acc={k: int(v) for k, v in (ex.get("refine_acc") or {}).items()},
-        image_model=image_model,
-        plan=plan,
-        render=render,
-    )
+    return TrainState(Splats(params, optimizers, states), strategies, image_model,
+                      ViewOrder(gen, ex.get("perm", torch.zeros(0, dtype=torch.long)), int(ex.get("pos", 0))),
+                      Counters.from_record(ex, ck.step, world, device), plan, render)
 
 
 def time_plan(cfg: TrainConfig, record: Any = None) -> TimePlan | None:

@@ -80,11 +80,11 @@ class Trainer:
     def catch_up(self) -> list[RefineStats | None]:
         """On resume: what each strategy does that an uninterrupted run would have done by now."""
         s = self.state
-        return [strategy.catch_up(s.splats, st, s.step) for strategy, st in zip(s.strategies, s.splats.states)]
+        return [strategy.catch_up(s.splats, st, s.counts.step) for strategy, st in zip(s.strategies, s.splats.states)]
 
     def next_batch(self, step: int) -> Batch:
         """The next views of the one-process stream, one per rank, dealt out; this rank's."""
-        views = [self.state.next_view(len(self.data.train)) for _ in range(self.comm.world)]
+        views = [self.state.views.next(len(self.data.train)) for _ in range(self.comm.world)]
         with self.prof.stage("data"):
             view = self.data.train[views[self.comm.rank]].at_scale(self.cfg.train_scale(step))
             return Batch(views[self.comm.rank], view, view.target())
@@ -98,7 +98,7 @@ class Trainer:
             info.finite = _all_finite(loss, self.state)
             self.updating = True
             _optimise(self.state, info.finite)
-        self.state.step, self.updating = step, False
+        self.state.counts.step, self.updating = step, False
         return StepStats(loss.detach(), info.finite, stopping, info)
 
     def _backward(self, step: int, batch: Batch) -> tuple[StepInfo, Tensor]:  # -> (info, loss [])
@@ -137,10 +137,10 @@ def _optimise(state: TrainState, finite: bool) -> None:
     if finite:
         for opt in state.all_optimizers():
             opt.step()
-        state.bad_run = 0
+        state.counts.bad_run = 0
     else:
-        state.bad_steps += 1
-        state.bad_run += 1
+        state.counts.bad_steps += 1
+        state.counts.bad_run += 1
     for opt in state.all_optimizers():
         opt.zero_grad(set_to_none=True)
 
