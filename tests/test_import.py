@@ -15,16 +15,15 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from typer.testing import CliRunner
 
 from colmap_models import synthetic_model
-from splatcli.cli.main import app
 from splatcli.errors import SplatError
+from splatcli.inputs.llff import to_poses_bounds
 from splatcli.process.run import ProcessConfig, process
 from splatcli.project import Project
 from splatcli.sfm import colmap
 from splatcli.sfm.colmap import read_scene
-from support.tiny_project import assert_user_error
+from support.tiny_project import assert_user_error, make_tiny_project, run_cli
 from test_sfm import gl_c2w, orbit, texture, write_text_model
 
 
@@ -90,6 +89,10 @@ def test_import_pinhole_colmap_keeps_poses_and_points(tmp_path, text):
         np.testing.assert_allclose(a.viewmat, b.viewmat, atol=1e-9)
         np.testing.assert_allclose(a.K, b.K, atol=1e-9)
     assert not (tmp_path / "p" / "sfm" / "distorted").exists()
+    r = process(ws / "sparse" / "0", tmp_path / "q")  # the model given as its own folder
+    assert r.input_kind == "colmap" and r.registered == 5
+    with pytest.raises(SplatError, match="no transforms.json"):
+        process(ws, tmp_path / "forced", ProcessConfig(input_type="transforms"))
 
 
 def test_import_distorted_colmap_with_two_cameras_is_undistorted(tmp_path):
@@ -180,13 +183,6 @@ def test_import_skips_missing_images_with_a_warning(tmp_path):
     assert_contract(tmp_path / "p")
 
 
-def test_import_model_given_as_its_own_folder(tmp_path):
-    ws = tmp_path / "ws"
-    make_workspace(ws)
-    r = process(ws / "sparse" / "0", tmp_path / "p")
-    assert r.input_kind == "colmap" and r.registered == 5
-
-
 # ---- transforms.json -------------------------------------------------------------
 
 
@@ -205,7 +201,7 @@ def blender_scene(root: Path, n_train: int = 6, n_test: int = 2) -> None:
         (root / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": 0.9, "frames": frames}))
 
 
-def test_import_blender_scene_composites_over_white_and_keeps_masks(tmp_path):
+def test_import_blender_scene_composites_over_white_or_black_and_keeps_masks(tmp_path):
     blender_scene(tmp_path / "lego")
     r = process(tmp_path / "lego", tmp_path / "p")
     assert r.input_kind == "transforms" and r.registered == 8 and r.points == 0 and r.masks
@@ -222,14 +218,10 @@ def test_import_blender_scene_composites_over_white_and_keeps_masks(tmp_path):
     assert mask.shape == (48, 64) and mask[0, 0] == 0 and mask[20, 20] == 255
     K = read_scene(proj.sparse_dir).cameras[0].K
     assert K[0, 0] == pytest.approx(32 / math.tan(0.45)) and K[0, 2] == 32
-
-
-def test_import_blender_with_black_background(tmp_path):
-    blender_scene(tmp_path / "lego", 4, 1)
-    process(tmp_path / "lego", tmp_path / "p", ProcessConfig(background=(0.0, 0.0, 0.0)))
-    proj = Project(tmp_path / "p")
-    assert proj.manifest()["scene"]["background"] == [0.0, 0.0, 0.0]
-    assert (cv2.imread(str(proj.images_dir / "train_r_0.png"))[0, 0] == 0).all()
+    process(tmp_path / "lego", tmp_path / "black", ProcessConfig(background=(0.0, 0.0, 0.0)))
+    black = Project(tmp_path / "black")
+    assert black.manifest()["scene"]["background"] == [0.0, 0.0, 0.0]
+    assert (cv2.imread(str(black.images_dir / "train_r_0.png"))[0, 0] == 0).all()
 
 
 def test_import_nerfstudio_with_distortion_and_missing_files(tmp_path):
@@ -274,19 +266,6 @@ def test_lego_imports_when_the_data_is_present(shared_data, tmp_path):
 # ---- failures: exit 2, one line naming the file, nothing changed ----------------------
 
 
-@pytest.fixture
-def runner() -> CliRunner:
-    return CliRunner()
-
-
-def run_cli(runner: CliRunner, *args: str):
-    return runner.invoke(app, ["process", *map(str, args)])
-
-
-def assert_one_line_error(r, *needles: str, alone: bool = True) -> None:
-    assert_user_error(r, *needles, alone=alone)
-
-
 def bad_transforms(root: Path, case: str) -> Path:
     root.mkdir(parents=True)
     cv2.imwrite(str(root / "a.png"), texture())
@@ -310,10 +289,10 @@ def bad_transforms(root: Path, case: str) -> Path:
     ("no_matrix", "transform_matrix"), ("missing_files", "none of the 1 listed images exists"),
     ("escape", "outside the input folder"), ("absolute", "outside the input folder"),
 ])
-def test_bad_transforms_fail_cleanly(tmp_path, runner, case, needle):
+def test_bad_transforms_fail_cleanly(tmp_path, case, needle):
     tf = bad_transforms(tmp_path / "in", case)
-    r = run_cli(runner, tf, "-o", tmp_path / "p")
-    assert_one_line_error(r, str(tf), needle)
+    r = run_cli("process", tf, "-o", tmp_path / "p")
+    assert_user_error(r, str(tf), needle)
     assert not (tmp_path / "p").exists()
 
 
@@ -322,10 +301,10 @@ def test_bad_transforms_fail_cleanly(tmp_path, runner, case, needle):
     ("garbled_points_bin", "points3D.bin"), ("truncated_cameras_bin", "cameras.bin"),
     ("escaping_name", "outside the images folder"),
 ])
-def test_bad_colmap_models_fail_cleanly_and_leave_the_project_alone(tmp_path, runner, damage, needle):
+def test_bad_colmap_models_fail_cleanly_and_leave_the_project_alone(tmp_path, damage, needle):
     good = tmp_path / "good"
     make_workspace(good)
-    assert run_cli(runner, good, "-o", tmp_path / "p").exit_code == 0
+    assert run_cli("process", good, "-o", tmp_path / "p").exit_code == 0
     before = tree_digest(tmp_path / "p")
     ws = tmp_path / "ws"
     if damage == "escaping_name":
@@ -346,60 +325,49 @@ def test_bad_colmap_models_fail_cleanly_and_leave_the_project_alone(tmp_path, ru
             (d / "points3D.bin").write_bytes((d / "points3D.bin").read_bytes()[:8] + b"\xff" * 500)
         else:
             (d / "cameras.bin").write_bytes((d / "cameras.bin").read_bytes()[:20])
-    r = run_cli(runner, ws, "-o", tmp_path / "p", "--overwrite")
-    assert_one_line_error(r, needle)
+    r = run_cli("process", ws, "-o", tmp_path / "p", "--overwrite")
+    assert_user_error(r, needle)
     assert tree_digest(tmp_path / "p") == before
 
 
-def test_output_rules(tmp_path, runner):
+def test_output_rules(tmp_path):
     ws = tmp_path / "ws"
     make_workspace(ws)
     other = tmp_path / "other"
     other.mkdir()
     (other / "keep.txt").write_text("mine")
-    assert_one_line_error(run_cli(runner, ws, "-o", other), str(other), "--overwrite")
+    assert_user_error(run_cli("process", ws, "-o", other), str(other), "--overwrite")
     assert (other / "keep.txt").read_text() == "mine"
-    assert_one_line_error(run_cli(runner, ws, "-o", ws), "holds the input")
-    assert run_cli(runner, ws, "-o", tmp_path / "p").exit_code == 0
-    assert_one_line_error(run_cli(runner, ws, "-o", tmp_path / "p"), "already holds a processed dataset")
-    r = run_cli(runner, ws, "-o", tmp_path / "p", "--overwrite", "--json")
+    assert_user_error(run_cli("process", ws, "-o", ws), "holds the input")
+    assert run_cli("process", ws, "-o", tmp_path / "p").exit_code == 0
+    assert_user_error(run_cli("process", ws, "-o", tmp_path / "p"), "already holds a processed dataset")
+    r = run_cli("process", ws, "-o", tmp_path / "p", "--overwrite", "--json")
     assert r.exit_code == 0 and json.loads(r.stdout)["registered"] == 5
 
 
-def test_bad_options_are_one_line_errors(tmp_path, runner):
+def test_bad_options_are_one_line_errors(tmp_path):
     ws = tmp_path / "ws"
     make_workspace(ws)
     for args, needle in ((["--matcher", "magic"], "--matcher"), (["--background", "teal"], "--background"),
                          (["--max-size", "4"], "--max-size"), (["--input-type", "photos"], "--input-type")):
-        assert_one_line_error(run_cli(runner, ws, "-o", tmp_path / "p", *args), needle)
+        assert_user_error(run_cli("process", ws, "-o", tmp_path / "p", *args), needle)
     assert not (tmp_path / "p").exists()
-
-
-def test_core_raises_splaterror_for_wrong_forced_type(tmp_path):
-    ws = tmp_path / "ws"
-    make_workspace(ws)
-    with pytest.raises(SplatError, match="no transforms.json"):
-        process(ws, tmp_path / "p", ProcessConfig(input_type="transforms"))
 
 
 def test_a_model_we_wrote_is_not_walked_again(tmp_path, monkeypatch):
     """The model `process` wrote and recorded (by digest) is read without the file walk;
     a model changed since then is walked again."""
-    import splatcli.sfm.colmap as sfm_colmap
-    from support.tiny_project import make_tiny_project
-
     proj = make_tiny_project(tmp_path / "p", trained=False)
     scene = proj.manifest()["scene"]
-    proj.update_manifest(scene={**scene, "model_sha256": sfm_colmap.model_digest(proj.sparse_dir)})
+    proj.update_manifest(scene={**scene, "model_sha256": colmap.model_digest(proj.sparse_dir)})
     walked = []
-    real = sfm_colmap.check_model
-    monkeypatch.setattr(sfm_colmap, "check_model", lambda d: walked.append(d) or real(d))
-    cams = sfm_colmap.read_project_scene(proj).cameras
+    real = colmap.check_model
+    monkeypatch.setattr(colmap, "check_model", lambda d: walked.append(d) or real(d))
+    cams = colmap.read_project_scene(proj).cameras
     assert walked == [] and len(cams) == len(proj.splits()["train"]) + len(proj.splits()["test"])
     proj.update_manifest(scene={**scene, "model_sha256": "0" * 64})
-    assert [c.name for c in sfm_colmap.read_project_scene(proj).cameras] == [c.name for c in cams]
+    assert [c.name for c in colmap.read_project_scene(proj).cameras] == [c.name for c in cams]
     assert walked == [proj.sparse_dir]
-
 
 
 # ---- LLFF poses_bounds.npy ---------------------------------------------------------
@@ -409,8 +377,6 @@ def llff_capture(root: Path, *, n: int = 5, factor: int = 1, size: tuple[int, in
                  bounds: tuple[float, float] = (2.0, 6.0)) -> list:
     """root/images[_factor]/NNN.png (random textures) + poses_bounds.npy written from an
     orbit's cameras, its (h, w, f) at `factor` x the images' size as LLFF stores them."""
-    from splatcli.inputs.llff import to_poses_bounds
-
     cams = orbit(n, w=size[0], h=size[1])
     folder = root / ("images" if factor == 1 else f"images_{factor}")
     folder.mkdir(parents=True)
@@ -422,7 +388,7 @@ def llff_capture(root: Path, *, n: int = 5, factor: int = 1, size: tuple[int, in
     return cams
 
 
-def test_llff_poses_convert_exactly_and_images_n_scale_the_focal_length(tmp_path):
+def test_llff_poses_convert_exactly_and_images_n_scale_the_focal_length(tmp_path):  # given as folder or file
     cams = llff_capture(tmp_path / "fern", factor=4)
     notes = []
     r = process(tmp_path / "fern", tmp_path / "p", ProcessConfig(triangulate=False), on_event=notes.append)
@@ -437,11 +403,7 @@ def test_llff_poses_convert_exactly_and_images_n_scale_the_focal_length(tmp_path
     # The scene box comes from the near/far bounds: around the orbit's centre, between 2 and 6 deep.
     lo, hi = np.array(m["scene"]["bounds_min"]), np.array(m["scene"]["bounds_max"])
     assert (lo < 0).all() and (hi > 0).all() and (hi - lo).max() < 12
-
-
-def test_llff_file_itself_and_forced_type(tmp_path):
-    llff_capture(tmp_path / "c")
-    r = process(tmp_path / "c" / "poses_bounds.npy", tmp_path / "p", ProcessConfig(triangulate=False))
+    r = process(tmp_path / "fern" / "poses_bounds.npy", tmp_path / "q", ProcessConfig(triangulate=False))  # the file
     assert r.input_kind == "llff" and r.registered == 5
     with pytest.raises(SplatError, match="no poses_bounds.npy here"):
-        process(tmp_path / "c" / "images", tmp_path / "q", ProcessConfig(input_type="llff"))
+        process(tmp_path / "fern" / "images_4", tmp_path / "forced", ProcessConfig(input_type="llff"))

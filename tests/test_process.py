@@ -9,21 +9,30 @@ from __future__ import annotations
 
 import json
 import shutil
+import threading
+import time
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+from PIL import Image
 
 from splatcli.camera import Camera
 from splatcli.events import Note
+from splatcli.inputs.llff import to_poses_bounds
+from splatcli.process import capture as proc
+from splatcli.process.capture import safe_names
 from splatcli.process.run import ProcessConfig, process
+from splatcli.process.video import extract_frames
 from splatcli.project import Project
-from splatcli.sfm.colmap import read_scene
+from splatcli.sfm import colmap, reconstruct as rec
+from splatcli.sfm.colmap import read_scene, run_cancellable
 from support import make_scene, zoom_about_centre
 from support.align import compare_poses
 from support.tiny_project import assert_user_error, run_cli
-from test_import import assert_contract, tree_digest
+from test_cameras import _EXIF_IFD, _FOCAL, _MAKE, _MODEL
+from test_import import assert_contract, make_workspace, tree_digest
 from test_sfm import texture
 
 REPO = Path(__file__).resolve().parents[1]
@@ -39,6 +48,14 @@ def render(out: Path, **kw) -> Path:
 def tried(r) -> list[str]:
     """The manifest's mapping attempts, each as one line: what, why and what it found."""
     return [f"{t['attempt']}: {t['why']}; {t.get('result', '')}" for t in r.sfm_tried]
+
+
+def interrupted(*a, **k):
+    raise KeyboardInterrupt
+
+
+def said(notes: list) -> list[str]:
+    return [n.message for n in notes if isinstance(n, Note)]
 
 
 def ground_truth(scene: Path) -> list[Camera]:
@@ -65,7 +82,7 @@ def processed(scene, tmp_path_factory):
     return src, out, r
 
 
-def test_sfm_makes_a_valid_project(processed):
+def test_sfm_makes_a_valid_project_with_the_true_poses(processed, scene):
     src, out, r = processed
     assert r.exit_code == 0, r.output
     summary = json.loads(r.stdout)  # exactly one JSON object
@@ -83,11 +100,7 @@ def test_sfm_makes_a_valid_project(processed):
     proj = Project(out)
     assert proj.database_path.is_file() and (proj.distorted_dir / "cameras.bin").is_file()
     assert not proj.masks_dir.exists()
-
-
-def test_sfm_poses_match_the_ground_truth(processed, scene):
-    _, out, _ = processed
-    e = compare_poses(read_scene(Project(out).sparse_dir).cameras, ground_truth(scene))
+    e = compare_poses(read_scene(proj.sparse_dir).cameras, ground_truth(scene))
     assert len(e.names) == N_VIEWS
     assert e.max_rotation_deg < 1.0, e.rotation_deg
     assert e.max_center_error_rel < 0.01, e.center_error / e.extent
@@ -109,10 +122,6 @@ def test_rerun_needs_overwrite_and_interrupts_leave_the_project_alone(processed,
     src, out, _ = processed
     assert_user_error(run_cli("process", src, "-o", out), "already holds a processed dataset")
     before = tree_digest(out)
-
-    def interrupted(*a, **k):
-        raise KeyboardInterrupt
-
     monkeypatch.setattr("splatcli.process.capture.run_sfm", interrupted)
     with pytest.raises(KeyboardInterrupt):
         process(src, out, ProcessConfig(overwrite=True))
@@ -125,28 +134,26 @@ def test_rerun_needs_overwrite_and_interrupts_leave_the_project_alone(processed,
 def test_a_large_capture_is_mapped_on_every_core_with_fewer_global_adjustments(scene, tmp_path, monkeypatch):
     """From LARGE_CAPTURE images the mapper runs on every core with the large-capture bundle-adjustment
     schedule, and the manifest says so; below it, one thread and COLMAP's schedule (repeatable)."""
-    from splatcli.sfm import colmap, reconstruct
-
     src, used, matched = _zoomed(scene, tmp_path / "photos", 1.0, 4), [], []
-    real_map, real_match = colmap.incremental_mapping, reconstruct._match
+    real_map, real_match = colmap.incremental_mapping, rec._match
     monkeypatch.setattr(colmap, "incremental_mapping", lambda db, im, out, mapper, *a, **k: (
         used.append(mapper), real_map(db, im, out, mapper, *a, **k))[1])
-    monkeypatch.setattr(reconstruct, "_match", lambda db, pairs, *a: (matched.append(set(pairs)), real_match(db, pairs, *a))[1])
+    monkeypatch.setattr(rec, "_match", lambda db, pairs, *a: (matched.append(set(pairs)), real_match(db, pairs, *a))[1])
     r = process(src, tmp_path / "small")
     assert used[0].num_threads == 1 and used[0].ba_global_frames_ratio == 1.1 and not used[0].ba_global_ignore_redundant
     assert not any("every core" in t for t in tried(r))
     used.clear()
-    monkeypatch.setattr(reconstruct, "LARGE_CAPTURE", N_VIEWS)
-    monkeypatch.setattr(reconstruct, "FAR_PAIRS", 1)  # sequential pairs at most 5 apart: those 8 apart go
-    real_nearest, alike = reconstruct.nearest_pairs, []
-    monkeypatch.setattr(reconstruct, "nearest_pairs", lambda *a: (got := real_nearest(*a), alike.extend(got))[0])
+    monkeypatch.setattr(rec, "LARGE_CAPTURE", N_VIEWS)
+    monkeypatch.setattr(rec, "FAR_PAIRS", 1)  # sequential pairs at most 5 apart: those 8 apart go
+    real_nearest, alike = rec.nearest_pairs, []
+    monkeypatch.setattr(rec, "nearest_pairs", lambda *a: (got := real_nearest(*a), alike.extend(got))[0])
     matched.clear()
     r = process(src, tmp_path / "large", ProcessConfig(matcher="sequential"))
     at = {c.name: i for i, c in enumerate(ground_truth(scene))}
-    assert any(at[q[1]] - at[q[0]] == 8 for q in reconstruct.sequential_pairs(sorted(at), 5))
+    assert any(at[q[1]] - at[q[0]] == 8 for q in rec.sequential_pairs(sorted(at), 5))
     assert {q for q in matched[0] if at[q[1]] - at[q[0]] > 5} <= set(alike)  # only retrieval's
     assert r.registered == N_VIEWS
-    assert used[0].num_threads == -1 and used[0].ba_global_frames_ratio == reconstruct.LARGE_MAPPER["ba_global_frames_ratio"]
+    assert used[0].num_threads == -1 and used[0].ba_global_frames_ratio == rec.LARGE_MAPPER["ba_global_frames_ratio"]
     assert used[0].ba_global_ignore_redundant and used[0].ba_local_max_refinements == 1
     assert any("every core" in t for t in tried(r)), r.sfm_tried
 
@@ -154,20 +161,14 @@ def test_a_large_capture_is_mapped_on_every_core_with_fewer_global_adjustments(s
 def test_a_run_interrupted_while_mapping_keeps_its_features_and_matches_for_the_next(scene, tmp_path, monkeypatch):
     """Interrupted at mapping: the next `process` of the same photos extracts and matches nothing again,
     and says so; then `--overwrite` with other mapping options starts from the project's own database."""
-    from splatcli.sfm import colmap
-
     src, out = _zoomed(scene, tmp_path / "photos", 1.0, 4), tmp_path / "p"
     real_map = colmap.incremental_mapping
-
-    def interrupted(*a, **k):
-        raise KeyboardInterrupt
-
     monkeypatch.setattr(colmap, "incremental_mapping", interrupted)
     notes = []
     with pytest.raises(KeyboardInterrupt):
         process(src, out, on_event=notes.append)
     assert (out / ".sfm-cache" / "database.db").is_file() and not (out / ".process-tmp").exists()
-    assert any("features and matches kept" in n.message for n in notes if isinstance(n, Note))
+    assert any("features and matches kept" in m for m in said(notes))
     monkeypatch.setattr(colmap, "incremental_mapping", real_map)
     work = {"extract": 0}  # (matching runs, and COLMAP skips the pairs the database holds: 1.7 s against 0.05 s)
     real_extract = colmap.extract_features
@@ -175,20 +176,17 @@ def test_a_run_interrupted_while_mapping_keeps_its_features_and_matches_for_the_
     notes = []
     r = process(src, out, on_event=notes.append)
     assert r.registered == N_VIEWS and work["extract"] == 0
-    assert any("reusing the features and matches of an interrupted run" in n.message
-               for n in notes if isinstance(n, Note))
+    assert any("reusing the features and matches of an interrupted run" in m for m in said(notes))
     assert r.sfm_tried[0]["attempt"] == "features and matches reused from an interrupted run"  # in the manifest too
     assert not (out / ".sfm-cache").exists() and (out / "sfm" / "features.key").is_file()
     notes = []
     r = process(src, out, ProcessConfig(overwrite=True, matcher="sequential"), on_event=notes.append)
     assert r.registered == N_VIEWS and work["extract"] == 0
-    assert any("of the project's last run" in n.message for n in notes if isinstance(n, Note))
+    assert any("of the project's last run" in m for m in said(notes))
 
 
 def test_stale_temp_folder_and_database_do_not_poison_a_rerun(tmp_path):
     """A run killed mid-way leaves PROJECT/.process-tmp and an unfinished manifest."""
-    from test_import import make_workspace
-
     make_workspace(tmp_path / "ws")
     out = tmp_path / "p"
     Project.create(out, source={})  # manifest without a `process` step
@@ -219,7 +217,7 @@ def test_video_drops_blurry_frames_and_matches_sequentially(scene, tmp_path):
     r = process(tmp_path / "walk.avi", tmp_path / "p", ProcessConfig(num_frames=len(frames)), on_event=notes.append)
     assert r.input_kind == "video" and r.dropped_blurry == 1
     assert r.matcher.startswith("sequential") and r.registered >= N_VIEWS - 2
-    assert any("dropped 1 blurry frame" in n.message for n in notes if isinstance(n, Note))
+    assert any("dropped 1 blurry frame" in m for m in said(notes))
     assert "frame_000008.jpg" not in Project(tmp_path / "p").splits()["train"]  # the blurred one
     assert_contract(tmp_path / "p")
 
@@ -236,7 +234,7 @@ def test_mixed_sizes_and_orientations_are_handled(scene, tmp_path):
         cv2.imwrite(str(src / p.name), img)
     notes = []
     r = process(src, tmp_path / "p", on_event=notes.append)
-    assert any("sizes; using one camera per image" in n.message for n in notes if isinstance(n, Note))
+    assert any("sizes; using one camera per image" in m for m in said(notes))
     assert r.registered >= N_VIEWS // 2
     assert_contract(tmp_path / "p")
 
@@ -244,10 +242,16 @@ def test_mixed_sizes_and_orientations_are_handled(scene, tmp_path):
 # ---- failures: exit 2, one line naming the file and the problem -------------------
 
 
-def test_empty_folder(tmp_path):
-    (tmp_path / "empty").mkdir()
-    assert_user_error(run_cli("process", tmp_path / "empty", "-o", tmp_path / "p"),
-                      str(tmp_path / "empty"), "no images found")
+@pytest.mark.parametrize("name, needle, alone", [
+    ("empty", "no images found", True), ("clip.mp4", "cannot read the video", False),
+], ids=["empty_folder", "unreadable_video"])
+def test_empty_folder_or_unreadable_video(tmp_path, name, needle, alone):
+    src = tmp_path / name
+    if name == "empty":
+        src.mkdir()
+    else:
+        src.write_bytes(b"\x00\x01 definitely not a video" * 100)
+    assert_user_error(run_cli("process", src, "-o", tmp_path / "p"), str(src), needle, alone=alone)
     assert not (tmp_path / "p").exists()
 
 
@@ -261,13 +265,6 @@ def test_one_image_and_a_truncated_png(tmp_path):
     (d / "b.png").write_bytes(png[: len(png) // 2])
     r = run_cli("process", d, "-o", tmp_path / "p")
     assert_user_error(r, "found 1", "b.png: truncated PNG", alone=False)
-    assert not (tmp_path / "p").exists()
-
-
-def test_unreadable_video(tmp_path):
-    (tmp_path / "clip.mp4").write_bytes(b"\x00\x01 definitely not a video" * 100)
-    assert_user_error(run_cli("process", tmp_path / "clip.mp4", "-o", tmp_path / "p"),
-                      str(tmp_path / "clip.mp4"), "cannot read the video", alone=False)
     assert not (tmp_path / "p").exists()
 
 
@@ -293,15 +290,11 @@ def test_flat_tiny_images_blame_the_features(tmp_path):
 
 
 def test_names_with_spaces_are_made_safe_for_colmap_pair_lists():
-    from splatcli.process.capture import safe_names
-
     assert safe_names(["a b.jpg", "a_b.jpg", "c.png", "x  y.JPG"]) == ["a_b_1.jpg", "a_b.jpg", "c.png", "x_y.JPG"]
 
 
 def test_registering_under_half_the_images_warns(scene, tmp_path, monkeypatch):
     """Mapping that leaves most images out still makes a project, with a warning."""
-    import splatcli.process.capture as proc
-
     src = tmp_path / "few"
     src.mkdir()
     for p in sorted((scene / "images").glob("*.jpg"))[:8]:
@@ -321,18 +314,13 @@ def test_registering_under_half_the_images_warns(scene, tmp_path, monkeypatch):
     assert r.registered == 3 and len(r.unregistered) == 5
     assert any(n.level == "warning" and "only 3 of 8 images registered" in n.message for n in notes
                if isinstance(n, Note))
-    assert r.warnings and "5 image(s) did not register" in " ".join(n.message for n in notes if isinstance(n, Note))
+    assert r.warnings and "5 image(s) did not register" in " ".join(said(notes))
     assert_contract(tmp_path / "p")
 
 
 def test_ctrl_c_waits_for_pycolmap_to_unwind():
     """An interrupt while pycolmap works cancels it and waits: a thread left
     inside pycolmap when Python exits aborts the interpreter."""
-    import threading
-    import time
-
-    from splatcli.sfm.colmap import run_cancellable
-
     finished = []
 
     def slow(cancellation_token):
@@ -341,45 +329,42 @@ def test_ctrl_c_waits_for_pycolmap_to_unwind():
         time.sleep(0.2)  # unwinding takes a while
         finished.append(True)
 
-    def ctrl_c():
-        raise KeyboardInterrupt
-
     with pytest.raises(KeyboardInterrupt):
-        run_cancellable(slow, poll=ctrl_c)
+        run_cancellable(slow, poll=interrupted)
     assert finished == [True]
     assert not [t for t in threading.enumerate() if t.name.startswith("pycolmap-")]
 
 
 def test_ctrl_c_exits_130_with_one_line(tmp_path, monkeypatch):
-    from test_import import make_workspace
-
     make_workspace(tmp_path / "ws")
-
-    def interrupted(*a, **k):
-        raise KeyboardInterrupt
-
     monkeypatch.setattr("splatcli.process.run.from_colmap", interrupted)
     r = run_cli("process", tmp_path / "ws", "-o", tmp_path / "p")
     assert r.exit_code == 130 and r.stderr.strip().splitlines()[-1] == "error: interrupted"
     assert not (tmp_path / "p").exists()
 
 
-def test_images_left_out_by_sequential_matching_are_matched_with_every_image(scene, tmp_path, monkeypatch):
-    import splatcli.sfm.reconstruct as rec
-
+def _break_order_after_8(scene: Path, monkeypatch) -> tuple[list[str], set[str], object]:
+    """As if the capture order broke after image 8: sequential pairs never reach the rest."""
     names = sorted(p.name for p in (scene / "images").glob("*.jpg"))
-    first = set(names[:8])
-    real = rec.sequential_pairs
-    # As if the capture order broke after image 8: sequential pairs never reach the rest. One thread:
-    # COLMAP's threaded matching and mapping left image 009 out once in a loaded CI run (seeded, but
-    # its threads race); with one it is the same run every time.
+    first, real = set(names[:8]), rec.sequential_pairs
     monkeypatch.setattr(rec, "sequential_pairs", lambda n, k: [p for p in real(n, k) if set(p) <= first])
+    return names, first, real
+
+
+def _run_sfm(scene: Path, tmp_path: Path, names: list[str], on_event=None, **opts):
+    return rec.run_sfm(scene / "images", names, tmp_path / "work", rec.SfmOptions(**opts), cameras=[names],
+                       min_side=H, where=scene, on_event=on_event)
+
+
+def test_images_left_out_by_sequential_matching_are_matched_with_every_image(scene, tmp_path, monkeypatch):
+    names, _, _ = _break_order_after_8(scene, monkeypatch)
+    # One thread: COLMAP's threaded matching and mapping left image 009 out once in a loaded CI run
+    # (seeded, but its threads race); with one it is the same run every time.
     notes = []
-    res = rec.run_sfm(scene / "images", names, tmp_path / "work",
-                      rec.SfmOptions(exhaustive_max_images=0, num_threads=1, loop_neighbours=0), cameras=[names],
-                      min_side=H, where=scene, on_event=notes.append)
+    res = _run_sfm(scene, tmp_path, names, notes.append, exhaustive_max_images=0, num_threads=1,
+                   loop_neighbours=0)
     assert res.matcher == "sequential+exhaustive" and res.unregistered == []
-    assert any("left 8 image(s) out" in n.message for n in notes if isinstance(n, Note))
+    assert any("left 8 image(s) out" in m for m in said(notes))
     assert res.num_pairs < len(names) * (len(names) - 1) // 2  # never all pairs
 
 
@@ -387,20 +372,14 @@ def test_many_images_left_out_are_matched_with_those_most_like_them_not_with_eve
                                                                                          monkeypatch):
     """The broken capture order above, where matching the 8 left out with every image would take more
     pairs than the first matching had: each is matched with its 4 most alike (retrieval) instead."""
-    import splatcli.sfm.reconstruct as rec
-
-    names = sorted(p.name for p in (scene / "images").glob("*.jpg"))
-    first = set(names[:8])
-    real = rec.sequential_pairs
-    monkeypatch.setattr(rec, "sequential_pairs", lambda n, k: [p for p in real(n, k) if set(p) <= first])
+    names, first, real = _break_order_after_8(scene, monkeypatch)
     monkeypatch.setattr(rec, "EVERY_PAIR_MIN", 0)
     notes = []
-    res = rec.run_sfm(scene / "images", names, tmp_path / "work",
-                      rec.SfmOptions(exhaustive_max_images=0, num_threads=1, loop_neighbours=0, retrieval_neighbours=4),
-                      cameras=[names], min_side=H, where=scene, on_event=notes.append)
+    res = _run_sfm(scene, tmp_path, names, notes.append, exhaustive_max_images=0, num_threads=1,
+                   loop_neighbours=0, retrieval_neighbours=4)
     assert res.matcher == "sequential+retrieval" and res.unregistered == []
-    said = [n.message for n in notes if isinstance(n, Note)]
-    assert any("left 8 image(s) out; matching each with the 4 images most like it" in m for m in said), said
+    assert any("left 8 image(s) out; matching each with the 4 images most like it" in m
+               for m in said(notes)), said(notes)
     every = len([p for p in rec.exhaustive_pairs(names) if not set(p) <= first])
     assert res.num_pairs < len(real(names[:8], 5)) + every
 
@@ -409,14 +388,8 @@ def test_loop_pairs_by_retrieval_join_what_sequential_pairs_miss(scene, tmp_path
     """The same broken order as above, with the default loop pairs: each frame is also matched
     with its most alike (sfm/retrieval.py), which reach past the break, so every view registers
     without the fallback to all pairs."""
-    import splatcli.sfm.reconstruct as rec
-
-    names = sorted(p.name for p in (scene / "images").glob("*.jpg"))
-    first = set(names[:8])
-    real = rec.sequential_pairs
-    monkeypatch.setattr(rec, "sequential_pairs", lambda n, k: [p for p in real(n, k) if set(p) <= first])
-    res = rec.run_sfm(scene / "images", names, tmp_path / "work", rec.SfmOptions(exhaustive_max_images=0, num_threads=1),
-                      cameras=[names], min_side=H, where=scene)
+    names, _, _ = _break_order_after_8(scene, monkeypatch)
+    res = _run_sfm(scene, tmp_path, names, exhaustive_max_images=0, num_threads=1)
     assert res.matcher == "sequential" and res.unregistered == []
     assert res.num_pairs < len(names) * (len(names) - 1) // 2
 
@@ -425,12 +398,8 @@ def test_photos_whose_names_give_no_order_are_paired_by_retrieval_and_register(s
     """Pairs by retrieval (what auto takes for unordered names above the exhaustive limit): each
     photo is matched with its most alike (sfm/retrieval.py), fewer pairs than all, and every view
     still registers."""
-    import splatcli.sfm.reconstruct as rec
-
     names = sorted(p.name for p in (scene / "images").glob("*.jpg"))
-    res = rec.run_sfm(scene / "images", names, tmp_path / "work",
-                      rec.SfmOptions(matcher="retrieval", retrieval_neighbours=5, num_threads=1),
-                      cameras=[names], min_side=H, where=scene)
+    res = _run_sfm(scene, tmp_path, names, matcher="retrieval", retrieval_neighbours=5, num_threads=1)
     assert res.matcher == "retrieval"
     assert res.num_pairs <= len(names) * 5 and res.num_pairs < len(names) * (len(names) - 1) // 2
     assert res.unregistered == [], res.unregistered
@@ -461,8 +430,6 @@ def _truncated_video(path: Path, frames: int = 30) -> Path:
 
 
 def test_truncated_video_frames_are_listed_and_strict_refuses_them(tmp_path):
-    from splatcli.process.video import extract_frames
-
     clip = _truncated_video(tmp_path / "clip.avi")
     fr = extract_frames(clip, tmp_path / "frames", every_fps=None, num_frames=10)
     assert fr.names and fr.unreadable  # some frames decoded, the lost ones listed
@@ -476,8 +443,6 @@ def test_llff_capture_agrees_with_sfm_on_the_same_photos(processed, scene, tmp_p
     """poses_bounds.npy written from the scene's cameras in LLFF's conventions ([down,
     right, back] camera-to-world, h w f, near far): imported, its poses agree with what
     structure from motion found on the same photos (issue 38's target: 1 degree, 1%)."""
-    from splatcli.inputs.llff import to_poses_bounds
-
     gt = ground_truth(scene)
     cap = tmp_path / "llff"
     shutil.copytree(scene / "images", cap / "images")
@@ -502,15 +467,11 @@ def test_photos_of_two_cameras_get_two_cameras_and_register(scene, tmp_path):
     """Half the views re-shot 1.25x zoomed (the same poses, a longer focal length), each
     half with its own EXIF camera: grouping by EXIF gives SfM two cameras, which recover
     the two focal lengths, and every view registers with the right pose."""
-    from PIL import Image
-
-    from test_cameras import _EXIF_IFD, _FOCAL, _MAKE, _MODEL
-
     zoom = 1.25
     src = tmp_path / "two"
     src.mkdir()
-    gt = []
-    for i, c in enumerate(ground_truth(scene)):
+    gt = ground_truth(scene)
+    for i, c in enumerate(gt):
         img = cv2.imread(str(scene / "images" / c.name))
         ex = Image.Exif()
         if i % 2:
@@ -521,12 +482,11 @@ def test_photos_of_two_cameras_get_two_cameras_and_register(scene, tmp_path):
             ex[_MAKE], ex[_MODEL] = "Canon", "Canon EOS 60D"
             ex.get_ifd(_EXIF_IFD)[_FOCAL] = 50.0
         Image.fromarray(img[..., ::-1]).save(src / c.name, exif=ex, quality=95)
-        gt.append(c)
     notes = []
     r = process(src, tmp_path / "p", on_event=notes.append)
     assert r.camera_grouping == "exif" and len(r.cameras) == 2
     assert sorted(g["model"] for g in r.cameras) == ["Canon EOS 60D", "DMC-FZ150"]
-    assert any("2 camera(s): 2 by their EXIF" in n.message for n in notes if isinstance(n, Note))
+    assert any("2 camera(s): 2 by their EXIF" in m for m in said(notes))
     assert r.registered == N_VIEWS and r.mean_reprojection_error < 1.0
     m = assert_contract(tmp_path / "p")
     assert len(m["steps"]["process"]["summary"]["cameras"]) == 2  # the grouping is in the manifest
@@ -562,14 +522,21 @@ def test_a_capture_in_two_pieces_keeps_the_largest_and_names_the_rest(scene, tmp
     assert m["steps"]["process"]["summary"]["left_out_models"] == {n: 2 for n in b}
 
 
-def _zoomed(scene: Path, out: Path, zoom: float, every: int) -> Path:
-    """The scene's views as JPEGs without EXIF, every `every`-th (from the second) zoomed `zoom` x."""
+def _zoomed(scene: Path, out: Path, zoom: float, every: int, scale: int = 1, noise: int = 0) -> Path:
+    """The scene's views as JPEGs without EXIF, every `every`-th (from the second) zoomed `zoom` x, all
+    `scale` x larger (3: 768x576, SIFT at octave 0, under 1,000 px: the upsampled retry applies), and
+    `noise` photos of noise that match nothing."""
     out.mkdir()
     for i, c in enumerate(ground_truth(scene)):
         img = cv2.imread(str(scene / "images" / c.name))
         if i % every == 1:
             img = zoom_about_centre(img, zoom)
+        if scale != 1:
+            img = cv2.resize(img, (scale * W, scale * H), interpolation=cv2.INTER_CUBIC)
         cv2.imwrite(str(out / c.name), img, [cv2.IMWRITE_JPEG_QUALITY, 95])
+    rng = np.random.default_rng(0)
+    for k in range(noise):
+        cv2.imwrite(str(out / f"zz_noise{k}.jpg"), rng.integers(0, 256, (scale * H, scale * W, 3), dtype=np.uint8))
     return out
 
 
@@ -605,7 +572,7 @@ def test_photos_without_exif_from_one_camera_that_all_register_are_not_mapped_ag
     assert any("every image registered, and the focal lengths found one image at a time spread 1.0" in t
                for t in tried(r)), r.sfm_tried
     assert not any("cameras instead of 1" in t for t in tried(r))
-    assert any("not mapping again with a camera each" in n.message for n in notes if isinstance(n, Note))
+    assert any("not mapping again with a camera each" in m for m in said(notes))
 
 
 def test_photos_without_exif_from_two_cameras_get_a_camera_each_when_they_fail_together(scene, tmp_path):
@@ -614,8 +581,7 @@ def test_photos_without_exif_from_two_cameras_get_a_camera_each_when_they_fail_t
     src, gt = _zoomed(scene, tmp_path / "stripped", 1.25, 2), ground_truth(scene)
     notes = []
     r = process(src, tmp_path / "p", on_event=notes.append)
-    said = [n.message for n in notes if isinstance(n, Note)]
-    assert any("mapping again with 16" in m for m in said), said
+    assert any("mapping again with 16" in m for m in said(notes)), said(notes)
     assert any("cameras instead of 1" in t for t in tried(r))
     assert len(r.cameras) == N_VIEWS and r.registered >= N_VIEWS - 2
     e = compare_poses(read_scene(Project(tmp_path / "p").sparse_dir).cameras, gt)
@@ -627,14 +593,7 @@ def test_a_camera_each_that_registers_too_few_extracts_more_features_and_maps_ag
     registers too few against the shared camera (here the octave-0 split mapping is made to fail, as 4 of 10
     real photos from different cameras did), SIFT runs again on the upsampled octave and a camera each is
     mapped again; that model keeps a camera each, with the true poses, and its database becomes the project's."""
-    from splatcli.sfm import colmap
-
-    src, gt = tmp_path / "big", ground_truth(scene)
-    src.mkdir()
-    for c in gt:
-        img = cv2.imread(str(scene / "images" / c.name))
-        img = zoom_about_centre(img, 1.25) if int(c.name[:3]) % 2 else img
-        cv2.imwrite(str(src / c.name), cv2.resize(img, (3 * W, 3 * H), interpolation=cv2.INTER_CUBIC))
+    src, gt = _zoomed(scene, tmp_path / "big", 1.25, 2, scale=3), ground_truth(scene)
     real, seen = colmap.incremental_mapping, []
 
     def split_fails_at_octave_0(db, image_dir, out, *a, **k):
@@ -660,19 +619,13 @@ def test_the_same_photos_and_seed_give_the_same_model_byte_for_byte(scene, tmp_p
     not repeatable: the sample scene under load gave 2,166 or 2,167 points), matching in two worker
     processes of one thread each (COLMAP's threaded matcher races: colmap.match_pairs), and both runs
     write the same images, points and poses, byte for byte."""
-    from splatcli.sfm import colmap
-
     src = _zoomed(scene, tmp_path / "photos", 1.25, 4)
     img = cv2.imread(str(src / "007.jpg"))
     cv2.imwrite(str(src / "007.jpg"), cv2.GaussianBlur(img, (0, 0), 6))
     real, threads, workers = colmap.incremental_mapping, [], []
     real_workers = colmap.run_workers
-
-    def spy(db, image_dir, out_dir, opts, **kw):
-        threads.append(opts.num_threads)
-        return real(db, image_dir, out_dir, opts, **kw)
-
-    monkeypatch.setattr(colmap, "incremental_mapping", spy)
+    monkeypatch.setattr(colmap, "incremental_mapping", lambda db, image_dir, out_dir, opts, **kw: (
+        threads.append(opts.num_threads), real(db, image_dir, out_dir, opts, **kw))[1])
     monkeypatch.setattr(colmap, "run_workers", lambda jobs, *a, **k: (workers.append(len(jobs)),
                                                                        real_workers(jobs, *a, **k))[1])
     monkeypatch.setattr(colmap, "MIN_WORKER_S", 0.0)  # the 120 pairs in two processes (two cores or more)
@@ -692,14 +645,11 @@ def test_the_same_photos_and_seed_give_the_same_model_byte_for_byte(scene, tmp_p
 def test_matching_in_worker_processes_gives_the_matches_of_one_thread(scene, tmp_path, monkeypatch):
     """The pairs split between two worker processes of one thread each, merged back: the same matches and
     verified geometries, in the same order, as one thread in this process gives."""
-    from splatcli.sfm import colmap
-    from splatcli.sfm.reconstruct import exhaustive_pairs
-
     names = sorted(p.name for p in (scene / "images").glob("*.jpg"))
     db = tmp_path / "database.db"
     colmap.create_database(db, scene / "images", [names])
     colmap.extract_features(db, scene / "images", names, colmap.SiftOptions(num_threads=1))
-    pairs = exhaustive_pairs(names)
+    pairs = rec.exhaustive_pairs(names)
     one, two = tmp_path / "one.db", tmp_path / "two.db"
     shutil.copyfile(db, one)
     shutil.copyfile(db, two)
@@ -715,18 +665,12 @@ def test_matching_in_worker_processes_gives_the_matches_of_one_thread(scene, tmp
     assert not list(tmp_path.glob("*.match*.db"))  # the copies are gone
 
 
-def _big(scene: Path, out: Path, noise: int = 0) -> Path:
-    """The scene's views at 768x576 without EXIF (SIFT at octave 0, under 1,000 px: the upsampled retry
-    applies), every other one zoomed 1.25x, and `noise` photos of noise that match nothing."""
-    out.mkdir()
-    for c in ground_truth(scene):
-        img = cv2.imread(str(scene / "images" / c.name))
-        img = zoom_about_centre(img, 1.25) if int(c.name[:3]) % 2 else img
-        cv2.imwrite(str(out / c.name), cv2.resize(img, (3 * W, 3 * H), interpolation=cv2.INTER_CUBIC))
-    rng = np.random.default_rng(0)
-    for k in range(noise):
-        cv2.imwrite(str(out / f"zz_noise{k}.jpg"), rng.integers(0, 256, (3 * H, 3 * W, 3), dtype=np.uint8))
-    return out
+def _spy_upsampled(monkeypatch) -> list[str]:
+    """The names SIFT runs on at the upsampled octave (first_octave -1), as they come."""
+    real, upsampled = colmap.extract_features, []
+    monkeypatch.setattr(colmap, "extract_features", lambda db, image_dir, names, opts, **k: (
+        upsampled.extend(names) if opts.first_octave == -1 else None, real(db, image_dir, names, opts, **k))[1])
+    return upsampled
 
 
 def test_more_features_go_to_the_images_left_out_alone_and_are_recorded_with_their_cost(scene, tmp_path,
@@ -735,17 +679,9 @@ def test_more_features_go_to_the_images_left_out_alone_and_are_recorded_with_the
     SIFT runs again on the upsampled octave on those two alone (they match no other photo best), not on
     all 18; it registers no more and is not kept; the manifest records why it ran, its estimated and
     spent seconds."""
-    from splatcli.sfm import colmap
-
-    real, upsampled = colmap.extract_features, []
-
-    def spy(db, image_dir, names, opts, **k):
-        if opts.first_octave == -1:
-            upsampled.extend(names)
-        return real(db, image_dir, names, opts, **k)
-
-    monkeypatch.setattr(colmap, "extract_features", spy)
-    r = process(_big(scene, tmp_path / "big", noise=2), tmp_path / "p", ProcessConfig(num_threads=1))
+    upsampled = _spy_upsampled(monkeypatch)
+    src = _zoomed(scene, tmp_path / "big", 1.25, 2, scale=3, noise=2)
+    r = process(src, tmp_path / "p", ProcessConfig(num_threads=1))
     assert r.registered == N_VIEWS and sorted(r.unregistered) == ["zz_noise0.jpg", "zz_noise1.jpg"]
     assert sorted(upsampled) == ["zz_noise0.jpg", "zz_noise1.jpg"]
     more = [t for t in r.sfm_tried if t["attempt"].startswith("SIFT again on the upsampled octave")]
@@ -755,17 +691,13 @@ def test_more_features_go_to_the_images_left_out_alone_and_are_recorded_with_the
 
 def test_more_features_are_not_tried_where_their_estimate_is_over_the_cap(scene, tmp_path, monkeypatch):
     """The same capture with the cap made tiny: the retry is estimated, not run, and the manifest says so."""
-    from splatcli.sfm import colmap, reconstruct
-
-    monkeypatch.setattr(reconstruct, "RETRY_MIN_S", 0.0)
-    monkeypatch.setattr(reconstruct, "RETRY_SHARE", 1e-3)
-    real, upsampled = colmap.extract_features, []
-    monkeypatch.setattr(colmap, "extract_features", lambda db, image_dir, names, opts, **k: (
-        upsampled.extend(names) if opts.first_octave == -1 else None, real(db, image_dir, names, opts, **k))[1])
+    monkeypatch.setattr(rec, "RETRY_MIN_S", 0.0)
+    monkeypatch.setattr(rec, "RETRY_SHARE", 1e-3)
+    upsampled = _spy_upsampled(monkeypatch)
     notes = []
-    r = process(_big(scene, tmp_path / "big", noise=2), tmp_path / "p", ProcessConfig(num_threads=1),
-                on_event=notes.append)
+    src = _zoomed(scene, tmp_path / "big", 1.25, 2, scale=3, noise=2)
+    r = process(src, tmp_path / "p", ProcessConfig(num_threads=1), on_event=notes.append)
     assert not upsampled
     more = [t for t in r.sfm_tried if t["attempt"].startswith("SIFT again on the upsampled octave")]
     assert len(more) == 1 and more[0]["registered"] is None and more[0]["result"].startswith("not run: over the cap")
-    assert any("would take about" in n.message and "not tried" in n.message for n in notes if isinstance(n, Note))
+    assert any("would take about" in m and "not tried" in m for m in said(notes))

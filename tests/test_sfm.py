@@ -23,7 +23,9 @@ from splatcli.process.detect import detect_input
 from splatcli.process.video import blurry_frames, choose_frames
 from splatcli.sfm.colmap_files import check_model
 from splatcli.sfm.reconstruct import (
+    FOCAL_SPREAD,
     SfmOptions,
+    _focal_spread,
     choose_matcher,
     exhaustive_pairs,
     looks_ordered,
@@ -386,30 +388,26 @@ def bin_model(tmp_path: Path) -> Path:
 
 
 def test_check_model_accepts_good_text_and_binary(tmp_path):
-    write_text_model(tmp_path / "txt", orbit(5))
-    s = check_model(tmp_path / "txt")
-    assert s.format == "txt" and len(s.images) == 5 and s.num_points3D == 1
-    s = check_model(bin_model(tmp_path))
-    assert s.format == "bin" and len(s.images) == 5 and s.num_points3D == 1
+    binary = bin_model(tmp_path)  # converted from the text model it writes to tmp_path / "txt"
+    for d, fmt in ((tmp_path / "txt", "txt"), (binary, "bin")):
+        s = check_model(d)
+        assert s.format == fmt and len(s.images) == 5 and s.num_points3D == 1
 
 
-@pytest.mark.parametrize("damage", ["truncate_images", "huge_count", "garbage_points", "missing_points", "empty_cameras"])
-def test_garbled_binary_models_are_refused_by_name(tmp_path, damage):
+@pytest.mark.parametrize("target, damage", [
+    ("images.bin", lambda data: data[: len(data) - 30]),
+    ("images.bin", lambda data: struct.pack("<Q", 1 << 60) + data[8:]),
+    ("points3D.bin", lambda data: data[:8] + bytes(range(256)) * 2),
+    ("points3D.bin", None),  # the file is removed
+    ("cameras.bin", lambda data: b""),
+], ids=["truncate_images", "huge_count", "garbage_points", "missing_points", "empty_cameras"])
+def test_garbled_binary_models_are_refused_by_name(tmp_path, target, damage):
     d = bin_model(tmp_path)
-    target = {"truncate_images": "images.bin", "huge_count": "images.bin", "garbage_points": "points3D.bin",
-              "missing_points": "points3D.bin", "empty_cameras": "cameras.bin"}[damage]
     p = d / target
-    data = p.read_bytes()
-    if damage == "truncate_images":
-        p.write_bytes(data[: len(data) - 30])
-    elif damage == "huge_count":
-        p.write_bytes(struct.pack("<Q", 1 << 60) + data[8:])
-    elif damage == "garbage_points":
-        p.write_bytes(data[:8] + bytes(range(256)) * 2)
-    elif damage == "missing_points":
+    if damage is None:
         p.unlink()
     else:
-        p.write_bytes(b"")
+        p.write_bytes(damage(p.read_bytes()))
     with pytest.raises(SplatError) as ei:
         check_model(d)
     assert target in str(ei.value) and "\n" not in str(ei.value)
@@ -467,8 +465,6 @@ def test_detect_input_kinds(tmp_path):
 def test_the_focal_spread_is_measured_within_each_camera_taken_apart():
     """One camera each is kept when the images of one shared camera find different focal lengths;
     two shared cameras of other sizes (or EXIF cameras) differ from each other anyway."""
-    from splatcli.sfm.reconstruct import FOCAL_SPREAD, _focal_spread
-
     small, large = [f"s{i}" for i in range(10)], [f"l{i}" for i in range(10)]
     apart = [[n] for n in small + large]
     focals = {**{n: 500.0 + i for i, n in enumerate(small)}, **{n: 1000.0 - i for i, n in enumerate(large)}}
