@@ -41,39 +41,42 @@ def test_each_command_has_explaining_help(runner, cmd):
     assert len(text) > 300  # more than a bare usage line: it explains
 
 
-def test_unknown_command_is_usage_error(runner):
-    r = runner.invoke(app, ["frobnicate"])
-    assert r.exit_code == 2
+def _assert_one_line_usage_error(r) -> None:
+    assert r.exit_code == 2, r.output
     assert r.stderr.startswith("error: ")
     assert len(r.stderr.strip().splitlines()) == 1
+
+
+def _make_open_raise(monkeypatch, exc: BaseException) -> None:
+    import splatcli.project as project
+
+    def fail(cls, root):
+        raise exc
+
+    monkeypatch.setattr(project.Project, "open", classmethod(fail))
+
+
+def test_unknown_command_is_usage_error(runner):
+    r = runner.invoke(app, ["frobnicate"])
+    _assert_one_line_usage_error(r)
     assert "Traceback" not in r.output
 
 
 @pytest.mark.parametrize("cmd", COMMANDS)
 def test_unknown_option_is_one_line_usage_error(runner, cmd):
-    r = runner.invoke(app, [cmd, "--no-such-option"])
-    assert r.exit_code == 2
-    assert r.stderr.startswith("error: ")
-    assert len(r.stderr.strip().splitlines()) == 1
+    _assert_one_line_usage_error(runner.invoke(app, [cmd, "--no-such-option"]))
 
 
 @pytest.mark.parametrize("cmd", ["train", "render", "eval", "export"])
 def test_not_a_project_exits_2_with_one_line(runner, cmd, tmp_path):
     r = runner.invoke(app, [cmd, str(tmp_path / "nowhere")])
-    assert r.exit_code == 2, r.output
-    assert r.stderr.startswith("error: ")
-    assert len(r.stderr.strip().splitlines()) == 1
+    _assert_one_line_usage_error(r)
     assert "splatcli process" in r.stderr
     assert "Traceback" not in r.output
 
 
 def test_internal_error_exits_1_without_traceback(monkeypatch, runner, tmp_path):
-    import splatcli.project as project
-
-    def boom(*a, **k):
-        raise RuntimeError("kaboom")
-
-    monkeypatch.setattr(project.Project, "open", classmethod(lambda cls, root: boom()))
+    _make_open_raise(monkeypatch, RuntimeError("kaboom"))
     r = runner.invoke(app, ["train", str(tmp_path)])
     assert r.exit_code == 1
     assert "internal error" in r.stderr and "kaboom" in r.stderr
@@ -84,12 +87,7 @@ def test_internal_error_exits_1_without_traceback(monkeypatch, runner, tmp_path)
 
 
 def test_keyboard_interrupt_exits_130(monkeypatch, runner, tmp_path):
-    import splatcli.project as project
-
-    def interrupt(*a, **k):
-        raise KeyboardInterrupt
-
-    monkeypatch.setattr(project.Project, "open", classmethod(lambda cls, root: interrupt()))
+    _make_open_raise(monkeypatch, KeyboardInterrupt())
     r = runner.invoke(app, ["train", str(tmp_path)])
     assert r.exit_code == 130
 
@@ -174,9 +172,7 @@ def test_json_failures_are_one_object_with_code_and_hint(monkeypatch, runner, tm
     r = runner.invoke(app, ["eval", str(proj.root), "--json", "--no-such-option"])
     assert r.exit_code == 2 and _json_error(r)["exit_code"] == 2
     # a crash is 1, never 2: scripts tell them apart by the code
-    import splatcli.project as project
-
-    monkeypatch.setattr(project.Project, "open", classmethod(lambda cls, root: (_ for _ in ()).throw(RuntimeError("x"))))
+    _make_open_raise(monkeypatch, RuntimeError("x"))
     r = runner.invoke(app, ["train", str(tmp_path), "--json"])
     assert r.exit_code == 1
     d = _json_error(r)

@@ -150,19 +150,14 @@ def test_filter_rows_follow_ops_and_new_rows_are_computed_before_drawing():
     assert ls.requires_grad and op.requires_grad
 
 
-def _mip_project(tmp_path):
+def test_checkpoint_with_filter_renders_as_its_exported_ply_and_render_eval_say_they_antialias(tmp_path):
     proj = make_tiny_project(tmp_path / "p")
-    ck = load_checkpoint(proj.latest_checkpoint())
+    raw = load_checkpoint(proj.latest_checkpoint())
     cams = [(*v.camera.torch(CPU), v.camera.width, v.camera.height) for v in dataset_views(proj, "train")]
-    f = filter_from_rate(sampling_rate(ck.gaussians.means, cams)) * 4  # 4x: a filter that visibly changes the picture
-    save_checkpoint(proj.checkpoint_path(300), step=300, gaussians=ck.gaussians, sh_degree=ck.sh_degree,
+    f = filter_from_rate(sampling_rate(raw.gaussians.means, cams)) * 4  # 4x: a filter that visibly changes the picture
+    save_checkpoint(proj.checkpoint_path(300), step=300, gaussians=raw.gaussians, sh_degree=raw.sh_degree,
                     strategy={"default": {}, "mip": {"filter3d": f, "known": torch.ones_like(f)}},
                     config={"mip_filter": True})
-    return proj, ck
-
-
-def test_checkpoint_with_filter_renders_as_its_exported_ply(tmp_path):
-    proj, raw = _mip_project(tmp_path)
     m = load_model(proj.root, CPU)
     assert m.antialiased is True and m.step == 300
     r = run_cli("export", proj.root, "-o", tmp_path / "s.ply")
@@ -176,10 +171,6 @@ def test_checkpoint_with_filter_renders_as_its_exported_ply(tmp_path):
     # The .ply stores float32 like the checkpoint: the same numbers, so nearly bitwise.
     torch.testing.assert_close(a, b, rtol=0, atol=1e-5)
     assert (a - c).abs().max() > 0.05
-
-
-def test_render_and_eval_say_when_they_antialias(tmp_path):
-    proj, _ = _mip_project(tmp_path)
     r = run_cli("render", proj.root, "--json", "-o", tmp_path / "r")
     assert r.exit_code == 0, r.output
     assert json.loads(r.stdout)["antialiased"] is True
