@@ -1,6 +1,6 @@
 """The rasterizer against a peer, in one run: OpenSplat's CPU rasterizer and ours.
 
-    .venv/bin/python bench/peers.py --source PATH/TO/OpenSplat [--threads 1,2] [--reps 5]
+    .venv/bin/python bench/peers.py --source PATH/TO/OpenSplat [--threads 1,2] [--reps 5] [--block tuned,model]
 
 OpenSplat is built from a checkout the user gives (recorded commit: 15b7e80; it is
 AGPL-licensed and never vendored here) into bench/out/peers/build: its CPU
@@ -13,8 +13,9 @@ Where the peer cannot be built, the script says why and exits 0.
 
 Both sides render the workloads of bench/workloads.py forward and backward:
 the peer as its model.cpp does on CPU (project, SH degree 0 colours, rasterize);
-ours through `splatcli.render.rasterize`. They alternate, rep by rep, at each
-thread count, so both see the same machine; medians are reported with the load
+ours through `splatcli.render.rasterize`, with the block `train` measures (tuned) and with
+`rasterize()`'s default (model). They alternate, rep by rep, at each
+thread count, so all see the same machine; medians are reported with the load
 average. At the recorded commit the peer's CPU path blends in a wrong depth order
 (its projection returns a strided depth view that the rasterizer reads as
 contiguous), so its pictures differ from ours: it is timed as users build it.
@@ -124,24 +125,26 @@ def ours_step(args, width: int, height: int, block) -> None:
     rasterize(*a, width, height, block=block).image.sum().backward()
 
 
-def time_pair(mod, wl, reps: int, block: str) -> dict:
-    """Medians of `reps` forward+backward passes of each side, alternating, after a warm-up. Ours draws
-    as `train` does (block "tuned": a BlockTuner, warmed up until it has measured every candidate
-    block and chunk size) or with the cost model's block ("model")."""
-    ours = BlockTuner() if block == "tuned" else "auto"
+def time_pair(mod, wl, reps: int, blocks: list[str]) -> dict:
+    """Medians of `reps` forward+backward passes of the peer and of ours with each of `blocks`,
+    alternating, after a warm-up. Ours draws as `train` does ("tuned": a BlockTuner, warmed up until
+    it has measured every candidate block and chunk size) or with the cost model's block ("model")."""
+    ours = {b: BlockTuner() if b == "tuned" else "auto" for b in blocks}
     peer_step(mod, wl.args, wl.width, wl.height)
-    for _ in range(1 + ours.samples * len(BLOCKS) * len(ours.chunks) if block == "tuned" else 1):
-        ours_step(wl.args, wl.width, wl.height, ours)
-    tp, to = [], []
+    for o in ours.values():
+        for _ in range(1 + o.samples * len(BLOCKS) * len(o.chunks) if isinstance(o, BlockTuner) else 1):
+            ours_step(wl.args, wl.width, wl.height, o)
+    times: dict[str, list[float]] = {"peer": [], **{b: [] for b in blocks}}
     for _ in range(reps):
-        t = time.perf_counter()
-        peer_step(mod, wl.args, wl.width, wl.height)
-        tp.append(time.perf_counter() - t)
-        t = time.perf_counter()
-        ours_step(wl.args, wl.width, wl.height, ours)
-        to.append(time.perf_counter() - t)
-    tuned = ours.summary() if block == "tuned" else {}
-    return {"peer": statistics.median(tp), "ours": statistics.median(to), "used": tuned.get("used", {}),
+        for name in times:
+            t = time.perf_counter()
+            if name == "peer":
+                peer_step(mod, wl.args, wl.width, wl.height)
+            else:
+                ours_step(wl.args, wl.width, wl.height, ours[name])
+            times[name].append(time.perf_counter() - t)
+    tuned = ours["tuned"].summary() if "tuned" in ours else {}
+    return {**{k: statistics.median(v) for k, v in times.items()}, "used": tuned.get("used", {}),
             "chunk": tuned.get("chunk", {})}
 
 
@@ -154,8 +157,8 @@ def main() -> None:
     ap.add_argument("--reps", type=int, default=5)
     ap.add_argument("--only", default="", help="comma-separated workload names")
     ap.add_argument("--compile", choices=("on", "off"), default="off", help="our rasterizer's compiled kernels")
-    ap.add_argument("--block", choices=("tuned", "model"), default="tuned",
-                    help="our block size: measured as train does (tuned), or the cost model's pick")
+    ap.add_argument("--block", default="tuned,model",
+                    help="our block sizes, each timed: measured as train does (tuned), the cost model's pick (model)")
     ap.add_argument("--one", default="", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if not args.source:
@@ -173,7 +176,7 @@ def main() -> None:
         kernels.set_mode(args.compile)
         if args.compile == "on":  # compiled (or loaded from the cache) before the clock starts
             ours_step(wl.args, wl.width, wl.height, "auto")
-        print(json.dumps(time_pair(mod, wl, args.reps, args.block)), flush=True)
+        print(json.dumps(time_pair(mod, wl, args.reps, args.block.split(","))), flush=True)
         return
     rows = []
     print(f"OpenSplat {rev}; ours {'compiled' if args.compile == 'on' else 'eager'}, block {args.block}", flush=True)
@@ -188,13 +191,16 @@ def main() -> None:
                                 "--threads", str(nt), "--reps", str(args.reps), "--compile", args.compile,
                                 "--block", args.block],
                                capture_output=True, text=True)
-            row = {"workload": wl.name, "threads": nt, "opensplat_ms": None, "splatcli_ms": None, "speedup": None}
+            row = {"workload": wl.name, "threads": nt, "opensplat_ms": None}
             if r.returncode != 0:
                 row["peer"] = f"crashed (exit {r.returncode})" if r.returncode < 0 or r.returncode > 128 else "failed"
             else:
                 t = json.loads(r.stdout.strip().splitlines()[-1])
-                row.update(opensplat_ms=t["peer"] * 1e3, splatcli_ms=t["ours"] * 1e3, speedup=t["peer"] / t["ours"],
-                           peer="ran", blocks=t.get("used"), chunk=t.get("chunk"))
+                row.update(opensplat_ms=t["peer"] * 1e3, peer="ran", blocks=t.get("used"), chunk=t.get("chunk"))
+                for b in args.block.split(","):
+                    row.update({f"{b}_ms": t[b] * 1e3, f"speedup_{b}": t["peer"] / t[b]})
+                if "tuned" in t and "model" in t:
+                    row["model_over_tuned"] = t["model"] / t["tuned"]
             rows.append(row)
             print(row, flush=True)
     if rows:

@@ -71,6 +71,14 @@ def test_blocks_far_outside_the_model_are_never_tried():
     assert set(_drive(tuner, {b: 1e-9 for b in cost}, 20)) == {4}
 
 
+def test_millions_of_pairs_move_the_models_pick_to_larger_blocks():
+    """A pair costs more once a plan holds millions: the same 3 px Gaussians that a sparse view draws
+    in 4 px blocks, stacked 200k deep (7 million pairs at 4 px), are drawn in 8 px ones."""
+    for n, expected in ((2_000, 4), (200_000, 8)):
+        cov2d, opac = _small_gaussians(n)
+        assert blocks.choose_block(blocks.extents(cov2d, opac), 640, 480) == expected
+
+
 def test_nothing_drawn_draws_with_8px_and_measures_nothing():
     tuner = BlockTuner()
     layout, meter = tuner.choose(blocks.extents(torch.zeros(3, 3), torch.zeros(3)), 64, 64)

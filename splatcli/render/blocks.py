@@ -38,7 +38,11 @@ CHUNKS = (1 << 17, 1 << 18, 1 << 19)  # the compositor's chunk sizes a tuner tri
 # backward, one CPU thread), fitted to the fastest block of 111 training views on one machine
 # (lego at 200 and 800 px, fox at 480 and 960 px, models from step 50 to the end). 16 px blocks
 # were never the fastest there: a block stops early only when all its pixels have saturated.
-_COST_SLOT, _COST_ELEM = 50.0, 12.0
+# A pair costs more once a plan holds millions (its lists and per-slot gradients leave the caches):
+# dense views (garden, 100k Gaussians at 256 px) ran 8 px blocks 1.1-3.2x faster than the 4 px the
+# linear model picked (Zen 4 EPYC; the same pick cost 1.27x on a Xeon); the pair cost doubles at
+# _PAIRS_CACHE pairs, which keeps every training view of that fit on its pick.
+_COST_SLOT, _COST_ELEM, _PAIRS_CACHE = 50.0, 12.0, 2.5e6
 
 
 @dataclass(frozen=True)
@@ -68,7 +72,8 @@ def block_costs(ext: Extents, width: int, height: int) -> dict[int, float]:
     if ext.w.numel() == 0:
         return {}
     w, h = ext.w.clamp_max(width), ext.h.clamp_max(height)
-    return {b: float(((w / b + 1) * (h / b + 1)).sum()) * (_COST_SLOT + _COST_ELEM * b * b) for b in BLOCKS}
+    pairs = {b: float(((w / b + 1) * (h / b + 1)).sum()) for b in BLOCKS}
+    return {b: m * (_COST_SLOT * (1 + m / _PAIRS_CACHE) + _COST_ELEM * b * b) for b, m in pairs.items()}
 
 
 def choose_block(ext: Extents, width: int, height: int) -> int:
