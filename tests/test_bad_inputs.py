@@ -16,7 +16,6 @@ tiny project of tests/support/tiny_project.py, copied per test.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import pickle
@@ -28,61 +27,22 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from typer.testing import CliRunner
 
-from splatcli.cli.main import app
 from splatcli.files.atomic import MAX_JSON_BYTES
 from splatcli.files.checkpoint import CHECKPOINT_SCHEMA
 from splatcli.formats.ply import gaussians_to_rows, ply_header, ply_property_names
-from splatcli.project import LOCK_NAME, MANIFEST_NAME, SCHEMA_VERSION, Project
-from support.tiny_project import make_tiny_project, ring_cameras, tiny_gaussians
+from splatcli.project import MANIFEST_NAME, SCHEMA_VERSION, Project
+from support.tiny_project import (
+    assert_user_error as assert_error,
+    make_tiny_project,
+    ring_cameras,
+    run_cli as cli,
+    snapshot,
+    tiny_gaussians,
+)
 from test_sfm import gl_c2w, jpeg_bytes, texture, with_exif_orientation
 
-# ---------------------------------------------------------------------------
-# helpers
-# ---------------------------------------------------------------------------
-
-
-def cli(*args: object):
-    return CliRunner().invoke(app, [str(a) for a in args])
-
-
-def snapshot(*roots: Path) -> dict[str, tuple[str, int]]:
-    """Every file under `roots` (but the writer lock): sha256 of its bytes and its mtime
-    (ns); every folder by its name only (a failed run may create and remove a temp folder inside)."""
-    out: dict[str, tuple[str, int]] = {}
-    for root in roots:
-        root = Path(root)
-        if not root.exists():
-            continue
-        found = [root] if root.is_file() else sorted(root.rglob("*"))
-        for p in found:
-            if p.is_dir():
-                out[str(p)] = ("folder", 0)
-                continue
-            if p.name == LOCK_NAME:  # the writer lock is not project content
-                continue
-            h = hashlib.sha256()
-            with open(p, "rb") as f:
-                while chunk := f.read(1 << 20):
-                    h.update(chunk)
-            out[str(p)] = (h.hexdigest(), p.stat().st_mtime_ns)
-    return out
-
-
-def assert_error(r, *fragments: str) -> str:
-    """Exit 2; stderr is one line `error: ...` holding every fragment; no traceback."""
-    text = (r.stdout or "") + (r.stderr or "")
-    assert "Traceback" not in text, text
-    assert r.exit_code == 2, (r.exit_code, text)
-    lines = r.stderr.splitlines()
-    assert len(lines) == 1, r.stderr
-    line = lines[0]
-    assert line.startswith("error: "), line
-    assert r.stdout == "", r.stdout
-    for f in fragments:
-        assert f in line, (f, line)
-    return line
+# ---- helpers ----------------------------------------------------------------------
 
 
 def assert_ok_with_note(r, *fragments: str) -> None:
@@ -98,9 +58,7 @@ def png_bytes(img: np.ndarray) -> bytes:
     return cv2.imencode(".png", img)[1].tobytes()
 
 
-# ---------------------------------------------------------------------------
-# projects
-# ---------------------------------------------------------------------------
+# ---- projects ------------------------------------------------------------------------
 
 
 @pytest.fixture(scope="module")
@@ -247,9 +205,7 @@ def test_broken_project(cmd: str, case: str, tmp_path: Path, bases) -> None:
     assert not (tmp_path / "pwned").exists()  # the pickled payload never ran
 
 
-# ---------------------------------------------------------------------------
-# .ply files: render FILE.ply, eval PROJ --model FILE.ply, train PROJ --init-ply FILE.ply
-# ---------------------------------------------------------------------------
+# ---- .ply files: render FILE.ply, eval PROJ --model FILE.ply, train PROJ --init-ply FILE.ply ----
 
 
 def good_rows(n: int = 40, sh_degree: int = 1) -> np.ndarray:  # [n, P] float32, 3DGS property order
@@ -370,9 +326,7 @@ def test_ply_with_some_nan_rows_renders_with_a_note(tmp_path: Path) -> None:
     assert len(list((tmp_path / "out").glob("*.png"))) == 2
 
 
-# ---------------------------------------------------------------------------
-# options out of range: one line saying which values are allowed
-# ---------------------------------------------------------------------------
+# ---- options out of range: one line saying which values are allowed ------------------
 
 NO_GPU = not torch.cuda.is_available()
 OPTION_CASES = [
@@ -450,9 +404,7 @@ def test_process_option_out_of_range(opts: list[str], fragments: list[str], tmp_
     assert snapshot(proj, src) == before
 
 
-# ---------------------------------------------------------------------------
-# process: folders of photos, videos, transforms.json, COLMAP models
-# ---------------------------------------------------------------------------
+# ---- process: folders of photos, videos, transforms.json, COLMAP models --------------
 
 
 def image_folder(d: Path, n: int, *, size: tuple[int, int] = (64, 48)) -> Path:
@@ -944,9 +896,7 @@ def test_process_output_rules(case: str, tmp_path: Path, proj: Path) -> None:
     assert snapshot(tmp_path) == before
 
 
-# ---------------------------------------------------------------------------
-# eval --pred/--gt
-# ---------------------------------------------------------------------------
+# ---- eval --pred/--gt ----------------------------------------------------------------
 
 
 def test_eval_folders_bad(tmp_path: Path) -> None:
@@ -959,9 +909,7 @@ def test_eval_folders_bad(tmp_path: Path) -> None:
     assert snapshot(tmp_path) == before
 
 
-# ---------------------------------------------------------------------------
-# render --cameras transforms.json
-# ---------------------------------------------------------------------------
+# ---- render --cameras transforms.json ------------------------------------------------
 
 
 @pytest.mark.parametrize("case, fragments", [
@@ -984,9 +932,7 @@ def test_render_bad_cameras_file(case: str, fragments: list[str], proj: Path, tm
     assert snapshot(tmp_path) == before
 
 
-# ---------------------------------------------------------------------------
-# a project whose files were damaged after process
-# ---------------------------------------------------------------------------
+# ---- a project whose files were damaged after process --------------------------------
 
 
 @pytest.mark.parametrize("cmd", ["train", "eval"])

@@ -8,6 +8,7 @@ pycolmap reads; the manifest holds what `process` and `train` would record.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 from pathlib import Path
@@ -124,24 +125,32 @@ def run_cli(*args: object):
     return CliRunner().invoke(app, [str(a) for a in args])
 
 
-def assert_user_error(result, *fragments: str, alone: bool = True) -> None:
-    """Exit 2, one line `error: ...` on stderr naming what it should, no traceback.
-    Errors found before any work are the only stderr line; one found mid-way
-    (a bad image in a folder) comes after the progress shown so far."""
+def assert_user_error(result, *fragments: str, alone: bool = True) -> str:
+    """Exit 2, one line `error: ...` on stderr naming what it should, no traceback; returns it.
+    Errors found before any work are the only output; one found mid-way (a bad image in a
+    folder) comes after the progress shown so far."""
     lines = result.stderr.strip().splitlines()
     assert result.exit_code == 2, (result.exit_code, result.output)
     assert lines and lines[-1].startswith("error: "), result.stderr
     assert sum(line.startswith("error:") for line in lines) == 1, result.stderr
     assert "Traceback" not in result.output
     if alone:
-        assert len(lines) == 1, result.stderr
+        assert len(lines) == 1 and result.stdout == "", result.output
     err = lines[-1]
     for f in fragments:
         assert f in err, (f, err)
+    return err
 
 
-def snapshot(root: Path) -> dict[str, tuple[int, int]]:
-    """Every file under `root` with its size and mtime: to prove nothing changed. The
-    writer lock (`.splatcli.lock`, held while a command runs) is not project content."""
-    return {str(p.relative_to(root)): (p.stat().st_size, p.stat().st_mtime_ns)
-            for p in sorted(Path(root).rglob("*")) if p.is_file() and p.name != LOCK_NAME}
+def snapshot(*roots: Path) -> dict[str, tuple[str, int]]:
+    """Every file under `roots` (or a root that is a file) with the sha256 of its bytes and its mtime
+    (ns), and every folder by its name (a failed run may make and remove a temp folder inside): to
+    prove nothing changed. The writer lock (held while a command runs) is not project content."""
+    out: dict[str, tuple[str, int]] = {}
+    for root in map(Path, roots):
+        for p in [root] if root.is_file() else sorted(root.rglob("*")):
+            if p.is_dir():
+                out[str(p)] = ("folder", 0)
+            elif p.name != LOCK_NAME:
+                out[str(p)] = (hashlib.sha256(p.read_bytes()).hexdigest(), p.stat().st_mtime_ns)
+    return out
