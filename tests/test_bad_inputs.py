@@ -352,6 +352,8 @@ OPTION_CASES = [
     ("render", ["--split", "val"], ["--split 'val'", "test, train, all"]),
     ("render", ["--path", "zigzag"], ["--path 'zigzag'", "orbit, spiral, interpolate"]),
     ("render", ["--background", "teal"], ["--background 'teal'", "white, black, gray"]),
+    ("render", ["--background", "1,2,3"], ["--background '1,2,3'", "[0, 1]"]),
+    ("render", ["--cameras", "missing.json"], ["missing.json", "not found"]),
     ("render", ["--video", "a.gif"], ["--video a.gif", ".mp4"]),
     ("render", ["--device", "tpu"], ["--device 'tpu'", "auto, cpu, cuda"]),
     ("render", ["--device", "cuda"], ["--device cuda", "no CUDA GPU", "auto, cpu, cuda"]),
