@@ -7,6 +7,7 @@ one-line `SplatError` naming the file; never another exception, never a hang.
 from __future__ import annotations
 
 import contextlib
+import io
 import json
 import math
 import shutil
@@ -34,6 +35,21 @@ SETTINGS = settings(max_examples=120, deadline=None, suppress_health_check=[Heal
 def _one_line_error(exc: SplatError, path: Path) -> None:
     msg = str(exc)
     assert "\n" not in msg and str(path) in msg, msg
+
+
+def _mutated(data: bytes, muts: list[tuple[float, int]], cut: float = 1.0) -> bytes:
+    """`data` with byte pos * len set to val for each (pos, val), cut to its first `cut` share
+    (whole from 0.98 up)."""
+    b = bytearray(data)
+    for pos, val in muts:
+        b[int(pos * len(b))] = val
+    return bytes(b[: int(len(b) * cut) if cut < 0.98 else len(b)])
+
+
+def _npy(a: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, a)
+    return buf.getvalue()
 
 
 # ---- checkpoints --------------------------------------------------------------------
@@ -157,16 +173,12 @@ def test_colmap_bin_lying_counts(colmap_models, stem: str, count: int) -> None:
 
 def _llff_bytes() -> bytes:
     """A valid poses_bounds.npy of 3 cameras (the ring of tests/tiny_project.py)."""
-    import io
-
     from splatcli.inputs.llff import to_poses_bounds
     from support.tiny_project import ring_cameras
 
     cams = ring_cameras(3)
-    buf = io.BytesIO()
-    np.save(buf, to_poses_bounds([c.viewmat for c in cams], [(c.height, c.width, c.K[0, 0]) for c in cams],
-                                 [(1.0, 6.0)] * 3))
-    return buf.getvalue()
+    return _npy(to_poses_bounds([c.viewmat for c in cams], [(c.height, c.width, c.K[0, 0]) for c in cams],
+                                [(1.0, 6.0)] * 3))
 
 
 LLFF = _llff_bytes()
@@ -206,10 +218,7 @@ def test_llff_random_bytes(data: bytes) -> None:
 @given(muts=st.lists(st.tuples(st.floats(0, 1, exclude_max=True), st.integers(0, 255)), min_size=1, max_size=8),
        cut=st.floats(0, 1))
 def test_llff_byte_mutations_and_truncations(muts: list[tuple[float, int]], cut: float) -> None:
-    data = bytearray(LLFF)
-    for pos, val in muts:
-        data[int(pos * len(data))] = val
-    _read_llff(bytes(data[: int(len(data) * cut) if cut < 0.98 else len(data)]))
+    _read_llff(_mutated(LLFF, muts, cut))
 
 
 @SETTINGS
@@ -217,25 +226,17 @@ def test_llff_byte_mutations_and_truncations(muts: list[tuple[float, int]], cut:
        values=st.lists(st.floats(allow_nan=True, allow_infinity=True, width=64)
                        | st.sampled_from([0.0, -1.0, 1.0, 1e-300, 1e300]), min_size=90, max_size=90))
 def test_llff_random_arrays(rows: int, cols: int, values: list[float]) -> None:
-    import io
-
     a = np.asarray(values[: rows * cols] + [0.0] * max(0, rows * cols - 90), np.float64).reshape(rows, cols)
-    buf = io.BytesIO()
-    np.save(buf, a)
-    _read_llff(buf.getvalue())
+    _read_llff(_npy(a))
 
 
 @SETTINGS
 @given(col=st.integers(0, 16), value=st.floats(allow_nan=True, allow_infinity=True) | st.sampled_from([0.0, -1.0]))
 def test_llff_one_value_changed(col: int, value: float) -> None:
     """A valid file with one number changed: the checks catch what matters (focal, bounds, size, rotation)."""
-    import io
-
     a = np.load(io.BytesIO(LLFF))
     a[1, col] = value
-    buf = io.BytesIO()
-    np.save(buf, a)
-    _read_llff(buf.getvalue())
+    _read_llff(_npy(a))
 
 
 # ---- EXIF camera facts -----------------------------------------------------------------------
@@ -274,17 +275,12 @@ def _read_exif(data: bytes) -> None:
        cut=st.floats(0, 1))
 def test_exif_byte_mutations_and_truncations(muts: list[tuple[float, int]], cut: float) -> None:
     """Mutations land in the first 30% of the file: the EXIF block, not the pixels."""
-    data = bytearray(EXIF_JPEG)
-    for pos, val in muts:
-        data[int(pos * len(data))] = val
-    _read_exif(bytes(data[: int(len(data) * cut) if cut < 0.98 else len(data)]))
+    _read_exif(_mutated(EXIF_JPEG, muts, cut))
 
 
 @SETTINGS
 @given(make=st.text(max_size=80), focal=st.floats(allow_nan=True, allow_infinity=True))
 def test_exif_lying_values(make: str, focal: float) -> None:
-    import io
-
     from PIL import Image
 
     ex = Image.Exif()
@@ -474,10 +470,7 @@ def test_image_truncations(name: str, frac: float) -> None:
 @given(name=st.sampled_from(sorted(IMAGES)),
        muts=st.lists(st.tuples(st.floats(0, 1, exclude_max=True), st.integers(0, 255)), min_size=1, max_size=8))
 def test_image_byte_mutations(name: str, muts: list[tuple[float, int]]) -> None:
-    data = bytearray(IMAGES[name])
-    for pos, val in muts:
-        data[int(pos * len(data))] = val
-    _load_image(name, bytes(data))
+    _load_image(name, _mutated(IMAGES[name], muts))
 
 
 @pytest.mark.parametrize("w,h", [(65535, 65535), (1, 2**31 - 1), (2**31 - 1, 2**31 - 1)])
@@ -511,12 +504,10 @@ def test_real_transforms_mutated_in_both_uses(which: int, muts: list[tuple[float
     from splatcli.views.sources import transforms_views
 
     src = REAL_TRANSFORMS[which % len(REAL_TRANSFORMS)]
-    data = bytearray(src.read_bytes())
-    for pos, val in muts:
-        data[int(pos * len(data))] = val
+    data = _mutated(src.read_bytes(), muts)
     with tempfile.TemporaryDirectory() as d:
         tf = Path(d) / src.name
-        tf.write_bytes(bytes(data[: max(1, int(len(data) * cut))]))
+        tf.write_bytes(data[: max(1, int(len(data) * cut))])
         for read in (lambda: read_transforms(tf, images=False), lambda: transforms_views(tf, default_size=(32, 24))):
             t0 = time.monotonic()
             try:
