@@ -10,11 +10,14 @@ import contextlib
 import io
 import json
 import math
+import resource
 import shutil
 import tempfile
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -23,9 +26,13 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 from splatcli.errors import SplatError
 from splatcli.files.checkpoint import load_checkpoint, save_checkpoint
 from splatcli.gaussians import Gaussians
+from splatcli.inputs.images import load_rgb
 from splatcli.inputs.transforms import read_transforms
+from splatcli.options import table
 from splatcli.project import Project
 from splatcli.sfm.colmap_files import check_model
+from splatcli.train.config import TrainConfig
+from splatcli.views.sources import transforms_views
 from support import data_dir
 
 SETTINGS = settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture],
@@ -35,6 +42,15 @@ SETTINGS = settings(max_examples=120, deadline=None, suppress_health_check=[Heal
 def _one_line_error(exc: SplatError, path: Path) -> None:
     msg = str(exc)
     assert "\n" not in msg and str(path) in msg, msg
+
+
+def _read_or_refused(read, path: Path):
+    """read()'s result, or None when it raised a SplatError that is one line naming `path`."""
+    try:
+        return read()
+    except SplatError as e:
+        _one_line_error(e, path)
+        return None
 
 
 def _mutated(data: bytes, muts: list[tuple[float, int]], cut: float = 1.0) -> bytes:
@@ -73,10 +89,8 @@ def _load_ckpt(data: bytes) -> None:
     with tempfile.TemporaryDirectory() as d:
         p = Path(d) / "step-000000007.pt"
         p.write_bytes(data)
-        try:
-            ck = load_checkpoint(p)
-        except SplatError as e:
-            _one_line_error(e, p)
+        ck = _read_or_refused(lambda: load_checkpoint(p), p)
+        if ck is None:
             return
         # accepted: a consistent checkpoint, usable as it is (every tensor holds the same N Gaussians)
         g, n = ck.gaussians, len(ck.gaussians)
@@ -130,10 +144,8 @@ def _check(files: dict[str, bytes], fmt: str) -> None:
     with tempfile.TemporaryDirectory() as d:
         for stem, data in files.items():
             (Path(d) / f"{stem}.{fmt}").write_bytes(data)
-        try:
-            s = check_model(Path(d))
-        except SplatError as e:
-            assert "\n" not in str(e) and d in str(e), str(e)
+        s = _read_or_refused(lambda: check_model(Path(d)), Path(d))
+        if s is None:
             return
         # accepted: every count it reports is consistent with the files
         assert s.images and all(cid in s.cameras for _, cid, _ in s.images.values())
@@ -194,10 +206,8 @@ def _read_llff(data: bytes) -> None:
             (root / "images" / f"{i}.png").write_bytes(b"\x89PNG\r\n\x1a\n")  # content is staging's business
         pb = root / "poses_bounds.npy"
         pb.write_bytes(data)
-        try:
-            scene = read_llff(pb)
-        except SplatError as e:
-            _one_line_error(e, pb)
+        scene = _read_or_refused(lambda: read_llff(pb), pb)
+        if scene is None:
             return
         # accepted: 3 frames with proper poses and positive, ordered numbers
         assert len(scene.frames) == 3
@@ -324,27 +334,15 @@ def _transforms_file(data: dict) -> Iterator[tuple[Path, Path]]:
 
 @SETTINGS
 @given(TRANSFORMS)
-def test_transforms_random_structure(data: dict) -> None:
+def test_transforms_random_structure_in_both_uses(data: dict) -> None:
+    """The reader as `process` uses it (every frame inside the input folder), and as
+    `render --cameras` does (cameras only, images may be absent)."""
     with _transforms_file(data) as (root, tf):
-        try:
-            scene = read_transforms(tf)
-        except SplatError as e:
-            _one_line_error(e, tf)
-            return
-        assert all(f.source.resolve().is_relative_to(root.resolve()) for f in scene.frames)
-
-
-@SETTINGS
-@given(TRANSFORMS)
-def test_transforms_random_structure_as_render_cameras(data: dict) -> None:
-    """The same reader as `render --cameras` uses it: cameras only, images may be absent."""
-    from splatcli.views.sources import transforms_views
-
-    with _transforms_file(data) as (root, tf):
-        try:
-            views = transforms_views(tf, default_size=(32, 24))
-        except SplatError as e:
-            _one_line_error(e, tf)
+        scene = _read_or_refused(lambda: read_transforms(tf), tf)
+        if scene is not None:
+            assert all(f.source.resolve().is_relative_to(root.resolve()) for f in scene.frames)
+        views = _read_or_refused(lambda: transforms_views(tf, default_size=(32, 24)), tf)
+        if views is None:
             return
         assert len(views) == len(data["frames"])
         for v in views:
@@ -391,9 +389,6 @@ def test_manifest_random_json(data) -> None:
 
 # ---- the stored train config (checkpoints carry it; --resume reads it) ----------------
 
-from splatcli.options import table  # noqa: E402
-from splatcli.train.config import TrainConfig  # noqa: E402
-
 CONFIG_VALUES = (st.none() | st.booleans() | st.integers(-3, 5) | st.integers(-2**70, 2**70)
                  | st.floats(allow_nan=True, allow_infinity=True) | st.text(max_size=6)
                  | st.lists(st.integers(), max_size=2) | st.dictionaries(st.text(max_size=3), st.integers(), max_size=2))
@@ -416,13 +411,6 @@ def test_stored_train_config_random_values(d: dict) -> None:
 
 
 # ---- images (train, eval and render read photos through inputs.images.load_rgb) -----------
-
-import resource  # noqa: E402
-import time  # noqa: E402
-
-import cv2  # noqa: E402
-
-from splatcli.inputs.images import load_rgb  # noqa: E402
 
 
 def _image_corpus() -> dict[str, bytes]:
@@ -450,11 +438,8 @@ def _load_image(name: str, data: bytes) -> None:
         p = Path(d) / name
         p.write_bytes(data)
         t0 = time.monotonic()
-        try:
-            img = load_rgb(p, None, (1.0, 1.0, 1.0))
-        except SplatError as e:
-            _one_line_error(e, p)
-        else:
+        img = _read_or_refused(lambda: load_rgb(p, None, (1.0, 1.0, 1.0)), p)
+        if img is not None:
             assert img.dtype == np.uint8 and img.ndim == 3 and img.shape[2] == 3
         assert time.monotonic() - t0 < 10.0, "no input may hang a reader"
 
@@ -501,8 +486,6 @@ REAL_TRANSFORMS = [p for p in (data_dir() / "fox" / "transforms.json", data_dir(
 def test_real_transforms_mutated_in_both_uses(which: int, muts: list[tuple[float, int]], cut: float) -> None:
     """Byte mutations and truncations of real transforms files, through the reader as
     `process` uses it and as `render --cameras` does: loaded, or one line naming the file."""
-    from splatcli.views.sources import transforms_views
-
     src = REAL_TRANSFORMS[which % len(REAL_TRANSFORMS)]
     data = _mutated(src.read_bytes(), muts)
     with tempfile.TemporaryDirectory() as d:
@@ -510,8 +493,5 @@ def test_real_transforms_mutated_in_both_uses(which: int, muts: list[tuple[float
         tf.write_bytes(data[: max(1, int(len(data) * cut))])
         for read in (lambda: read_transforms(tf, images=False), lambda: transforms_views(tf, default_size=(32, 24))):
             t0 = time.monotonic()
-            try:
-                read()
-            except SplatError as e:
-                _one_line_error(e, tf)
+            _read_or_refused(read, tf)
             assert time.monotonic() - t0 < 10.0
