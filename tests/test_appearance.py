@@ -14,12 +14,14 @@ import os
 import signal
 import subprocess
 import sys
+import types
 
 import cv2
 import numpy as np
 import pytest
 import torch
 
+import splatcli.train.loop as loop
 from splatcli.cli.planning import resumed
 from splatcli.cli.train_config import make_config
 from splatcli.errors import Interrupted, SplatError
@@ -43,6 +45,12 @@ CPU = torch.device("cpu")
 # block="model": the runs here are compared bit for bit, and a measured block (--block auto) follows the clock
 SMALL = dict(block="model", iterations=20, init_random_points=300, max_gaussians=600, eval_every=10, log_every=5, refine_start=4,
              refine_every=4, opacity_reset=100, sh_degree_interval=8, checkpoint_every=10, appearance="exposure")
+
+
+def _ok(*args):
+    r = run_cli(*args)
+    assert r.exit_code == 0, r.output
+    return r
 
 
 def _appearance(n: int = 4) -> Exposure:
@@ -103,12 +111,10 @@ def test_gradcheck_of_the_transform_and_its_penalty():
 
 def test_learning_rate_decays_from_lr_to_lr_final():
     app = _appearance()
-    app.schedule(0, 100)
-    assert app.optimizer.param_groups[0]["lr"] == pytest.approx(0.01)
-    app.schedule(50, 100)
-    assert app.optimizer.param_groups[0]["lr"] == pytest.approx(math.sqrt(0.01 * 0.001))
-    app.schedule(150, 100)  # a fine-tune after the schedule holds the final rate
-    assert app.optimizer.param_groups[0]["lr"] == pytest.approx(0.001)
+    # step 150: a fine-tune after the schedule holds the final rate
+    for step, lr in ((0, 0.01), (50, math.sqrt(0.01 * 0.001)), (150, 0.001)):
+        app.schedule(step, 100)
+        assert app.optimizer.param_groups[0]["lr"] == pytest.approx(lr), step
 
 
 def test_a_step_moves_only_the_views_trained_then_centres_all():
@@ -272,22 +278,22 @@ def test_a_transform_baked_into_the_sh_renders_what_the_render_through_it_shows(
     assert float((through - draw(g, bg)).abs().max()) > 0.05  # the transform changed the picture
 
 
-def test_render_and_export_take_one_training_photos_light(tmp_path):
+def test_render_and_export_take_one_training_photos_light_and_plain_exports_hold_none(tmp_path):
     """--appearance-of NAME: the model with that photo's learnt transform baked in, in render and
-    export alike; a name that is not a training photo, or a run without transforms, is one line."""
+    export alike; a name that is not a training photo, or a run without transforms, is one line.
+    Without it, exported files never hold the transforms."""
     proj = _tiny(tmp_path, gains=GAINS)
     train(proj.root, make_config(**{**SMALL, "iterations": 10}), CPU)
     name = proj.splits()["train"][1]
-    t = load_checkpoint(proj.latest_checkpoint()).appearance["transforms"][1]
     ck = load_checkpoint(proj.latest_checkpoint())
+    assert ck.appearance["transforms"].shape == (8, 3, 4)
+    t = ck.appearance["transforms"][1]
     assert float((t - torch.eye(3, 4)).abs().max()) > 1e-3  # a light of its own, not the identity
     m = load_model(proj.root, CPU, appearance_of=name)
     assert torch.equal(m.light, t.float()) and torch.allclose(m.gaussians.sh, ck.model().recoloured(t).sh)
-    r = run_cli("export", proj.root, "--appearance-of", name, "-o", str(tmp_path / "lit.ply"))
-    assert r.exit_code == 0, r.output
+    _ok("export", proj.root, "--appearance-of", name, "-o", str(tmp_path / "lit.ply"))
     assert torch.allclose(read_ply(tmp_path / "lit.ply").gaussians.sh, m.gaussians.sh, atol=1e-6)
-    r = run_cli("render", proj.root, "--appearance-of", name, "--split", "train", "-o", str(tmp_path / "lit"))
-    assert r.exit_code == 0, r.output
+    _ok("render", proj.root, "--appearance-of", name, "--split", "train", "-o", str(tmp_path / "lit"))
     store = open_scene(proj.root, appearance_of=name)  # the viewer: the same light, the background through it
     bg = torch.tensor(proj.background() or (0.0, 0.0, 0.0)) @ t[:, :3].T.float() + t[:, 3].float()
     assert torch.allclose(torch.tensor(store.background), bg.clamp(0, 1))
@@ -295,18 +301,9 @@ def test_render_and_export_take_one_training_photos_light(tmp_path):
     plain = _tiny(tmp_path, name="plain")
     train(plain.root, make_config(**{**SMALL, "iterations": 4, "appearance": "none"}), CPU)
     assert_user_error(run_cli("export", plain.root, "--appearance-of", name), "trained without --appearance")
-
-
-def test_exported_files_never_hold_the_transforms(tmp_path):
-    proj = _tiny(tmp_path, gains=GAINS)
-    train(proj.root, make_config(**{**SMALL, "iterations": 6}), CPU)
-    ck = load_checkpoint(proj.latest_checkpoint())
-    assert ck.appearance["transforms"].shape == (8, 3, 4)
-    r = run_cli("export", proj.root, "-o", tmp_path / "scene.ply")
-    assert r.exit_code == 0, r.output
-    plain = tmp_path / "plain.ply"
-    write_format("ply", plain, ck.model())  # the Gaussians alone
-    assert (tmp_path / "scene.ply").read_bytes() == plain.read_bytes()
+    _ok("export", proj.root, "-o", tmp_path / "scene.ply")
+    write_format("ply", tmp_path / "alone.ply", ck.model())  # the Gaussians alone
+    assert (tmp_path / "scene.ply").read_bytes() == (tmp_path / "alone.ply").read_bytes()
 
 
 def test_bad_appearance_is_a_one_line_error(tmp_path):
@@ -360,8 +357,7 @@ def test_fitted_psnr_is_never_below_the_raw_psnr():
 
 def test_eval_reports_the_colour_fit_psnr(tmp_path):
     proj = make_tiny_project(tmp_path / "p")
-    r = run_cli("eval", proj.root, "--budgets", "1", "--no-plots", "--json", "--device", "cpu")
-    assert r.exit_code == 0, r.output
+    _ok("eval", proj.root, "--budgets", "1", "--no-plots", "--json", "--device", "cpu")
     report = json.loads((proj.reports_dir / "eval.json").read_text())
     assert report["psnr_color_fit"] >= report["psnr"]
     assert all(s["psnr_color_fit"] >= s["psnr"] - 1e-9 for s in report["per_image"])
@@ -376,8 +372,7 @@ def test_eval_of_a_run_that_learnt_each_photos_light_leads_with_the_compensated_
     headline (eval.json, eval.md, the printed line) is the appearance-compensated score."""
     proj = _tiny(tmp_path, gains=GAINS)
     s = train(proj.root, make_config(**{**SMALL, "iterations": 10}), CPU)
-    r = run_cli("eval", proj.root, "--budgets", "1", "--no-plots", "--device", "cpu")
-    assert r.exit_code == 0, r.output
+    r = _ok("eval", proj.root, "--budgets", "1", "--no-plots", "--device", "cpu")
     report = json.loads((proj.reports_dir / "eval.json").read_text())
     assert report["headline"] == "compensated" and report["compensated_psnr"] > report["psnr"]
     # training watched the held-out views under the same protocol: its last figure is eval's headline
@@ -392,10 +387,6 @@ def test_eval_of_a_run_that_learnt_each_photos_light_leads_with_the_compensated_
 def test_training_view_scores_go_through_each_photos_transform(monkeypatch):
     """train_psnr and the --sh-degree auto / --compact validation scores compare a training
     photo with its render through that photo's transform; held-out scores use the scene alone."""
-    import types
-
-    import splatcli.train.loop as loop
-
     render = torch.full((12, 12, 3), 0.8)
     monkeypatch.setattr(loop, "render_view", lambda state, v, bg, d: types.SimpleNamespace(image=render))
     app = _appearance(3)

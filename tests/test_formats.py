@@ -5,12 +5,16 @@ a converter, and the check by a real third-party client (PlayCanvas splat-transf
 from __future__ import annotations
 
 import gzip
+import io
+import json
 import math
 import os
 import random
 import shutil
 import struct
 import subprocess
+import time
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -192,8 +196,6 @@ def test_sog_round_trip_within_its_codebooks(tmp_path):
 
 def test_sog_bytes_do_not_depend_on_the_clock(monkeypatch):
     """The same model gives the same .sog, whenever it is written (zip stamps members with the time)."""
-    import time
-
     g = scene(500)
     first = encode_sog(g)[0]
     monkeypatch.setattr(time, "time", lambda: 2e9)  # 2033: another zip timestamp if the clock were read
@@ -221,11 +223,16 @@ def test_1d_codebook_covers_the_tails():
     assert abs(c[i[-1]] - 2.5) < 0.3 and np.abs(c[i] - v).mean() < 0.005  # an outlier keeps an entry near it
 
 
-def test_bad_sog_files_are_refused_in_one_line(tmp_path):
-    import io
-    import json
-    import zipfile
+def _assert_refused(read, bad: Path, cases) -> None:
+    """Each of `cases` ((words, bytes) pairs or a dict), written to `bad`, is refused by `read` in one line."""
+    for words, data in cases.items() if isinstance(cases, dict) else cases:
+        bad.write_bytes(data)
+        with pytest.raises(SplatError, match=words) as info:
+            read(bad)
+        assert "\n" not in str(info.value) and str(bad) in str(info.value), words
 
+
+def test_bad_sog_files_are_refused_in_one_line(tmp_path):
     g = scene(200)
     good = tmp_path / "g.sog"
     write_sog(good, g)
@@ -251,12 +258,7 @@ def test_bad_sog_files_are_refused_in_one_line(tmp_path):
         "does not hold": bundle(**{"quats.webp": None}),
         "not a readable WebP": bundle(**{"scales.webp": b"RIFF0000WEBPjunk"}),
     }
-    for words, data in cases.items():
-        bad = tmp_path / "bad.sog"
-        bad.write_bytes(data)
-        with pytest.raises(SplatError, match=words) as info:
-            read_sog(bad)
-        assert "\n" not in str(info.value), words
+    _assert_refused(read_sog, tmp_path / "bad.sog", cases)
 
 
 def _spz_bytes(version=3, n=2, deg=0, payload: bytes | None = None, flags=0, tail=b"") -> bytes:
@@ -280,11 +282,7 @@ def _spz_bytes(version=3, n=2, deg=0, payload: bytes | None = None, flags=0, tai
     (_spz_bytes(flags=2, tail=struct.pack("<III", 0xADBE0003, 4, 9)), "coordinate system 9"),
 ], ids=lambda x: x if isinstance(x, str) else None)  # the same test ids in every process (pytest-xdist)
 def test_bad_spz_files_are_refused_in_one_line(tmp_path, data, words):
-    path = tmp_path / "bad.spz"
-    path.write_bytes(data)
-    with pytest.raises(SplatError, match=words) as info:
-        read_spz(path)
-    assert "\n" not in str(info.value) and str(path) in str(info.value)
+    _assert_refused(read_spz, tmp_path / "bad.spz", [(words, data)])
 
 
 def test_bad_spz4_files_are_refused_in_one_line(tmp_path):
@@ -319,12 +317,7 @@ def test_bad_spz4_files_are_refused_in_one_line(tmp_path):
         "damaged extension records": patch(36, "<I", 99),
         "coordinate system 9": patch(40, "<I", 9),
     }
-    for words, data in cases.items():
-        bad = tmp_path / "bad.spz"
-        bad.write_bytes(data)
-        with pytest.raises(SplatError, match=words) as info:
-            read_spz(bad)
-        assert "\n" not in str(info.value) and str(bad) in str(info.value), words
+    _assert_refused(read_spz, tmp_path / "bad.spz", cases)
 
 
 def test_bad_compressed_ply_files_are_refused_in_one_line(tmp_path):
@@ -332,62 +325,52 @@ def test_bad_compressed_ply_files_are_refused_in_one_line(tmp_path):
     good = tmp_path / "g.compressed.ply"
     write_compressed_ply(good, g)
     raw = good.read_bytes()
-    cases = {
-        "truncated": raw[:-100],
-        "cannot hold": raw.replace(b"element chunk 2", b"element chunk 9"),
-        "sh element": raw.replace(b"element sh 300", b"element sh 299"),
-        "not a PLY": b"garbage" + raw,
-        "binary_little_endian": raw.replace(b"binary_little_endian", b"binary_big_endian"),
-        "unexpected PLY header": raw.replace(b"element vertex 300", b"element vertex 300 x"),
-    }
-    for words, data in cases.items():
-        bad = tmp_path / "bad.compressed.ply"
-        bad.write_bytes(data)
-        with pytest.raises(SplatError, match=words):
-            read_compressed_ply(bad)
-    # a lying vertex count with a matching chunk count: refused before reading rows
-    bad.write_bytes(raw.replace(b"element chunk 2", b"element chunk 3906250").replace(
-        b"element vertex 300", b"element vertex 999999999").replace(b"element sh 300", b"element sh 999999999"))
-    with pytest.raises(SplatError, match="truncated"):
-        read_compressed_ply(bad)
+    _assert_refused(read_compressed_ply, tmp_path / "bad.compressed.ply", [
+        ("truncated", raw[:-100]),
+        ("cannot hold", raw.replace(b"element chunk 2", b"element chunk 9")),
+        ("sh element", raw.replace(b"element sh 300", b"element sh 299")),
+        ("not a PLY", b"garbage" + raw),
+        ("binary_little_endian", raw.replace(b"binary_little_endian", b"binary_big_endian")),
+        ("unexpected PLY header", raw.replace(b"element vertex 300", b"element vertex 300 x")),
+        # a lying vertex count with a matching chunk count: refused before reading rows
+        ("truncated", raw.replace(b"element chunk 2", b"element chunk 3906250").replace(
+            b"element vertex 300", b"element vertex 999999999").replace(b"element sh 300", b"element sh 999999999")),
+    ])
+
+
+def _ok(*args):
+    r = run_cli(*args)
+    assert r.exit_code == 0, r.output
+    return r
 
 
 def test_export_converts_between_formats_and_loaders_read_them(tmp_path):
     proj = make_tiny_project(tmp_path / "p")
-    r = run_cli("export", proj.root, "--format", "spz", "--json")
-    assert r.exit_code == 0, r.output
+    _ok("export", proj.root, "--format", "spz", "--json")
     spz = proj.root / "exports" / "scene.spz"
     assert spz.is_file()
     # a file source: .spz -> .compressed.ply beside it, then -> .ply elsewhere
-    r = run_cli("export", spz, "--format", "compressed-ply")
-    assert r.exit_code == 0, r.output
+    _ok("export", spz, "--format", "compressed-ply")
     cply = proj.root / "exports" / "scene.compressed.ply"
-    r = run_cli("export", cply, "--format", "ply", "-o", tmp_path / "back.ply")
-    assert r.exit_code == 0, r.output
+    _ok("export", cply, "--format", "ply", "-o", tmp_path / "back.ply")
     m = load_model(tmp_path / "back.ply", torch.device("cpu"))
     assert m.kind == "ply" and len(m.gaussians) == len(load_model(proj.root, torch.device("cpu")).gaussians)
     for path, kind in ((spz, "spz"), (cply, "compressed-ply")):
         assert load_model(path, torch.device("cpu")).kind == kind
     # render and eval --model take any format
-    r = run_cli("render", spz, "--project", proj.root, "--split", "test", "-o", tmp_path / "frames")
-    assert r.exit_code == 0, r.output
-    r = run_cli("eval", proj.root, "--model", cply, "--no-plots", "-o", tmp_path / "ev", "--json")
-    assert r.exit_code == 0, r.output
-    r = run_cli("train", proj.root, "--init-ply", spz, "--iterations", "2", "--eval-every", "0")
-    assert r.exit_code == 0, r.output  # and training starts from any format
+    _ok("render", spz, "--project", proj.root, "--split", "test", "-o", tmp_path / "frames")
+    _ok("eval", proj.root, "--model", cply, "--no-plots", "-o", tmp_path / "ev", "--json")
+    _ok("train", proj.root, "--init-ply", spz, "--iterations", "2", "--eval-every", "0")  # training from any format
     assert_user_error(run_cli("export", spz, "--format", "spz", "-o", spz), "source file itself")
     assert_user_error(run_cli("export", proj.root, "--format", "spz", "--spz-sh-bits", "9,4"), "--spz-sh-bits")
     assert_user_error(run_cli("export", proj.root, "--format", "spz", "--spz-version", "2"), "--spz-version 2")
-    r = run_cli("export", proj.root, "--format", "spz", "--spz-version", "4", "-o", tmp_path / "v4.spz")
-    assert r.exit_code == 0 and (tmp_path / "v4.spz").read_bytes()[:4] == b"NGSP" and spz.read_bytes()[:2] == b"\x1f\x8b"
+    _ok("export", proj.root, "--format", "spz", "--spz-version", "4", "-o", tmp_path / "v4.spz")
+    assert (tmp_path / "v4.spz").read_bytes()[:4] == b"NGSP" and spz.read_bytes()[:2] == b"\x1f\x8b"
 
 
 def test_eval_formats_reports_size_against_error(tmp_path):
-    import json
-
     proj = make_tiny_project(tmp_path / "p")
-    r = run_cli("eval", proj.root, "--formats", "ply,spz,compressed-ply,splat", "--budgets", "1", "--json")
-    assert r.exit_code == 0, r.output
+    _ok("eval", proj.root, "--formats", "ply,spz,compressed-ply,splat", "--budgets", "1", "--json")
     rep = json.loads((proj.root / "reports" / "eval.json").read_text())
     got = {f["format"]: f for f in rep["formats"]}
     assert list(got) == ["ply", "spz", "compressed-ply", "splat"]

@@ -12,9 +12,13 @@ import pytest
 import torch
 from torch import nn
 
+from splatcli.cli.train_config import make_config
 from splatcli.render.output import RenderOutput
-from splatcli.strategy import MCMCStrategy, MCMCStrategyConfig, Splats, StepInfo
+from splatcli.strategy import MCMCStrategy, MCMCStrategyConfig, RegularizeStep, Splats, StepInfo
 from splatcli.strategy.mcmc import relocation
+from splatcli.train.config import TrainConfig
+from splatcli.train.state import make_strategies
+from support.context import context
 from support.tiny_project import assert_user_error, make_tiny_project, run_cli
 
 REPO = Path(__file__).resolve().parents[1]
@@ -213,28 +217,24 @@ def test_noise_moves_transparent_gaussians_only():
     assert bool((d[:2] > 1e-4).all()) and bool((d[2:] < 1e-9).all()), d
 
 
-def test_penalties_are_a_term_of_the_loss():
-    s = _strategy(cap=10, opacity_reg=0.5, scale_reg=0.25)
-    sp = _splats(10)
-    s.step_pre_backward(sp, s.initial_state(10, torch.device("cpu")), 1, _info(10)).backward()
+def _assert_penalty_grads(sp: Splats, drawn: torch.Tensor) -> None:
+    """The opacity and scale penalties' gradients (weights 0.5, 0.25, means over the whole model) on `drawn` only."""
     o = torch.sigmoid(sp.params["opacity_logits"].detach())
-    torch.testing.assert_close(sp.params["opacity_logits"].grad, 0.5 * o * (1 - o) / 10)
-    torch.testing.assert_close(sp.params["log_scales"].grad, 0.25 * sp.params["log_scales"].detach().exp() / 30)
+    torch.testing.assert_close(sp.params["opacity_logits"].grad, torch.where(drawn, 0.5 * o * (1 - o) / 10, 0.0))
+    scales = sp.params["log_scales"].detach().exp()
+    torch.testing.assert_close(sp.params["log_scales"].grad, torch.where(drawn[:, None], 0.25 * scales / 30, 0.0))
 
 
-def test_penalties_fall_on_the_gaussians_the_view_draws_alone():
+@pytest.mark.parametrize("drawn", [torch.ones(10, dtype=torch.bool), torch.arange(10) % 3 == 0],
+                         ids=["every-one-drawn", "a-third-drawn"])
+def test_penalties_are_a_term_of_the_loss_on_the_gaussians_the_view_draws_alone(drawn):
     """A Gaussian the step's view does not draw gets no penalty (Adam would turn it, its only
     gradient then, into a full step down); the drawn ones get the same gradient as when every
     one is drawn: the mean is still over the whole model."""
     s = _strategy(cap=10, opacity_reg=0.5, scale_reg=0.25)
     sp = _splats(10)
-    drawn = torch.arange(10) % 3 == 0
     s.step_pre_backward(sp, s.initial_state(10, torch.device("cpu")), 1, _info(10, drawn)).backward()
-    o = torch.sigmoid(sp.params["opacity_logits"].detach())
-    want = torch.where(drawn, 0.5 * o * (1 - o) / 10, torch.zeros_like(o))
-    torch.testing.assert_close(sp.params["opacity_logits"].grad, want)
-    g = sp.params["log_scales"].grad
-    assert bool((g[~drawn] == 0).all()) and bool((g[drawn] > 0).all())
+    _assert_penalty_grads(sp, drawn)
 
 
 def test_penalties_stop_at_reg_stop():
@@ -271,8 +271,6 @@ def test_mcmc_options_are_checked(tmp_path):
     assert_user_error(run_cli("train", proj.root, "--strategy", "mcmc", "--max-gaussians", "9", "--opacity-reset", "9",
                               "--iterations", "9"),
                       "--opacity-reset does not apply to --strategy mcmc")
-    from splatcli.cli.train_config import make_config
-
     mcmc = {"strategy": "mcmc", "max_gaussians": 1000}
     for name, bad in (("mcmc_min_opacity", 0.0), ("mcmc_relocate_until", 1.5), ("mcmc_spread", -1.0),
                       ("mcmc_reg_until", -0.5), ("mcmc_grow_until", 2.0), ("mcmc_shrink", 0.5)):
@@ -287,8 +285,6 @@ def test_mcmc_options_are_checked(tmp_path):
 def test_a_config_stored_before_mcmc_shrink_resumes_without_shrinking():
     """Checkpoints written before `mcmc_shrink` existed trained with unshrunk copies: a
     resume goes on that way, and a stored value is kept."""
-    from splatcli.train.config import TrainConfig
-
     d = json.loads((REPO / "tests" / "data" / "train_config_dced6d2.json").read_text())["mcmc_run"]
     assert TrainConfig.from_dict(d).mcmc.shrink == 1.6
     del d["mcmc"]["shrink"]
@@ -298,19 +294,12 @@ def test_a_config_stored_before_mcmc_shrink_resumes_without_shrinking():
 def test_opacity_and_scale_reg_are_a_step_of_their_own_for_the_default_strategy():
     """--opacity-reg / --scale-reg add the same penalties to a default-strategy run (a
     RegularizeStep after density control), and none when they are 0 (the default)."""
-    from splatcli.cli.train_config import make_config
-    from splatcli.strategy import RegularizeStep
-    from splatcli.train.state import make_strategies
-    from support.context import context
-
     ctx = context()
     assert not any(isinstance(s, RegularizeStep) for s in make_strategies(make_config("fast"), 1.0, ctx))
     strategies = make_strategies(make_config("fast", opacity_reg=0.5, scale_reg=0.25), 1.0, ctx)
     (step,) = [s for s in strategies if isinstance(s, RegularizeStep)]
     sp = _splats(10)
     step.step_pre_backward(sp, step.initial_state(10, torch.device("cpu"), 0), 1, _info(10)).backward()
-    o = torch.sigmoid(sp.params["opacity_logits"].detach())
-    torch.testing.assert_close(sp.params["opacity_logits"].grad, 0.5 * o * (1 - o) / 10)
-    torch.testing.assert_close(sp.params["log_scales"].grad, 0.25 * sp.params["log_scales"].detach().exp() / 30)
+    _assert_penalty_grads(sp, torch.ones(10, dtype=torch.bool))
     with pytest.raises(Exception, match="--opacity-reg -1"):
         make_config("fast", opacity_reg=-1.0)

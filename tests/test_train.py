@@ -8,6 +8,7 @@ import json
 import math
 import os
 import signal
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -20,15 +21,18 @@ from splatcli.cli.train_config import make_config
 from splatcli.errors import Interrupted, SplatError, TrainingDiverged
 from splatcli.eval.evaluate import EvalConfig, plan_eval, run_eval
 from splatcli.eval.score import REPORTED
-from splatcli.events import Progress
-from splatcli.files.checkpoint import load_checkpoint, load_gaussians
+from splatcli.events import Note, Progress
+from splatcli.files.checkpoint import load_checkpoint, load_gaussians, save_checkpoint
 from splatcli.formats.ply import ply_bytes
 from splatcli.options import parse
 from splatcli.project import Project
 from splatcli.render import rasterize
+from splatcli.train import log
 from splatcli.train.config import TrainConfig
 from splatcli.train.log import read_log
 from splatcli.train.loop import train
+from splatcli.train.plan import LR_HOLD, LR_SCALE, SHN_DIV, TimePlan, step_costs
+from splatcli.train.state import learning_rates
 from support.tiny_project import make_tiny_project
 
 CPU = torch.device("cpu")
@@ -40,15 +44,19 @@ SMALL = dict(block="model", iterations=30, init_random_points=300, max_gaussians
              grow_grad2d=2e-5)
 
 
-def tiny(tmp_path, name="p") -> Project:
-    proj = make_tiny_project(tmp_path / name, trained=False)
+def tiny(tmp_path, name="p", **kw) -> Project:
+    proj = make_tiny_project(tmp_path / name, trained=False, **kw)
     proj.update_manifest(scene={**proj.manifest()["scene"], "bounds_min": [-1.0] * 3, "bounds_max": [1.0] * 3})
     return proj
 
 
-def _params(ckpt):
-    ck = load_checkpoint(ckpt, CPU)
-    return ck, {k: v for k, v in ck.gaussians.as_dict().items()}
+def _same_params(a: Project, b: Project):
+    """Asserts the latest checkpoints of `a` and `b` hold the same parameters, bit for bit; returns both."""
+    cka, ckb = load_checkpoint(a.latest_checkpoint(), CPU), load_checkpoint(b.latest_checkpoint(), CPU)
+    pa, pb = cka.gaussians.as_dict(), ckb.gaussians.as_dict()
+    for k in pa:
+        assert torch.equal(pa[k], pb[k]), k  # bitwise, not merely close
+    return cka, ckb
 
 
 def test_train_writes_checkpoint_log_report_and_summary(tmp_path):
@@ -58,23 +66,22 @@ def test_train_writes_checkpoint_log_report_and_summary(tmp_path):
     assert s.steps == 30 and 0 < s.num_gaussians <= 600 and s.device == "cpu"
     assert s.ply_bytes == ply_bytes(s.num_gaussians, s.sh_degree)
     assert s.psnr is not None and math.isfinite(s.psnr) and s.bad_steps == 0
-    log = read_log(proj.train_log_path)
-    assert [r["step"] for r in log] == [10, 15, 20, 30]
-    assert all({"step", "elapsed_s", "loss", "num_gaussians"} <= set(r) for r in log)
-    assert [r["step"] for r in log if "psnr" in r] == [15, 30]
+    rows = read_log(proj.train_log_path)
+    assert [r["step"] for r in rows] == [10, 15, 20, 30]
+    assert all({"step", "elapsed_s", "loss", "num_gaussians"} <= set(r) for r in rows)
+    assert [r["step"] for r in rows if "psnr" in r] == [15, 30]
     # training views are measured beside the held-out ones, at the same points (the gap is overfitting)
-    assert [r["step"] for r in log if "train_psnr" in r] == [15, 30]
-    assert all(math.isfinite(r["train_psnr"]) and 0 < r["train_ssim"] <= 1 for r in log if "train_psnr" in r)
-    assert log[-1]["train_psnr"] != log[-1]["psnr"]
-    assert all(b["elapsed_s"] > a["elapsed_s"] for a, b in zip(log, log[1:]))
+    assert [r["step"] for r in rows if "train_psnr" in r] == [15, 30]
+    assert all(math.isfinite(r["train_psnr"]) and 0 < r["train_ssim"] <= 1 for r in rows if "train_psnr" in r)
+    assert rows[-1]["train_psnr"] != rows[-1]["psnr"]
+    assert all(b["elapsed_s"] > a["elapsed_s"] for a, b in zip(rows, rows[1:]))
     # refinement is visible: each line's clone / split / prune counts explain the change in count
     # (a split replaces one Gaussian by two)
-    assert sum(r["cloned"] + r["split"] for r in log) > 0
-    for a, b in zip(log, log[1:]):
+    assert sum(r["cloned"] + r["split"] for r in rows) > 0
+    for a, b in zip(rows, rows[1:]):
         assert b["num_gaussians"] == a["num_gaussians"] + b["cloned"] + b["split"] - b["pruned"]
     summary = proj.step("train")["summary"]
-    for k in ("steps", "train_seconds", "num_gaussians", "sh_degree", "ply_bytes", "device", "final_loss"):
-        assert k in summary
+    assert {"steps", "train_seconds", "num_gaussians", "sh_degree", "ply_bytes", "device", "final_loss"} <= set(summary)
     report = json.loads(proj.train_report_path.read_text())
     assert sum(report["opacity_hist"]["counts"]) == s.num_gaussians
     assert len(report["scale_hist"]["edges"]) == len(report["scale_hist"]["counts"]) + 1
@@ -90,6 +97,11 @@ def _interrupt_at(step: int):
         if isinstance(ev, Progress) and ev.done == step:
             os.kill(os.getpid(), signal.SIGINT)  # a real signal through the real handler
     return sink
+
+
+def _at(step: int, elapsed_s: float, world: int = 1) -> SimpleNamespace:
+    """The run's progress that log.Eta reads."""
+    return SimpleNamespace(step=step, elapsed_s=elapsed_s, world=world)
 
 
 RESUME_CFG = dict(SMALL, compact=True, compact_finetune=8, sh_degree="auto")
@@ -113,10 +125,7 @@ def test_interrupt_and_resume_is_bitwise_identical(tmp_path, stop, uninterrupted
     assert signal.getsignal(signal.SIGINT) is before  # handler restored
     sb = train(b.root, cfg, CPU, resume=True)
     assert sb.resumed_from == stop and sb.steps == sa.steps == 38
-    cka, pa = _params(a.latest_checkpoint())
-    ckb, pb = _params(b.latest_checkpoint())
-    for k in pa:
-        assert torch.equal(pa[k], pb[k]), k  # bitwise, not merely close
+    cka, ckb = _same_params(a, b)
     assert ckb.sh_degree == cka.sh_degree
     for name, st in cka.optimizer.items():
         for key in ("exp_avg", "exp_avg_sq"):
@@ -161,12 +170,14 @@ def test_divergence_stops_with_a_usable_checkpoint(tmp_path, monkeypatch):
     assert ck.step == 4 and bool(ck.gaussians.finite_mask().all())
 
 
-def test_budget_is_never_exceeded(tmp_path):
+def test_budget_is_never_exceeded_and_no_opacity_reset_on_the_last_step(tmp_path):
     proj = tiny(tmp_path)
     s = train(proj.root, make_config(**{**SMALL, "iterations": 16, "max_gaussians": 350, "grow_grad2d": 1e-9,
-                                                "log_every": 1}), CPU)
+                                        "log_every": 1, "opacity_reset": 16, "refine_stop": 1000}), CPU)
     counts = [r["num_gaussians"] for r in read_log(proj.train_log_path)]
     assert max(counts) == 350 and s.num_gaussians <= 350  # it grew up to the budget, never past it
+    g = load_gaussians(proj.latest_checkpoint(), CPU)
+    assert float(torch.sigmoid(g.opacity_logits).max()) > 0.05  # a reset would have clamped all to 0.01
 
 
 def test_init_respects_budget_and_sh_degree_zero_stores_no_bands(tmp_path):
@@ -229,10 +240,7 @@ def test_finished_run_resumed_with_compact_equals_a_compact_run(tmp_path, uninte
     sb = train(b.root, resumed(b, make_config(**SMALL, compact_finetune=8), parse(TrainConfig, {"compact": True, "sh_degree": "auto"})),
                CPU, resume=True)
     assert sb.steps == sa.steps and sb.compact.before_count == sa.compact.before_count
-    _, pa = _params(a.latest_checkpoint())
-    _, pb = _params(b.latest_checkpoint())
-    for k in pa:
-        assert torch.equal(pa[k], pb[k]), k
+    _same_params(a, b)
 
 
 @pytest.mark.parametrize("quantisation", ["8-bit", "none"])
@@ -254,13 +262,6 @@ def test_final_heldout_scores_are_evals(tmp_path, monkeypatch, quantisation):
     assert abs(s.psnr - same.psnr) <= 5e-5 and abs(s.ssim - same.ssim) <= 5e-6  # the log's 4 and 5 decimals
     other = evaluated("none" if quantisation == "8-bit" else "8-bit")
     assert abs(same.psnr - other.psnr) > 1e-6  # (at 11 dB, 8 bits move PSNR by only ~1e-4: the log's last digit)
-
-
-def test_no_opacity_reset_on_the_last_step(tmp_path):
-    proj = tiny(tmp_path)
-    train(proj.root, make_config(**{**SMALL, "iterations": 16, "opacity_reset": 16, "refine_stop": 1000}), CPU)
-    g = load_gaussians(proj.latest_checkpoint(), CPU)
-    assert float(torch.sigmoid(g.opacity_logits).max()) > 0.05  # a reset would have clamped all to 0.01
 
 
 def test_compact_prunes_in_rounds_to_a_third(tmp_path):
@@ -286,10 +287,7 @@ def test_coarse_to_fine_trains_and_resumes_bitwise(tmp_path):
     with pytest.raises(Interrupted):
         train(b.root, cfg, CPU, on_event=_interrupt_at(6))
     train(b.root, cfg, CPU, resume=True)
-    _, pa = _params(a.latest_checkpoint())
-    _, pb = _params(b.latest_checkpoint())
-    for k in pa:
-        assert torch.equal(pa[k], pb[k]), k
+    _same_params(a, b)
 
 
 def test_time_budget_plans_a_compressed_schedule(tmp_path):
@@ -315,7 +313,6 @@ def test_time_budget_plans_a_compressed_schedule(tmp_path):
     assert cfg["default"]["refine_every"] == max(25, round(100 * ratio))  # never below 25 steps
     assert cfg["default"]["refine_stop"] == max(1, round(2000 * ratio))
     assert cfg["sh_degree_interval"] == max(1, round(600 * ratio))
-    from splatcli.train.plan import LR_SCALE, SHN_DIV
     assert cfg["lr_scale"] == LR_SCALE and cfg["lr_shN_div"] == SHN_DIV  # a planned run's rates, recorded
     groups = {k: o["param_groups"][0]["lr"] for k, o in load_checkpoint(proj.latest_checkpoint()).optimizer.items()}
     assert groups["sh0"] == pytest.approx(LR_SCALE * cfg["lr_sh0"])  # ... and the ones its optimisers ran
@@ -326,9 +323,6 @@ def test_a_planned_run_learns_at_the_planned_rates_and_a_replan_keeps_them():
     """A budget buys a few thousand steps: every rate x LR_SCALE, the higher SH bands at 1/SHN_DIV
     of the DC's. Tuning is idempotent (plans re-plan their own configs) and leaves a user's
     higher setting alone."""
-    from splatcli.train.plan import LR_HOLD, LR_SCALE, SHN_DIV, TimePlan
-    from splatcli.train.state import learning_rates
-
     cfg = make_config("fast", time_budget=60.0)
     tuned = TimePlan.tuned(cfg)
     assert TimePlan.tuned(tuned) == tuned and TimePlan.start(cfg).scaled(tuned, 700).lr_scale == LR_SCALE
@@ -347,13 +341,14 @@ def test_a_finished_planned_run_resumed_with_more_time_trains_on_to_the_new_budg
     template = {**SMALL, "iterations": 3000, "refine_start": 300, "refine_every": 100, "refine_stop": 2000}
     first = train(proj.root, make_config(**template, time_budget=2.0), CPU)
     notes = []
-    more = train(proj.root, resumed(proj, make_config(**template, time_budget=4.0), parse(TrainConfig, {"time_budget": 4.0})), CPU,
-                 resume=True, on_event=notes.append)
+
+    def four_seconds():
+        return resumed(proj, make_config(**template, time_budget=4.0), parse(TrainConfig, {"time_budget": 4.0}))
+
+    more = train(proj.root, four_seconds(), CPU, resume=True, on_event=notes.append)
     assert more.steps > first.steps and 2.0 < more.train_seconds <= 1.25 * 4.0
     assert any("extending the run to 4 s" in getattr(n, "message", "") for n in notes)
-    again = train(proj.root, resumed(proj, make_config(**template, time_budget=4.0), parse(TrainConfig, {"time_budget": 4.0})), CPU,
-                  resume=True)
-    assert again.steps == more.steps
+    assert train(proj.root, four_seconds(), CPU, resume=True).steps == more.steps
 
 
 def test_a_plan_prices_each_step_by_its_resolution():
@@ -361,8 +356,6 @@ def test_a_plan_prices_each_step_by_its_resolution():
     remaining step costs OVERHEAD + its scale^2 (plan.step_costs), and the plan is the longest
     run whose remaining cost fits the budget. Without coarse steps it is the measured rate
     times the time left, as before."""
-    from splatcli.train.plan import TimePlan, step_costs
-
     cfg = make_config("fast", time_budget=600.0)
     plan = TimePlan.start(cfg)
     start = plan.scaled(cfg, 7000)
@@ -379,19 +372,13 @@ def test_the_eta_of_a_step_schedule_prices_the_steps_left_by_their_resolution():
     """A run without a time budget says once, after ETA_AFTER_S training seconds, how long is left:
     the steps left at the measured speed, each priced by its coarse-to-fine scale as plans price
     them (the fast preset's first steps are 1/8 of a full step's pixels), and said as a lower bound."""
-    from types import SimpleNamespace
-
-    from splatcli.events import Note
-    from splatcli.train import log
-    from splatcli.train.plan import step_costs
-
     def told(cfg, step, elapsed, world=1):
         notes = []
-        eta = log.Eta(SimpleNamespace(step=0, elapsed_s=0.0, world=world), cfg)
-        eta.tell(SimpleNamespace(step=step, elapsed_s=log.ETA_AFTER_S / 2, world=world), 0, notes.append)
+        eta = log.Eta(_at(0, 0.0, world), cfg)
+        eta.tell(_at(step, log.ETA_AFTER_S / 2, world), 0, notes.append)
         assert notes == []  # too soon
-        eta.tell(SimpleNamespace(step=step, elapsed_s=elapsed, world=world), 0, notes.append)
-        eta.tell(SimpleNamespace(step=step + 1, elapsed_s=elapsed + 1, world=world), 0, notes.append)
+        eta.tell(_at(step, elapsed, world), 0, notes.append)
+        eta.tell(_at(step + 1, elapsed + 1, world), 0, notes.append)
         assert len(notes) == 1 and isinstance(notes[0], Note)  # once
         return notes[0].message
 
@@ -401,40 +388,31 @@ def test_the_eta_of_a_step_schedule_prices_the_steps_left_by_their_resolution():
     msg = told(fast, 100, 20.0)
     assert msg.startswith(f"at least {log.duration(left)} of training left at 5.00 steps/s"), msg
     flat = make_config("demo")  # no coarse steps: the measured rate times the steps left
-    assert told(flat, 200, 20.0, world=2).startswith(f"at least {log.duration(1300 / 10.0)} of training left at "
-                                                     "20.00 steps/s")
+    msg = told(flat, 200, 20.0, world=2)
+    assert msg.startswith(f"at least {log.duration(1300 / 10.0)} of training left at 20.00 steps/s"), msg
 
 
 def test_the_progress_eta_is_the_plans_time_left_or_the_priced_steps_left():
     """The time left that the progress bar and the log lines show: a planned run's budget less its
     training seconds; a run without a plan, its steps left priced by resolution (as the note says),
     None until ETA_AFTER_S seconds are measured, estimated again at most once a second."""
-    from types import SimpleNamespace
-
-    from splatcli.train import log
-    from splatcli.train.plan import step_costs
-
     fast = make_config("fast", iterations=7000)
-    eta = log.Eta(SimpleNamespace(step=0, elapsed_s=0.0, world=1), fast)
-    assert eta.left(SimpleNamespace(step=50, elapsed_s=log.ETA_AFTER_S / 2, world=1)) is None
+    eta = log.Eta(_at(0, 0.0), fast)
+    assert eta.left(_at(50, log.ETA_AFTER_S / 2)) is None
     left = 20.0 * step_costs(fast, 7000, 100, 7000).sum() / step_costs(fast, 7000, 0, 100).sum()
-    assert eta.left(SimpleNamespace(step=100, elapsed_s=20.0, world=1)) == pytest.approx(left)
-    assert eta.left(SimpleNamespace(step=200, elapsed_s=20.5, world=1)) == pytest.approx(left)  # (within the second)
+    assert eta.left(_at(100, 20.0)) == pytest.approx(left)
+    assert eta.left(_at(200, 20.5)) == pytest.approx(left)  # (within the second)
 
 
 def test_a_second_eta_comes_once_the_model_has_stopped_growing():
     """The first estimate is a lower bound (the model grows after it); once the strategy stops
     refining (the demo preset: step 900 of 1,500), the speed of the grown model is measured again
     for ETA_AFTER_S seconds and the time left said once more, as "about"."""
-    from types import SimpleNamespace
-
-    from splatcli.train import log
-
     demo, notes = make_config("demo"), []
-    eta = log.Eta(SimpleNamespace(step=0, elapsed_s=0.0, world=1), demo)
+    eta = log.Eta(_at(0, 0.0), demo)
     for step, elapsed in ((200, 20.0), (899, 90.0), (950, 100.0), (990, 100.0 + log.ETA_AFTER_S / 2),
                           (1000, 100.0 + log.ETA_AFTER_S), (1100, 200.0)):
-        eta.tell(SimpleNamespace(step=step, elapsed_s=elapsed, world=1), 20_000, notes.append)
+        eta.tell(_at(step, elapsed), 20_000, notes.append)
     said = [n.message for n in notes]
     assert len(said) == 2 and said[0].startswith("at least "), said
     rate = 50 / log.ETA_AFTER_S  # steps 950..1000 in ETA_AFTER_S seconds
@@ -443,8 +421,6 @@ def test_a_second_eta_comes_once_the_model_has_stopped_growing():
 
 
 def test_plan_keeps_a_switched_off_reset_off():
-    from splatcli.train.plan import TimePlan
-
     cfg = make_config("fast", opacity_reset=0, time_budget=60.0)
     scaled = TimePlan.start(cfg).scaled(cfg, 700)
     assert scaled.default.opacity_reset == 0 and scaled.default.refine_stop == 400
@@ -457,10 +433,7 @@ def test_plan_keeps_a_switched_off_reset_off():
                                        ("checkpoint_every", -1), ("lr_means", float("nan"))])
 def test_resume_from_a_checkpoint_with_a_garbled_config_is_one_line(tmp_path, key, value):
     """The stored train config is read like any other input: exit 2 naming the file and key."""
-    from splatcli.files.checkpoint import save_checkpoint
-
-    proj = make_tiny_project(tmp_path / "p", trained=False, photos=False)
-    proj.update_manifest(scene={**proj.manifest()["scene"], "bounds_min": [-1.0] * 3, "bounds_max": [1.0] * 3})
+    proj = tiny(tmp_path, photos=False)
     args = ["train", str(proj.root), "--max-gaussians", "150", "--eval-every", "0", "--quiet", "--device", "cpu"]
     assert CliRunner().invoke(app, [*args, "--iterations", "3"]).exit_code == 0
     path = proj.latest_checkpoint()
