@@ -3,12 +3,14 @@ training data cache (resolution rule, image decoding, splits)."""
 
 from __future__ import annotations
 
+import json
 import math
 
 import cv2
 import numpy as np
 import pytest
 import torch
+from torch import nn
 
 from splatcli.camera import Camera
 from splatcli.cli.train_config import make_config
@@ -16,15 +18,20 @@ from splatcli.errors import SplatError
 from splatcli.formats.ply import write_ply
 from splatcli.gaussians import SH_C0, Gaussians
 from splatcli.inputs.images import load_rgb
-from splatcli.train.data import load_train_data
+from splatcli.render.output import RenderOutput
+from splatcli.render.projection import NEAR, in_frustum
+from splatcli.strategy import DefaultStrategy, DefaultStrategyConfig, Splats, StepInfo, SupportConfig, SupportPrune
+from splatcli.train.data import TrainView, load_train_data, views_seeing
 from splatcli.train.init import (
+    far_points,
     gaussians_from_points,
     initial_gaussians,
     knn_rms_distance,
     random_points,
     subsample_index,
 )
-from support.tiny_project import make_tiny_project
+from support.context import context
+from support.tiny_project import make_tiny_project, run_cli
 
 CPU = torch.device("cpu")
 
@@ -165,9 +172,6 @@ def test_far_points_lie_on_the_sphere_where_views_see_them_coloured_by_the_pixel
     """--init-far: a camera at the origin looking along +z with a left-half red, right-half
     blue image sees the points of the far sphere in its frustum only; each takes the colour
     of the pixel it falls on."""
-    from splatcli.train.data import TrainView
-    from splatcli.train.init import far_points
-
     cam = Camera("a", 64, 48, np.array([[40.0, 0, 32], [0, 40, 24], [0, 0, 1]]), np.eye(4))
     img = torch.zeros(48, 64, 3, dtype=torch.uint8)
     img[:, :32, 0] = 255
@@ -217,10 +221,6 @@ def test_mcmc_starts_from_its_own_initial_opacity(tmp_path):
 def test_far_gaussians_are_size_pruned_by_angle_not_world_size():
     """The default strategy's world-size prune (after the first reset) spares a large
     Gaussian far from the cameras when given the scene centre, and prunes it without."""
-    from torch import nn
-
-    from splatcli.render.output import RenderOutput
-    from splatcli.strategy import DefaultStrategy, DefaultStrategyConfig, Splats, StepInfo
 
     def run(center):
         means = torch.tensor([[0.0, 0.0, 0.0], [50.0, 0.0, 0.0]])
@@ -247,11 +247,6 @@ def test_far_gaussians_are_size_pruned_by_angle_not_world_size():
 def test_views_seeing_counts_frustums_and_prune_views_drops_the_rest(tmp_path):
     """views_seeing: a point counts for a view when in front of its near plane and inside its
     image; --prune-views then prunes while densifying, and the run still trains."""
-    import json
-
-    from splatcli.train.data import TrainView, views_seeing
-    from support.tiny_project import run_cli
-
     cam = Camera("a", 64, 48, np.array([[40.0, 0, 32], [0, 40, 24], [0, 0, 1]]), np.eye(4))
     vm, K = cam.torch(CPU)
     v = TrainView(cam, torch.zeros(48, 64, 3, dtype=torch.uint8), vm, K)
@@ -265,11 +260,6 @@ def test_views_seeing_counts_frustums_and_prune_views_drops_the_rest(tmp_path):
 
 
 def test_support_prune_drops_what_few_views_see_on_the_refinement_schedule():
-    from torch import nn
-
-    from splatcli.strategy import Splats, SupportConfig, SupportPrune
-    from support.context import context
-
     seen = torch.tensor([5, 1, 3, 0], dtype=torch.int32)
     ctx = context(seeing=lambda means: seen[: len(means)])
     params = {"means": nn.Parameter(torch.arange(4.0)[:, None].repeat(1, 3))}
@@ -282,8 +272,6 @@ def test_support_prune_drops_what_few_views_see_on_the_refinement_schedule():
 
 
 def test_in_frustum_bounds_near_plane_and_margin():
-    from splatcli.render.projection import NEAR, in_frustum
-
     K = torch.tensor([[10.0, 0, 5], [0, 10.0, 4], [0, 0, 1]], dtype=torch.float64)
     vm = torch.eye(4, dtype=torch.float64)
     # centre; the right edge (u = 10 = width: outside); behind the near plane; 2 px left of the image
