@@ -10,13 +10,17 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pycolmap
 import pytest
 import torch
 
 from splatcli.eval.metrics import psnr, ssim
-from splatcli.inputs.images import load_mask
+from splatcli.events import Stages
+from splatcli.inputs.images import StagedImage, load_mask
+from splatcli.process.masks import stage_all, staged_mask
 from splatcli.process.run import ProcessConfig, process
 from splatcli.project import Project
+from splatcli.sfm import colmap
 from splatcli.train.data import load_train_data
 from splatcli.train.loss import photometric_loss
 from support.tiny_project import assert_user_error, make_tiny_project, run_cli
@@ -66,8 +70,6 @@ def test_mask_folder_is_read_with_both_namings_and_undistorted(processed, scene)
 
 
 def test_sfm_finds_no_features_under_a_mask(processed, scene):
-    import pycolmap
-
     db = pycolmap.Database.open(str(processed.database_path))
     try:
         checked = 0
@@ -86,10 +88,6 @@ def test_sfm_finds_no_features_under_a_mask(processed, scene):
 
 
 def test_pycolmap_receives_the_mask_folder(tmp_path, monkeypatch):
-    import pycolmap
-
-    from splatcli.sfm import colmap
-
     seen = {}
     monkeypatch.setattr(pycolmap, "extract_features", lambda *a, **k: seen.update(k))
     colmap.extract_features(tmp_path / "db", tmp_path, ["a.jpg"], colmap.SiftOptions(),
@@ -109,10 +107,6 @@ def test_a_mask_of_the_wrong_size_is_one_line_naming_it(scene, tmp_path):
 
 def test_images_without_a_mask_are_kept_whole_with_a_warning(scene, tmp_path):
     """Checked on the staging step alone (no SfM): a missing mask is all-keep."""
-    from splatcli.events import Stages
-    from splatcli.inputs.images import StagedImage
-    from splatcli.process.masks import stage_all, staged_mask
-
     notes = []
     run = Stages(lambda e: notes.append(getattr(e, "message", None)))
     staged = [StagedImage(n, W, H, False) for n in ("000.jpg", "001.jpg")]
