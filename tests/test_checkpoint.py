@@ -11,12 +11,7 @@ import pytest
 import torch
 
 from splatcli.errors import SplatError
-from splatcli.files.checkpoint import (
-    CHECKPOINT_SCHEMA,
-    load_checkpoint,
-    load_gaussians,
-    save_checkpoint,
-)
+from splatcli.files.checkpoint import CHECKPOINT_SCHEMA, load_checkpoint, load_gaussians, save_checkpoint
 from splatcli.gaussians import Gaussians
 
 
@@ -117,11 +112,16 @@ def test_checkpoint_declaring_huge_tensors_is_refused_without_allocating(tmp_pat
     assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before < 512 * 1024  # KiB: far below 4 GB
 
 
-def test_newer_schema_is_refused(tmp_path):
+def _saved_and_edited(tmp_path, edit) -> Path:
     p = _save(tmp_path / "c.pt")
     raw = torch.load(p, weights_only=True)
-    raw["schema"] = CHECKPOINT_SCHEMA + 1
+    edit(raw)
     torch.save(raw, p)
+    return p
+
+
+def test_newer_schema_is_refused(tmp_path):
+    p = _saved_and_edited(tmp_path, lambda raw: raw.update(schema=CHECKPOINT_SCHEMA + 1))
     with pytest.raises(SplatError, match="newer") as ei:
         load_checkpoint(p)
     assert str(p) in str(ei.value)
@@ -129,10 +129,7 @@ def test_newer_schema_is_refused(tmp_path):
 
 @pytest.mark.parametrize("drop", ["gaussians", "step", "config"])
 def test_missing_keys(tmp_path, drop):
-    p = _save(tmp_path / "c.pt")
-    raw = torch.load(p, weights_only=True)
-    del raw[drop]
-    torch.save(raw, p)
+    p = _saved_and_edited(tmp_path, lambda raw: raw.pop(drop))
     with pytest.raises(SplatError, match=drop):
         load_checkpoint(p)
 

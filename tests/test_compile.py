@@ -37,6 +37,15 @@ def compiled(tmp_path_factory, monkeypatch):
     kernels.set_mode("off")
 
 
+@pytest.fixture
+def fresh(monkeypatch):
+    """A fresh compile state with a C++ compiler found, and compiling off again afterwards."""
+    monkeypatch.setattr(kernels, "_status", kernels.Status())
+    monkeypatch.setattr(kernels, "compiler", lambda: "g++")
+    yield
+    kernels.set_mode("off")
+
+
 def _as(args, dtype, grad=False):
     return [a.to(dtype).detach().requires_grad_(grad) for a in args]
 
@@ -103,71 +112,55 @@ def test_gradcheck_float64_compiled(compiled):
     assert compiled.failed is None and kernels._graphs() >= 2
 
 
-def test_without_a_compiler_every_call_is_eager(monkeypatch):
-    monkeypatch.setattr(kernels, "_status", kernels.Status())
+def test_without_a_compiler_every_call_is_eager(fresh, monkeypatch):
     monkeypatch.setattr(kernels, "compiler", lambda: None)
     called = []
     monkeypatch.setattr(torch, "compile", lambda *a, **k: called.append(1))
     st = kernels.set_mode("on")
-    try:
-        assert st.failed and "no C++ compiler" in st.failed and not kernels.active()
-        args = make_scene(300, 40, 30, dtype=torch.float32)
-        out = rasterize(*args, 40, 30)
-        kernels.set_mode("off")
-        torch.testing.assert_close(out.image, rasterize(*args, 40, 30).image, atol=0, rtol=0)
-        assert called == []
-    finally:
-        kernels.set_mode("off")
+    assert st.failed and "no C++ compiler" in st.failed and not kernels.active()
+    args = make_scene(300, 40, 30, dtype=torch.float32)
+    out = rasterize(*args, 40, 30)
+    kernels.set_mode("off")
+    torch.testing.assert_close(out.image, rasterize(*args, 40, 30).image, atol=0, rtol=0)
+    assert called == []
 
 
-def test_kernels_go_to_our_cache_unless_the_user_chose_a_folder(tmp_path, monkeypatch):
+def test_kernels_go_to_our_cache_unless_the_user_chose_a_folder(fresh, tmp_path, monkeypatch):
     from torch._inductor.runtime.cache_dir_utils import default_cache_dir
 
-    monkeypatch.setattr(kernels, "_status", kernels.Status())
-    monkeypatch.setattr(kernels, "compiler", lambda: "g++")
     monkeypatch.setenv("SPLATCLI_CACHE_DIR", str(tmp_path))
-    try:
-        for before in (None, default_cache_dir()):  # unset, or torch's default as a launcher passes it on
-            if before is None:
-                monkeypatch.delenv("TORCHINDUCTOR_CACHE_DIR", raising=False)
-            else:
-                monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", before)
-            kernels.set_mode("on")
-            assert os.environ["TORCHINDUCTOR_CACHE_DIR"] == str(tmp_path / "inductor")
-        monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "mine"))
+    for before in (None, default_cache_dir()):  # unset, or torch's default as a launcher passes it on
+        if before is None:
+            monkeypatch.delenv("TORCHINDUCTOR_CACHE_DIR", raising=False)
+        else:
+            monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", before)
         kernels.set_mode("on")
-        assert os.environ["TORCHINDUCTOR_CACHE_DIR"] == str(tmp_path / "mine")
-    finally:
-        kernels.set_mode("off")
+        assert os.environ["TORCHINDUCTOR_CACHE_DIR"] == str(tmp_path / "inductor")
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "mine"))
+    kernels.set_mode("on")
+    assert os.environ["TORCHINDUCTOR_CACHE_DIR"] == str(tmp_path / "mine")
 
 
-def test_a_compile_that_fails_falls_back_once_with_the_same_picture(monkeypatch):
+def test_a_compile_that_fails_falls_back_once_with_the_same_picture(fresh, monkeypatch):
     def broken(fn, **_):
         def run(*a, **k):
             raise RuntimeError("C++ compile error: cannot find Python.h")
         return run
 
-    monkeypatch.setattr(kernels, "_status", kernels.Status())
     monkeypatch.setattr(torch, "compile", broken)
-    monkeypatch.setattr(kernels, "compiler", lambda: "g++")
     fresh = kernels.fast(composite._block_rows, lambda m, *_: m.device)
     monkeypatch.setattr(composite, "_block_rows_fast", fresh)
     args = make_scene(300, 40, 30, dtype=torch.float32)
     want = rasterize(*args, 40, 30).image
     kernels.set_mode("on")
-    try:
-        got = rasterize(*args, 40, 30).image
-        assert kernels.status().failed and "Python.h" in kernels.status().failed and not kernels.active()
-        torch.testing.assert_close(got, want, atol=0, rtol=0)
-    finally:
-        kernels.set_mode("off")
+    got = rasterize(*args, 40, 30).image
+    assert kernels.status().failed and "Python.h" in kernels.status().failed and not kernels.active()
+    torch.testing.assert_close(got, want, atol=0, rtol=0)
 
 
-def test_the_faster_form_is_kept_after_taking_turns(monkeypatch):
+def test_the_faster_form_is_kept_after_taking_turns(fresh, monkeypatch):
     """Each function runs eager and compiled by turns for TRIALS calls each (after the call that
     compiles), then keeps the faster for the rest of the process."""
-    monkeypatch.setattr(kernels, "_status", kernels.Status())
-    monkeypatch.setattr(kernels, "compiler", lambda: "g++")
     ran = []
 
     def slow_compiled(fn, **_):
@@ -185,17 +178,14 @@ def test_the_faster_form_is_kept_after_taking_turns(monkeypatch):
 
     f = kernels.fast(double, lambda x: x.device)
     kernels.set_mode("on")
-    try:
-        x = torch.ones(3)
-        for _ in range(2 * kernels.TRIALS + 5):
-            assert torch.equal(f(x), 2 * x)
-        kept = kernels.status().chosen["double"]
-        assert kept["kept"] == "eager" and kept["compiled_ms"] > kept["eager_ms"]
-        n = ran.count("compiled")
-        f(x)
-        assert ran.count("compiled") == n  # eager from now on
-    finally:
-        kernels.set_mode("off")
+    x = torch.ones(3)
+    for _ in range(2 * kernels.TRIALS + 5):
+        assert torch.equal(f(x), 2 * x)
+    kept = kernels.status().chosen["double"]
+    assert kept["kept"] == "eager" and kept["compiled_ms"] > kept["eager_ms"]
+    n = ran.count("compiled")
+    f(x)
+    assert ran.count("compiled") == n  # eager from now on
 
 
 @pytest.mark.parametrize("budget, warm, steps, mode", [(300.0, False, None, "off"), (600.0, False, None, "off"),
@@ -253,21 +243,17 @@ def test_profile_writes_where_the_time_went(tmp_path):
     assert not plain.profile_json_path.exists()
 
 
-def test_the_compile_note_says_loading_from_a_warm_cache_and_compiling_from_an_empty_one(tmp_path, monkeypatch):
+def test_the_compile_note_says_loading_from_a_warm_cache_and_compiling_from_an_empty_one(fresh, tmp_path,
+                                                                                       monkeypatch):
     from splatcli.train.loop import _compile
 
-    monkeypatch.setattr(kernels, "_status", kernels.Status())
-    monkeypatch.setattr(kernels, "compiler", lambda: "g++")
     monkeypatch.setenv("SPLATCLI_CACHE_DIR", str(tmp_path))
     monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "mine"))  # set_mode leaves a user's folder alone
     cfg = make_config(compile="on")
     notes: list[str] = []
-    try:
-        _compile(cfg, CPU, lambda e: notes.append(e.message))
-        (tmp_path / "inductor").mkdir()
-        (tmp_path / "inductor" / "kernel").write_text("x")
-        _compile(cfg, CPU, lambda e: notes.append(e.message))
-    finally:
-        kernels.set_mode("off")
+    _compile(cfg, CPU, lambda e: notes.append(e.message))
+    (tmp_path / "inductor").mkdir()
+    (tmp_path / "inductor" / "kernel").write_text("x")
+    _compile(cfg, CPU, lambda e: notes.append(e.message))
     assert notes[0].startswith("compiling the rasterizer's planner") and "first run" in notes[0]
     assert notes[1].startswith("loading the rasterizer's compiled planner") and "first run" not in notes[1]

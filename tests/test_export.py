@@ -11,10 +11,10 @@ import plyfile
 import pytest
 import torch
 
-from splatcli.files.checkpoint import load_gaussians
+from splatcli.files.checkpoint import load_gaussians, save_checkpoint
 from splatcli.formats.ply import ply_bytes, read_ply
 from splatcli.formats.splat import SPLAT_ROW_BYTES, read_splat
-from support.tiny_project import assert_user_error, make_tiny_project, run_cli, snapshot
+from support.tiny_project import assert_user_error, make_tiny_project, run_cli, snapshot, tiny_gaussians
 
 EXPECTED_SH1 = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(9)]
                 + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
@@ -78,9 +78,6 @@ def test_export_errors(proj, tmp_path: Path) -> None:
 
 
 def test_export_drops_non_finite_rows(tmp_path: Path) -> None:
-    from splatcli.files.checkpoint import save_checkpoint
-    from support.tiny_project import tiny_gaussians
-
     p = make_tiny_project(tmp_path / "p", trained=False, photos=False)
     g = tiny_gaussians(20)
     g.means[3, 1] = float("nan")

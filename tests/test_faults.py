@@ -35,28 +35,41 @@ def _cli(*args: str) -> list[str]:
     return [sys.executable, "-m", "splatcli.cli.main", *args]
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
-def test_signal_checkpoints_exits_130_and_resumes(tmp_path, sig):
-    proj = _project(tmp_path)
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    proc = subprocess.Popen(
-        _cli("train", str(proj.root), "--iterations", "100000", "--max-gaussians", "150", "--eval-every", "0",
-             "--device", "cpu", "--quiet"),
-        cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )
+TRAIN_ARGS = ["--iterations", "100000", "--max-gaussians", "150", "--eval-every", "0", "--device", "cpu", "--quiet"]
+ENV = {**os.environ, "OMP_NUM_THREADS": "1"}
+
+
+def _interrupt_after_first_log(proj, sig) -> str:
+    """Start a long training run, send `sig` once a step is logged; its stderr."""
+    proc = subprocess.Popen(_cli("train", str(proj.root), *TRAIN_ARGS), cwd=REPO, env=ENV,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 120
         while not (proj.train_log_path.exists() and read_log(proj.train_log_path)):  # step 100 is done
             assert proc.poll() is None, proc.communicate()
             assert time.monotonic() < deadline, "no training progress within 120 s"
-            time.sleep(0.1)
+            time.sleep(0.05)
         proc.send_signal(sig)
-        out, err = proc.communicate(timeout=120)
+        _, err = proc.communicate(timeout=120)
     finally:
         if proc.poll() is None:
             proc.kill()
     assert proc.returncode == 130, err
+    return err
+
+
+def _resume(proj, iterations: int) -> dict:
+    r = subprocess.run(_cli("train", str(proj.root), "--resume", "--iterations", str(iterations), "--json", "--quiet"),
+                       cwd=REPO, env=ENV, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    return json.loads(r.stdout)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_signal_checkpoints_exits_130_and_resumes(tmp_path, sig):
+    proj = _project(tmp_path)
+    err = _interrupt_after_first_log(proj, sig)
     lines = err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: interrupted at step "), err
     step = int(lines[0].split("interrupted at step ")[1].split(";")[0])
@@ -66,20 +79,8 @@ def test_signal_checkpoints_exits_130_and_resumes(tmp_path, sig):
     assert ck.step == step >= 100 and bool(ck.gaussians.finite_mask().all())
     assert not list(proj.checkpoints_dir.glob(".*.tmp"))  # no torn temp file left behind
     assert max(r["step"] for r in read_log(proj.train_log_path)) <= step
-
-    r = subprocess.run(_cli("train", str(proj.root), "--resume", "--iterations", str(step + 3), "--json", "--quiet"),
-                       cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0, r.stderr
-    summary = json.loads(r.stdout)
+    summary = _resume(proj, step + 3)
     assert summary["resumed_from"] == step and summary["steps"] == step + 3
-
-
-def _wait_for_log(proc, proj, deadline_s: float = 120) -> None:
-    deadline = time.monotonic() + deadline_s
-    while not (proj.train_log_path.exists() and read_log(proj.train_log_path)):
-        assert proc.poll() is None, proc.communicate()
-        assert time.monotonic() < deadline, "no training progress within the deadline"
-        time.sleep(0.05)
 
 
 @pytest.mark.slow
@@ -90,21 +91,11 @@ def test_kill_9_leaves_previous_checkpoint_and_manifest_intact(tmp_path, delay):
     delays: at once, while loading, while stepping/writing); the old checkpoint and
     the manifest must still load, and a further --resume must work."""
     proj = _project(tmp_path)
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    args = ["--iterations", "100000", "--max-gaussians", "150", "--eval-every", "0", "--device", "cpu", "--quiet"]
-    proc = subprocess.Popen(_cli("train", str(proj.root), *args), cwd=REPO, env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        _wait_for_log(proc, proj)
-        proc.send_signal(signal.SIGINT)
-        proc.communicate(timeout=120)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
+    _interrupt_after_first_log(proj, signal.SIGINT)
     first = proj.latest_checkpoint()
     assert first is not None
 
-    proc = subprocess.Popen(_cli("train", str(proj.root), "--resume", *args), cwd=REPO, env=env,
+    proc = subprocess.Popen(_cli("train", str(proj.root), "--resume", *TRAIN_ARGS), cwd=REPO, env=ENV,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     time.sleep(delay)
     proc.send_signal(signal.SIGKILL)
@@ -117,11 +108,7 @@ def test_kill_9_leaves_previous_checkpoint_and_manifest_intact(tmp_path, delay):
     assert bool(ck.gaussians.finite_mask().all())
     latest = load_checkpoint(proj.latest_checkpoint(), torch.device("cpu"))  # so is any newer one
     assert latest.step >= ck.step
-
-    r = subprocess.run(_cli("train", str(proj.root), "--resume", "--iterations", str(latest.step + 2), "--json",
-                            "--quiet"), cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0, r.stderr
-    assert json.loads(r.stdout)["resumed_from"] == latest.step
+    assert _resume(proj, latest.step + 2)["resumed_from"] == latest.step
 
 
 def test_disk_full_during_export_is_one_line_and_keeps_the_old_file(tmp_path, monkeypatch):

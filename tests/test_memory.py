@@ -5,6 +5,7 @@ step as a checkpoint and exits 2 with the same advice, never a traceback."""
 from __future__ import annotations
 
 import os
+import platform
 import re
 import subprocess
 import sys
@@ -14,6 +15,7 @@ from typer.testing import CliRunner
 
 import splatcli.train.trainer as trainer
 from splatcli.cli.main import app
+from splatcli.device import tune_allocator
 from splatcli.errors import SplatError
 from splatcli.files.checkpoint import load_checkpoint
 from splatcli.render.composite import WORK_BYTES
@@ -25,7 +27,7 @@ from splatcli.train.memory import (
     is_out_of_memory,
     plan_memory,
 )
-from support.tiny_project import make_tiny_project
+from support.tiny_project import make_tiny_project, ring_cameras
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -43,8 +45,6 @@ def _one_error_line(stderr: str) -> str:
 
 
 def test_plan_counts_images_and_gaussians():
-    from support.tiny_project import ring_cameras
-
     cams = ring_cameras()
     p = plan_memory(cams, 300, 5000)
     assert p.budgeted and p.gaussians == 5000
@@ -127,9 +127,5 @@ def test_only_allocation_failures_count_as_out_of_memory():
 
 def test_the_allocator_keeps_freed_memory_where_the_c_library_is_glibc():
     """Every command calls tune_allocator (cli/main.py); on glibc both thresholds are set, elsewhere nothing is."""
-    import platform
-
-    from splatcli.device import tune_allocator
-
     glibc = platform.system() == "Linux" and platform.libc_ver()[0] == "glibc"
     assert tune_allocator() is glibc

@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from plyfile import PlyData, PlyElement
 from typer.testing import CliRunner
 
 from splatcli.cli.main import app
@@ -66,8 +67,6 @@ def test_fused_mesh_of_a_sphere_lies_on_it(sphere_project):
     assert r.exit_code == 0, r.output
     s = json.loads(r.output.strip().splitlines()[-1])
     assert s["faces"] > 1000 and s["views"] == 8 and s["voxel_size"] == pytest.approx(1.1 / 256, rel=0.05)
-    from plyfile import PlyData
-
     v = PlyData.read(s["path"])["vertex"]
     xyz = np.stack([v["x"], v["y"], v["z"]], 1)
     err = np.abs(np.linalg.norm(xyz, axis=1) - 0.5)
@@ -85,8 +84,6 @@ def test_eval_mesh_scores_the_fused_mesh_and_the_centres(sphere_project, tmp_pat
     the fused mesh scores high, and both meshes are reported. (Here the centres lie on the
     sphere by construction, so their naive mesh scores well too; in a trained model they do
     not: docs/benchmarks.md.)"""
-    from plyfile import PlyData, PlyElement
-
     pts = torch.nn.functional.normalize(torch.randn(40000, 3, generator=torch.Generator().manual_seed(0)), dim=1) * 0.5
     pts = pts[pts[:, 1] < 0]
     ref = np.empty(len(pts), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])

@@ -9,7 +9,8 @@ import pytest
 import torch
 from skimage.metrics import structural_similarity
 
-from splatcli.eval.metrics import psnr, ssim, ssim_map
+from splatcli.eval import metrics
+from splatcli.eval.metrics import _conv, _conv_t, _filter, _filter_t, psnr, ssim, ssim_map
 
 
 def _pair(h: int, w: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -103,9 +104,6 @@ def test_ssim_gradient_matches_autograd_through_the_map(masked: bool) -> None:
 def test_ssim_window_shifted_adds_equal_the_convolutions(monkeypatch, dtype: torch.dtype, group: int) -> None:
     """The CPU's window (shifted multiply-adds, a group of maps at a time) against the depthwise
     convolutions CUDA uses, and the transpose against the convolution's adjoint: <F x, y> = <x, F^T y>."""
-    from splatcli.eval import metrics
-    from splatcli.eval.metrics import _conv, _conv_t, _filter, _filter_t
-
     monkeypatch.setattr(metrics, "GROUP_ELEMS", group)  # 1500: two 23x31 maps a group, the last alone
 
     g = torch.Generator().manual_seed(3)

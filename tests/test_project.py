@@ -8,6 +8,7 @@ import os
 import pytest
 
 from splatcli.errors import NotReadyError, SplatError
+from splatcli.files import atomic
 from splatcli.files.atomic import atomic_path, atomic_write_json, atomic_write_text, read_json_file
 from splatcli.project import SCHEMA_VERSION, Project
 
@@ -88,8 +89,6 @@ def test_json_reader_bounds_and_errors(tmp_path):
 
 
 def test_atomic_files_get_the_usual_mode_not_mkstemps_0600(tmp_path):
-    from splatcli.files import atomic
-
     new = tmp_path / "new.json"
     atomic_write_text(new, "{}")
     assert new.stat().st_mode & 0o777 == 0o666 & ~atomic.UMASK  # e.g. 0644 under umask 022

@@ -14,6 +14,7 @@ import torch
 
 from splatcli import rasterize
 from splatcli.render.reference import rasterize_reference
+from support.scenes import test_scene as make_scene
 
 W, H = 24, 20
 K = torch.tensor([[20.0, 0.0, 12.0], [0.0, 20.0, 10.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
@@ -210,9 +211,7 @@ def test_odd_image_sizes(size):
 
 
 def test_float32_vs_float64():
-    from support.scenes import test_scene
-
-    args = test_scene(400, 40, 30, sh_degree=2)
+    args = make_scene(400, 40, 30, sh_degree=2)
     o64 = rasterize(*args, 40, 30)
     o32 = rasterize(*[a.float() for a in args], 40, 30)
     assert o32.image.dtype == torch.float32 and o64.image.dtype == torch.float64

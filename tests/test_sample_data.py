@@ -35,10 +35,8 @@ def _files(d: Path) -> dict[str, bytes]:
 
 
 def test_render_is_deterministic(ms, tmp_path):
-    a = ms.render_scene(tmp_path / "a", num_views=3, width=48, height=36, seed=0)
-    b = ms.render_scene(tmp_path / "b", num_views=3, width=48, height=36, seed=0)
-    c = ms.render_scene(tmp_path / "c", num_views=3, width=48, height=36, seed=1)
-    fa, fb, fc = _files(a), _files(b), _files(c)
+    fa, fb, fc = (_files(ms.render_scene(tmp_path / name, num_views=3, width=48, height=36, seed=seed))
+                  for name, seed in (("a", 0), ("b", 0), ("c", 1)))
     assert sorted(fa) == ["ground_truth.json", "images/000.jpg", "images/001.jpg", "images/002.jpg"]
     assert fa == fb
     # The seed changes the textures, not the geometry or the cameras.

@@ -21,6 +21,7 @@ import torch
 
 from splatcli.events import Progress, Snapshot
 from splatcli.formats.ply import write_ply
+from splatcli.model import load_model
 from splatcli.viewer import LiveSink, SceneStore, ViewerServer, open_scene, server as server_mod
 from support.browser import browser_problem, capture, open_page, psnr_u8, screenshot
 from support.tiny_project import assert_user_error, make_tiny_project, run_cli, snapshot, tiny_gaussians
@@ -70,17 +71,11 @@ def test_scene_facts_cameras_and_the_ply_is_the_exported_bytes(served, proj, tmp
     assert (c["width"], c["height"]) == (288, 240) and len(c["K"]) == 9 and len(c["viewmat"]) == 16
     assert np.allclose(s["up"], [0, -1, 0], atol=0.05)  # the ring's cameras stand upright in -y
     code, ply, _ = _get(served.url + "api/scene.ply")
-    write_ply(tmp_path / "e.ply", tiny_gaussians_from(proj))
+    write_ply(tmp_path / "e.ply", load_model(proj.root, torch.device("cpu")).gaussians)
     assert code == 200 and ply == (tmp_path / "e.ply").read_bytes() and s["ply_bytes"] == len(ply)
     code, pts, _ = _get(served.url + "api/points.bin")
     n = int.from_bytes(pts[:4], "little")
     assert n == 300 and len(pts) == 4 + 16 * n
-
-
-def tiny_gaussians_from(proj):
-    from splatcli.model import load_model
-
-    return load_model(proj.root, torch.device("cpu")).gaussians
 
 
 def test_serves_only_its_files(served):
@@ -100,8 +95,8 @@ def test_serves_only_its_files(served):
 
 
 def test_refuses_other_methods_and_hosts(served):
-    assert _get(served.url, method="POST")[0] == 405
-    assert _get(served.url, method="PUT")[0] == 405
+    for method in ("POST", "PUT"):
+        assert _get(served.url, method=method)[0] == 405, method
     assert _get(served.url, {"Host": "attacker.example:80"})[0] == 403  # DNS rebinding
     assert _get(served.url, {"Host": f"localhost:{served.port}"})[0] == 200
 
