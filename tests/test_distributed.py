@@ -25,6 +25,7 @@ from splatcli.files.checkpoint import load_checkpoint
 from splatcli.strategy.default import DefaultStrategyState
 from splatcli.train import distributed
 from splatcli.train.distributed import SHM_DIR, Comm
+from splatcli.train.launch import RankDied, _report
 from support.tiny_project import make_tiny_project
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -148,8 +149,6 @@ def test_a_killed_rank_ends_the_run_in_one_line_and_the_checkpoint_stays_whole(t
 def test_the_rank_that_died_is_named_not_the_ones_the_launcher_stopped(tmp_path):
     """Once a rank dies the launcher sends SIGTERM to the others: the report names the
     first cause (a rank that aborted at exit, in a CI run), not rank 0's SIGTERM."""
-    from splatcli.train.launch import RankDied, _report
-
     (tmp_path / "errors").mkdir()
     root = _project(tmp_path).root
     err = _report(tmp_path / "errors", {0: -signal.SIGTERM, 1: -signal.SIGABRT}, root)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import importlib
+
 import pytest
 import torch
 
@@ -177,8 +179,6 @@ def test_cuda_matches_cpu():
 def test_banded_rendering_matches(monkeypatch):
     """Above the pair budget the image is rendered in bands of tile rows, re-planned in
     backward: same picture, same gradients."""
-    import importlib
-
     R = importlib.import_module("splatcli.render.rasterize")  # the module, not the function
 
     W, H = 45, 70
