@@ -161,6 +161,8 @@ def main() -> None:
                     help="our block sizes, each timed: measured as train does (tuned), the cost model's pick (model)")
     ap.add_argument("--one", default="", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if not set(args.block.split(",")) <= {"tuned", "model"}:
+        ap.error(f"--block {args.block!r}: a comma-separated list of tuned and model")
     if not args.source:
         print("peers: skipped: no OpenSplat source (--source or $OPENSPLAT_SOURCE)")
         return

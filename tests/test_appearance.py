@@ -39,18 +39,12 @@ from splatcli.train.config import TrainConfig
 from splatcli.train.loop import train
 from splatcli.train.loss import photometric_loss
 from splatcli.viewer import open_scene
-from support.tiny_project import assert_user_error, make_tiny_project, ring_cameras, run_cli, tiny_gaussians
+from support.tiny_project import assert_user_error, make_tiny_project, ring_cameras, run_cli, run_ok, tiny_gaussians
 
 CPU = torch.device("cpu")
 # block="model": the runs here are compared bit for bit, and a measured block (--block auto) follows the clock
 SMALL = dict(block="model", iterations=20, init_random_points=300, max_gaussians=600, eval_every=10, log_every=5, refine_start=4,
              refine_every=4, opacity_reset=100, sh_degree_interval=8, checkpoint_every=10, appearance="exposure")
-
-
-def _ok(*args):
-    r = run_cli(*args)
-    assert r.exit_code == 0, r.output
-    return r
 
 
 def _appearance(n: int = 4) -> Exposure:
@@ -291,9 +285,9 @@ def test_render_and_export_take_one_training_photos_light_and_plain_exports_hold
     assert float((t - torch.eye(3, 4)).abs().max()) > 1e-3  # a light of its own, not the identity
     m = load_model(proj.root, CPU, appearance_of=name)
     assert torch.equal(m.light, t.float()) and torch.allclose(m.gaussians.sh, ck.model().recoloured(t).sh)
-    _ok("export", proj.root, "--appearance-of", name, "-o", str(tmp_path / "lit.ply"))
+    run_ok("export", proj.root, "--appearance-of", name, "-o", str(tmp_path / "lit.ply"))
     assert torch.allclose(read_ply(tmp_path / "lit.ply").gaussians.sh, m.gaussians.sh, atol=1e-6)
-    _ok("render", proj.root, "--appearance-of", name, "--split", "train", "-o", str(tmp_path / "lit"))
+    run_ok("render", proj.root, "--appearance-of", name, "--split", "train", "-o", str(tmp_path / "lit"))
     store = open_scene(proj.root, appearance_of=name)  # the viewer: the same light, the background through it
     bg = torch.tensor(proj.background() or (0.0, 0.0, 0.0)) @ t[:, :3].T.float() + t[:, 3].float()
     assert torch.allclose(torch.tensor(store.background), bg.clamp(0, 1))
@@ -301,7 +295,7 @@ def test_render_and_export_take_one_training_photos_light_and_plain_exports_hold
     plain = _tiny(tmp_path, name="plain")
     train(plain.root, make_config(**{**SMALL, "iterations": 4, "appearance": "none"}), CPU)
     assert_user_error(run_cli("export", plain.root, "--appearance-of", name), "trained without --appearance")
-    _ok("export", proj.root, "-o", tmp_path / "scene.ply")
+    run_ok("export", proj.root, "-o", tmp_path / "scene.ply")
     write_format("ply", tmp_path / "alone.ply", ck.model())  # the Gaussians alone
     assert (tmp_path / "scene.ply").read_bytes() == (tmp_path / "alone.ply").read_bytes()
 
@@ -357,7 +351,7 @@ def test_fitted_psnr_is_never_below_the_raw_psnr():
 
 def test_eval_reports_the_colour_fit_psnr(tmp_path):
     proj = make_tiny_project(tmp_path / "p")
-    _ok("eval", proj.root, "--budgets", "1", "--no-plots", "--json", "--device", "cpu")
+    run_ok("eval", proj.root, "--budgets", "1", "--no-plots", "--json", "--device", "cpu")
     report = json.loads((proj.reports_dir / "eval.json").read_text())
     assert report["psnr_color_fit"] >= report["psnr"]
     assert all(s["psnr_color_fit"] >= s["psnr"] - 1e-9 for s in report["per_image"])
@@ -372,7 +366,7 @@ def test_eval_of_a_run_that_learnt_each_photos_light_leads_with_the_compensated_
     headline (eval.json, eval.md, the printed line) is the appearance-compensated score."""
     proj = _tiny(tmp_path, gains=GAINS)
     s = train(proj.root, make_config(**{**SMALL, "iterations": 10}), CPU)
-    r = _ok("eval", proj.root, "--budgets", "1", "--no-plots", "--device", "cpu")
+    r = run_ok("eval", proj.root, "--budgets", "1", "--no-plots", "--device", "cpu")
     report = json.loads((proj.reports_dir / "eval.json").read_text())
     assert report["headline"] == "compensated" and report["compensated_psnr"] > report["psnr"]
     # training watched the held-out views under the same protocol: its last figure is eval's headline

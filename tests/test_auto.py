@@ -19,7 +19,7 @@ from splatcli.cli.train_config import make_config
 from splatcli.errors import SplatError
 from splatcli.project import holdout_split
 from splatcli.train.config import TrainConfig
-from support.tiny_project import make_tiny_project, run_cli
+from support.tiny_project import make_tiny_project, run_ok
 
 CPU = torch.device("cpu")
 
@@ -193,8 +193,7 @@ def test_a_burst_of_load_at_the_start_does_not_take_a_process(monkeypatch):
 def test_train_with_no_options_says_what_it_chose_and_records_it(proj, monkeypatch):
     monkeypatch.setattr(planning, "free_cores", lambda: 1)
     monkeypatch.setattr(planning, "BUDGET_S", 4.0)
-    r = run_cli("train", proj.root, "--json")
-    assert r.exit_code == 0, r.output
+    r = run_ok("train", proj.root, "--json")
     assert "trains for 4 s" in r.stderr and "strategy mcmc" in r.stderr
     s = json.loads(r.stdout.strip().splitlines()[-1])
     assert [c["option"] for c in s["chosen"]] == ["preset", "time_budget", "appearance", "strategy",

@@ -148,8 +148,8 @@ def test_a_compile_that_fails_falls_back_once_with_the_same_picture(fresh, monke
         return run
 
     monkeypatch.setattr(torch, "compile", broken)
-    fresh = kernels.fast(composite._block_rows, lambda m, *_: m.device)
-    monkeypatch.setattr(composite, "_block_rows_fast", fresh)
+    rows_fast = kernels.fast(composite._block_rows, lambda m, *_: m.device)
+    monkeypatch.setattr(composite, "_block_rows_fast", rows_fast)
     args = make_scene(300, 40, 30, dtype=torch.float32)
     want = rasterize(*args, 40, 30).image
     kernels.set_mode("on")

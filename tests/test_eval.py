@@ -23,7 +23,15 @@ from splatcli.formats.ply import ply_bytes
 from splatcli.gaussians import SH_C0
 from splatcli.project import Project
 from splatcli.render import rasterize
-from support.tiny_project import assert_user_error, make_tiny_project, ring_cameras, run_cli, snapshot, tiny_gaussians
+from support.tiny_project import (
+    assert_user_error,
+    make_tiny_project,
+    ring_cameras,
+    run_cli,
+    run_ok,
+    snapshot,
+    tiny_gaussians,
+)
 
 AUTO_DEVICE = resolve_device("auto").type  # "cpu", or "cuda" where a GPU is
 
@@ -38,8 +46,7 @@ def proj(tmp_path_factory) -> Project:
 
 @pytest.fixture(scope="module")
 def evaluated(proj: Project):
-    r = run_cli("eval", proj.root, "--json")
-    assert r.exit_code == 0, r.output
+    r = run_ok("eval", proj.root, "--json")
     return proj, json.loads(r.stdout)
 
 
@@ -109,15 +116,13 @@ def test_eval_of_a_ply_matches_the_checkpoint(evaluated, tmp_path: Path) -> None
     proj, summary = evaluated
     assert run_cli("export", proj.root, "-o", tmp_path / "m.ply", "-q").exit_code == 0
     before = proj.step("eval")
-    r = run_cli("eval", proj.root, "--model", tmp_path / "m.ply", "--out", tmp_path / "rep", "--budgets", "1", "--json")
-    assert r.exit_code == 0, r.output
+    r = run_ok("eval", proj.root, "--model", tmp_path / "m.ply", "--out", tmp_path / "rep", "--budgets", "1", "--json")
     s = json.loads(r.stdout)
     assert s["psnr"] == summary["psnr"] and s["ssim"] == summary["ssim"] and s["model"] == str(tmp_path / "m.ply")
     assert s["step"] is None and s["train_seconds"] is None
     assert (tmp_path / "rep" / "eval.json").is_file() and (tmp_path / "rep" / "eval.md").is_file()
     assert proj.step("eval") == before  # the project's own record is untouched
-    r = run_cli("eval", proj.root, "--model", tmp_path / "m.ply", "--out", tmp_path / "rep2", "--json")
-    assert r.exit_code == 0, r.output
+    r = run_ok("eval", proj.root, "--model", tmp_path / "m.ply", "--out", tmp_path / "rep2", "--json")
     s = json.loads(r.stdout)  # default budgets: a .ply has no step, whatever the ranking views' stride
     assert s["step"] is None and s["train_steps"] is None
     assert_user_error(run_cli("eval", proj.root, "--model", tmp_path / "none.ply"), "--model", "no such .ply")
@@ -127,8 +132,7 @@ def test_eval_without_matplotlib(tmp_path: Path, monkeypatch) -> None:
     proj = make_tiny_project(tmp_path / "p")
     for name in [m for m in sys.modules if m == "matplotlib" or m.startswith("matplotlib.")] + ["matplotlib"]:
         monkeypatch.setitem(sys.modules, name, None)  # `import matplotlib...` now raises ImportError
-    r = run_cli("eval", proj.root, "--budgets", "1", "--json")
-    assert r.exit_code == 0, r.output
+    r = run_ok("eval", proj.root, "--budgets", "1", "--json")
     assert "matplotlib is not installed" in r.stderr
     data = json.loads(proj.eval_json_path.read_text())
     assert data["plots"] == [] and [x["fraction"] for x in data["budgets"]] == [1.0]
@@ -179,8 +183,7 @@ def test_compare_folders(tmp_path: Path) -> None:
     pred["extra.png"] = gt["v0.png"]
     _write_images(tmp_path / "gt", gt)
     _write_images(tmp_path / "pred", pred)
-    r = run_cli("eval", "--pred", tmp_path / "pred", "--gt", tmp_path / "gt", "--json")
-    assert r.exit_code == 0, r.output
+    r = run_ok("eval", "--pred", tmp_path / "pred", "--gt", tmp_path / "gt", "--json")
     s = json.loads(r.stdout)
     assert s["missing"] == ["extra.png"] and s["num_images"] == 3 and s["quantisation"] == "8-bit"
     ref = [10 * np.log10(1 / np.mean((pred[k][..., ::-1] / 255.0 - gt[k][..., ::-1] / 255.0) ** 2)) for k in sorted(gt)]

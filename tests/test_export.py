@@ -14,7 +14,7 @@ import torch
 from splatcli.files.checkpoint import load_gaussians, save_checkpoint
 from splatcli.formats.ply import ply_bytes, read_ply
 from splatcli.formats.splat import SPLAT_ROW_BYTES, read_splat
-from support.tiny_project import assert_user_error, make_tiny_project, run_cli, snapshot, tiny_gaussians
+from support.tiny_project import assert_user_error, make_tiny_project, run_cli, run_ok, snapshot, tiny_gaussians
 
 EXPECTED_SH1 = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(9)]
                 + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
@@ -26,8 +26,7 @@ def proj(tmp_path_factory):
 
 
 def test_export_ply_layout_and_same_pixels(proj, tmp_path: Path) -> None:
-    r = run_cli("export", proj.root, "--json")
-    assert r.exit_code == 0, r.output
+    r = run_ok("export", proj.root, "--json")
     summary = json.loads(r.stdout)
     path = proj.export_path("ply")
     assert summary["path"] == str(path) and summary["num_gaussians"] == 300 and summary["sh_degree"] == 1
@@ -54,8 +53,7 @@ def test_export_ply_layout_and_same_pixels(proj, tmp_path: Path) -> None:
 
 def test_export_splat(proj, tmp_path: Path) -> None:
     out = tmp_path / "m.splat"
-    r = run_cli("export", proj.root, "--format", "splat", "-o", out)
-    assert r.exit_code == 0, r.output
+    r = run_ok("export", proj.root, "--format", "splat", "-o", out)
     assert "SH degree 0" in r.stderr  # the loss is said
     assert out.stat().st_size == 300 * SPLAT_ROW_BYTES
     t = read_splat(out)
@@ -84,8 +82,7 @@ def test_export_drops_non_finite_rows(tmp_path: Path) -> None:
     g.log_scales[11, 0] = float("inf")
     save_checkpoint(p.checkpoint_path(10), step=10, gaussians=g, sh_degree=1)
     for fmt, size in (("ply", ply_bytes(18, 1)), ("splat", 18 * SPLAT_ROW_BYTES)):
-        r = run_cli("export", p.root, "-f", fmt, "--json")
-        assert r.exit_code == 0, r.output
+        r = run_ok("export", p.root, "-f", fmt, "--json")
         s = json.loads(r.stdout)
         assert (s["num_gaussians"], s["num_dropped"]) == (18, 2)
         assert p.export_path(fmt).stat().st_size == size

@@ -33,7 +33,7 @@ from splatcli.gaussians import Gaussians, morton_order
 from splatcli.model import load_model
 from splatcli.render import render_camera
 from splatcli.views.paths import look_at
-from support.tiny_project import assert_user_error, make_tiny_project, run_cli
+from support.tiny_project import assert_user_error, make_tiny_project, run_cli, run_ok
 
 
 def scene(n: int = 600, seed: int = 0, sh_degree: int = 3) -> Gaussians:
@@ -224,8 +224,8 @@ def test_1d_codebook_covers_the_tails():
 
 
 def _assert_refused(read, bad: Path, cases) -> None:
-    """Each of `cases` ((words, bytes) pairs or a dict), written to `bad`, is refused by `read` in one line."""
-    for words, data in cases.items() if isinstance(cases, dict) else cases:
+    """Each of `cases` ((words, bytes) pairs), written to `bad`, is refused by `read` in one line naming it."""
+    for words, data in cases:
         bad.write_bytes(data)
         with pytest.raises(SplatError, match=words) as info:
             read(bad)
@@ -258,7 +258,7 @@ def test_bad_sog_files_are_refused_in_one_line(tmp_path):
         "does not hold": bundle(**{"quats.webp": None}),
         "not a readable WebP": bundle(**{"scales.webp": b"RIFF0000WEBPjunk"}),
     }
-    _assert_refused(read_sog, tmp_path / "bad.sog", cases)
+    _assert_refused(read_sog, tmp_path / "bad.sog", cases.items())
 
 
 def _spz_bytes(version=3, n=2, deg=0, payload: bytes | None = None, flags=0, tail=b"") -> bytes:
@@ -317,7 +317,7 @@ def test_bad_spz4_files_are_refused_in_one_line(tmp_path):
         "damaged extension records": patch(36, "<I", 99),
         "coordinate system 9": patch(40, "<I", 9),
     }
-    _assert_refused(read_spz, tmp_path / "bad.spz", cases)
+    _assert_refused(read_spz, tmp_path / "bad.spz", cases.items())
 
 
 def test_bad_compressed_ply_files_are_refused_in_one_line(tmp_path):
@@ -338,39 +338,33 @@ def test_bad_compressed_ply_files_are_refused_in_one_line(tmp_path):
     ])
 
 
-def _ok(*args):
-    r = run_cli(*args)
-    assert r.exit_code == 0, r.output
-    return r
-
-
 def test_export_converts_between_formats_and_loaders_read_them(tmp_path):
     proj = make_tiny_project(tmp_path / "p")
-    _ok("export", proj.root, "--format", "spz", "--json")
+    run_ok("export", proj.root, "--format", "spz", "--json")
     spz = proj.root / "exports" / "scene.spz"
     assert spz.is_file()
     # a file source: .spz -> .compressed.ply beside it, then -> .ply elsewhere
-    _ok("export", spz, "--format", "compressed-ply")
+    run_ok("export", spz, "--format", "compressed-ply")
     cply = proj.root / "exports" / "scene.compressed.ply"
-    _ok("export", cply, "--format", "ply", "-o", tmp_path / "back.ply")
+    run_ok("export", cply, "--format", "ply", "-o", tmp_path / "back.ply")
     m = load_model(tmp_path / "back.ply", torch.device("cpu"))
     assert m.kind == "ply" and len(m.gaussians) == len(load_model(proj.root, torch.device("cpu")).gaussians)
     for path, kind in ((spz, "spz"), (cply, "compressed-ply")):
         assert load_model(path, torch.device("cpu")).kind == kind
     # render and eval --model take any format
-    _ok("render", spz, "--project", proj.root, "--split", "test", "-o", tmp_path / "frames")
-    _ok("eval", proj.root, "--model", cply, "--no-plots", "-o", tmp_path / "ev", "--json")
-    _ok("train", proj.root, "--init-ply", spz, "--iterations", "2", "--eval-every", "0")  # training from any format
+    run_ok("render", spz, "--project", proj.root, "--split", "test", "-o", tmp_path / "frames")
+    run_ok("eval", proj.root, "--model", cply, "--no-plots", "-o", tmp_path / "ev", "--json")
+    run_ok("train", proj.root, "--init-ply", spz, "--iterations", "2", "--eval-every", "0")  # training from any format
     assert_user_error(run_cli("export", spz, "--format", "spz", "-o", spz), "source file itself")
     assert_user_error(run_cli("export", proj.root, "--format", "spz", "--spz-sh-bits", "9,4"), "--spz-sh-bits")
     assert_user_error(run_cli("export", proj.root, "--format", "spz", "--spz-version", "2"), "--spz-version 2")
-    _ok("export", proj.root, "--format", "spz", "--spz-version", "4", "-o", tmp_path / "v4.spz")
+    run_ok("export", proj.root, "--format", "spz", "--spz-version", "4", "-o", tmp_path / "v4.spz")
     assert (tmp_path / "v4.spz").read_bytes()[:4] == b"NGSP" and spz.read_bytes()[:2] == b"\x1f\x8b"
 
 
 def test_eval_formats_reports_size_against_error(tmp_path):
     proj = make_tiny_project(tmp_path / "p")
-    _ok("eval", proj.root, "--formats", "ply,spz,compressed-ply,splat", "--budgets", "1", "--json")
+    run_ok("eval", proj.root, "--formats", "ply,spz,compressed-ply,splat", "--budgets", "1", "--json")
     rep = json.loads((proj.root / "reports" / "eval.json").read_text())
     got = {f["format"]: f for f in rep["formats"]}
     assert list(got) == ["ply", "spz", "compressed-ply", "splat"]

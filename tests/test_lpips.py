@@ -18,7 +18,7 @@ import torch
 from splatcli.errors import SplatError
 from splatcli.eval import lpips as lp
 from splatcli.eval.report import ImageScore
-from support.tiny_project import assert_user_error, make_tiny_project, run_cli
+from support.tiny_project import assert_user_error, make_tiny_project, run_cli, run_ok
 
 PKG = lp.import_package()
 needs_pkg = pytest.mark.skipif(PKG is None, reason="the lpips package (splatcli[lpips]) is not installed")
@@ -156,15 +156,13 @@ def test_eval_reports_lpips_with_weights(proj, tmp_path: Path, no_hub: Path) -> 
     assert_user_error(run_cli("eval", proj.root, "--lpips-weights", tmp_path / "none.pth"), "--lpips-weights",
                       "none.pth", "no such file")
     # --pred/--gt: a folder against itself is at distance 0
-    r = run_cli("eval", "--pred", proj.images_dir, "--gt", proj.images_dir, "--lpips-weights", w, "--json")
-    assert r.exit_code == 0, r.output
+    r = run_ok("eval", "--pred", proj.images_dir, "--gt", proj.images_dir, "--lpips-weights", w, "--json")
     folder = json.loads(r.stdout)
     assert folder["lpips"] == 0.0 and all(x["lpips"] == 0.0 for x in folder["per_image"])
 
 
 def test_eval_without_weights_reports_null_and_one_hint(proj, tmp_path: Path, no_hub: Path) -> None:
-    r = run_cli("eval", proj.root, "--budgets", "1", "--no-plots", "--out", tmp_path / "rep", "--json")
-    assert r.exit_code == 0, r.output
+    r = run_ok("eval", proj.root, "--budgets", "1", "--no-plots", "--out", tmp_path / "rep", "--json")
     hints = [line for line in r.stderr.splitlines() if "LPIPS skipped" in line]
     assert len(hints) == 1 and "--lpips-weights" in hints[0] and "pip install 'splatcli[lpips]'" in hints[0], r.stderr
     data = json.loads((tmp_path / "rep" / "eval.json").read_text())

@@ -23,7 +23,7 @@ from splatcli.project import Project
 from splatcli.sfm import colmap
 from splatcli.train.data import load_train_data
 from splatcli.train.loss import photometric_loss
-from support.tiny_project import assert_user_error, make_tiny_project, run_cli
+from support.tiny_project import assert_user_error, make_tiny_project, run_cli, run_ok
 from test_process import render
 
 N_VIEWS, W, H = 16, 256, 192
@@ -146,8 +146,7 @@ def _transforms_capture(root: Path, *, alpha: bool = False, masks: bool = True, 
 def test_transforms_mask_path_and_invert(tmp_path, invert):
     src = _transforms_capture(tmp_path / "cap")
     args = ["--invert-masks"] if invert else []
-    r = run_cli("process", src, "-o", tmp_path / "p", "--json", *args)
-    assert r.exit_code == 0, r.output
+    r = run_ok("process", src, "-o", tmp_path / "p", "--json", *args)
     assert json.loads(r.stdout)["mask_source"] == "files"
     m = cv2.imread(str(Project(tmp_path / "p").mask_path("f1.png")), cv2.IMREAD_UNCHANGED)
     left, right = (255, 0) if invert else (0, 255)

@@ -19,7 +19,7 @@ from splatcli.render import render_camera
 from splatcli.strategy import MipFilter, Splats, ops
 from splatcli.strategy.mip import MARGIN, VARIANCE, filter_from_rate, sampling_rate
 from splatcli.views.sources import choose_antialias, dataset_views
-from support.tiny_project import make_tiny_project, ring_cameras, run_cli, tiny_gaussians
+from support.tiny_project import make_tiny_project, ring_cameras, run_cli, run_ok, tiny_gaussians
 
 CPU = torch.device("cpu")
 
@@ -160,8 +160,7 @@ def test_checkpoint_with_filter_renders_as_its_exported_ply_and_render_eval_say_
                     config={"mip_filter": True})
     m = load_model(proj.root, CPU)
     assert m.antialiased is True and m.step == 300
-    r = run_cli("export", proj.root, "-o", tmp_path / "s.ply")
-    assert r.exit_code == 0, r.output
+    r = run_ok("export", proj.root, "-o", tmp_path / "s.ply")
     ply = load_model(tmp_path / "s.ply", CPU)
     cam = ring_cameras(scale=4)[3]  # 4x the training size: where the filter matters
     bg = torch.zeros(3)
@@ -171,13 +170,11 @@ def test_checkpoint_with_filter_renders_as_its_exported_ply_and_render_eval_say_
     # The .ply stores float32 like the checkpoint: the same numbers, so nearly bitwise.
     torch.testing.assert_close(a, b, rtol=0, atol=1e-5)
     assert (a - c).abs().max() > 0.05
-    r = run_cli("render", proj.root, "--json", "-o", tmp_path / "r")
-    assert r.exit_code == 0, r.output
+    r = run_ok("render", proj.root, "--json", "-o", tmp_path / "r")
     assert json.loads(r.stdout)["antialiased"] is True
     r = run_cli("render", proj.root, "--json", "-o", tmp_path / "r", "--antialias", "off")
     assert json.loads(r.stdout)["antialiased"] is False
-    r = run_cli("eval", proj.root, "--no-plots", "--budgets", "1", "--downscale", "0.5", "--antialias", "auto")
-    assert r.exit_code == 0, r.output
+    r = run_ok("eval", proj.root, "--no-plots", "--budgets", "1", "--downscale", "0.5", "--antialias", "auto")
     assert "2D antialiasing filter" in r.output
     r = run_cli("render", proj.root, "--antialias", "maybe")
     assert r.exit_code == 2 and "--antialias" in r.stderr
@@ -196,8 +193,7 @@ def test_choose_antialias():
 def test_auto_antialias_follows_the_zoom_of_a_plain_model(tmp_path):
     proj = make_tiny_project(tmp_path / "p")
     for downscale, on in (("2", True), ("0.5", False), ("1", False)):
-        r = run_cli("render", proj.root, "--json", "-o", tmp_path / downscale, "--downscale", downscale)
-        assert r.exit_code == 0, r.output
+        r = run_ok("render", proj.root, "--json", "-o", tmp_path / downscale, "--downscale", downscale)
         assert json.loads(r.stdout)["antialiased"] is on, downscale
 
 

@@ -25,6 +25,7 @@ from support.tiny_project import (
     make_tiny_project,
     ring_cameras,
     run_cli,
+    run_ok,
     snapshot,
     tiny_gaussians,
 )
@@ -65,8 +66,7 @@ def _transforms(path: Path, *, per_frame: bool = False, angle_only: bool = False
 
 def test_split_outputs_and_video(proj: Project, tmp_path: Path) -> None:
     video = tmp_path / "v.mp4"
-    r = run_cli("render", proj.root, "--split", "train", "--depth", "--alpha", "--video", video, "--json")
-    assert r.exit_code == 0, r.output
+    r = run_ok("render", proj.root, "--split", "train", "--depth", "--alpha", "--video", video, "--json")
     s = json.loads(r.stdout)
     out = proj.render_dir("train")
     assert Path(s["out_dir"]) == out and s["frames"] == 8 and s["fps"] > 0 and s["device"].startswith(AUTO_DEVICE)
@@ -136,8 +136,7 @@ def test_generated_paths(proj: Project, tmp_path: Path) -> None:
         np.testing.assert_allclose(inter[i].camera.viewmat, cams[i // 2].viewmat, atol=1e-9)
     spiral = generate_path("spiral", cams, 7)  # odd: two turns never revisit a point
     assert len({tuple(np.round(v.camera.center, 6)) for v in spiral}) == 7
-    r = run_cli("render", proj.root, "--path", "spiral", "--frames", "3", "--width", "24", "--json")
-    assert r.exit_code == 0, r.output
+    r = run_ok("render", proj.root, "--path", "spiral", "--frames", "3", "--width", "24", "--json")
     s = json.loads(r.stdout)
     assert (s["frames"], s["width"], s["height"]) == (3, 24, 20)
     assert sorted(p.name for p in proj.render_dir("spiral").glob("*.png")) == [f"spiral_000{i}.png" for i in range(3)]
@@ -176,14 +175,12 @@ def _foreign_ply(path: Path, n: int = 300, *, nan_rows: int = 0) -> Path:
 
 def test_render_foreign_ply(proj: Project, tmp_path: Path) -> None:
     ply = _foreign_ply(tmp_path / "other.ply", nan_rows=3)
-    r = run_cli("render", ply, "--project", proj.root, "--split", "all", "-o", tmp_path / "o", "--json")
-    assert r.exit_code == 0, r.output
+    r = run_ok("render", ply, "--project", proj.root, "--split", "all", "-o", tmp_path / "o", "--json")
     assert "red, confidence" in r.stderr and "dropped 3 of 300" in r.stderr
     assert json.loads(r.stdout)["num_gaussians"] == 297
     assert len(list((tmp_path / "o").glob("*.png"))) == 10
     # no cameras at all: an orbit around the Gaussians, written beside the .ply
-    r = run_cli("render", ply, "--frames", "2", "--width", "32", "--height", "24")
-    assert r.exit_code == 0, r.output
+    run_ok("render", ply, "--frames", "2", "--width", "32", "--height", "24")
     imgs = sorted((tmp_path / "renders" / "other_orbit").glob("*.png"))
     assert len(imgs) == 2 and _png(imgs[0]).shape == (24, 32, 3)
     assert _png(imgs[0]).max() > 0  # the splat is in view

@@ -24,7 +24,7 @@ from splatcli.formats.ply import write_ply
 from splatcli.model import load_model
 from splatcli.viewer import LiveSink, SceneStore, ViewerServer, open_scene, server as server_mod
 from support.browser import browser_problem, capture, open_page, psnr_u8, screenshot
-from support.tiny_project import assert_user_error, make_tiny_project, run_cli, snapshot, tiny_gaussians
+from support.tiny_project import assert_user_error, make_tiny_project, run_cli, run_ok, snapshot, tiny_gaussians
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -204,8 +204,7 @@ def test_view_bad_sources_are_one_line_errors(tmp_path):
 @pytest.mark.slow
 def test_train_with_viewer(tmp_path):
     proj = make_tiny_project(tmp_path / "t", trained=False, photos=True)
-    r = run_cli("train", proj.root, "--iterations", "30", "--eval-every", "15", "--viewer", "--viewer-port", "0")
-    assert r.exit_code == 0, r.output
+    r = run_ok("train", proj.root, "--iterations", "30", "--eval-every", "15", "--viewer", "--viewer-port", "0")
     assert "live viewer at http://127.0.0.1:" in r.stderr
 
 
@@ -214,8 +213,7 @@ def test_train_with_viewer(tmp_path):
 
 @pytest.mark.skipif(browser_problem() is not None, reason=str(browser_problem()))
 def test_browser_picture_matches_splatcli_render(proj, served, tmp_path):
-    r = run_cli("render", proj.root, "--split", "test", "-o", tmp_path / "r")
-    assert r.exit_code == 0, r.output
+    run_ok("render", proj.root, "--split", "test", "-o", tmp_path / "r")
     cams = [c for c in json.loads(_get(served.url + "api/scene")[1])["cameras"] if c["split"] == "test"]
     assert cams
     for c in cams:

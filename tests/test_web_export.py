@@ -21,7 +21,7 @@ from splatcli.formats.sog import read_sog
 from splatcli.model import export_project
 from splatcli.viewer import ViewerServer, open_scene, site
 from support.browser import browser_problem, open_page, psnr_u8, screenshot
-from support.tiny_project import assert_user_error, make_tiny_project, run_cli, snapshot
+from support.tiny_project import assert_user_error, make_tiny_project, run_cli, run_ok, snapshot
 
 VENDOR = resources.files("splatcli.viewer") / "static" / "vendor"
 RENDERER = ["spark.module.min.js", "three.module.js", "three.core.js", "addons/controls/OrbitControls.js",
@@ -36,8 +36,7 @@ def proj(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def site_dir(proj):
-    r = run_cli("export", proj.root, "--format", "web", "--json")
-    assert r.exit_code == 0, r.output
+    r = run_ok("export", proj.root, "--format", "web", "--json")
     out = proj.export_path("web")
     assert json.loads(r.stdout)["path"] == str(out) == str(proj.root / "exports" / "web")
     return out
@@ -127,8 +126,7 @@ def static_server(folder: Path):
 @pytest.mark.slow
 @pytest.mark.skipif(browser_problem() is not None, reason=str(browser_problem()))
 def test_static_page_draws_the_test_cameras_as_view_does(proj, site_dir, tmp_path):
-    r = run_cli("render", proj.root, "--split", "test", "-o", tmp_path / "r")
-    assert r.exit_code == 0, r.output
+    run_ok("render", proj.root, "--split", "test", "-o", tmp_path / "r")
     cams = [c for c in json.loads((site_dir / "api/scene").read_text())["cameras"] if c["split"] == "test"]
     assert cams
     with static_server(site_dir) as url, ViewerServer(open_scene(proj.root), "127.0.0.1", 0) as served:

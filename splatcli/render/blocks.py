@@ -40,8 +40,8 @@ CHUNKS = (1 << 17, 1 << 18, 1 << 19)  # the compositor's chunk sizes a tuner tri
 # were never the fastest there: a block stops early only when all its pixels have saturated.
 # A pair costs more once a plan holds millions (its lists and per-slot gradients leave the caches):
 # dense views (garden, 100k Gaussians at 256 px) ran 8 px blocks 1.1-3.2x faster than the 4 px the
-# linear model picked (Zen 4 EPYC; the same pick cost 1.27x on a Xeon); the pair cost doubles at
-# _PAIRS_CACHE pairs, which keeps every training view of that fit on its pick.
+# linear model picked (Zen 4 EPYC; on a Xeon its default trailed the measured pick 1.27x on garden);
+# the pair cost doubles at _PAIRS_CACHE pairs, which left the 8 fox and lego training views measured on their pick.
 _COST_SLOT, _COST_ELEM, _PAIRS_CACHE = 50.0, 12.0, 2.5e6
 
 

@@ -146,7 +146,8 @@ class Eta:
             return None
         total = self.cfg.total_steps
         spent = float(step_costs(self.cfg, total, start[0], counts.step).sum())
-        return elapsed * float(step_costs(self.cfg, total, counts.step, total).sum()) / spent, done * counts.world / elapsed
+        left = elapsed * float(step_costs(self.cfg, total, counts.step, total).sum()) / spent
+        return left, done * counts.world / elapsed
 
     def tell(self, counts: Counters, gaussians: int, on_event: EventSink | None) -> None:
         if self.again and counts.step >= self.grown:

@@ -192,8 +192,8 @@ class _Run:
 
     def _extend(self) -> None:
         """A finished planned run resumed with more time (--resume --time-budget) plans on."""
-        state = self.trainer.state
-        more = state.plan.extend(self.base, state.counts.images, state.counts.elapsed_s) if state.plan is not None else None
+        state, c = self.trainer.state, self.trainer.state.counts
+        more = state.plan.extend(self.base, c.images, c.elapsed_s) if state.plan is not None else None
         if more is not None:
             self.base = more
             self.trainer.reschedule(more.for_world(self.comm.world))
@@ -281,12 +281,13 @@ class _Run:
             evaluated = _measure(t.cfg, self.data, state, step, total, comm, force=True)
             fitted = _measure_fit(t.cfg, self.data, state, step, comm) if evaluated is not None else None
         self.writer.line(step, state, evaluated, fitted, t.cfg.log_every, force=step == total)
-        eta = max(state.plan.budget_s - state.counts.elapsed_s, 0.0) if state.plan is not None else self.eta.left(state.counts)
-        emit(self.on_event, Progress(STAGE, state.counts.images, total * comm.world, self.writer.info(state), eta))
+        c = state.counts
+        eta = max(state.plan.budget_s - c.elapsed_s, 0.0) if state.plan is not None else self.eta.left(c)
+        emit(self.on_event, Progress(STAGE, c.images, total * comm.world, self.writer.info(state), eta))
         if comm.main and state.plan is None:
-            self.eta.tell(state.counts, state.num_gaussians, self.on_event)
+            self.eta.tell(c, state.num_gaussians, self.on_event)
         if comm.main:
-            emit(self.on_event, Snapshot(state.counts.images, state.model))  # for live displays (train --viewer)
+            emit(self.on_event, Snapshot(c.images, state.model))  # for live displays (train --viewer)
 
     def _save(self) -> Path:
         """A checkpoint of the run as one process would have written it: every rank folds its
@@ -311,7 +312,8 @@ class _Run:
         path = self._save()
         raise TrainingDiverged(
             f"training diverged: {state.counts.bad_run} consecutive steps with a non-finite loss or gradient "
-            f"(step {state.counts.images}); the last good parameters are in {path}; try a lower learning rate or --resume"
+            f"(step {state.counts.images}); the last good parameters are in {path}; "
+            "try a lower learning rate or --resume"
         )
 
     @contextlib.contextmanager

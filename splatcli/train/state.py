@@ -1,9 +1,9 @@
 """Everything a training run carries from step to step, and its checkpoint form.
 
-`TrainState` = the model (`Splats`: parameters, one Adam per attribute, every
-strategy's per-Gaussian state; the strategies; the image model), the view order
-(`ViewOrder`), the loop's `Counters`, the time plan and the `RenderSettings`. `save_state` / `state_from_checkpoint` convert it to and from
-plain tensors losslessly, which is what makes an interrupted-and-resumed CPU run
+`TrainState` = the model (`Splats`: parameters, one Adam per attribute, every strategy's
+per-Gaussian state; the strategies; the image model), the view order (`ViewOrder`), the loop's
+`Counters`, the time plan and the `RenderSettings`. `save_state` / `state_from_checkpoint` convert
+it to and from plain tensors losslessly, which is what makes an interrupted-and-resumed CPU run
 end bitwise equal to an uninterrupted one.
 """
 

@@ -125,6 +125,13 @@ def run_cli(*args: object):
     return CliRunner().invoke(app, [str(a) for a in args])
 
 
+def run_ok(*args: object):
+    """`run_cli`, asserting that the command succeeded (its output shown where it did not)."""
+    r = run_cli(*args)
+    assert r.exit_code == 0, r.output
+    return r
+
+
 def assert_user_error(result, *fragments: str, alone: bool = True) -> str:
     """Exit 2, one line `error: ...` on stderr naming what it should, no traceback; returns it.
     Errors found before any work are the only output; one found mid-way (a bad image in a
