@@ -191,8 +191,7 @@ def main() -> None:
             # must cost one row, not the run.
             r = subprocess.run([sys.executable, __file__, "--source", str(args.source), "--one", wl.name,
                                 "--threads", str(nt), "--reps", str(args.reps), "--compile", args.compile,
-                                "--block", args.block],
-                               capture_output=True, text=True)
+                                "--block", args.block], capture_output=True, text=True)
             row = {"workload": wl.name, "threads": nt, "opensplat_ms": None}
             if r.returncode != 0:
                 row["peer"] = f"crashed (exit {r.returncode})" if r.returncode < 0 or r.returncode > 128 else "failed"

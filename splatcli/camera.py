@@ -69,6 +69,7 @@ class SceneData:
     cameras: list[Camera]
     points: np.ndarray  # [P, 3] float64
     colors: np.ndarray  # [P, 3] uint8
+    views_per_point: float = 0.0  # the mean SfM track length (0: no points, or no tracks)
 
 
 def scene_extent(cameras: list[Camera]) -> tuple[np.ndarray, float]:

@@ -50,7 +50,7 @@ def test_a_default_cpu_run_is_planned_into_minutes(proj, monkeypatch):
     cfg = make_config(chosen=c)  # the choices make a valid config
     assert cfg.time_budget == planning.BUDGET_S and cfg.mcmc.max_gaussians == planning.MIN_GAUSSIANS
     line = planning.summary_line(c, cfg.time_budget)
-    assert "trains for 10 min" in line and "--time-budget" in line
+    assert "trains for 10 min" in line and "--time-budget" in line and "max-gaussians 5000 (0.45 per pixel" in line
 
 
 def test_every_choice_yields_to_its_option(proj, monkeypatch):
@@ -94,7 +94,8 @@ def test_the_training_size_follows_the_time_budget(proj, monkeypatch):
 def test_a_capture_of_many_views_and_points_gets_more_time_and_gaussians(proj, monkeypatch):
     """Past VIEWS_AT_BUDGET training views the default run grows with the square root of their
     count (capped), at the default training size; the Gaussian budget leaves room for three per
-    SfM point where that is more than one view's pixels suggest. A given budget is kept."""
+    SfM point where that is more than one view's pixels suggest, and the pixels' budget grows with
+    the views' worth of surface the capture shows (n views / SfM track length). A given budget is kept."""
     assert planning.default_budget(10) == planning.default_budget(100) == planning.BUDGET_S
     assert planning.default_budget(218) == 890.0 and planning.default_budget(10_000) == planning.MAX_BUDGET_FACTOR * planning.BUDGET_S
     cam = planning.read_project_scene(proj).cameras[0]
@@ -111,6 +112,10 @@ def test_a_capture_of_many_views_and_points_gets_more_time_and_gaussians(proj, m
     assert "218 training views" in next(x.why for x in c.choices if x.option == "time_budget")
     assert "time_budget" not in _chosen(_choose(proj, {"time_budget": 300.0}))
     assert _chosen(_choose(proj, {"max_gaussians": 7_000})).get("max_gaussians") is None
+    for t, budget in ((250 / 27, 259_000), (1.0, 346_000)):  # 27 views' worth: x 3; 250: x MAX_COVERAGE (4)
+        monkeypatch.setattr(planning, "read_project_scene", lambda p, t=t: SceneData(many, points, 0 * points, t))
+        got = [(x.value, f"seen by {t:.1f} of 250 views" in x.why) for x in _choose(proj, {}).choices]
+        assert (budget, True) in got, got
 
 
 def test_cuda_and_resume_choose_nothing(proj):

@@ -100,6 +100,7 @@ def test_sfm_makes_a_valid_project_with_the_true_poses(processed, scene):
     proj = Project(out)
     assert proj.database_path.is_file() and (proj.distorted_dir / "cameras.bin").is_file()
     assert not proj.masks_dir.exists()
+    assert read_scene(proj.sparse_dir).views_per_point == pytest.approx(summary["mean_track_length"], abs=0.01)  # rounded
     e = compare_poses(read_scene(proj.sparse_dir).cameras, ground_truth(scene))
     assert len(e.names) == N_VIEWS
     assert e.max_rotation_deg < 1.0, e.rotation_deg
