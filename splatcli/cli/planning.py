@@ -310,7 +310,7 @@ def summary_line(chosen: Chosen, budget_s: float | None) -> str:
     """The one line a CLI shows before training: what was chosen (and how the Gaussian count
     was), the time it will take, and what to change for more quality or more speed."""
     what = ", ".join(f"{c.option.replace('_', '-')} {c.value}" + (f" ({c.why})" if c.option == "max_gaussians" else "")
-                     for c in chosen.choices)  # (how the count was chosen: the one choice a user asks about)
+                     for c in chosen.choices)
     if budget_s is None:
         return f"chose {what}"
     eta = f"trains for {budget_s / 60:.0f} min" if budget_s >= 180 else f"trains for {budget_s:.0f} s"

@@ -906,6 +906,4 @@ def read_scene(sparse_dir: str | Path, *, pinhole_only: bool = True, digest: str
             if _model_name(cam) not in ("PINHOLE", "SIMPLE_PINHOLE"):
                 raise SplatError(f"{sparse_dir}: camera {cid} is {_model_name(cam)}, expected PINHOLE (undistorted)")
     points, colors = model.points()
-    tracks = [p.track.length() for p in model._rec.points3D.values()]
-    return SceneData(cameras=model.cameras(), points=points, colors=colors,
-                     views_per_point=float(np.mean(tracks)) if tracks else 0.0)
+    return SceneData(cameras=model.cameras(), points=points, colors=colors, views_per_point=model.mean_track_length())
