@@ -86,10 +86,14 @@ def test_one_process_through_the_launcher_matches_a_plain_run(tmp_path):
 def test_resume_with_another_number_of_processes(tmp_path):
     proj = _project(tmp_path)
     _summary(_run("train", str(proj.root), *FAST, "--iterations", "400", "--nproc", "2", "--json"))
-    s = _summary(_run("train", str(proj.root), *FAST, "--iterations", "500", "--resume", "--json"))
+    s = _summary(_run("train", str(proj.root), *FAST, "--iterations", "500", "--resume", "--nproc", "1", "--json"))
     assert s["resumed_from"] == 400 and s["steps"] == 500 and s["nproc"] == 1
     s = _summary(_run("train", str(proj.root), *FAST, "--iterations", "600", "--resume", "--nproc", "2", "--json"))
     assert s["resumed_from"] == 500 and s["steps"] == 600 and s["nproc"] == 2
+    # without --nproc, a run goes on with as many processes as trained it last
+    s = _summary(_run("train", str(proj.root), *FAST, "--iterations", "620", "--resume", "--json"))
+    assert s["resumed_from"] == 600 and s["steps"] == 620 and s["nproc"] == 2
+    assert {"option": "nproc", "value": 2, "why": "the run's own: 2 training processes (--nproc 1 for one)"} in s["chosen"]
     steps = [r["step"] for r in read_log(proj.train_log_path)]
     assert steps == sorted(steps) and steps[-1] == 600  # one log, counted in views, in order
 

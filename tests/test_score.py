@@ -14,7 +14,7 @@ from splatcli.eval.score import load_target, quantise, score_image
 from splatcli.gaussians import kept_count, top_by_weight
 from splatcli.inputs.images import composite, paint_masked
 from splatcli.project import holdout_split
-from splatcli.strategy.base import Splats
+from splatcli.strategy.base import Splats, StepInfo
 from splatcli.strategy.compact import CompactConfig, CompactState, CompactStep
 from splatcli.train.data import load_train_data
 from splatcli.views.sources import dataset_views
@@ -204,3 +204,26 @@ def test_top_by_weight_ties_and_compact_agrees_with_eval() -> None:
     step = CompactStep(CompactConfig(enabled=True, keep=1 / 3, finetune=0, rounds=1), 10, ctx)
     step.catch_up(splats, CompactState(), 10)  # the one cut of a resumed run
     assert torch.equal(splats.params["means"].detach(), kept.means)
+
+
+def test_compact_cuts_first_when_resumed_a_step_past_its_schedule() -> None:
+    """A run of K processes ends its main schedule up to K - 1 views past it, and is resumed there
+    by one process: --compact's first cut still happens then, and a round whose step comes first
+    cuts from the model as it is (never from an empty "before")."""
+    g = tiny_gaussians(200, seed=7, sh_degree=0)
+    weight = torch.rand(200, generator=torch.Generator().manual_seed(7))
+
+    def fresh() -> Splats:
+        params = {"means": torch.nn.Parameter(g.means.clone())}
+        return Splats(params, {"means": torch.optim.Adam(params.values())})
+
+    step = CompactStep(CompactConfig(enabled=True, keep=1 / 3, finetune=12, rounds=3), 10, context(weight))
+    assert step.prune_steps() == [10, 12, 14]
+    splats, state = fresh(), CompactState()
+    step.catch_up(splats, state, 11)  # one step past `at`
+    assert state.round == 1 and state.before_count == 200
+    assert len(splats.params["means"]) == kept_count(200, (1 / 3) ** (1 / 3))
+    splats, state = fresh(), CompactState()
+    info = StepInfo(render=None, width=0, height=0, heldout=(30.0, 0.9))  # type: ignore[arg-type]
+    step.step_post_backward(splats, state, 12, info)  # round 2 reached with no cut made
+    assert state.before_count == 200 and len(splats.params["means"]) == kept_count(200, (1 / 3) ** (2 / 3))

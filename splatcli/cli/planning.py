@@ -5,8 +5,9 @@ With no schedule given (no --preset, --iterations or --time-budget) a CPU run ge
 fast preset's shape planned into a time budget that grows with the number of training views
 (`default_budget`), at a training size a CPU handles, with MCMC's fixed Gaussian budget (from a
 view's pixels or the SfM points, whichever is more) grown on a curve tied to the time
-(train/plan.py), and one process per free core. A run given only a --time-budget gets the same but the appearance
-model, at a training size that grows with the budget beyond the default one
+(train/plan.py), and one process per free core (a resumed run: as many as trained it). A run
+given only a --time-budget gets the same but the appearance model, at a training size that grows
+with the budget beyond the default one
 (`train_size`). Every choice yields to the option given for it; each is recorded with
 its reason (train.json's `chosen`). On CUDA nothing is chosen: the paper's schedule.
 
@@ -29,7 +30,7 @@ import torch
 
 from .. import options
 from ..camera import SceneData
-from ..files.checkpoint import read_checkpoint_config
+from ..files.checkpoint import read_checkpoint_config, read_checkpoint_world
 from ..project import Project
 from ..sfm.colmap import read_project_scene
 from ..train.config import TrainConfig, preset_config
@@ -233,7 +234,11 @@ def choose(project: Project, given: options.Given, nproc: int | None, device: to
     docstring); `nproc` as given. Each choice yields to its option given."""
     out = Chosen(nproc)
     asked = Asked.of(given)
-    if device.type != "cpu" or resume:
+    if device.type != "cpu":
+        return out
+    if resume:
+        if nproc is None:
+            _resumed_processes(out, project)
         return out
     default_run = asked.preset is None and asked.iterations is None and asked.time_budget is None
     if not default_run and asked.time_budget is None:
@@ -290,6 +295,16 @@ def _budget(train_px: int, scene: SceneData) -> tuple[int, str]:
     return int(min(MAX_GAUSSIANS, max(MIN_GAUSSIANS, round(max(by_px, by_pts), -3)))), why
 
 
+def _resumed_processes(out: Chosen, project: Project) -> None:
+    """A resumed run goes on with as many processes as trained it (--nproc not given): a
+    planned run resumed in fewer would train fewer steps in its time."""
+    path = project.latest_checkpoint()
+    k = read_checkpoint_world(path) if path is not None else None
+    if k is not None and k > 1:
+        out.nproc = k
+        out.choices.append(Choice("nproc", k, f"the run's own: {k} training processes (--nproc 1 for one)"))
+
+
 def _processes(out: Chosen, views: int) -> None:
     """Training processes and torch threads for the free cores, into `out` (--nproc not given)."""
     cap = min(MAX_PROCESSES, max(1, views // 8))
@@ -306,11 +321,13 @@ def _processes(out: Chosen, views: int) -> None:
                                   f"{threads} torch threads each (OMP_NUM_THREADS to choose)"))
 
 
-def summary_line(chosen: Chosen, budget_s: float | None) -> str:
+def summary_line(chosen: Chosen, budget_s: float | None, resume: bool = False) -> str:
     """The one line a CLI shows before training: what was chosen (and how the Gaussian count
     was), the time it will take, and what to change for more quality or more speed."""
-    what = ", ".join(f"{c.option.replace('_', '-')} {c.value}" + (f" ({c.why})" if c.option == "max_gaussians" else "")
-                     for c in chosen.choices)
+    what = ", ".join(f"{c.option.replace('_', '-')} {c.value}" + (f" ({c.why})" if resume or c.option == "max_gaussians"
+                                                                   else "") for c in chosen.choices)
+    if resume:
+        return f"resumes with {what}"
     if budget_s is None:
         return f"chose {what}"
     eta = f"trains for {budget_s / 60:.0f} min" if budget_s >= 180 else f"trains for {budget_s:.0f} s"

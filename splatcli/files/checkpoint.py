@@ -176,6 +176,14 @@ def read_checkpoint_config(path: str | Path) -> dict[str, Any]:
     return raw["config"]
 
 
+def read_checkpoint_world(path: str | Path) -> int | None:
+    """How many data-parallel processes trained up to a checkpoint (None: not recorded, as in
+    checkpoints written before it was), for `train --resume` to go on with as many."""
+    raw = _safe_load(Path(path), mmap=True)
+    world = raw.get("extra", {}).get("world") if isinstance(raw, dict) else None
+    return int(world) if isinstance(world, int) and world >= 1 else None
+
+
 def load_gaussians(path: str | Path, device: torch.device | str = "cpu") -> Gaussians:
     """The trained model in a checkpoint, truncated to its active SH degree (what
     render, eval and export use)."""

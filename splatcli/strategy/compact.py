@@ -124,7 +124,9 @@ class CompactStep(ModelStep):
         return None
 
     def catch_up(self, splats: Splats, state: CompactState, step: int) -> RefineStats | None:
-        if step == self.at and state.round == 0:  # a finished run resumed with --compact
+        # A finished run resumed with --compact. A run of K processes can end a step past its
+        # schedule (its steps come in K views), and is resumed there by one process.
+        if step >= self.at and state.round == 0:
             return self._cut(splats, state, step, 1, None)
         return None
 
@@ -133,7 +135,7 @@ class CompactStep(ModelStep):
         """Round r of R: keep the n0 * keep^(r/R) Gaussians with the most blending weight
         (gaussians.kept_count rounds it: the last round keeps keep * n0 to the nearest)."""
         n = len(splats)
-        if r == 1:
+        if state.round == 0:  # the first cut made (round 1, unless a resume skipped its step)
             if heldout is None:
                 heldout = self.ctx.evaluator.score("test", sh_degree_of(splats))
             state.before_count, state.before_bytes = n, ply_bytes(n, sh_degree_of(splats))

@@ -69,7 +69,7 @@ class Counters:
         return self.step * self.world
 
     def record(self) -> dict[str, Any]:
-        return {"elapsed_s": self.elapsed_s, "bad_steps": self.bad_steps, "bad_run": self.bad_run,
+        return {"world": self.world, "elapsed_s": self.elapsed_s, "bad_steps": self.bad_steps, "bad_run": self.bad_run,
                 "loss_acc": self.loss_acc, "refine_acc": dict(self.refine_acc)}
 
     @classmethod
