@@ -349,7 +349,9 @@ OPTION_CASES = [
     ("train", ["--sh-degree", "7"], ["--sh-degree '7'", "0, 1, 2, 3 or auto"]),
     ("train", ["--preset", "turbo"], ["--preset 'turbo'", "default"]),
     ("train", ["--renderer", "gsplat"], ["--renderer gsplat needs a CUDA device", "--renderer torch"]),
-    ("train", ["--iterations", "many"], ["'--iterations'", "Invalid value"]),  # typer versions word the rest differently
+    ("train", ["--iterations", "many"], ["'--iterations'", "Invalid value"]),
+    ("train", ["--compact-keep", "0"], ["--compact-keep 0.0", "(0, 1]"]),
+    ("train", ["--compact-keep", "0.25"], ["--compact-keep", "give --compact too"]),  # typer versions word the rest differently
     ("render", ["--width", "0"], ["--width 0", "between 1 and 16384"]),
     ("render", ["--height", "-4"], ["--height -4", "between 1 and 16384"]),
     ("render", ["--downscale", "0"], ["--downscale 0", "(0, 64]"]),

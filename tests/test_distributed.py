@@ -93,7 +93,7 @@ def test_resume_with_another_number_of_processes(tmp_path):
     # without --nproc, a run goes on with as many processes as trained it last
     s = _summary(_run("train", str(proj.root), *FAST, "--iterations", "620", "--resume", "--json"))
     assert s["resumed_from"] == 600 and s["steps"] == 620 and s["nproc"] == 2
-    assert {"option": "nproc", "value": 2, "why": "the run's own: 2 training processes (--nproc 1 for one)"} in s["chosen"]
+    assert {"option": "nproc", "value": 2, "why": "the run's own; --nproc 1 for one"} in s["chosen"]
     steps = [r["step"] for r in read_log(proj.train_log_path)]
     assert steps == sorted(steps) and steps[-1] == 600  # one log, counted in views, in order
 

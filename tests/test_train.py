@@ -10,6 +10,7 @@ import os
 import signal
 from types import SimpleNamespace
 
+import numpy as np
 import pytest
 import torch
 from typer.testing import CliRunner
@@ -366,6 +367,34 @@ def test_a_plan_prices_each_step_by_its_resolution():
     flat = make_config("fast", time_budget=600.0, coarse_scale=1.0)
     plan = TimePlan.start(flat)
     assert abs(plan.replan(plan.scaled(flat, 7000), 170, 5.0).iterations - (170 + 170 / 5.0 * 595.0)) <= 1
+
+
+def test_a_plan_with_compact_ends_the_fine_tune_within_the_budget():
+    """--compact in a planned run: the main steps and the fine-tune a run of that length ends with
+    (the template's, scaled with it) fit the time left together, the fine-tune's steps priced at
+    full size. Simulated at a steady speed, planned every tenth of the budget, the whole run ends
+    within it (a share of the time left, planned again and again, pushed the fine-tune past it:
+    lego's 600 s run was 69% through its steps when the budget was spent)."""
+    cfg = make_config("fast", time_budget=600.0, compact=True)
+    plan = TimePlan.start(cfg)
+    run, views, elapsed, unit = plan.scaled(cfg, 7000), 0, 0.0, 0.02  # seconds per unit of cost
+
+    def until(cfg_, t):  # the views reached at time t, from (views, elapsed), at the steady speed
+        costs = np.cumsum(step_costs(cfg_, cfg_.iterations, views, cfg_.iterations)) * unit
+        return min(cfg_.iterations, views + int(np.searchsorted(costs, t - elapsed, side="right")))
+
+    first = True
+    while views < run.iterations:
+        t = elapsed + (5.0 if first else 60.0)
+        nxt = until(run, t)
+        elapsed += float(step_costs(run, run.iterations, views, nxt).sum()) * unit
+        views, first = nxt, False
+        if views < run.iterations:
+            run = plan.replan(run, views, elapsed)
+    finetune = run.compact.finetune
+    assert finetune == round(3000 * run.iterations / 7000) > 0
+    end = elapsed + float(step_costs(run, run.iterations, run.iterations, run.iterations + finetune).sum()) * unit
+    assert 0.9 * 600.0 <= end <= 600.0 * 1.01, (run.iterations, finetune, elapsed, end)
 
 
 def test_the_eta_of_a_step_schedule_prices_the_steps_left_by_their_resolution():

@@ -302,7 +302,7 @@ def _resumed_processes(out: Chosen, project: Project) -> None:
     k = read_checkpoint_world(path) if path is not None else None
     if k is not None and k > 1:
         out.nproc = k
-        out.choices.append(Choice("nproc", k, f"the run's own: {k} training processes (--nproc 1 for one)"))
+        out.choices.append(Choice("nproc", k, "the run's own; --nproc 1 for one"))
 
 
 def _processes(out: Chosen, views: int) -> None:

@@ -14,6 +14,7 @@ from typing import Any
 import torch
 
 from .. import options
+from ..errors import SplatError
 from ..project import Project
 from ..train.config import PRESETS, TrainConfig, preset_config
 from ..train.distributed import in_worker
@@ -37,7 +38,10 @@ def configure(project: Project, given: dict[str, Any], nproc: int | None, device
     if sent is not None:  # built and resumed by the launcher
         return replace(sent, device=str(device), renderer=renderer), chosen
     cfg = build(parsed, chosen, str(device), renderer)  # (a plain torchrun: each process builds its own)
-    return (resumed(project, cfg, parsed) if resume else cfg), chosen
+    cfg = resumed(project, cfg, parsed) if resume else cfg
+    if given.get("compact_keep") is not None and not cfg.compact.enabled:
+        raise SplatError("--compact-keep is the share --compact keeps: give --compact too")
+    return cfg, chosen
 
 
 def preset_options() -> dict[str, dict[str, Any]]:

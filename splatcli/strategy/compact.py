@@ -74,8 +74,8 @@ class CompactConfig:
     enabled: bool = opt(False, "After training, keep compact_keep of the Gaussians (a third), those with the most "
                         "blending weight, cut in compact_rounds rounds while fine-tuning compact_finetune more steps.",
                         name="compact", group=MODEL)
-    keep: float = opt(1 / 3, "Fraction of Gaussians --compact keeps, ranked by total blending weight.",
-                      more_than=0, at_most=1)
+    keep: float = opt(1 / 3, "With --compact: the share of the Gaussians kept, those with the most blending weight "
+                      "over the training views.", more_than=0, at_most=1, group=MODEL)
     finetune: int = opt(3000, "Steps after the first cut (lego: 1000 lost 0.42 dB, 3000 0.04).", at_least=0,
                         steps="schedule")
     rounds: int = opt(3, "Cuts, spread over the first half of the fine-tune.", at_least=1)

@@ -130,10 +130,12 @@ class Eta:
         self.since: tuple[int, float] | None = None  # (step, elapsed) once grown
         self.last: tuple[float, float | None] = (-1.0, None)  # (elapsed, seconds left) of the latest estimate
 
-    def left(self, counts: Counters) -> float | None:
+    def left(self, counts: Counters, cfg: TrainConfig | None = None) -> float | None:
         """Training seconds left: the steps left priced by their resolution at the speed measured
         since the model stopped growing (once it has), else since the start; None until
-        ETA_AFTER_S seconds are measured. Estimated again at most once a training second."""
+        ETA_AFTER_S seconds are measured. Estimated again at most once a training second. `cfg`:
+        the schedule now, where a plan has changed it since."""
+        self.cfg = cfg or self.cfg
         if counts.elapsed_s - self.last[0] >= 1.0:
             est = self._left(counts, self.since or self.start)
             self.last = (counts.elapsed_s, None if est is None else est[0])

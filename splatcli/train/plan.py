@@ -194,16 +194,18 @@ class TimePlan:
         rate = (views - last["step"]) / spent  # views per training second, recently
         # Seconds per unit of cost, from the steps since the last plan as they ran.
         unit = spent / max(float(step_costs(cfg, cfg.iterations, last["step"], views).sum()), 1e-9)
-        # The compaction fine-tune (if any) runs after the main steps at about the same speed.
-        share = self.template.iterations / (self.template.iterations + (
-            (self.template.compact_finetune or 0) if cfg.compact.enabled else 0))
-        left = max(self.budget_s - elapsed, 0.0) * share / unit  # cost units the budget still holds
-        # The longest run whose remaining steps fit (the total grows with the run's length);
-        # at least one more step: this step's post-processing hooks have run already.
+        left = max(self.budget_s - elapsed, 0.0) / unit  # cost units the budget still holds
+        # The longest run whose remaining steps fit (the total grows with the run's length), with
+        # the compaction fine-tune (if any) that a run of that length ends with, its steps priced as
+        # full-size ones; at least one more step: this step's post-processing hooks have run already.
+        def cost(n: int) -> float:
+            finetune = self.template.scaled(n / self.template.iterations).compact_finetune if cfg.compact.enabled else 0
+            return float(step_costs(cfg, n, views, n + (finetune or 0)).sum())
+
         lo, hi = views + 1, views + 1 + int(left / (OVERHEAD + min(cfg.coarse_scale, 1.0) ** 2))
         while lo < hi:
             mid = (lo + hi + 1) // 2
-            if step_costs(cfg, mid, views, mid).sum() <= left:
+            if cost(mid) <= left:
                 lo = mid
             else:
                 hi = mid - 1
