@@ -369,32 +369,36 @@ def test_a_plan_prices_each_step_by_its_resolution():
     assert abs(plan.replan(plan.scaled(flat, 7000), 170, 5.0).iterations - (170 + 170 / 5.0 * 595.0)) <= 1
 
 
-def test_a_plan_with_compact_ends_the_fine_tune_within_the_budget():
+def test_a_plan_with_compact_fits_the_fine_tune_into_the_budget():
     """--compact in a planned run: the main steps and the fine-tune a run of that length ends with
     (the template's, scaled with it) fit the time left together, the fine-tune's steps priced at
-    full size. Simulated at a steady speed, planned every tenth of the budget, the whole run ends
-    within it (a share of the time left, planned again and again, pushed the fine-tune past it:
-    lego's 600 s run was 69% through its steps when the budget was spent)."""
+    full size; once the main steps are over, the fine-tune is lengthened to the time left at the
+    speed it runs (its cuts make its steps cheaper). Simulated, planned every tenth of the budget,
+    fine-tune steps at half the price: the run ends at the budget (a share of the time left,
+    planned again and again, had pushed the fine-tune past it: lego's 600 s run was 69% through
+    its steps when the budget was spent)."""
     cfg = make_config("fast", time_budget=600.0, compact=True)
     plan = TimePlan.start(cfg)
     run, views, elapsed, unit = plan.scaled(cfg, 7000), 0, 0.0, 0.02  # seconds per unit of cost
 
-    def until(cfg_, t):  # the views reached at time t, from (views, elapsed), at the steady speed
-        costs = np.cumsum(step_costs(cfg_, cfg_.iterations, views, cfg_.iterations)) * unit
-        return min(cfg_.iterations, views + int(np.searchsorted(costs, t - elapsed, side="right")))
+    def costs(c, a, b):  # the fine-tune's steps (past c.iterations) at half the price of a full one
+        full = step_costs(c, c.iterations, a, b)
+        return np.where(np.arange(a, b) >= c.iterations, 0.5 * full, full) * unit
 
-    first = True
-    while views < run.iterations:
+    first, main = True, None
+    while views < run.total_steps:
         t = elapsed + (5.0 if first else 60.0)
-        nxt = until(run, t)
-        elapsed += float(step_costs(run, run.iterations, views, nxt).sum()) * unit
+        nxt = min(run.total_steps, views + int(np.searchsorted(np.cumsum(costs(run, views, run.total_steps)),
+                                                               t - elapsed, side="right")))
+        elapsed += float(costs(run, views, nxt).sum())
         views, first = nxt, False
-        if views < run.iterations:
-            run = plan.replan(run, views, elapsed)
-    finetune = run.compact.finetune
-    assert finetune == round(3000 * run.iterations / 7000) > 0
-    end = elapsed + float(step_costs(run, run.iterations, run.iterations, run.iterations + finetune).sum()) * unit
-    assert 0.9 * 600.0 <= end <= 600.0 * 1.01, (run.iterations, finetune, elapsed, end)
+        if views < run.total_steps and (plan.due(elapsed) or plan.finetune_due(run, views, elapsed)):
+            if views >= run.iterations and main is None:
+                main = run  # the plan as the main steps ended
+            run = plan.replan(run, views, elapsed) or run
+    assert main is not None and main.compact.finetune == round(3000 * main.iterations / 7000) > 0
+    assert run.iterations == main.iterations and run.compact.finetune > main.compact.finetune  # lengthened
+    assert 0.95 * 600.0 <= elapsed <= 600.0 * 1.01, (run.iterations, run.compact.finetune, elapsed)
 
 
 def test_the_eta_of_a_step_schedule_prices_the_steps_left_by_their_resolution():

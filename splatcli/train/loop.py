@@ -266,8 +266,9 @@ class _Run:
         if k > 1:  # every rank plans from the same clock
             state.counts.elapsed_s, self.stalled = self.comm.mean(
                 torch.tensor([state.counts.elapsed_s, self.stalled, 1.0], dtype=torch.float64)).tolist()
-        planned = (state.plan.replan(self.base, state.counts.images, state.counts.elapsed_s, self.stalled)
-                   if state.plan.due(state.counts.elapsed_s, self.stalled) else None)
+        c = state.counts
+        due = state.plan.due(c.elapsed_s, self.stalled) or state.plan.finetune_due(self.base, c.images, c.elapsed_s)
+        planned = state.plan.replan(self.base, c.images, c.elapsed_s, self.stalled) if due else None
         if planned is not None:
             self.base = planned
             self.trainer.reschedule(planned.for_world(k))

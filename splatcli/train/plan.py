@@ -172,6 +172,15 @@ class TimePlan:
             return None
         return self.replan(cfg, views, elapsed, self.history[-1].get("stalled_s", 0.0), reopen=True)
 
+    def finetune_due(self, cfg: TrainConfig, views: int, elapsed: float) -> bool:
+        """Whether to plan the compaction fine-tune now: at its first step (to start measuring its
+        speed, faster than the main steps' once cut), and `probe_s` seconds later (to plan from it)."""
+        if not cfg.compact.enabled or views < cfg.iterations or not self.history:
+            return False
+        last = self.history[-1]
+        return last["step"] < cfg.iterations or (last.get("fine_tune") == "measuring"
+                                                 and elapsed >= last["elapsed_s"] + self.probe_s)
+
     def due(self, elapsed: float, stalled: float = 0.0) -> bool:
         """Whether to plan now. The first plan waits for `probe_s` seconds of steps, `stalled` seconds
         (compiling kernels) left out: a compile that filled the probe left a second or less of steps
@@ -184,14 +193,15 @@ class TimePlan:
                reopen: bool = False) -> TrainConfig | None:
         """The schedule (one process's, in views) that ends the main steps when the budget
         is spent, at the speed of the views since the last plan; at once when it is spent
-        already. None once the main schedule is over (a fine-tune may follow), unless `reopen`
-        (`extend`). `stalled`: seconds of `elapsed` that were not steps' own work (compiling
-        kernels, --compile): spent from the budget, but left out of the speed."""
-        if views >= cfg.iterations and not reopen:
-            return None
+        already. Once the main schedule is over, the compaction fine-tune (if any) lengthened to
+        the time left, else None; unless `reopen` (`extend`). `stalled`: seconds of `elapsed` that
+        were not steps' own work (compiling kernels, --compile): spent from the budget, but left
+        out of the speed."""
         last = self.history[-1] if self.history else {"step": 0, "elapsed_s": 0.0}
         spent = max(elapsed - last["elapsed_s"] - max(stalled - last.get("stalled_s", 0.0), 0.0), 1e-9)
         rate = (views - last["step"]) / spent  # views per training second, recently
+        if views >= cfg.iterations and not reopen:
+            return self._finetune(cfg, views, elapsed, rate, stalled)
         # Seconds per unit of cost, from the steps since the last plan as they ran.
         unit = spent / max(float(step_costs(cfg, cfg.iterations, last["step"], views).sum()), 1e-9)
         left = max(self.budget_s - elapsed, 0.0) / unit  # cost units the budget still holds
@@ -220,6 +230,24 @@ class TimePlan:
                              "iterations": iterations,
                              **({"max_gaussians": planned.refine.max_gaussians} if self.cap is not None else {})})
         return planned
+
+    def _finetune(self, cfg: TrainConfig, views: int, elapsed: float, rate: float, stalled: float) -> TrainConfig | None:
+        """The compaction fine-tune lengthened to the budget left at the speed since the last plan
+        (all its steps are full-size, and its cuts make them faster than the plan priced them);
+        never shortened, so no cut of its schedule is passed over. None: nothing to change."""
+        if not cfg.compact.enabled:
+            return None
+        if self.history and self.history[-1]["step"] < cfg.iterations:  # the speed since mixes in main steps
+            self.history.append({"step": views, "elapsed_s": round(elapsed, 3), "fine_tune": "measuring",
+                                 **({"stalled_s": round(stalled, 3)} if stalled else {})})
+            return None
+        fits = views + int(rate * max(self.budget_s - elapsed, 0.0)) - cfg.iterations
+        if fits <= cfg.compact.finetune:
+            return None
+        self.history.append({"step": views, "elapsed_s": round(elapsed, 3), "steps_per_s": round(rate, 3),
+                             **({"stalled_s": round(stalled, 3)} if stalled else {}),
+                             "iterations": cfg.iterations, "compact_finetune": fits})
+        return replace(cfg, compact=replace(cfg.compact, finetune=fits))
 
     def record(self) -> dict[str, Any]:
         return {"budget_s": self.budget_s, "template": self.template.record(), "probe_s": self.probe_s, "cap": self.cap,
