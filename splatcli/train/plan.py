@@ -13,7 +13,9 @@ and the refinement window closed before the count reached its cap.
 What a plan sets:
 
 * the preset's schedule in proportion (refinement window, SH growth, fine-tune), with
-  refinement at least every MIN_REFINE_EVERY steps;
+  refinement at least every MIN_REFINE_EVERY steps; with --compact, the main steps and the
+  fine-tune they bring fit the budget together, and once the main steps end the fine-tune
+  is lengthened to the time left at its own speed (the cuts make its steps faster);
 * the means' learning rate held at its initial value for the first LR_HOLD of the run
   (`lr_hold`), then decaying: a compressed exponential decay leaves a short run's last
   half at a tenth of the rate, before the model has its shape; and every rate higher than
