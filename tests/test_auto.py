@@ -51,6 +51,9 @@ def test_a_default_cpu_run_is_planned_into_minutes(proj, monkeypatch):
     assert cfg.time_budget == planning.BUDGET_S and cfg.mcmc.max_gaussians == planning.MIN_GAUSSIANS
     line = planning.summary_line(c, cfg.time_budget)
     assert "trains for 10 min" in line and "--time-budget" in line and "max-gaussians 5000 (0.45 per pixel" in line
+    assert "--compact" not in line
+    assert "then --compact keeps 25% of the Gaussians" in planning.summary_line(c, cfg.time_budget, keep=0.25)
+    assert "sooner" not in planning.summary_line(c, 20.0)  # (it offered 30 s for a 20 s run)
 
 
 def test_every_choice_yields_to_its_option(proj, monkeypatch):

@@ -321,9 +321,10 @@ def _processes(out: Chosen, views: int) -> None:
                                   f"{threads} torch threads each (OMP_NUM_THREADS to choose)"))
 
 
-def summary_line(chosen: Chosen, budget_s: float | None, resume: bool = False) -> str:
+def summary_line(chosen: Chosen, budget_s: float | None, resume: bool = False, keep: float | None = None) -> str:
     """The one line a CLI shows before training: what was chosen (and how the Gaussian count
-    was), the time it will take, and what to change for more quality or more speed."""
+    was, `keep`: the share --compact keeps of it), the time it will take, and what to change for
+    more quality or more speed."""
     what = ", ".join(f"{c.option.replace('_', '-')} {c.value}" + (f" ({c.why})" if resume or c.option == "max_gaussians"
                                                                    else "") for c in chosen.choices)
     if resume:
@@ -331,5 +332,8 @@ def summary_line(chosen: Chosen, budget_s: float | None, resume: bool = False) -
     if budget_s is None:
         return f"chose {what}"
     eta = f"trains for {budget_s / 60:.0f} min" if budget_s >= 180 else f"trains for {budget_s:.0f} s"
-    return (f"{eta} ({what}); more quality: --time-budget {int(budget_s * 3)}, sooner: --time-budget "
-            f"{int(max(30, budget_s / 4))}; every choice yields to its option (train --help)")
+    if keep is not None:
+        what += f"; then --compact keeps {keep:.0%} of the Gaussians, those with the most blending weight"
+    sooner = f", sooner: --time-budget {int(max(30, budget_s / 4))}" if budget_s > 30 else ""
+    return (f"{eta} ({what}); more quality: --time-budget {int(budget_s * 3)}{sooner}; every choice yields to its "
+            "option (train --help)")

@@ -41,7 +41,9 @@ def train(
     dev, drawer = resolve(device, renderer, quiet)
     (proj := Project.open(project)).require_processed()  # input errors before the progress display starts
     cfg, chosen = configure(proj, given, nproc, dev, drawer.name, resume)  # cli/planning.py chooses; given options win
-    for line, level in ((drawer.note, "warning"), (chosen.choices and summary_line(chosen, None if resume else cfg.time_budget, resume), "note")):
+    chose = chosen.choices and summary_line(chosen, None if resume else cfg.time_budget, resume,
+                                            cfg.compact.keep if cfg.compact.enabled else None)
+    for line, level in ((drawer.note, "warning"), (chose, "note")):
         if line and not in_worker():
             Ui(quiet=quiet).note(line, level)
     if chosen.nproc is not None and not in_worker():  # K copies of this command, sent the config; rank 0 reports
