@@ -321,6 +321,14 @@ def _processes(out: Chosen, views: int) -> None:
                                   f"{threads} torch threads each (OMP_NUM_THREADS to choose)"))
 
 
+def chosen_line(chosen: Chosen, cfg: TrainConfig, resume: bool) -> str | None:
+    """`summary_line` for the run `cfg` (None: nothing was chosen)."""
+    if not chosen.choices:
+        return None
+    return summary_line(chosen, None if resume else cfg.time_budget, resume,
+                        cfg.compact.keep if cfg.compact.enabled else None)
+
+
 def summary_line(chosen: Chosen, budget_s: float | None, resume: bool = False, keep: float | None = None) -> str:
     """The one line a CLI shows before training: what was chosen (and how the Gaussian count
     was, `keep`: the share --compact keeps of it), the time it will take, and what to change for

@@ -16,7 +16,7 @@ from ..train.launch import launch
 from ..train.loop import train as run_train
 from .common import DebugOpt, DeviceOpt, JsonOpt, QuietOpt, RendererOpt, Ui, resolve
 from .options import GIVEN, config_options
-from .planning import summary_line
+from .planning import chosen_line
 from .train_config import configure, preset_options
 from .view_cmd import live_viewer
 
@@ -41,9 +41,7 @@ def train(
     dev, drawer = resolve(device, renderer, quiet)
     (proj := Project.open(project)).require_processed()  # input errors before the progress display starts
     cfg, chosen = configure(proj, given, nproc, dev, drawer.name, resume)  # cli/planning.py chooses; given options win
-    chose = chosen.choices and summary_line(chosen, None if resume else cfg.time_budget, resume,
-                                            cfg.compact.keep if cfg.compact.enabled else None)
-    for line, level in ((drawer.note, "warning"), (chose, "note")):
+    for line, level in ((drawer.note, "warning"), (chosen_line(chosen, cfg, resume), "note")):
         if line and not in_worker():
             Ui(quiet=quiet).note(line, level)
     if chosen.nproc is not None and not in_worker():  # K copies of this command, sent the config; rank 0 reports
