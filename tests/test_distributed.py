@@ -95,7 +95,7 @@ def test_resume_with_another_number_of_processes(tmp_path):
     assert s["resumed_from"] == 600 and s["steps"] == 620 and s["nproc"] == 2
     assert {"option": "nproc", "value": 2, "why": "the run's own; --nproc 1 for one"} in s["chosen"]
     steps = [r["step"] for r in read_log(proj.train_log_path)]
-    assert steps == sorted(steps) and steps[-1] == 600  # one log, counted in views, in order
+    assert steps == sorted(steps) and steps[-1] == 620  # one log, counted in views, in order
 
 
 def _children(pid: int) -> dict[int, int]:
