@@ -135,6 +135,7 @@ def test_interrupt_and_resume_is_bitwise_identical(tmp_path, stop, uninterrupted
     assert [(r["step"], r["loss"], r["num_gaussians"], r.get("psnr")) for r in la] == \
            [(r["step"], r["loss"], r["num_gaussians"], r.get("psnr")) for r in lb]
     assert sa.compact is not None and sa.compact.after_count < sa.compact.before_count
+    assert f"; --compact kept these of {sa.compact.before_count:,} (" in sa.model_line()
 
 
 def _nan_on(steps: set[int] | None):

@@ -408,8 +408,13 @@ class TrainSummary:
         return asdict(self)
 
     def model_line(self) -> str:
-        """The model in one line: its count, SH degree and .ply size."""
-        return f"{self.num_gaussians:,} Gaussians, SH degree {self.sh_degree}, .ply {self.ply_bytes / 1e6:.2f} MB"
+        """The model in one line: its count, SH degree and .ply size (and what --compact cut)."""
+        line = f"{self.num_gaussians:,} Gaussians, SH degree {self.sh_degree}, .ply {self.ply_bytes / 1e6:.2f} MB"
+        c = self.compact
+        if c is not None:
+            psnr = f", {c.before_psnr:.2f} dB held out" if c.before_psnr is not None else ""
+            line += f"; --compact kept these of {c.before_count:,} ({c.before_bytes / 1e6:.2f} MB{psnr})"
+        return line
 
 
 @dataclass
