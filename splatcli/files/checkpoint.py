@@ -166,22 +166,26 @@ def load_checkpoint(path: str | Path, device: torch.device | str = "cpu") -> Che
     )
 
 
-def read_checkpoint_config(path: str | Path) -> dict[str, Any]:
-    """The train config a checkpoint stores (its tensors mapped, not read), for `train --resume`
-    to build the run's config before the checkpoint is loaded."""
+def _mapped(path: str | Path) -> dict[str, Any]:
+    """A checkpoint with its tensors mapped, not read, once it is one with a stored train config."""
     path = Path(path)
     raw = _safe_load(path, mmap=True)
     if not isinstance(raw, dict) or raw.get("format") != CHECKPOINT_FORMAT or not isinstance(raw.get("config"), dict):
         raise SplatError(f"{path}: not a splatcli checkpoint with a stored train config")
-    return raw["config"]
+    return raw
+
+
+def read_checkpoint_config(path: str | Path) -> dict[str, Any]:
+    """The train config a checkpoint stores, for `train --resume` to build the run's config
+    before the checkpoint is loaded."""
+    return _mapped(path)["config"]
 
 
 def read_checkpoint_world(path: str | Path) -> int | None:
     """How many data-parallel processes trained up to a checkpoint (None: not recorded, as in
     checkpoints written before it was), for `train --resume` to go on with as many."""
-    raw = _safe_load(Path(path), mmap=True)
-    world = raw.get("extra", {}).get("world") if isinstance(raw, dict) else None
-    return int(world) if isinstance(world, int) and world >= 1 else None
+    world = (_mapped(path).get("extra") or {}).get("world")
+    return world if isinstance(world, int) and world >= 1 else None
 
 
 def load_gaussians(path: str | Path, device: torch.device | str = "cpu") -> Gaussians:

@@ -227,11 +227,14 @@ class TimePlan:
         ahead = views + int(np.searchsorted(np.cumsum(step_costs(cfg, iterations, views, iterations)), until_next))
         ahead = min(iterations, ahead)
         planned = self.scaled(cfg, iterations, ahead)
-        self.history.append({"step": views, "elapsed_s": round(elapsed, 3), "steps_per_s": round(rate, 3),
-                             **({"stalled_s": round(stalled, 3)} if stalled else {}),
-                             "iterations": iterations,
-                             **({"max_gaussians": planned.refine.max_gaussians} if self.cap is not None else {})})
+        self._record(views, elapsed, stalled, steps_per_s=round(rate, 3), iterations=iterations,
+                     **({"max_gaussians": planned.refine.max_gaussians} if self.cap is not None else {}))
         return planned
+
+    def _record(self, views: int, elapsed: float, stalled: float, **what: Any) -> None:
+        """One entry of the plan's history (train.json): where the run was, and what was planned."""
+        self.history.append({"step": views, "elapsed_s": round(elapsed, 3),
+                             **({"stalled_s": round(stalled, 3)} if stalled else {}), **what})
 
     def _finetune(self, cfg: TrainConfig, views: int, elapsed: float, rate: float, stalled: float) -> TrainConfig | None:
         """The compaction fine-tune lengthened to the budget left at the speed since the last plan
@@ -240,16 +243,12 @@ class TimePlan:
         if not cfg.compact.enabled:
             return None
         if self.history and self.history[-1]["step"] < cfg.iterations:  # the speed since mixes in main steps
-            self.history.append({"step": views, "elapsed_s": round(elapsed, 3), "fine_tune": "measuring",
-                                 **({"stalled_s": round(stalled, 3)} if stalled else {})})
+            self._record(views, elapsed, stalled, fine_tune="measuring")
             return None
-        fits = views + int(rate * max(self.budget_s - elapsed, 0.0)) - cfg.iterations
-        if fits <= cfg.compact.finetune:
-            return None
-        self.history.append({"step": views, "elapsed_s": round(elapsed, 3), "steps_per_s": round(rate, 3),
-                             **({"stalled_s": round(stalled, 3)} if stalled else {}),
-                             "iterations": cfg.iterations, "compact_finetune": fits})
-        return replace(cfg, compact=replace(cfg.compact, finetune=fits))
+        fits = max(cfg.compact.finetune, views + int(rate * max(self.budget_s - elapsed, 0.0)) - cfg.iterations)
+        self._record(views, elapsed, stalled, steps_per_s=round(rate, 3), iterations=cfg.iterations,
+                     compact_finetune=fits)
+        return replace(cfg, compact=replace(cfg.compact, finetune=fits)) if fits > cfg.compact.finetune else None
 
     def record(self) -> dict[str, Any]:
         return {"budget_s": self.budget_s, "template": self.template.record(), "probe_s": self.probe_s, "cap": self.cap,
