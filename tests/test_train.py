@@ -8,6 +8,7 @@ import json
 import math
 import os
 import signal
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -400,6 +401,20 @@ def test_a_plan_with_compact_fits_the_fine_tune_into_the_budget():
     assert main is not None and main.compact.finetune == round(3000 * main.iterations / 7000) > 0
     assert run.iterations == main.iterations and run.compact.finetune > main.compact.finetune  # lengthened
     assert 0.95 * 600.0 <= elapsed <= 600.0 * 1.01, (run.iterations, run.compact.finetune, elapsed)
+
+
+def test_a_fine_tune_still_going_when_the_budget_is_spent_ends_there():
+    """Lengthened at a speed it then falls short of, the fine-tune ends at the step that spends the
+    budget once past its first half (where the cuts are), in one plan; before its half, it goes on."""
+    cfg = make_config("fast", time_budget=600.0, compact=True)
+    plan = TimePlan.start(cfg)
+    run = plan.scaled(cfg, 2000)
+    plan.history = [{"step": 1900, "elapsed_s": 500.0, "steps_per_s": 6.0, "iterations": 2000, "compact_finetune": 1200}]
+    run = replace(run, compact=replace(run.compact, finetune=1200))
+    assert plan.replan(run, 2500, 600.5) is None  # 500 of 1,200 done: its cuts are not all made
+    ended = plan.replan(run, 2700, 601.0)
+    assert ended is not None and ended.total_steps == 2700 and plan.history[-1]["compact_finetune"] == 700
+    assert plan.replan(ended, 2700, 601.0) is None  # nothing more to change
 
 
 def test_the_eta_of_a_step_schedule_prices_the_steps_left_by_their_resolution():

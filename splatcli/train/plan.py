@@ -239,16 +239,22 @@ class TimePlan:
     def _finetune(self, cfg: TrainConfig, views: int, elapsed: float, rate: float, stalled: float) -> TrainConfig | None:
         """The compaction fine-tune lengthened to the budget left at the speed since the last plan
         (all its steps are full-size, and its cuts make them faster than the plan priced them);
-        never shortened, so no cut of its schedule is passed over. None: nothing to change."""
+        shortened only to end it once the budget is spent past its first half, so no cut of its
+        schedule is passed over (lego's lengthened fine-tune, slower than measured, went 16 steps
+        past the budget, planning again at each). None: nothing to change."""
         if not cfg.compact.enabled:
             return None
         if self.history and self.history[-1]["step"] < cfg.iterations:  # the speed since mixes in main steps
             self._record(views, elapsed, stalled, fine_tune="measuring")
             return None
-        fits = max(cfg.compact.finetune, views + int(rate * max(self.budget_s - elapsed, 0.0)) - cfg.iterations)
+        done = views - cfg.iterations
+        if elapsed >= self.budget_s and 2 * done >= cfg.compact.finetune:
+            fits = done  # spent, and past every cut (they lie in its first half): it ends here, not a step at a time
+        else:
+            fits = max(cfg.compact.finetune, views + int(rate * max(self.budget_s - elapsed, 0.0)) - cfg.iterations)
         self._record(views, elapsed, stalled, steps_per_s=round(rate, 3), iterations=cfg.iterations,
                      compact_finetune=fits)
-        return replace(cfg, compact=replace(cfg.compact, finetune=fits)) if fits > cfg.compact.finetune else None
+        return replace(cfg, compact=replace(cfg.compact, finetune=fits)) if fits != cfg.compact.finetune else None
 
     def record(self) -> dict[str, Any]:
         return {"budget_s": self.budget_s, "template": self.template.record(), "probe_s": self.probe_s, "cap": self.cap,
