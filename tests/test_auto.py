@@ -50,9 +50,9 @@ def test_a_default_cpu_run_is_planned_into_minutes(proj, monkeypatch):
     cfg = make_config(chosen=c)  # the choices make a valid config
     assert cfg.time_budget == planning.BUDGET_S and cfg.mcmc.max_gaussians == planning.MIN_GAUSSIANS
     line = planning.summary_line(c, cfg.time_budget)
-    assert "trains for 10 min" in line and "--time-budget" in line and "max-gaussians 5000 (0.45 per pixel" in line
+    assert "trains for 10 min" in line and "--time-budget" in line and "max-gaussians 5000 (0.225 per pixel" in line
     assert "--compact" not in line
-    assert "then --compact keeps 25% of the Gaussians" in planning.summary_line(c, cfg.time_budget, keep=0.25)
+    assert "then --compact keeps 25% of them" in planning.summary_line(c, cfg.time_budget, keep=0.25)
     assert "sooner" not in planning.summary_line(c, 20.0)  # (it offered 30 s for a 20 s run)
 
 
@@ -115,10 +115,41 @@ def test_a_capture_of_many_views_and_points_gets_more_time_and_gaussians(proj, m
     assert "218 training views" in next(x.why for x in c.choices if x.option == "time_budget")
     assert "time_budget" not in _chosen(_choose(proj, {"time_budget": 300.0}))
     assert _chosen(_choose(proj, {"max_gaussians": 7_000})).get("max_gaussians") is None
-    for t, budget in ((250 / 27, 259_000), (1.0, 346_000)):  # 27 views' worth: x 3; 250: x MAX_COVERAGE (4)
+    for t, grown in ((250 / 13.5, 102_000), (250 / 27, 173_000), (1.0, 173_000)):  # x 2.25: under 3 per point; x 4
         monkeypatch.setattr(planning, "read_project_scene", lambda p, t=t: SceneData(many, points, 0 * points, t))
         got = [(x.value, f"seen by {t:.1f} of 250 views" in x.why) for x in _choose(proj, {}).choices]
-        assert (budget, True) in got, got
+        assert (grown, grown > 102_000) in got, got
+
+
+def test_a_capture_seen_all_round_grows_then_keeps_what_it_needs(proj, monkeypatch):
+    """The model kept is a view's pixels' or the SfM points' worth; a capture that shows k views'
+    worth of surface grows to k^2 times the pixels' (at most MAX_GROWTH) first, and where that is at
+    least COMPACT_FROM times the model kept and the run has the default budget or more, --compact
+    keeps that share (fox: k = 1, trained at its size; lego: k = 2.1, 207,000 grown, 25% kept).
+    --compact, --compact-keep or --max-gaussians given, or a shorter budget: no compaction chosen."""
+    cam = planning.read_project_scene(proj).cameras[0]
+    views = [replace(cam.scaled(10.0), name=f"{i:04d}.png") for i in range(100)]  # 480x400 photos
+    points = np.zeros((5_000, 3))
+
+    def scene(t: float) -> None:
+        monkeypatch.setattr(planning, "read_project_scene", lambda p: SceneData(views, points, 0 * points, t))
+
+    monkeypatch.setattr(planning, "free_cores", lambda: 1)
+    scene(100 / 9 / 2.1)  # lego's coverage
+    c = _choose(proj, {})
+    got = _chosen(c)
+    assert got["max_gaussians"] == 173_000 and got["compact_keep"] == round(43_000 / 173_000, 4)
+    cfg = make_config(chosen=c)
+    assert cfg.compact.enabled and cfg.compact.keep == got["compact_keep"] and cfg.mcmc.max_gaussians == 173_000
+    line = planning.chosen_line(c, cfg, False)
+    assert "then --compact keeps 25% of them" in line and "compact-keep" not in line
+    for given in ({"compact": False}, {"compact": True}, {"max_gaussians": 50_000}, {"time_budget": 300.0}):
+        got = _chosen(_choose(proj, given))
+        assert "compact_keep" not in got, given
+    assert make_config(compact=True, chosen=_choose(proj, {"compact": True})).compact.keep == 1 / 3  # the option's own
+    scene(100 / 9)  # fox's: one view's worth
+    got = _chosen(_choose(proj, {}))
+    assert got["max_gaussians"] == 43_000 and "compact_keep" not in got
 
 
 def test_cuda_and_resume_choose_nothing(proj):

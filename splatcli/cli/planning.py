@@ -4,7 +4,8 @@ that ends in minutes, sized to the capture and to the machine.
 With no schedule given (no --preset, --iterations or --time-budget) a CPU run gets the
 fast preset's shape planned into a time budget that grows with the number of training views
 (`default_budget`), at a training size a CPU handles, with MCMC's fixed Gaussian budget (from a
-view's pixels or the SfM points, whichever is more) grown on a curve tied to the time
+view's pixels or the SfM points, whichever is more; a capture seen all round grows to several
+times that, then --compact keeps that many: `_budget`) grown on a curve tied to the time
 (train/plan.py), and one process per free core (a resumed run: as many as trained it). A run
 given only a --time-budget gets the same but the appearance model, at a training size that grows
 with the budget beyond the default one
@@ -37,14 +38,18 @@ from ..train.config import TrainConfig, preset_config
 
 BUDGET_S = 600.0  # training seconds of a default CPU run: with loading and the last evaluation, ends within 15 min
 MAX_SIZE = 480  # px, the longest side a default CPU run trains at
-GAUSSIANS_PER_PIXEL = 0.45  # the MCMC budget per training pixel (fox at 480 px: 58k; lego at 200 px: 18k)
-# A capture's own content: the budget leaves room to grow to this many Gaussians per SfM point (a scene
-# seen all round, background and all, holds far more than one view's pixels suggest).
+GAUSSIANS_PER_PIXEL = 0.225  # the model kept, per training pixel (fox at 480 px: 29k)
+# A capture's own content: the model keeps at least this many Gaussians per SfM point (a scene seen all round,
+# background and all, holds far more than one view's pixels suggest: 250 video frames, 101k).
 GAUSSIANS_PER_POINT = 3
-# What one view's pixels miss: photos whose SfM points are each seen by t of n show about n / t views' worth of surface;
-# the per-pixel budget is scaled by (n / t) / COVERAGE_SEEN, from 1 to MAX_COVERAGE. Fox (50 photos facing one way,
-# t = 5.6: x 1) held its PSNR at half; lego (100 all round, t = 5.2: x 2.1) gains from more (benchmarks, "Model size").
-COVERAGE_SEEN, MAX_COVERAGE = 9.0, 4.0
+# What one view's pixels miss: photos whose SfM points are each seen by t of n show about k = (n / t) / COVERAGE_SEEN
+# views' worth of surface (at least 1). Such a capture grows to k^2 times the per-pixel model (at most
+# MAX_GROWTH times) to find its detail, then keeps the Gaussians with the most blending weight (--compact), where
+# the run is long enough to fine-tune what it keeps. Fox (50 photos facing one way, t = 5.6: k = 1) trains its 29k
+# directly (compacting 58k cost 0.25 dB); lego (100 all round, t = 5.2: k = 2.1) trained at 52k lost 1.6 dB to
+# growing to 222k, and compacting that to 40k 0.46 dB (docs/benchmarks.md, "Model size").
+COVERAGE_SEEN, MAX_GROWTH = 9.0, 4.0
+COMPACT_FROM = 1.5  # compacted only where the model grown is at least this many times the one kept
 # Captures of more training views train longer, so that each photo is still seen often enough: the
 # default budget up to VIEWS_AT_BUDGET views, then growing with the square root of the count, to at
 # most MAX_BUDGET_FACTOR times it (about 18 minutes: with loading and evaluation, within 20).
@@ -73,6 +78,8 @@ class Asked:
     appearance: str | None = None
     strategy: str | None = None
     max_gaussians: int | None = None
+    compact: bool | None = None
+    compact_keep: float | None = None
     downscale: float = 1.0  # given or the default: the training size is chosen in its units
     mcmc_fits: bool = True  # every option given applies to --strategy mcmc (none is the default strategy's alone)
 
@@ -106,6 +113,7 @@ class Chosen:
     appearance: str | None = None
     strategy: str | None = None
     max_gaussians: int | None = None  # MCMC's budget (chosen with --strategy mcmc alone)
+    compact_keep: float | None = None  # --compact chosen, keeping this share of what grew
     threads: int | None = None  # torch threads of each process
     choices: list[Choice] = field(default_factory=list)
 
@@ -119,6 +127,8 @@ class Chosen:
             cfg = replace(cfg, appearance=self.appearance)
         if self.max_gaussians is not None:
             cfg = replace(cfg, mcmc=replace(cfg.mcmc, max_gaussians=self.max_gaussians))
+        if self.compact_keep is not None:
+            cfg = replace(cfg, compact=replace(cfg.compact, enabled=True, keep=self.compact_keep))
         return cfg
 
     def record(self) -> list[dict[str, Any]]:
@@ -278,21 +288,45 @@ def choose(project: Project, given: options.Given, nproc: int | None, device: to
     if asked.strategy in (None, "mcmc") and asked.mcmc_fits:
         out.strategy = pick(asked.strategy, "strategy", "mcmc", "a fixed Gaussian budget, grown on a curve planned "
                             "to the time")
-        out.max_gaussians = pick(asked.max_gaussians, "max_gaussians", *_budget(train_px, scene))
+        size = _budget(train_px, scene)
+        compact = size.grown >= COMPACT_FROM * size.kept and budget >= BUDGET_S
+        out.max_gaussians = pick(asked.max_gaussians, "max_gaussians", size.grown, size.why)
+        if compact and out.max_gaussians is not None and asked.compact is None and asked.compact_keep is None:
+            out.compact_keep = pick(None, "compact_keep", round(size.kept / size.grown, 4),
+                                    f"grown to find the detail, then at most {size.kept:,} kept, those with the most "
+                                    "blending weight (--no-compact keeps all)")
     if nproc is None:
         _processes(out, len(cams))
     return out
 
 
-def _budget(train_px: int, scene: SceneData) -> tuple[int, str]:
-    """MCMC's Gaussian budget for a training view of `train_px` pixels in `scene`, and why."""
+@dataclass(frozen=True)
+class Budget:
+    """MCMC's Gaussian budget for a capture: the count it grows to, the count kept at the end
+    (where the run compacts; else it keeps what grew), and why."""
+
+    grown: int
+    kept: int
+    why: str
+
+
+def _budget(train_px: int, scene: SceneData) -> Budget:
+    """The Gaussian budget for a training view of `train_px` pixels in `scene` (the constants above)."""
     n, t = len(scene.cameras), scene.views_per_point
-    k = min(MAX_COVERAGE, max(1.0, n / t / COVERAGE_SEEN)) if t > 0 else 1.0
-    by_px, by_pts = GAUSSIANS_PER_PIXEL * k * train_px, GAUSSIANS_PER_POINT * len(scene.points)
-    seen = f" x {k:.1f}: each SfM point is seen by {t:.1f} of {n} views" if k > 1 else ""
-    why = (f"{GAUSSIANS_PER_PIXEL} per pixel of a {train_px:,}-pixel training view{seen}" if by_px >= by_pts else
-           f"{GAUSSIANS_PER_POINT} per SfM point ({len(scene.points):,}): room to grow beyond what the capture holds")
-    return int(min(MAX_GAUSSIANS, max(MIN_GAUSSIANS, round(max(by_px, by_pts), -3)))), why
+    k = max(1.0, n / t / COVERAGE_SEEN) if t > 0 else 1.0
+    growth = min(MAX_GROWTH, k * k)
+    by_px, by_pts = GAUSSIANS_PER_PIXEL * train_px, GAUSSIANS_PER_POINT * len(scene.points)
+
+    def count(x: float) -> int:
+        return int(min(MAX_GAUSSIANS, max(MIN_GAUSSIANS, round(x, -3))))
+
+    kept, grown = count(max(by_px, by_pts)), count(max(by_px * growth, by_pts))
+    px = f"{GAUSSIANS_PER_PIXEL} per pixel of a {train_px:,}-pixel training view"
+    why = px if by_px >= by_pts else f"{GAUSSIANS_PER_POINT} per SfM point ({len(scene.points):,})"
+    if by_px * growth > by_pts:
+        why = (f"{px} x {growth:.1f} to grow into: each SfM point is seen by {t:.1f} of {n} views, so the capture "
+               f"shows about {k:.1f} views' worth of surface")
+    return Budget(grown=grown, kept=kept, why=why)
 
 
 def _resumed_processes(out: Chosen, project: Project) -> None:
@@ -333,15 +367,16 @@ def summary_line(chosen: Chosen, budget_s: float | None, resume: bool = False, k
     """The one line a CLI shows before training: what was chosen (and how the Gaussian count
     was, `keep`: the share --compact keeps of it), the time it will take, and what to change for
     more quality or more speed."""
+    listed = [c for c in chosen.choices if resume or c.option != "compact_keep"]  # (else said with `keep`)
     what = ", ".join(f"{c.option.replace('_', '-')} {c.value}" + (f" ({c.why})" if resume or c.option == "max_gaussians"
-                                                                   else "") for c in chosen.choices)
+                                                                   else "") for c in listed)
     if resume:
         return f"resumes with {what}"
     if budget_s is None:
         return f"chose {what}"
     eta = f"trains for {budget_s / 60:.0f} min" if budget_s >= 180 else f"trains for {budget_s:.0f} s"
     if keep is not None:
-        what += f"; then --compact keeps {keep:.0%} of the Gaussians, those with the most blending weight"
+        what += f"; then --compact keeps {keep:.0%} of them, those with the most blending weight"
     sooner = f", sooner: --time-budget {int(max(30, budget_s / 4))}" if budget_s > 30 else ""
     return (f"{eta} ({what}); more quality: --time-budget {int(budget_s * 3)}{sooner}; every choice yields to its "
             "option (train --help)")

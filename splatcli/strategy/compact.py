@@ -10,7 +10,9 @@
   densification: the default strategy stops at the end of the main schedule).
 What a plain weight threshold would drop is not free: on fox at 58,000 Gaussians, the 17% under
 one pixel of training-view weight between them all (0.06% of the total) cost 0.12 dB on the
-held-out views (docs/benchmarks.md, "Model size"), so nothing is dropped unless asked.
+held-out views (docs/benchmarks.md, "Model size"), so the cut keeps a count, not a threshold:
+the one asked for, or (a planned run on a capture seen all round, cli/planning.py) the one the
+capture's pixels or SfM points call for, after growing several times that to find the detail.
 """
 
 from __future__ import annotations
@@ -72,7 +74,8 @@ class ShAutoStep(ModelStep):
 @dataclass(frozen=True)
 class CompactConfig:
     enabled: bool = opt(False, "After training, keep compact_keep of the Gaussians (a third), those with the most "
-                        "blending weight, cut in compact_rounds rounds while fine-tuning compact_finetune more steps.",
+                        "blending weight, cut in compact_rounds rounds while fine-tuning compact_finetune more steps "
+                        "(chosen with no options for a capture seen all round: it grows, then keeps what it needs).",
                         name="compact", group=MODEL)
     keep: float = opt(1 / 3, "With --compact: the share of the Gaussians kept, those with the most blending weight "
                       "over the training views.", more_than=0, at_most=1, group=MODEL)
