@@ -404,8 +404,9 @@ def test_a_plan_with_compact_fits_the_fine_tune_into_the_budget():
 
 
 def test_a_fine_tune_still_going_when_the_budget_is_spent_ends_there():
-    """Lengthened at a speed it then falls short of, the fine-tune ends at the step that spends the
-    budget once past its first half (where the cuts are), in one plan; before its half, it goes on."""
+    """Lengthened at a speed it then falls short of, the fine-tune ends with the step after the one
+    that spends the budget once past its first half (where the cuts are), in one plan (it had planned
+    again at every step); before its half, it goes on."""
     cfg = make_config("fast", time_budget=600.0, compact=True)
     plan = TimePlan.start(cfg)
     run = plan.scaled(cfg, 2000)
@@ -413,8 +414,9 @@ def test_a_fine_tune_still_going_when_the_budget_is_spent_ends_there():
     run = replace(run, compact=replace(run.compact, finetune=1200))
     assert plan.replan(run, 2500, 600.5) is None  # 500 of 1,200 done: its cuts are not all made
     ended = plan.replan(run, 2700, 601.0)
-    assert ended is not None and ended.total_steps == 2700 and plan.history[-1]["compact_finetune"] == 700
-    assert plan.replan(ended, 2700, 601.0) is None  # nothing more to change
+    assert ended is not None and ended.total_steps == 2701 and plan.history[-1]["fine_tune"] == "ended"
+    assert ended.for_world(2).total_steps == 1350  # two ranks at step 1,350: it ends there (or one step later)
+    assert plan.replan(ended, 2701, 601.2) is None and len(plan.history) == 3  # planned once
 
 
 def test_the_eta_of_a_step_schedule_prices_the_steps_left_by_their_resolution():

@@ -247,14 +247,19 @@ class TimePlan:
         if self.history and self.history[-1]["step"] < cfg.iterations:  # the speed since mixes in main steps
             self._record(views, elapsed, stalled, fine_tune="measuring")
             return None
+        if self.history[-1].get("fine_tune") == "ended":
+            return None
         done = views - cfg.iterations
         if elapsed >= self.budget_s and 2 * done >= cfg.compact.finetune:
-            fits = done  # spent, and past every cut (they lie in its first half): it ends here, not a step at a time
-        else:
-            fits = max(cfg.compact.finetune, views + int(rate * max(self.budget_s - elapsed, 0.0)) - cfg.iterations)
+            # Spent, and past every cut (they lie in its first half): it ends with the next view (this step's hooks
+            # have run, as when the main steps end), not a step at a time.
+            fits = done + 1
+            self._record(views, elapsed, stalled, fine_tune="ended", iterations=cfg.iterations, compact_finetune=fits)
+            return replace(cfg, compact=replace(cfg.compact, finetune=fits))
+        fits = max(cfg.compact.finetune, views + int(rate * max(self.budget_s - elapsed, 0.0)) - cfg.iterations)
         self._record(views, elapsed, stalled, steps_per_s=round(rate, 3), iterations=cfg.iterations,
                      compact_finetune=fits)
-        return replace(cfg, compact=replace(cfg.compact, finetune=fits)) if fits != cfg.compact.finetune else None
+        return replace(cfg, compact=replace(cfg.compact, finetune=fits)) if fits > cfg.compact.finetune else None
 
     def record(self) -> dict[str, Any]:
         return {"budget_s": self.budget_s, "template": self.template.record(), "probe_s": self.probe_s, "cap": self.cap,
