@@ -126,7 +126,8 @@ def test_a_capture_seen_all_round_grows_then_keeps_what_it_needs(proj, monkeypat
     worth of surface grows to k^2 times the pixels' (at most MAX_GROWTH) first, and where that is at
     least COMPACT_FROM times the model kept and the run has the default budget or more, --compact
     keeps that share (fox: k = 1, trained at its size; lego: k = 2.1, 207,000 grown, 25% kept).
-    --compact, --compact-keep or --max-gaussians given, or a shorter budget: no compaction chosen."""
+    --compact, --compact-keep or --max-gaussians given, or a shorter budget: no compaction chosen,
+    and a shorter budget keeps 2k times the pixels' count."""
     cam = planning.read_project_scene(proj).cameras[0]
     views = [replace(cam.scaled(10.0), name=f"{i:04d}.png") for i in range(100)]  # 480x400 photos
     points = np.zeros((5_000, 3))
@@ -147,9 +148,12 @@ def test_a_capture_seen_all_round_grows_then_keeps_what_it_needs(proj, monkeypat
         got = _chosen(_choose(proj, given))
         assert "compact_keep" not in got, given
     assert make_config(compact=True, chosen=_choose(proj, {"compact": True})).compact.keep == 1 / 3  # the option's own
+    # A shorter run has no time to cut: it keeps 2k times the pixels' count (lego's 90 s and fox's 300 s trained best so).
+    assert _chosen(_choose(proj, {"time_budget": 300.0}))["max_gaussians"] == round(2 * 2.1 * 43_200, -3)
     scene(100 / 9)  # fox's: one view's worth
     got = _chosen(_choose(proj, {}))
     assert got["max_gaussians"] == 43_000 and "compact_keep" not in got
+    assert _chosen(_choose(proj, {"time_budget": 300.0}))["max_gaussians"] == 86_000
 
 
 def test_cuda_and_resume_choose_nothing(proj):

@@ -38,16 +38,20 @@ from ..train.config import TrainConfig, preset_config
 
 BUDGET_S = 600.0  # training seconds of a default CPU run: with loading and the last evaluation, ends within 15 min
 MAX_SIZE = 480  # px, the longest side a default CPU run trains at
-GAUSSIANS_PER_PIXEL = 0.225  # the model kept, per training pixel (fox at 480 px: 29k)
+GAUSSIANS_PER_PIXEL = 0.225  # the model kept, per training pixel (fox at 480 px: 29k; lego 52k)
 # A capture's own content: the model keeps at least this many Gaussians per SfM point (a scene seen all round,
 # background and all, holds far more than one view's pixels suggest: 250 video frames, 101k).
 GAUSSIANS_PER_POINT = 3
 # What one view's pixels miss: photos whose SfM points are each seen by t of n show about k = (n / t) / COVERAGE_SEEN
 # views' worth of surface (at least 1). Such a capture grows to k^2 times the per-pixel model (at most
 # MAX_GROWTH times) to find its detail, then keeps the Gaussians with the most blending weight (--compact), where
-# the run is long enough to fine-tune what it keeps. Fox (50 photos facing one way, t = 5.6: k = 1) trains its 29k
-# directly (compacting 58k cost 0.25 dB); lego (100 all round, t = 5.2: k = 2.1) trained at 52k lost 1.6 dB to
-# growing to 222k, and compacting that to 40k 0.46 dB (docs/benchmarks.md, "Model size").
+# the run is long enough to fine-tune what it keeps. Fox (50 photos facing one way, t = 5.6: k = 1) trains its 30k
+# directly (58k cut to half in the same 10 minutes ended 0.16 dB lower); lego (100 all round, t = 5.2: k = 2.1)
+# trained at 52k ends 1.28 dB below a 222k budget, and grown to 207k then cut to a quarter ends 0.36 dB above it
+# (docs/benchmarks.md, "Model size").
+# A run shorter than the default budget has no time to cut and fine-tune: it trains and keeps 2k times the per-pixel
+# model (k at most MAX_GROWTH), the count that reached the highest PSNR in 90 s and 300 s (fox at 300 s: 58k 31.63 dB,
+# 30k 31.38; lego at 90 s: 39k 34.15, 36k 34.09).
 COVERAGE_SEEN, MAX_GROWTH = 9.0, 4.0
 COMPACT_FROM = 1.5  # compacted only where the model grown is at least this many times the one kept
 # Captures of more training views train longer, so that each photo is still seen often enough: the
@@ -288,8 +292,8 @@ def choose(project: Project, given: options.Given, nproc: int | None, device: to
     if asked.strategy in (None, "mcmc") and asked.mcmc_fits:
         out.strategy = pick(asked.strategy, "strategy", "mcmc", "a fixed Gaussian budget, grown on a curve planned "
                             "to the time")
-        size = _budget(train_px, scene)
-        compact = size.grown >= COMPACT_FROM * size.kept and budget >= BUDGET_S
+        size = _budget(train_px, scene, short=budget < BUDGET_S)
+        compact = size.grown >= COMPACT_FROM * size.kept
         out.max_gaussians = pick(asked.max_gaussians, "max_gaussians", size.grown, size.why)
         if compact and out.max_gaussians is not None and asked.compact is None and asked.compact_keep is None:
             out.compact_keep = pick(None, "compact_keep", round(size.kept / size.grown, 4),
@@ -310,22 +314,26 @@ class Budget:
     why: str
 
 
-def _budget(train_px: int, scene: SceneData) -> Budget:
-    """The Gaussian budget for a training view of `train_px` pixels in `scene` (the constants above)."""
+def _budget(train_px: int, scene: SceneData, short: bool) -> Budget:
+    """The Gaussian budget for a training view of `train_px` pixels in `scene`, in a run of the default
+    budget or more, or a `short` one (the constants above)."""
     n, t = len(scene.cameras), scene.views_per_point
     k = max(1.0, n / t / COVERAGE_SEEN) if t > 0 else 1.0
-    growth = min(MAX_GROWTH, k * k)
+    growth = 2 * min(MAX_GROWTH, k) if short else min(MAX_GROWTH, k * k)
     by_px, by_pts = GAUSSIANS_PER_PIXEL * train_px, GAUSSIANS_PER_POINT * len(scene.points)
 
     def count(x: float) -> int:
         return int(min(MAX_GAUSSIANS, max(MIN_GAUSSIANS, round(x, -3))))
 
-    kept, grown = count(max(by_px, by_pts)), count(max(by_px * growth, by_pts))
+    grown = count(max(by_px * growth, by_pts))
+    kept = grown if short else count(max(by_px, by_pts))
     px = f"{GAUSSIANS_PER_PIXEL} per pixel of a {train_px:,}-pixel training view"
     why = px if by_px >= by_pts else f"{GAUSSIANS_PER_POINT} per SfM point ({len(scene.points):,})"
+    seen = f"each SfM point is seen by {t:.1f} of {n} views, so the capture shows about {k:.1f} views' worth of surface"
     if by_px * growth > by_pts:
-        why = (f"{px} x {growth:.1f} to grow into: each SfM point is seen by {t:.1f} of {n} views, so the capture "
-               f"shows about {k:.1f} views' worth of surface")
+        why = (f"{px} x {growth:.1f}: " + ("a run shorter than 10 min keeps twice the pixels' count (it has no time "
+                                            "to cut), times the views' worth of surface; " if short else
+                                            "to grow into; ") + seen)
     return Budget(grown=grown, kept=kept, why=why)
 
 
