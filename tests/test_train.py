@@ -419,6 +419,22 @@ def test_a_fine_tune_still_going_when_the_budget_is_spent_ends_there():
     assert plan.replan(ended, 2701, 601.2) is None and len(plan.history) == 3  # planned once
 
 
+def test_a_compacted_run_given_more_time_fine_tunes_on():
+    """--resume --time-budget on a finished compacted run lengthens its fine-tune at its last speed:
+    reopening the main steps would grow the kept model back to the cap with no cut after it."""
+    cfg = make_config("fast", time_budget=600.0, compact=True)
+    plan = TimePlan.start(cfg)
+    run = plan.scaled(cfg, 2000)
+    run = replace(run, compact=replace(run.compact, finetune=1201))
+    plan.history = [{"step": 3000, "elapsed_s": 590.0, "steps_per_s": 7.0, "iterations": 2000, "compact_finetune": 1200},
+                    {"step": 3200, "elapsed_s": 600.2, "fine_tune": "ended", "iterations": 2000, "compact_finetune": 1201}]
+    plan.budget_s = 900.0
+    more = plan.extend(run, 3201, 600.2)
+    assert more is not None and more.iterations == 2000 and more.compact.finetune == 1201 + int(7.0 * 299.8)
+    ended = plan.replan(more, 5200, 900.5)  # and ends at the new budget as before (the old end no longer holds it)
+    assert ended is not None and ended.total_steps == 5201 and plan.history[-1]["fine_tune"] == "ended"
+
+
 def test_the_eta_of_a_step_schedule_prices_the_steps_left_by_their_resolution():
     """A run without a time budget says once, after ETA_AFTER_S training seconds, how long is left:
     the steps left at the measured speed, each priced by its coarse-to-fine scale as plans price

@@ -167,11 +167,18 @@ class TimePlan:
         """A finished run resumed with a budget that leaves time (`--resume --time-budget S`): its
         main schedule reopened and planned to the new budget at the speed it last ran (the
         learning-rate decay laid over the new length, as `--resume --iterations N` does for a
-        stepped run). None while the run is unfinished (the plan goes on by itself) or it
+        stepped run); a compacted run's fine-tune lengthened instead. None while the run is unfinished (the plan goes on by itself) or it
         ended within the plan's resolution of the budget (a `replan_every` share of it: plans
         land that close, and the same budget given again has nothing left to do)."""
         if views < cfg.iterations or elapsed >= self.budget_s * (1.0 - self.replan_every) or not self.history:
             return None
+        if cfg.compact.enabled and views > cfg.iterations:
+            # Compacted: the kept model fine-tunes on, at its last speed (reopened, the main steps would grow it
+            # back, with no cut to follow).
+            rate = next((h["steps_per_s"] for h in reversed(self.history) if "steps_per_s" in h), 1.0)
+            fits = views - cfg.iterations + int(rate * (self.budget_s - elapsed))
+            self._record(views, elapsed, 0.0, fine_tune="extended", iterations=cfg.iterations, compact_finetune=fits)
+            return replace(cfg, compact=replace(cfg.compact, finetune=fits))
         return self.replan(cfg, views, elapsed, self.history[-1].get("stalled_s", 0.0), reopen=True)
 
     def finetune_due(self, cfg: TrainConfig, views: int, elapsed: float) -> bool:
