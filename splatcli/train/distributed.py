@@ -30,6 +30,7 @@ import torch
 from torch import Tensor, nn
 
 from ..errors import SplatError
+from ..sfm import colmap
 
 # A collective that waits longer than this means a peer is stuck (a dead one is noticed
 # at once: its sockets close). Evaluation and checkpoints fit easily inside it.
@@ -245,6 +246,9 @@ def join(device: torch.device) -> Comm:
     world = int(os.environ.get("WORLD_SIZE", "1"))
     if world <= 1:
         return Comm()
+    # pycolmap's import holds SIGTERM back on the importing thread only: done once gloo's threads run, a SIGTERM
+    # from the launcher could reach one of them while glog's handler was in and print its stack trace.
+    colmap.load()
     import torch.distributed as dist
 
     rank = int(os.environ.get("RANK", "0"))
