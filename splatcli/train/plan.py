@@ -167,8 +167,8 @@ class TimePlan:
         """A finished run resumed with a budget that leaves time (`--resume --time-budget S`): its
         main schedule reopened and planned to the new budget at the speed it last ran (the
         learning-rate decay laid over the new length, as `--resume --iterations N` does for a
-        stepped run); a compacted run's fine-tune lengthened instead. None while the run is unfinished (the plan goes on by itself) or it
-        ended within the plan's resolution of the budget (a `replan_every` share of it: plans
+        stepped run); a compacted run's fine-tune lengthened instead. None while the run is
+        unfinished (the plan goes on by itself) or it ended within the plan's resolution of the budget (a `replan_every` share of it: plans
         land that close, and the same budget given again has nothing left to do)."""
         if views < cfg.iterations or elapsed >= self.budget_s * (1.0 - self.replan_every) or not self.history:
             return None
@@ -176,9 +176,7 @@ class TimePlan:
             # Compacted: the kept model fine-tunes on, at its last speed (reopened, the main steps would grow it
             # back, with no cut to follow).
             rate = next((h["steps_per_s"] for h in reversed(self.history) if "steps_per_s" in h), 1.0)
-            fits = views - cfg.iterations + int(rate * (self.budget_s - elapsed))
-            self._record(views, elapsed, 0.0, fine_tune="extended", iterations=cfg.iterations, compact_finetune=fits)
-            return replace(cfg, compact=replace(cfg.compact, finetune=fits))
+            return self._lengthened(cfg, views, elapsed, rate, 0.0, fine_tune="extended")
         return self.replan(cfg, views, elapsed, self.history[-1].get("stalled_s", 0.0), reopen=True)
 
     def finetune_due(self, cfg: TrainConfig, views: int, elapsed: float) -> bool:
@@ -254,7 +252,7 @@ class TimePlan:
         if self.history and self.history[-1]["step"] < cfg.iterations:  # the speed since mixes in main steps
             self._record(views, elapsed, stalled, fine_tune="measuring")
             return None
-        if self.history[-1].get("fine_tune") == "ended":
+        if self.history and self.history[-1].get("fine_tune") == "ended":
             return None
         done = views - cfg.iterations
         if elapsed >= self.budget_s and 2 * done >= cfg.compact.finetune:
@@ -263,9 +261,15 @@ class TimePlan:
             fits = done + 1
             self._record(views, elapsed, stalled, fine_tune="ended", iterations=cfg.iterations, compact_finetune=fits)
             return replace(cfg, compact=replace(cfg.compact, finetune=fits))
-        fits = max(cfg.compact.finetune, views + int(rate * max(self.budget_s - elapsed, 0.0)) - cfg.iterations)
-        self._record(views, elapsed, stalled, steps_per_s=round(rate, 3), iterations=cfg.iterations,
-                     compact_finetune=fits)
+        return self._lengthened(cfg, views, elapsed, rate, stalled, steps_per_s=round(rate, 3))
+
+    def _lengthened(self, cfg: TrainConfig, views: int, elapsed: float, rate: float, stalled: float,
+                    **mark: Any) -> TrainConfig | None:
+        """The fine-tune lengthened to the budget left at `rate` views a second, recorded (with
+        `mark`); None where that is no longer than it is."""
+        fits = views + int(rate * max(self.budget_s - elapsed, 0.0)) - cfg.iterations
+        self._record(views, elapsed, stalled, **mark, iterations=cfg.iterations,
+                     compact_finetune=max(fits, cfg.compact.finetune))
         return replace(cfg, compact=replace(cfg.compact, finetune=fits)) if fits > cfg.compact.finetune else None
 
     def record(self) -> dict[str, Any]:
