@@ -330,7 +330,7 @@ def _budget(train_px: int, scene: SceneData, short: bool) -> Budget:
     px = f"{GAUSSIANS_PER_PIXEL} per pixel of a {train_px:,}-pixel training view"
     why = px if by_px >= by_pts else f"{GAUSSIANS_PER_POINT} per SfM point ({len(scene.points):,})"
     seen = f"each SfM point is seen by {t:.1f} of {n} views, so the capture shows about {k:.1f} views' worth of surface"
-    if by_px * growth > by_pts:
+    if growth > 1 and by_px * growth > by_pts:  # (x 1: nothing to say)
         why = (f"{px} x {growth:.1f}: " + ("a run shorter than 10 min keeps twice the pixels' count (it has no time "
                                             "to cut), times the views' worth of surface; " if short else
                                             "to grow into; ") + seen)
