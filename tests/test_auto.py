@@ -52,7 +52,7 @@ def test_a_default_cpu_run_is_planned_into_minutes(proj, monkeypatch):
     line = planning.summary_line(c, cfg.time_budget)
     assert "trains for 10 min" in line and "--time-budget" in line and "max-gaussians 5000 (0.225 per pixel" in line
     assert "--compact" not in line
-    assert "then --compact keeps 25% of them" in planning.summary_line(c, cfg.time_budget, keep=0.25)
+    assert "then --compact keeps 25% of them (1,250)" in planning.summary_line(c, cfg.time_budget, keep=0.25)
     assert "sooner" not in planning.summary_line(c, 20.0)  # (it offered 30 s for a 20 s run)
 
 
@@ -139,11 +139,11 @@ def test_a_capture_seen_all_round_grows_then_keeps_what_it_needs(proj, monkeypat
     scene(100 / 9 / 2.1)  # lego's coverage
     c = _choose(proj, {})
     got = _chosen(c)
-    assert got["max_gaussians"] == 173_000 and got["compact_keep"] == round(43_000 / 173_000, 4)
+    assert got["max_gaussians"] == 173_000 and got["compact_keep"] == round(43_000 / 173_000, 6)
     cfg = make_config(chosen=c)
     assert cfg.compact.enabled and cfg.compact.keep == got["compact_keep"] and cfg.mcmc.max_gaussians == 173_000
     line = planning.chosen_line(c, cfg, False)
-    assert "then --compact keeps 25% of them" in line and "compact-keep" not in line
+    assert "then --compact keeps 25% of them (43,000)" in line and "compact-keep" not in line
     for given in ({"compact": False}, {"compact": True}, {"max_gaussians": 50_000}, {"time_budget": 300.0}):
         got = _chosen(_choose(proj, given))
         assert "compact_keep" not in got, given

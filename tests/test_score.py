@@ -227,3 +227,21 @@ def test_compact_cuts_first_when_resumed_a_step_past_its_schedule() -> None:
     info = StepInfo(render=None, width=0, height=0, heldout=(30.0, 0.9))  # type: ignore[arg-type]
     step.step_post_backward(splats, state, 12, info)  # round 2 reached with no cut made
     assert state.before_count == 200 and len(splats.params["means"]) == kept_count(200, (1 / 3) ** (2 / 3))
+
+
+@pytest.mark.parametrize("cap, kept", [(None, 67), (300, 100), (450, 150), (900, 200)])
+def test_compact_keeps_its_share_of_the_cap_whatever_grew(cap, kept) -> None:
+    """--compact-keep is a share of --max-gaussians: a run that grew to 200 of a 300 cap in its time
+    keeps a third of 300 (the count a run that reached the cap keeps), all 200 where that is more
+    than it has, and without a cap a third of what grew."""
+    g = tiny_gaussians(200, seed=3, sh_degree=0)
+    params = {"means": torch.nn.Parameter(g.means.clone())}
+    splats = Splats(params, {"means": torch.optim.Adam(params.values())})
+    ctx = context()
+    ctx.evaluator.weights = lambda: splats.params["means"].detach()[:, 0]  # the model as each cut finds it
+    step = CompactStep(CompactConfig(enabled=True, keep=1 / 3, finetune=12, rounds=3), 10, ctx, cap)
+    state = CompactState()
+    for at in step.prune_steps():
+        step.catch_up(splats, state, at) if at == 10 else step.step_post_backward(
+            splats, state, at, StepInfo(render=None, width=0, height=0, heldout=(30.0, 0.9)))  # type: ignore[arg-type]
+    assert state.round == 3 and state.before_count == 200 and len(splats.params["means"]) == kept

@@ -31,6 +31,7 @@ import torch
 
 from .. import options
 from ..camera import SceneData
+from ..gaussians import kept_count
 from ..files.checkpoint import read_checkpoint_config, read_checkpoint_world
 from ..project import Project
 from ..sfm.colmap import read_project_scene
@@ -296,8 +297,8 @@ def choose(project: Project, given: options.Given, nproc: int | None, device: to
         compact = size.grown >= COMPACT_FROM * size.kept
         out.max_gaussians = pick(asked.max_gaussians, "max_gaussians", size.grown, size.why)
         if compact and out.max_gaussians is not None and asked.compact is None and asked.compact_keep is None:
-            out.compact_keep = pick(None, "compact_keep", round(size.kept / size.grown, 4),
-                                    f"grown to find the detail, then at most {size.kept:,} kept, those with the most "
+            out.compact_keep = pick(None, "compact_keep", round(size.kept / size.grown, 6),
+                                    f"grown to find the detail, then {size.kept:,} kept, those with the most "
                                     "blending weight (--no-compact keeps all)")
     if nproc is None:
         _processes(out, len(cams))
@@ -384,7 +385,9 @@ def summary_line(chosen: Chosen, budget_s: float | None, resume: bool = False, k
         return f"chose {what}"
     eta = f"trains for {budget_s / 60:.0f} min" if budget_s >= 180 else f"trains for {budget_s:.0f} s"
     if keep is not None:
-        what += f"; then --compact keeps {keep:.0%} of them, those with the most blending weight"
+        cap = next((c.value for c in chosen.choices if c.option == "max_gaussians"), None)
+        count = f" ({kept_count(cap, keep):,})" if isinstance(cap, int) else ""
+        what += f"; then --compact keeps {keep:.0%} of them{count}, those with the most blending weight"
     sooner = f", sooner: --time-budget {int(max(30, budget_s / 4))}" if budget_s > 30 else ""
     return (f"{eta} ({what}); more quality: --time-budget {int(budget_s * 3)}{sooner}; every choice yields to its "
             "option (train --help)")

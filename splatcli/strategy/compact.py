@@ -5,8 +5,9 @@
   within `tol_db` of the full degree; the unused bands leave the parameters (so
   they are neither stored nor exported).
 `CompactStep` (--compact): rank Gaussians by their total blending weight
-  sum_pixels alpha_i T_i over the training views and keep the top `keep` fraction,
-  in `rounds` cuts spread over the first half of a `finetune`-step fine-tune (no
+  sum_pixels alpha_i T_i over the training views and keep the top `keep` fraction of the
+  cap (--max-gaussians; without one, of the count when the main schedule ends), so that
+  the kept count does not depend on how far growth got in the time, in `rounds` cuts spread over the first half of a `finetune`-step fine-tune (no
   densification: the default strategy stops at the end of the main schedule).
 What a plain weight threshold would drop is not free: on fox at 58,000 Gaussians, the 17% under
 one pixel of training-view weight between them all (0.06% of the total) cost 0.12 dB on the
@@ -23,7 +24,7 @@ from ..formats.ply import ply_bytes
 from ..gaussians import kept_count, sh_degree_from_bases, top_by_weight
 from ..options import MODEL, opt
 from . import ops
-from .base import ModelStep, RefineStats, RowState, Splats, StepInfo
+from .base import Context, ModelStep, RefineStats, RowState, Splats, StepInfo
 
 
 def sh_degree_of(splats: Splats) -> int:
@@ -77,8 +78,9 @@ class CompactConfig:
                         "blending weight, cut in compact_rounds rounds while fine-tuning compact_finetune more steps "
                         "(chosen with no options for a capture seen all round: it grows, then keeps what it needs).",
                         name="compact", group=MODEL)
-    keep: float = opt(1 / 3, "With --compact: the share of the Gaussians kept, those with the most blending weight "
-                      "over the training views.", more_than=0, at_most=1, group=MODEL)
+    keep: float = opt(1 / 3, "With --compact: the share kept of --max-gaussians (or, without it, of the Gaussians "
+                      "when training ends), those with the most blending weight over the training views.",
+                      more_than=0, at_most=1, group=MODEL)
     finetune: int = opt(3000, "Steps after the first cut (lego: 1000 lost 0.42 dB, 3000 0.04).", at_least=0,
                         steps="schedule")
     rounds: int = opt(3, "Cuts, spread over the first half of the fine-tune.", at_least=1)
@@ -110,6 +112,16 @@ class CompactStep(ModelStep):
     state_type = CompactState
     config: CompactConfig
 
+    def __init__(self, config: CompactConfig, at: int, ctx: Context, cap: int | None = None) -> None:
+        super().__init__(config, at, ctx)
+        self.cap = cap  # the strategy's --max-gaussians: `keep` is a share of it (None: of the count at `at`)
+
+    def target(self, n0: int) -> int:
+        """The count the last cut keeps of the `n0` Gaussians the main schedule ended with: `keep`
+        of the cap (so runs that grew to different counts in their time keep the same model), at
+        most all of them; without a cap, `keep` of `n0`."""
+        return min(n0, kept_count(self.cap if self.cap is not None else n0, self.config.keep))
+
     def prune_steps(self) -> list[int]:
         """Steps ending with a cut: the first at `at`, the others spread over the
         first half of the fine-tune, so the final set still gets at least half of it.
@@ -135,8 +147,8 @@ class CompactStep(ModelStep):
 
     def _cut(self, splats: Splats, state: CompactState, step: int, r: int,
              heldout: tuple[float, float] | None) -> RefineStats:
-        """Round r of R: keep the n0 * keep^(r/R) Gaussians with the most blending weight
-        (gaussians.kept_count rounds it: the last round keeps keep * n0 to the nearest)."""
+        """Round r of R: keep the n0 * (k / n0)^(r/R) Gaussians with the most blending weight,
+        k = `target(n0)` (gaussians.kept_count rounds it: the last round keeps k)."""
         n = len(splats)
         if state.round == 0:  # the first cut made (round 1, unless a resume skipped its step)
             if heldout is None:
@@ -144,7 +156,7 @@ class CompactStep(ModelStep):
             state.before_count, state.before_bytes = n, ply_bytes(n, sh_degree_of(splats))
             state.before_psnr = heldout[0] if heldout is not None else None
         n0, rounds = state.before_count, len(self.prune_steps())
-        k = kept_count(n0, self.config.keep ** (r / rounds))
+        k = kept_count(n0, (self.target(n0) / max(n0, 1)) ** (r / rounds))
         stats = RefineStats(step=step, before=n, after=n)
         if k < n:
             weight = self.ctx.evaluator.weights()
