@@ -31,8 +31,8 @@ import torch
 
 from .. import options
 from ..camera import SceneData
-from ..gaussians import kept_count
 from ..files.checkpoint import read_checkpoint_config, read_checkpoint_world
+from ..gaussians import kept_count
 from ..project import Project
 from ..sfm.colmap import read_project_scene
 from ..train.config import TrainConfig, preset_config
