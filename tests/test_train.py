@@ -436,6 +436,19 @@ def test_a_compacted_run_given_more_time_fine_tunes_on():
     assert ended is not None and ended.total_steps == 5201 and plan.history[-1]["fine_tune"] == "ended"
 
 
+def test_a_planned_run_past_its_budget_says_the_views_left_at_its_last_speed():
+    """The ETA of a planned run is the budget left; past it (the step that ends a run once its budget is
+    spent, which a loaded machine can leave well past; a finished run resumed with --compact) it is the
+    views left at the last speed measured, never unknown once a plan has measured one."""
+    plan = TimePlan.start(make_config("fast", time_budget=3.0))
+    assert plan.seconds_left(10, 50, 1.0) == 2.0
+    assert plan.seconds_left(60, 61, 3.2) is None  # nothing measured yet
+    plan.history = [{"step": 40, "elapsed_s": 1.0, "steps_per_s": 20.0, "iterations": 61}]
+    assert plan.seconds_left(60, 61, 3.2) == pytest.approx(1 / 20.0)
+    assert plan.seconds_left(61, 61, 3.3) == 0.0
+    assert plan.seconds_left(1061, 2061, 30.0) == pytest.approx(50.0)  # a fine-tune added on resume
+
+
 def test_the_eta_of_a_step_schedule_prices_the_steps_left_by_their_resolution():
     """A run without a time budget says once, after ETA_AFTER_S training seconds, how long is left:
     the steps left at the measured speed, each priced by its coarse-to-fine scale as plans price

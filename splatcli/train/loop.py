@@ -283,9 +283,8 @@ class _Run:
             fitted = _measure_fit(t.cfg, self.data, state, step, comm) if evaluated is not None else None
         self.writer.line(step, state, evaluated, fitted, t.cfg.log_every, force=step == total)
         c = state.counts
-        # A planned run ends with its budget; past it (a finished one resumed with --compact), at the speed measured.
-        planned = state.plan is not None and c.elapsed_s < state.plan.budget_s
-        eta = state.plan.budget_s - c.elapsed_s if planned else self.eta.left(c, t.cfg)
+        eta = (state.plan.seconds_left(c.images, total * comm.world, c.elapsed_s) if state.plan is not None
+               else self.eta.left(c, t.cfg))
         emit(self.on_event, Progress(STAGE, c.images, total * comm.world, self.writer.info(state), eta))
         if comm.main and state.plan is None:
             self.eta.tell(c, state.num_gaussians, self.on_event)

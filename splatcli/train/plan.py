@@ -175,9 +175,22 @@ class TimePlan:
         if cfg.compact.enabled and views > cfg.iterations:
             # Compacted: the kept model fine-tunes on, at its last speed (reopened, the main steps would grow it
             # back, with no cut to follow).
-            rate = next((h["steps_per_s"] for h in reversed(self.history) if "steps_per_s" in h), 1.0)
+            rate = self.rate() or 1.0
             return self._lengthened(cfg, views, elapsed, rate, 0.0, fine_tune="extended")
         return self.replan(cfg, views, elapsed, self.history[-1].get("stalled_s", 0.0), reopen=True)
+
+    def rate(self) -> float | None:
+        """Views a training second, as the last plan that measured them found (None: none has)."""
+        return next((h["steps_per_s"] for h in reversed(self.history) if "steps_per_s" in h), None)
+
+    def seconds_left(self, views: int, total: int, elapsed: float) -> float | None:
+        """Training seconds until view `total`: the budget left; past the budget (the step that ends
+        the run once it is spent, or a finished run resumed with --compact), the views left at the
+        last speed measured. None: nothing measured yet."""
+        if elapsed < self.budget_s:
+            return self.budget_s - elapsed
+        rate = self.rate()
+        return max(total - views, 0) / rate if rate else None
 
     def finetune_due(self, cfg: TrainConfig, views: int, elapsed: float) -> bool:
         """Whether to plan the compaction fine-tune now: at its first step (to start measuring its
