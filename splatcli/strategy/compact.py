@@ -74,8 +74,8 @@ class ShAutoStep(ModelStep):
 
 @dataclass(frozen=True)
 class CompactConfig:
-    enabled: bool = opt(False, "After training, keep compact_keep of the Gaussians (a third), those with the most "
-                        "blending weight, cut in compact_rounds rounds while fine-tuning compact_finetune more steps "
+    enabled: bool = opt(False, "After training, keep compact_keep (a third) of --max-gaussians (without it, of the "
+                        "Gaussians trained), those with the most blending weight, cut in compact_rounds rounds while fine-tuning compact_finetune more steps "
                         "(chosen with no options for a capture seen all round: it grows, then keeps what it needs).",
                         name="compact", group=MODEL)
     keep: float = opt(1 / 3, "With --compact: the share kept of --max-gaussians (or, without it, of the Gaussians "
