@@ -231,9 +231,9 @@ def test_compact_cuts_first_when_resumed_a_step_past_its_schedule() -> None:
 
 @pytest.mark.parametrize("cap, kept", [(None, 67), (300, 100), (450, 150), (900, 200)])
 def test_compact_keeps_its_share_of_the_cap_whatever_grew(cap, kept) -> None:
-    """--compact-keep is a share of --max-gaussians: a run that grew to 200 of a 300 cap in its time
-    keeps a third of 300 (the count a run that reached the cap keeps), all 200 where that is more
-    than it has, and without a cap a third of what grew."""
+    """--compact-keep is a share of MCMC's --max-gaussians: a run that grew to 200 of a 300 cap in its
+    time keeps a third of 300 (the count a run that reached the cap keeps), all 200 where that is more
+    than it has, and without a cap (the default strategy's is only a ceiling) a third of what grew."""
     g = tiny_gaussians(200, seed=3, sh_degree=0)
     params = {"means": torch.nn.Parameter(g.means.clone())}
     splats = Splats(params, {"means": torch.optim.Adam(params.values())})
@@ -245,3 +245,16 @@ def test_compact_keeps_its_share_of_the_cap_whatever_grew(cap, kept) -> None:
         step.catch_up(splats, state, at) if at == 10 else step.step_post_backward(
             splats, state, at, StepInfo(render=None, width=0, height=0, heldout=(30.0, 0.9)))  # type: ignore[arg-type]
     assert state.round == 3 and state.before_count == 200 and len(splats.params["means"]) == kept
+
+
+def test_compact_takes_its_share_of_mcmc_s_cap_alone() -> None:
+    """MCMC grows to exactly --max-gaussians, so --compact keeps a share of it; the default strategy's
+    --max-gaussians is only a ceiling it may never reach, so there the share is of what grew."""
+    from splatcli.cli.train_config import make_config
+    from splatcli.train.state import make_strategies
+
+    def cap(strategy: str) -> int | None:
+        cfg = make_config(strategy=strategy, max_gaussians=900, compact=True)
+        return next(s for s in make_strategies(cfg, 1.0, context()) if isinstance(s, CompactStep)).cap
+
+    assert cap("mcmc") == 900 and cap("default") is None

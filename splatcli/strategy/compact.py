@@ -5,9 +5,10 @@
   within `tol_db` of the full degree; the unused bands leave the parameters (so
   they are neither stored nor exported).
 `CompactStep` (--compact): rank Gaussians by their total blending weight
-  sum_pixels alpha_i T_i over the training views and keep the top `keep` fraction of the
-  cap (--max-gaussians; without one, of the count when the main schedule ends), so that
-  the kept count does not depend on how far growth got in the time, in `rounds` cuts spread over the first half of a `finetune`-step fine-tune (no
+  sum_pixels alpha_i T_i over the training views and keep the top `keep` fraction of
+  MCMC's cap (--max-gaussians, which it grows to; with the default strategy, whose cap is
+  only a ceiling, of the count when the main schedule ends), so that the kept count does
+  not depend on how far growth got in the time, in `rounds` cuts spread over the first half of a `finetune`-step fine-tune (no
   densification: the default strategy stops at the end of the main schedule).
 What a plain weight threshold would drop is not free: on fox at 58,000 Gaussians, the 17% under
 one pixel of training-view weight between them all (0.06% of the total) cost 0.12 dB on the
@@ -74,12 +75,13 @@ class ShAutoStep(ModelStep):
 
 @dataclass(frozen=True)
 class CompactConfig:
-    enabled: bool = opt(False, "After training, keep compact_keep (a third) of --max-gaussians (without it, of the "
-                        "Gaussians trained), those with the most blending weight, cut in compact_rounds rounds while fine-tuning compact_finetune more steps "
+    enabled: bool = opt(False, "After training, keep compact_keep (a third) of mcmc's --max-gaussians (the default "
+                        "strategy: of the Gaussians trained), those with the most blending weight, cut in compact_rounds rounds while fine-tuning compact_finetune more steps "
                         "(chosen with no options for a capture seen all round: it grows, then keeps what it needs).",
                         name="compact", group=MODEL)
-    keep: float = opt(1 / 3, "With --compact: the share kept of --max-gaussians (or, without it, of the Gaussians "
-                      "when training ends), those with the most blending weight over the training views.",
+    keep: float = opt(1 / 3, "With --compact: the share kept of mcmc's --max-gaussians (the default strategy, whose "
+                      "cap is only a ceiling: of the Gaussians when training ends), those with the most blending "
+                      "weight over the training views.",
                       more_than=0, at_most=1, group=MODEL)
     finetune: int = opt(3000, "Steps after the first cut (lego: 1000 lost 0.42 dB, 3000 0.04).", at_least=0,
                         steps="schedule")
@@ -114,7 +116,7 @@ class CompactStep(ModelStep):
 
     def __init__(self, config: CompactConfig, at: int, ctx: Context, cap: int | None = None) -> None:
         super().__init__(config, at, ctx)
-        self.cap = cap  # the strategy's --max-gaussians: `keep` is a share of it (None: of the count at `at`)
+        self.cap = cap  # MCMC's --max-gaussians: `keep` is a share of it (None: of the count at `at`)
 
     def target(self, n0: int) -> int:
         """The count the last cut keeps of the `n0` Gaussians the main schedule ended with: `keep`
