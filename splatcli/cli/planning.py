@@ -41,7 +41,8 @@ BUDGET_S = 600.0  # training seconds of a default CPU run: with loading and the 
 MAX_SIZE = 480  # px, the longest side a default CPU run trains at
 GAUSSIANS_PER_PIXEL = 0.225  # the model kept, per training pixel (fox at 480 px: 29k; lego 52k)
 # A capture's own content: the model keeps at least this many Gaussians per SfM point (a scene seen all round,
-# background and all, holds far more than one view's pixels suggest: 250 video frames, 101k).
+# background and all, holds far more than one view's pixels suggest: 250 video frames, 101k; cut to 1.5 per point,
+# 51k, they ended 0.35 dB lower, docs/benchmarks.md "Model size").
 GAUSSIANS_PER_POINT = 3
 # What one view's pixels miss: photos whose SfM points are each seen by t of n show about k = (n / t) / COVERAGE_SEEN
 # views' worth of surface (at least 1). Such a capture grows to k^2 times the per-pixel model (at most
