@@ -119,7 +119,7 @@ class Chosen:
     appearance: str | None = None
     strategy: str | None = None
     max_gaussians: int | None = None  # MCMC's budget (chosen with --strategy mcmc alone)
-    compact_keep: float | None = None  # --compact chosen, keeping this share of what grew
+    compact_keep: float | None = None  # --compact chosen, keeping this share of max_gaussians
     threads: int | None = None  # torch threads of each process
     choices: list[Choice] = field(default_factory=list)
 

@@ -8,8 +8,9 @@
   sum_pixels alpha_i T_i over the training views and keep the top `keep` fraction of
   MCMC's cap (--max-gaussians, which it grows to; with the default strategy, whose cap is
   only a ceiling, of the count when the main schedule ends), so that the kept count does
-  not depend on how far growth got in the time, in `rounds` cuts spread over the first half of a `finetune`-step fine-tune (no
-  densification: the default strategy stops at the end of the main schedule).
+  not depend on how far growth got in the time, in `rounds` cuts spread over the first
+  half of a `finetune`-step fine-tune (no densification: the default strategy stops at the
+  end of the main schedule).
 What a plain weight threshold would drop is not free: on fox at 58,000 Gaussians, the 17% under
 one pixel of training-view weight between them all (0.06% of the total) cost 0.12 dB on the
 held-out views (docs/benchmarks.md, "Model size"), so the cut keeps a count, not a threshold:
@@ -76,8 +77,9 @@ class ShAutoStep(ModelStep):
 @dataclass(frozen=True)
 class CompactConfig:
     enabled: bool = opt(False, "After training, keep compact_keep (a third) of mcmc's --max-gaussians (the default "
-                        "strategy: of the Gaussians trained), those with the most blending weight, cut in compact_rounds rounds while fine-tuning compact_finetune more steps "
-                        "(chosen with no options for a capture seen all round: it grows, then keeps what it needs).",
+                        "strategy: of the Gaussians trained), those with the most blending weight, cut in "
+                        "compact_rounds rounds while fine-tuning compact_finetune more steps (chosen with no options "
+                        "for a capture seen all round: it grows, then keeps what it needs).",
                         name="compact", group=MODEL)
     keep: float = opt(1 / 3, "With --compact: the share kept of mcmc's --max-gaussians (the default strategy, whose "
                       "cap is only a ceiling: of the Gaussians when training ends), those with the most blending "

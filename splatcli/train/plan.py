@@ -168,8 +168,9 @@ class TimePlan:
         main schedule reopened and planned to the new budget at the speed it last ran (the
         learning-rate decay laid over the new length, as `--resume --iterations N` does for a
         stepped run); a compacted run's fine-tune lengthened instead. None while the run is
-        unfinished (the plan goes on by itself) or it ended within the plan's resolution of the budget (a `replan_every` share of it: plans
-        land that close, and the same budget given again has nothing left to do)."""
+        unfinished (the plan goes on by itself) or it ended within the plan's resolution of the
+        budget (a `replan_every` share of it: plans land that close, and the same budget given
+        again has nothing left to do)."""
         if views < cfg.iterations or elapsed >= self.budget_s * (1.0 - self.replan_every) or not self.history:
             return None
         if cfg.compact.enabled and views > cfg.iterations:

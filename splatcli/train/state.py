@@ -186,7 +186,8 @@ def make_strategies(cfg: TrainConfig, extent: float, ctx: Context) -> list[Strat
     if cfg.sh_degree == "auto":
         out.append(ShAutoStep(cfg.sh_auto, cfg.iterations, ctx))
     if cfg.compact.enabled:
-        out.append(CompactStep(cfg.compact, cfg.iterations, ctx, cfg.mcmc.max_gaussians if cfg.strategy == "mcmc" else None))
+        cap = cfg.mcmc.max_gaussians if cfg.strategy == "mcmc" else None  # (the default strategy's is only a ceiling)
+        out.append(CompactStep(cfg.compact, cfg.iterations, ctx, cap))
     if cfg.mip_filter:  # last: it filters the Gaussians the others left
         out.append(MipFilter(ctx.views.cameras))
     return out
