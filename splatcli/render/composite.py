@@ -66,7 +66,7 @@ SEGMENT = 64  # Gaussians per block processed between early-termination checks
 SEGMENT_4PX = 256
 # The forward keeps alpha and transmittance [blocks, pixels, K] of its segments, up to this many bytes,
 # so that the backward need not compute them again (the rest it does compute again). A training view at
-# 480 px keeps everything within 128 MB; larger renders gain from more where recomputing is dear: on a
+# 480 px holds about 128 MB of them at most (fox at 8 px blocks); larger renders gain from more where recomputing is dear: on a
 # 2-core Zen 1 EPYC (AVX2), one thread, taking turns, 512 MB against 128 MB took garden at 8 px blocks
 # from 1,432 to 1,281 ms forward + backward and 100k Gaussians at 800x600 from 2,392 to 1,973 ms (the
 # forward alone a few percent slower for what it writes). train/memory.py counts it (WORK_BYTES).
