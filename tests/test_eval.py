@@ -3,6 +3,7 @@ and without matplotlib, folder comparison, and refusals."""
 
 from __future__ import annotations
 
+import importlib
 import json
 import sys
 from pathlib import Path
@@ -159,6 +160,34 @@ def test_contributions_are_exact_blending_weights() -> None:
     assert float(w.sum()) == pytest.approx(float(alpha.sum()), rel=1e-5)  # sum_i w_i = 1 - T per pixel
     kept = prune_to(g, w, 0.25)
     assert len(kept) == 10 and set(kept.means[:, 0].tolist()) == set(g.means[torch.argsort(-w)[:10], 0].tolist())
+
+
+@pytest.mark.parametrize("banded", [False, True])
+def test_contributions_equal_the_colour_gradient(banded: bool, monkeypatch) -> None:
+    """The forward pass's weight sums against autograd's: with every colour 0.5 (DC 0) the red
+    channel's gradient with respect to dc_i is SH_C0 sum_pixels w_i. Small chunks and short segments
+    (several chunks, early termination between segments), and the image in bands of tile rows."""
+    composite = importlib.import_module("splatcli.render.composite")
+    rz = importlib.import_module("splatcli.render.rasterize")  # (the package's `rasterize` is the function)
+
+    monkeypatch.setattr(composite, "CHUNK_ELEMS", 1 << 11)
+    monkeypatch.setattr(composite, "SEGMENT", 8)
+    monkeypatch.setattr(composite, "SEGMENT_4PX", 8)
+    if banded:
+        monkeypatch.setattr(rz, "PAIR_BUDGET", 64)  # several bands of 16 rows
+    g = tiny_gaussians(400, seed=5, sh_degree=0)
+    g.opacity_logits += 2.0  # dense enough that pixels saturate (termination)
+    cams = ring_cameras(3, scale=2)
+    w = contributions(g, cams)
+    ref = torch.zeros(len(g), dtype=torch.float64)
+    for cam in cams:
+        vm, K = cam.torch(torch.device("cpu"))
+        dc = torch.zeros(len(g), 1, 3, requires_grad=True)
+        out = rasterize(g.means, g.quats, g.log_scales, g.opacity_logits, dc, vm, K, cam.width, cam.height,
+                        torch.zeros(3), sh_degree=0)
+        ref += torch.autograd.grad(out.image[..., 0].sum(), dc)[0][:, 0, 0].double() / SH_C0
+    assert float(ref.sum()) > 100.0 and int((ref > 0).sum()) > 300  # (a scene that covers the views)
+    torch.testing.assert_close(w, ref, rtol=1e-5, atol=1e-4)  # float32 sums in a different order
 
 
 def test_used_sh_degree() -> None:

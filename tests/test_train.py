@@ -33,7 +33,7 @@ from splatcli.train import log
 from splatcli.train.config import TrainConfig
 from splatcli.train.log import read_log
 from splatcli.train.loop import train
-from splatcli.train.plan import LR_HOLD, LR_SCALE, SHN_DIV, TimePlan, step_costs
+from splatcli.train.plan import LR_HOLD, LR_SCALE, OVERHEAD, SCORE_COST, SHN_DIV, TimePlan, step_costs
 from splatcli.train.state import learning_rates
 from support.tiny_project import make_tiny_project
 
@@ -402,6 +402,41 @@ def test_a_plan_with_compact_fits_the_fine_tune_into_the_budget():
     assert main is not None and main.compact.finetune == round(3000 * main.iterations / 7000) > 0
     assert run.iterations == main.iterations and run.compact.finetune > main.compact.finetune  # lengthened
     assert 0.95 * 600.0 <= elapsed <= 600.0 * 1.01, (run.iterations, run.compact.finetune, elapsed)
+
+
+def _compacted_run(scored: int, priced: bool, unit: float) -> float:
+    """A planned --compact run simulated step by step (`unit` seconds per unit of cost, fine-tune steps
+    at half the price), each cut scoring `scored` views at SCORE_COST of a full-size step on the model
+    it cuts (CompactStep's schedule: the first when the main steps end, the others spread over the
+    fine-tune's first half); planned with the cuts priced, or not. Returns the training seconds."""
+    cfg = make_config("fast", time_budget=600.0, compact=True)
+    plan = TimePlan.start(cfg, scored if priced else 0)
+    run, views, elapsed, cuts = plan.scaled(cfg, 7000), 0, 0.0, 0
+    rounds, keep = cfg.compact.rounds, cfg.compact.keep
+    while views < run.total_steps:
+        full = float(step_costs(run, run.iterations, views, views + 1)[0])
+        elapsed += (0.5 if views >= run.iterations else 1.0) * full * unit
+        views += 1
+        spacing = run.compact.finetune // (2 * rounds)
+        if cuts < rounds and views == run.iterations + cuts * spacing:
+            elapsed += scored * SCORE_COST * (OVERHEAD + 1.0) * keep ** (cuts / rounds) * unit
+            cuts += 1
+        if views < run.total_steps and (plan.due(elapsed) or plan.finetune_due(run, views, elapsed)):
+            run = plan.replan(run, views, elapsed) or run
+    assert cuts == rounds
+    return elapsed
+
+
+def test_a_plan_leaves_the_compaction_cuts_their_scoring_time():
+    """Each --compact cut scores every training view (CompactStep, render/weights.py). On a host slow
+    enough that the cuts cost a quarter to a half of the budget: priced, the main steps end early
+    enough for them, the fine-tune is lengthened to the time its cuts leave, and the run ends at its
+    budget; unpriced (as before), the cuts overran it by 20-66% (lego grown to 207,000 on a loaded
+    2-core host: 857 s of a 600 s budget)."""
+    for scored, unit in ((200, 1.2), (400, 0.6), (400, 1.2), (87, 0.6)):
+        assert 0.97 * 600.0 <= _compacted_run(scored, priced=True, unit=unit) <= 600.0 * 1.01, (scored, unit)
+    assert _compacted_run(200, priced=False, unit=1.2) > 600.0 * 1.15
+    assert _compacted_run(400, priced=False, unit=0.6) > 600.0 * 1.15
 
 
 def test_a_fine_tune_still_going_when_the_budget_is_spent_ends_there():

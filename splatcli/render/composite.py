@@ -364,12 +364,14 @@ def _median_weight(r: Tensor, U: Tensor) -> Tensor:  # [na, P, k] each
 
 
 def _seg_forward(rows: Tensor, gid: Tensor, centre: Tensor, featsT: Tensor, Tc: Tensor | None,
-                 a_min: float, t_min: float, weight=None, kept: list | None = None) -> tuple[Tensor, Tensor]:
+                 a_min: float, t_min: float, weight=None, kept: list | None = None,
+                 sums: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """One segment of the forward pass: rows [N + 1, 11] (`_Gauss`), gid [na, k]
     slot ids, centre [na, 2], featsT [P, 6], Tc [na, P] transmittance entering (None: 1). Returns
     the sums of a weight times (r, g, b, z, 1) per pixel [na, 5, P] and T after [na, P]: the blending
     weight alpha T_before (weight None: the picture), or weight(alpha / (1 - alpha), T after)
-    (`_median_weight`: the median depth).
+    (`_median_weight`: the median depth). `sums` [N + 1]: each slot's blending weight summed over
+    its pixels is added into its Gaussian's entry (`weight_sums`).
     `kept`: a list that r = alpha / (1 - alpha) and T after [na, P, k], the exponent terms (`_coef`)
     and the gathered (r, g, b, z, 1) rows are appended to, for the backward (blending weights only)."""
     p, czg = _gather(rows, gid)  # [na, k, 6], [na, k, 5]
@@ -383,6 +385,8 @@ def _seg_forward(rows: Tensor, gid: Tensor, centre: Tensor, featsT: Tensor, Tc: 
         w = r.mul_(U) if kept is None else r * U  # alpha T_before; 0 where not blended
         if kept is not None:
             kept.append((r, U, q, czg))
+        if sums is not None:
+            sums.index_add_(0, gid.reshape(-1), w.sum(1).reshape(-1))
     return torch.bmm(czg.transpose(1, 2), w.transpose(1, 2)), U[:, :, -1]
 
 
@@ -488,12 +492,12 @@ def _terminate(act: Tensor | None, Tc: Tensor, more: Tensor, *carry: Tensor):
 
 
 def _blend(plan: Plan, means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor, depths: Tensor,
-           weight=None, kept: list | None = None) -> Tensor:  # [nblocks, 5, P]: sums of weight times (r, g, b, z, 1) per pixel
+           weight=None, kept: list | None = None, sums: Tensor | None = None) -> Tensor:  # [nblocks, 5, P]: sums of weight times (r, g, b, z, 1) per pixel
     """The forward pass over the plan's chunks and segments, each slot weighted by its blending
     weight (weight None: the picture) or `weight(alpha / (1 - alpha), T_after)` (the 0.5 crossing
     for the median depth). `kept`: a list that each segment's alpha / (1 - alpha), T after, exponent
     terms and gathered rows are appended to, in order, until they hold KEEP_BYTES (the backward computes
-    the rest again)."""
+    the rest again). `sums` [N + 1]: each Gaussian's blending weight over the pixels is added into it."""
     dt, dev = means2d.dtype, means2d.device
     N = means2d.shape[0]
     P = plan.block * plan.block
@@ -512,7 +516,7 @@ def _blend(plan: Plan, means2d: Tensor, conics: Tensor, opacities: Tensor, color
             k1 = _seg_end(plan, k0, K, len(bl) if act is None else len(act))
             keep = kept if kept is not None and kept_bytes < KEEP_BYTES else None
             o, Tc = _seg_forward(gs.rows, _rowsel(gid, act)[:, k0:k1].contiguous(), _rowsel(centre, act), featsT,
-                                 Tc, c.a_min, c.t_min, weight, keep)
+                                 Tc, c.a_min, c.t_min, weight, keep, sums)
             if keep is not None:
                 kept_bytes += sum(x.numel() * x.element_size() for x in (*kept[-1][:2], *kept[-1][2], kept[-1][3]))
             if out is None:
@@ -681,3 +685,15 @@ def median_depth(plan: Plan, means2d: Tensor, conics: Tensor, opacities: Tensor,
     it never does): a surface depth more stable than the blended mean (2DGS; meshing)."""
     zeros = depths.new_zeros(depths.shape[0], 3)
     return _to_image(plan, _blend(plan, means2d, conics, opacities, zeros, depths, _median_weight))[..., 3]
+
+
+@torch.no_grad()
+def weight_sums(plan: Plan, means2d: Tensor, conics: Tensor, opacities: Tensor) -> Tensor:  # [N]
+    """Each Gaussian's blending weight alpha T_before summed over the plan's pixels, from the forward
+    pass alone (the gradient of the picture with respect to its colour is the same sum, at the cost
+    of a backward)."""
+    n = means2d.shape[0]
+    sums = means2d.new_zeros(n + 1)  # (the padding slots add into the last)
+    zeros = means2d.new_zeros(n, 3)
+    _blend(plan, means2d, conics, opacities, zeros, zeros[:, 0], sums=sums)
+    return sums[:n]

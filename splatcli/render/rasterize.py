@@ -17,7 +17,7 @@ from torch import Tensor
 
 from . import timing
 from .blocks import BlockTuner, Meter, choose_block, estimate_pairs, extents
-from .composite import composite, make_plan, median_depth
+from .composite import composite, make_plan, median_depth, weight_sums
 from .output import RenderOutput
 from .projection import NEAR, TILE, Projection, project
 
@@ -206,3 +206,27 @@ def render_surface(
         image, alpha, _ = composite(plan, m2, pr.conics, pr.opacities, pr.colors, pr.depths, black)
         out.append((median_depth(plan, m2, pr.conics, pr.opacities, pr.depths), image, alpha))
     return tuple(torch.cat(x, 0) for x in zip(*out))  # type: ignore[return-value]
+
+
+@torch.no_grad()
+def render_weights(
+    means: Tensor,  # [N, 3] world
+    quats: Tensor,  # [N, 4]
+    log_scales: Tensor,  # [N, 3]
+    opacity_logits: Tensor,  # [N]
+    viewmat: Tensor,  # [4, 4] world -> camera
+    K: Tensor,  # [3, 3] px
+    width: int,
+    height: int,
+) -> Tensor:  # [N] sum over the view's pixels of alpha_i T_i
+    """Each Gaussian's blending weight over one view (render/weights.py), from a forward pass:
+    one projection, and one plan per band (rasterize's bands)."""
+    sh = means.new_zeros(means.shape[0], 1, 3)
+    pr = project(means, quats, log_scales, opacity_logits, sh, viewmat, K, width, height, 0, NEAR)
+    fp = pr.footprint
+    ext = extents(fp.cov2d, fp.opacities)
+    block = choose_block(ext, width, height)
+    total = means.new_zeros(means.shape[0])
+    for y0, y1 in _bands(height, estimate_pairs(ext, block)):
+        total += weight_sums(make_plan(fp, width, height, block, (y0, y1)), _shift(pr, y0), pr.conics, pr.opacities)
+    return total

@@ -53,6 +53,11 @@ SHN_DIV = 10.0
 # A step's cost that does not grow with its pixels, as a share of a full-size step's: fitted so that
 # (a + 1) / (a + 1/16) is fox's speed at 1/4 of the size over its speed at full (480 px, 2 processes).
 OVERHEAD = 0.07
+# A --compact cut scores every training view with a forward pass (render/weights.py), each about this share
+# of a full-size training step's cost on the same model (fox, 58,000 Gaussians at 480 px, one thread on a
+# Zen 1 EPYC: 0.25 s a view, a step 0.49-0.59 s). The main steps leave that time for the cuts: unpriced, lego
+# grown to 207,000 spent a fifth of a 10-minute budget scoring, and a loaded host ran 43% past it.
+SCORE_COST = 0.5
 
 
 def step_costs(cfg: TrainConfig, iterations: int, start: int, stop: int) -> np.ndarray:
@@ -132,11 +137,22 @@ class TimePlan:
     replan_every: float = 0.1  # fraction of the budget between plans
     cap: int | None = None  # the strategy's Gaussian budget at the end (None: no curve)
     history: list[dict[str, Any]] = field(default_factory=list)  # one entry per plan
+    scored: int = 0  # views this process scores at each --compact cut (its share of the training views)
 
     @staticmethod
-    def start(cfg: TrainConfig) -> TimePlan:
+    def start(cfg: TrainConfig, scored: int = 0) -> TimePlan:
         return TimePlan(budget_s=float(cfg.time_budget), template=Schedule.of(cfg),
-                        probe_s=min(5.0, 0.05 * float(cfg.time_budget)), cap=cfg.refine.max_gaussians)
+                        probe_s=min(5.0, 0.05 * float(cfg.time_budget)), cap=cfg.refine.max_gaussians, scored=scored)
+
+    def cut_cost(self, cfg: TrainConfig) -> float:
+        """The cost (in full-size steps' units) of scoring `scored` views at each of --compact's cuts,
+        the model shrinking towards `keep` of what grew (CompactStep._cut) round by round; 0 without
+        --compact."""
+        if not cfg.compact.enabled:
+            return 0.0
+        rounds, keep = cfg.compact.rounds, cfg.compact.keep
+        shares = sum(keep ** (r / rounds) for r in range(rounds))
+        return self.scored * SCORE_COST * (OVERHEAD + 1.0) * shares
 
     @staticmethod
     def tuned(cfg: TrainConfig) -> TrainConfig:
@@ -225,7 +241,8 @@ class TimePlan:
             return self._finetune(cfg, views, elapsed, rate, stalled)
         # Seconds per unit of cost, from the steps since the last plan as they ran.
         unit = spent / max(float(step_costs(cfg, cfg.iterations, last["step"], views).sum()), 1e-9)
-        left = max(self.budget_s - elapsed, 0.0) / unit  # cost units the budget still holds
+        # Cost units the budget still holds, less what the compaction cuts will spend scoring.
+        left = max(max(self.budget_s - elapsed, 0.0) / unit - self.cut_cost(cfg), 0.0)
         # The longest run whose remaining steps fit (the total grows with the run's length), with
         # the compaction fine-tune (if any) that a run of that length ends with, its steps priced as
         # full-size ones; at least one more step: this step's post-processing hooks have run already.
@@ -279,18 +296,30 @@ class TimePlan:
 
     def _lengthened(self, cfg: TrainConfig, views: int, elapsed: float, rate: float, stalled: float,
                     **mark: Any) -> TrainConfig | None:
-        """The fine-tune lengthened to the budget left at `rate` views a second, recorded (with
-        `mark`); None where that is no longer than it is."""
-        fits = views + int(rate * max(self.budget_s - elapsed, 0.0)) - cfg.iterations
+        """The fine-tune lengthened to the budget left at `rate` views a second, less its cuts still to
+        come, recorded (with `mark`); None where that is no longer than it is."""
+        fits = views + int(rate * max(self.budget_s - elapsed - self._cuts_left_s(cfg, views, rate), 0.0)) - cfg.iterations
         self._record(views, elapsed, stalled, **mark, iterations=cfg.iterations,
                      compact_finetune=max(fits, cfg.compact.finetune))
         return replace(cfg, compact=replace(cfg.compact, finetune=fits)) if fits > cfg.compact.finetune else None
 
+    def _cuts_left_s(self, cfg: TrainConfig, views: int, rate: float) -> float:
+        """Seconds the fine-tune's cuts after view `views` will spend scoring (`cut_cost`), its steps
+        taking 1 / `rate` s on the model now, which each cut makes smaller by keep^(1 / rounds)."""
+        rounds, keep = cfg.compact.rounds, cfg.compact.keep
+        spacing = cfg.compact.finetune // (2 * rounds)
+        if not cfg.compact.enabled or spacing == 0 or rate <= 0:  # (one cut, made when the main steps ended)
+            return 0.0
+        done = sum(cfg.iterations + r * spacing <= views for r in range(rounds))
+        shares = sum(keep ** ((r - done + 1) / rounds) for r in range(done, rounds))
+        return self.scored * SCORE_COST * shares / rate
+
     def record(self) -> dict[str, Any]:
         return {"budget_s": self.budget_s, "template": self.template.record(), "probe_s": self.probe_s, "cap": self.cap,
-                "history": list(self.history)}
+                "scored": self.scored, "history": list(self.history)}
 
     @staticmethod
     def from_record(d: dict[str, Any]) -> TimePlan:
         return TimePlan(budget_s=float(d["budget_s"]), template=Schedule.from_record(d["template"]),
-                        probe_s=float(d["probe_s"]), cap=d.get("cap"), history=list(d["history"]))
+                        probe_s=float(d["probe_s"]), cap=d.get("cap"), history=list(d["history"]),
+                        scored=int(d.get("scored", 0)))

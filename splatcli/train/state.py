@@ -302,13 +302,14 @@ def state_from_checkpoint(ck: Checkpoint, cfg: TrainConfig, extent: float, devic
                       Counters.from_record(ex, ck.step, world, device), plan, render)
 
 
-def time_plan(cfg: TrainConfig, record: Any = None) -> TimePlan | None:
+def time_plan(cfg: TrainConfig, record: Any = None, scored: int = 0) -> TimePlan | None:
     """The --time-budget plan of `cfg` (one process's config): a new one, or the one a
-    checkpoint recorded, with the budget now given."""
+    checkpoint recorded, with the budget now given. `scored`: the training views this process
+    scores at a --compact cut."""
     if cfg.time_budget is None:
         return None
     if isinstance(record, dict):
         plan = TimePlan.from_record(record)
-        plan.budget_s = float(cfg.time_budget)
+        plan.budget_s, plan.scored = float(cfg.time_budget), scored
         return plan
-    return TimePlan.start(cfg)
+    return TimePlan.start(cfg, scored)
