@@ -34,7 +34,7 @@ from splatcli.train.config import TrainConfig
 from splatcli.train.log import read_log
 from splatcli.train.loop import train
 from splatcli.train.plan import LR_HOLD, LR_SCALE, OVERHEAD, SCORE_COST, SHN_DIV, TimePlan, step_costs
-from splatcli.train.state import learning_rates
+from splatcli.train.state import learning_rates, time_plan
 from support.tiny_project import make_tiny_project
 
 CPU = torch.device("cpu")
@@ -425,6 +425,13 @@ def _compacted_run(scored: int, priced: bool, unit: float) -> float:
             run = plan.replan(run, views, elapsed) or run
     assert cuts == rounds
     return elapsed
+
+
+def test_every_rank_prices_the_cuts_at_the_largest_share_of_the_views():
+    cfg = make_config("fast", time_budget=600.0, compact=True)
+    assert [time_plan(cfg, None, 87, k).scored for k in (1, 2, 3)] == [87, 44, 29]
+    resumed = time_plan(cfg, time_plan(cfg, None, 87, 1).record(), 87, 2)  # (a resume on another count)
+    assert resumed is not None and resumed.scored == 44
 
 
 def test_a_plan_leaves_the_compaction_cuts_their_scoring_time():

@@ -168,8 +168,8 @@ class _Run:
     def start(self, ck: Checkpoint | None, device: torch.device) -> None:
         """The trainer of a new run, or of `ck`'s; a finished planned run given more time
         reopened; every rank starting from rank 0's parameters."""
-        plan = time_plan(self.base, ck.extra.get("plan") if ck is not None else None,
-                         len(self.comm.share(self.data.train)))
+        plan = time_plan(self.base, ck.extra.get("plan") if ck is not None else None, len(self.data.train),
+                         self.comm.world)
         if plan is not None:
             self.base = plan.tuned(self.base)  # (its learning rates from the first step)
         data, comm, run = self.data, self.comm, self.base.for_world(self.comm.world)  # the schedule K ranks follow

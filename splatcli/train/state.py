@@ -302,12 +302,15 @@ def state_from_checkpoint(ck: Checkpoint, cfg: TrainConfig, extent: float, devic
                       Counters.from_record(ex, ck.step, world, device), plan, render)
 
 
-def time_plan(cfg: TrainConfig, record: Any = None, scored: int = 0) -> TimePlan | None:
+def time_plan(cfg: TrainConfig, record: Any = None, n_train: int = 0, world: int = 1) -> TimePlan | None:
     """The --time-budget plan of `cfg` (one process's config): a new one, or the one a
-    checkpoint recorded, with the budget now given. `scored`: the training views this process
-    scores at a --compact cut."""
+    checkpoint recorded, with the budget now given. It prices a --compact cut at the largest share
+    of the `n_train` training views one of `world` processes scores (the others wait for it), so
+    that every rank plans alike (a rank that planned its own share ran other steps: a collective
+    mismatch)."""
     if cfg.time_budget is None:
         return None
+    scored = -(-n_train // world)
     if isinstance(record, dict):
         plan = TimePlan.from_record(record)
         plan.budget_s, plan.scored = float(cfg.time_budget), scored
