@@ -365,13 +365,14 @@ def _median_weight(r: Tensor, U: Tensor) -> Tensor:  # [na, P, k] each
 
 def _seg_forward(rows: Tensor, gid: Tensor, centre: Tensor, featsT: Tensor, Tc: Tensor | None,
                  a_min: float, t_min: float, weight=None, kept: list | None = None,
-                 sums: Tensor | None = None) -> tuple[Tensor, Tensor]:
+                 sums: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
     """One segment of the forward pass: rows [N + 1, 11] (`_Gauss`), gid [na, k]
     slot ids, centre [na, 2], featsT [P, 6], Tc [na, P] transmittance entering (None: 1). Returns
     the sums of a weight times (r, g, b, z, 1) per pixel [na, 5, P] and T after [na, P]: the blending
     weight alpha T_before (weight None: the picture), or weight(alpha / (1 - alpha), T after)
-    (`_median_weight`: the median depth). `sums` [N + 1]: each slot's blending weight summed over
-    its pixels is added into its Gaussian's entry (`weight_sums`).
+    (`_median_weight`: the median depth). `sums` (totals [N + 1], inside [na, P] 1 for the pixels
+    in the image, 0 for a block's pixels past its edge): each slot's blending weight summed over its
+    pixels is added into its Gaussian's total (`weight_sums`).
     `kept`: a list that r = alpha / (1 - alpha) and T after [na, P, k], the exponent terms (`_coef`)
     and the gathered (r, g, b, z, 1) rows are appended to, for the backward (blending weights only)."""
     p, czg = _gather(rows, gid)  # [na, k, 6], [na, k, 5]
@@ -386,7 +387,7 @@ def _seg_forward(rows: Tensor, gid: Tensor, centre: Tensor, featsT: Tensor, Tc: 
         if kept is not None:
             kept.append((r, U, q, czg))
         if sums is not None:
-            sums.index_add_(0, gid.reshape(-1), w.sum(1).reshape(-1))
+            sums[0].index_add_(0, gid.reshape(-1), torch.bmm(sums[1].unsqueeze(1), w).reshape(-1))
     return torch.bmm(czg.transpose(1, 2), w.transpose(1, 2)), U[:, :, -1]
 
 
@@ -497,7 +498,8 @@ def _blend(plan: Plan, means2d: Tensor, conics: Tensor, opacities: Tensor, color
     weight (weight None: the picture) or `weight(alpha / (1 - alpha), T_after)` (the 0.5 crossing
     for the median depth). `kept`: a list that each segment's alpha / (1 - alpha), T after, exponent
     terms and gathered rows are appended to, in order, until they hold KEEP_BYTES (the backward computes
-    the rest again). `sums` [N + 1]: each Gaussian's blending weight over the pixels is added into it."""
+    the rest again). `sums` [N + 1]: each Gaussian's blending weight over the image's pixels is added
+    into it."""
     dt, dev = means2d.dtype, means2d.device
     N = means2d.shape[0]
     P = plan.block * plan.block
@@ -506,8 +508,10 @@ def _blend(plan: Plan, means2d: Tensor, conics: Tensor, opacities: Tensor, color
     featsT = _feats(plan.block, dt, dev).T.contiguous()  # [P, 6]
     acc = torch.zeros(plan.nbx * plan.nby, 5, P, dtype=dt, device=dev)  # (r, g, b, depth, sum w)
     kept_bytes = 0
+    inside = None if sums is None else _to_blocks(plan, means2d.new_ones(plan.height, plan.width, 1))[:, 0]  # [nblocks, P]
     for (bl, K), gid in zip(plan.chunks, _slot_ids(plan, N)):
         centre = _centres(plan, bl, dt)
+        inside_bl = None if inside is None else inside.index_select(0, bl)
         cnt = plan.block_count.index_select(0, bl)  # [nb] list lengths
         out = None
         act, Tc = None, None
@@ -516,7 +520,8 @@ def _blend(plan: Plan, means2d: Tensor, conics: Tensor, opacities: Tensor, color
             k1 = _seg_end(plan, k0, K, len(bl) if act is None else len(act))
             keep = kept if kept is not None and kept_bytes < KEEP_BYTES else None
             o, Tc = _seg_forward(gs.rows, _rowsel(gid, act)[:, k0:k1].contiguous(), _rowsel(centre, act), featsT,
-                                 Tc, c.a_min, c.t_min, weight, keep, sums)
+                                 Tc, c.a_min, c.t_min, weight, keep,
+                                 None if sums is None else (sums, _rowsel(inside_bl, act)))
             if keep is not None:
                 kept_bytes += sum(x.numel() * x.element_size() for x in (*kept[-1][:2], *kept[-1][2], kept[-1][3]))
             if out is None:
