@@ -13,9 +13,10 @@ and the refinement window closed before the count reached its cap.
 What a plan sets:
 
 * the preset's schedule in proportion (refinement window, SH growth, fine-tune), with
-  refinement at least every MIN_REFINE_EVERY steps; with --compact, the main steps and the
-  fine-tune they bring fit the budget together, and once the main steps end the fine-tune
-  is lengthened to the time left at its own speed (the cuts make its steps faster);
+  refinement at least every MIN_REFINE_EVERY steps; with --compact, the main steps, the
+  fine-tune they bring and the cuts' scoring (SCORE_COST) fit the budget together, and once
+  the main steps end the fine-tune is lengthened to the time its cuts leave, at its own speed
+  (the cuts make its steps faster);
 * the means' learning rate held at its initial value for the first LR_HOLD of the run
   (`lr_hold`), then decaying: a compressed exponential decay leaves a short run's last
   half at a tenth of the rate, before the model has its shape; and every rate higher than
@@ -137,7 +138,7 @@ class TimePlan:
     replan_every: float = 0.1  # fraction of the budget between plans
     cap: int | None = None  # the strategy's Gaussian budget at the end (None: no curve)
     history: list[dict[str, Any]] = field(default_factory=list)  # one entry per plan
-    scored: int = 0  # views this process scores at each --compact cut (its share of the training views)
+    scored: int = 0  # views a process scores at each --compact cut (the largest share of the training views)
 
     @staticmethod
     def start(cfg: TrainConfig, scored: int = 0) -> TimePlan:
