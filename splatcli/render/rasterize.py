@@ -178,6 +178,16 @@ def _banded(pr, width, height, block, background, bands):
     return tuple(torch.cat([o[i] for o in outs], 0) for i in range(3))
 
 
+def _planned_bands(pr: Projection, width: int, height: int):
+    """A forward-only render's plans, one per band (rasterize's bands, the cost model's block), each
+    with the projected means in its band's coordinates [N, 2]."""
+    fp = pr.footprint
+    ext = extents(fp.cov2d, fp.opacities)
+    block = choose_block(ext, width, height)
+    for y0, y1 in _bands(height, estimate_pairs(ext, block)):
+        yield make_plan(fp, width, height, block, (y0, y1)), _shift(pr, y0)
+
+
 @torch.no_grad()
 def render_surface(
     means: Tensor,  # [N, 3] world
@@ -196,13 +206,9 @@ def render_surface(
     picture, from one projection and one plan per band (rasterize's bands)."""
     d = int(round(math.sqrt(sh.shape[1]))) - 1
     pr = project(means, quats, log_scales, opacity_logits, sh, viewmat, K, width, height, d, NEAR, antialiased)
-    fp = pr.footprint
-    ext = extents(fp.cov2d, fp.opacities)
-    block = choose_block(ext, width, height)
     black = means.new_zeros(3)
     out = []
-    for y0, y1 in _bands(height, estimate_pairs(ext, block)):
-        plan, m2 = make_plan(fp, width, height, block, (y0, y1)), _shift(pr, y0)
+    for plan, m2 in _planned_bands(pr, width, height):
         image, alpha, _ = composite(plan, m2, pr.conics, pr.opacities, pr.colors, pr.depths, black)
         out.append((median_depth(plan, m2, pr.conics, pr.opacities, pr.depths), image, alpha))
     return tuple(torch.cat(x, 0) for x in zip(*out))  # type: ignore[return-value]
@@ -223,10 +229,7 @@ def render_weights(
     one projection, and one plan per band (rasterize's bands)."""
     sh = means.new_zeros(means.shape[0], 1, 3)
     pr = project(means, quats, log_scales, opacity_logits, sh, viewmat, K, width, height, 0, NEAR)
-    fp = pr.footprint
-    ext = extents(fp.cov2d, fp.opacities)
-    block = choose_block(ext, width, height)
     total = means.new_zeros(means.shape[0])
-    for y0, y1 in _bands(height, estimate_pairs(ext, block)):
-        total += weight_sums(make_plan(fp, width, height, block, (y0, y1)), _shift(pr, y0), pr.conics, pr.opacities)
+    for plan, m2 in _planned_bands(pr, width, height):
+        total += weight_sums(plan, m2, pr.conics, pr.opacities)
     return total
