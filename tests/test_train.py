@@ -29,6 +29,7 @@ from splatcli.formats.ply import ply_bytes
 from splatcli.options import parse
 from splatcli.project import Project
 from splatcli.render import rasterize
+from splatcli.strategy import cut_steps
 from splatcli.train import log
 from splatcli.train.config import TrainConfig
 from splatcli.train.log import read_log
@@ -407,7 +408,7 @@ def test_a_plan_with_compact_fits_the_fine_tune_into_the_budget():
 def _compacted_run(scored: int, priced: bool, unit: float) -> float:
     """A planned --compact run simulated step by step (`unit` seconds per unit of cost, fine-tune steps
     at half the price), each cut scoring `scored` views at SCORE_COST of a full-size step on the model
-    it cuts (CompactStep's schedule: the first when the main steps end, the others spread over the
+    it cuts (strategy.cut_steps: the first when the main steps end, the others spread over the
     fine-tune's first half); planned with the cuts priced, or not. Returns the training seconds."""
     cfg = make_config("fast", time_budget=600.0, compact=True)
     plan = TimePlan.start(cfg, scored if priced else 0)
@@ -417,8 +418,7 @@ def _compacted_run(scored: int, priced: bool, unit: float) -> float:
         full = float(step_costs(run, run.iterations, views, views + 1)[0])
         elapsed += (0.5 if views >= run.iterations else 1.0) * full * unit
         views += 1
-        spacing = run.compact.finetune // (2 * rounds)
-        if cuts < rounds and views == run.iterations + cuts * spacing:
+        if cuts < rounds and views == cut_steps(run.compact, run.iterations)[cuts]:
             elapsed += scored * SCORE_COST * (OVERHEAD + 1.0) * keep ** (cuts / rounds) * unit
             cuts += 1
         if views < run.total_steps and (plan.due(elapsed) or plan.finetune_due(run, views, elapsed)):

@@ -2,7 +2,7 @@
 and the one set of ops that edits parameters, Adam moments and strategy state together."""
 
 from .base import Context, Evaluator, RefineConfig, RefineStats, RowState, Splats, StepInfo, Strategy, TrainViews
-from .compact import CompactConfig, CompactReport, CompactStep, ShAutoConfig, ShAutoStep, sh_degree_of
+from .compact import CompactConfig, CompactReport, CompactStep, ShAutoConfig, ShAutoStep, cut_steps, sh_degree_of
 from .default import DefaultStrategy, DefaultStrategyConfig, DefaultStrategyState
 from .mcmc import MCMCStrategy, MCMCStrategyConfig, MCMCStrategyState
 from .mip import MipFilter, MipFilterState
@@ -12,4 +12,5 @@ from .support import SupportConfig, SupportPrune
 __all__ = ["CompactConfig", "CompactReport", "CompactStep", "Context", "DefaultStrategy", "DefaultStrategyConfig",
            "DefaultStrategyState", "Evaluator", "MCMCStrategy", "MCMCStrategyConfig", "MCMCStrategyState", "MipFilter",
            "MipFilterState", "RefineConfig", "RefineStats", "RegularizeStep", "RowState", "ShAutoConfig",
-           "ShAutoStep", "Splats", "StepInfo", "Strategy", "SupportConfig", "SupportPrune", "TrainViews", "sh_degree_of"]
+           "ShAutoStep", "Splats", "StepInfo", "Strategy", "SupportConfig", "SupportPrune", "TrainViews", "cut_steps",
+           "sh_degree_of"]

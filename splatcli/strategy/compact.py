@@ -90,6 +90,17 @@ class CompactConfig:
     rounds: int = opt(3, "Cuts, spread over the first half of the fine-tune.", at_least=1)
 
 
+def cut_steps(config: CompactConfig, at: int) -> list[int]:
+    """Steps ending with a cut (CompactStep; train/plan.py prices their scoring): the first at `at`,
+    the others spread over the first half of the fine-tune, so the final set still gets at least half
+    of it. Cutting in rounds lets the survivors take over the pruned Gaussians' work before the next
+    cut (one cut loses more)."""
+    spacing = config.finetune // (2 * config.rounds)
+    if spacing == 0:  # too short a fine-tune for rounds: one cut
+        return [at]
+    return [at + r * spacing for r in range(config.rounds)]
+
+
 @dataclass
 class CompactState(RowState):
     round: int = 0  # cuts done
@@ -127,14 +138,7 @@ class CompactStep(ModelStep):
         return min(n0, kept_count(self.cap if self.cap is not None else n0, self.config.keep))
 
     def prune_steps(self) -> list[int]:
-        """Steps ending with a cut: the first at `at`, the others spread over the
-        first half of the fine-tune, so the final set still gets at least half of it.
-        Cutting in rounds lets the survivors take over the pruned Gaussians' work
-        before the next cut (one cut loses more)."""
-        spacing = self.config.finetune // (2 * self.config.rounds)
-        if spacing == 0:  # too short a fine-tune for rounds: one cut
-            return [self.at]
-        return [self.at + r * spacing for r in range(self.config.rounds)]
+        return cut_steps(self.config, self.at)
 
     def step_post_backward(self, splats: Splats, state: CompactState, step: int, info: StepInfo) -> RefineStats | None:
         sched = self.prune_steps()

@@ -40,7 +40,7 @@ from typing import Any
 
 import numpy as np
 
-from ..strategy import DefaultStrategyConfig
+from ..strategy import DefaultStrategyConfig, cut_steps
 from .config import TrainConfig
 
 MIN_ITERATIONS = 30  # a plan never shrinks the run below this
@@ -145,15 +145,15 @@ class TimePlan:
         return TimePlan(budget_s=float(cfg.time_budget), template=Schedule.of(cfg),
                         probe_s=min(5.0, 0.05 * float(cfg.time_budget)), cap=cfg.refine.max_gaussians, scored=scored)
 
-    def cut_cost(self, cfg: TrainConfig) -> float:
-        """The cost (in full-size steps' units) of scoring `scored` views at each of --compact's cuts,
-        the model shrinking towards `keep` of what grew (CompactStep._cut) round by round; 0 without
-        --compact."""
+    def scoring(self, cfg: TrainConfig, views: int) -> float:
+        """What --compact's cuts after view `views` will spend scoring (all of them, before the main
+        steps end), in full-size steps on the model at hand: `scored` views at SCORE_COST a view at
+        each cut (strategy.cut_steps), the model smaller by keep^(1 / cuts) after each (CompactStep._cut)."""
         if not cfg.compact.enabled:
             return 0.0
-        rounds, keep = cfg.compact.rounds, cfg.compact.keep
-        shares = sum(keep ** (r / rounds) for r in range(rounds))
-        return self.scored * SCORE_COST * (OVERHEAD + 1.0) * shares
+        steps = cut_steps(cfg.compact, cfg.iterations)
+        done, keep = sum(s <= views for s in steps), cfg.compact.keep
+        return self.scored * SCORE_COST * sum(keep ** ((r - done) / len(steps)) for r in range(done, len(steps)))
 
     @staticmethod
     def tuned(cfg: TrainConfig) -> TrainConfig:
@@ -243,7 +243,7 @@ class TimePlan:
         # Seconds per unit of cost, from the steps since the last plan as they ran.
         unit = spent / max(float(step_costs(cfg, cfg.iterations, last["step"], views).sum()), 1e-9)
         # Cost units the budget still holds, less what the compaction cuts will spend scoring.
-        left = max(max(self.budget_s - elapsed, 0.0) / unit - self.cut_cost(cfg), 0.0)
+        left = max(max(self.budget_s - elapsed, 0.0) / unit - self.scoring(cfg, views) * (OVERHEAD + 1.0), 0.0)
         # The longest run whose remaining steps fit (the total grows with the run's length), with
         # the compaction fine-tune (if any) that a run of that length ends with, its steps priced as
         # full-size ones; at least one more step: this step's post-processing hooks have run already.
@@ -299,21 +299,11 @@ class TimePlan:
                     **mark: Any) -> TrainConfig | None:
         """The fine-tune lengthened to the budget left at `rate` views a second, less its cuts still to
         come, recorded (with `mark`); None where that is no longer than it is."""
-        fits = views + int(rate * max(self.budget_s - elapsed - self._cuts_left_s(cfg, views, rate), 0.0)) - cfg.iterations
+        left = self.budget_s - elapsed - (self.scoring(cfg, views) / rate if rate > 0 else 0.0)  # (a step: 1 / rate s)
+        fits = views + int(rate * max(left, 0.0)) - cfg.iterations
         self._record(views, elapsed, stalled, **mark, iterations=cfg.iterations,
                      compact_finetune=max(fits, cfg.compact.finetune))
         return replace(cfg, compact=replace(cfg.compact, finetune=fits)) if fits > cfg.compact.finetune else None
-
-    def _cuts_left_s(self, cfg: TrainConfig, views: int, rate: float) -> float:
-        """Seconds the fine-tune's cuts after view `views` will spend scoring (`cut_cost`), its steps
-        taking 1 / `rate` s on the model now, which each cut makes smaller by keep^(1 / rounds)."""
-        rounds, keep = cfg.compact.rounds, cfg.compact.keep
-        spacing = cfg.compact.finetune // (2 * rounds)
-        if not cfg.compact.enabled or spacing == 0 or rate <= 0:  # (one cut, made when the main steps ended)
-            return 0.0
-        done = sum(cfg.iterations + r * spacing <= views for r in range(rounds))
-        shares = sum(keep ** ((r - done + 1) / rounds) for r in range(done, rounds))
-        return self.scored * SCORE_COST * shares / rate
 
     def record(self) -> dict[str, Any]:
         return {"budget_s": self.budget_s, "template": self.template.record(), "probe_s": self.probe_s, "cap": self.cap,
