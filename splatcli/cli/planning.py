@@ -52,14 +52,9 @@ GAUSSIANS_PER_POINT = 3
 # trained at 52k ends 1.28 dB below a 222k budget, and grown to 207k then cut to a quarter ends 0.36 dB above it
 # (docs/benchmarks.md, "Model size").
 # A run shorter than the default budget has no time to cut and fine-tune: it trains and keeps 2k times the per-pixel
-# model (k at most MAX_GROWTH), the count that reached the highest PSNR in 300 s on fox (58k 31.63 dB, 30k 31.38),
-# or, where its time affords more, SHORT_PER_S x min(MAX_GROWTH, k^2) Gaussians a second of the budget, at most
-# 2 min(MAX_GROWTH, k^2) times the per-pixel model: the count such a run can train grows with its time, not with
-# its pixels. Lego (k = 2.1) at 200 px in the steps a 2-core Xeon trains in 90 s (a Zen 1 given 200 s: 1,500-2,200
-# steps): 39k 33.99-34.14 dB, 60k 34.24, 72k 34.30, 100k 34.22; at 480 px in 300 s on the Zen 1: 150k 34.31 dB,
-# 222k 34.25, 400k 33.63. On the Zen 1 in 90 s, 2.3x fewer steps, 70k ended 0.10 dB below 39k (32.96 dB, 33.06).
+# model (k at most MAX_GROWTH), the count that reached the highest PSNR in 90 s and 300 s (fox at 300 s: 58k 31.63 dB,
+# 30k 31.38; lego at 90 s: 39k 34.15, 36k 34.09).
 COVERAGE_SEEN, MAX_GROWTH = 9.0, 4.0
-SHORT_PER_S = 200.0
 COMPACT_FROM = 1.5  # compacted only where the model grown is at least this many times the one kept
 # Captures of more training views train longer, so that each photo is still seen often enough: the
 # default budget up to VIEWS_AT_BUDGET views, then growing with the square root of the count, to at
@@ -299,7 +294,7 @@ def choose(project: Project, given: options.Given, nproc: int | None, device: to
     if asked.strategy in (None, "mcmc") and asked.mcmc_fits:
         out.strategy = pick(asked.strategy, "strategy", "mcmc", "a fixed Gaussian budget, grown on a curve planned "
                             "to the time")
-        size = _budget(train_px, scene, budget)
+        size = _budget(train_px, scene, short=budget < BUDGET_S)
         compact = size.grown >= COMPACT_FROM * size.kept
         out.max_gaussians = pick(asked.max_gaussians, "max_gaussians", size.grown, size.why)
         if compact and out.max_gaussians is not None and asked.compact is None and asked.compact_keep is None:
@@ -321,18 +316,13 @@ class Budget:
     why: str
 
 
-def _budget(train_px: int, scene: SceneData, budget: float) -> Budget:
-    """The Gaussian budget for a training view of `train_px` pixels in `scene`, in a run of `budget`
-    training seconds: the default budget or more, or a short one (the constants above)."""
+def _budget(train_px: int, scene: SceneData, short: bool) -> Budget:
+    """The Gaussian budget for a training view of `train_px` pixels in `scene`, in a run of the default
+    budget or more, or a `short` one (the constants above)."""
     n, t = len(scene.cameras), scene.views_per_point
     k = max(1.0, n / t / COVERAGE_SEEN) if t > 0 else 1.0
-    short = budget < BUDGET_S
+    growth = 2 * min(MAX_GROWTH, k) if short else min(MAX_GROWTH, k * k)
     by_px, by_pts = GAUSSIANS_PER_PIXEL * train_px, GAUSSIANS_PER_POINT * len(scene.points)
-    growth = g2 = min(MAX_GROWTH, k * k)
-    afforded = min(SHORT_PER_S * g2 * budget / by_px, 2 * g2)  # what a short run's time can train
-    timed = short and afforded > 2 * min(MAX_GROWTH, k)  # ... where that is more than twice the pixels' count x k
-    if short:
-        growth = afforded if timed else 2 * min(MAX_GROWTH, k)
 
     def count(x: float) -> int:
         return int(min(MAX_GAUSSIANS, max(MIN_GAUSSIANS, round(x, -3))))
@@ -344,10 +334,7 @@ def _budget(train_px: int, scene: SceneData, budget: float) -> Budget:
     seen = f"each SfM point is seen by {t:.1f} of {n} views, so the capture shows about {k:.1f} views' worth of surface"
     if growth > 1 and by_px * growth > by_pts:  # (x 1: nothing to say)
         why = (f"{px} x {growth:.1f}: " + ("a run shorter than 10 min keeps twice the pixels' count (it has no time "
-                                            "to cut), times the views' worth of surface; " if short and not timed else
-                                            f"a run shorter than 10 min keeps what its {budget:.0f} s can train, "
-                                            f"{SHORT_PER_S:.0f} a second x {g2:.1f} (the views' worth squared, at most "
-                                            f"{MAX_GROWTH:.0f}), up to twice the pixels' count x {g2:.1f}; " if timed else
+                                            "to cut), times the views' worth of surface; " if short else
                                             "to grow into; ") + seen)
     return Budget(grown=grown, kept=kept, why=why)
 
