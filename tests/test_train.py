@@ -31,7 +31,7 @@ from splatcli.project import Project
 from splatcli.render import rasterize
 from splatcli.strategy import cut_steps
 from splatcli.train import log
-from splatcli.train.config import TrainConfig
+from splatcli.train.config import TrainConfig, TrainSummary
 from splatcli.train.log import read_log
 from splatcli.train.loop import train
 from splatcli.train.plan import LR_HOLD, LR_SCALE, OVERHEAD, SCORE_COST, SHN_DIV, TimePlan, step_costs
@@ -371,6 +371,36 @@ def test_a_plan_prices_each_step_by_its_resolution():
     flat = make_config("fast", time_budget=600.0, coarse_scale=1.0)
     plan = TimePlan.start(flat)
     assert abs(plan.replan(plan.scaled(flat, 7000), 170, 5.0).iterations - (170 + 170 / 5.0 * 595.0)) <= 1
+
+
+def test_a_plan_raises_the_gaussian_budget_by_the_steps_it_affords():
+    """A short run's count may rise (time_budget_gaussians, chosen for a capture seen all round): once,
+    at the first plan from RAISE_AT of the budget, the cap becomes cap x (steps planned / RAISE_STEPS), in
+    thousands, at least as it was and at most the count allowed; later plans keep it; never with --compact
+    (its cuts keep a share of the cap). The decision is in the plan's record, which a resumed run reads,
+    and in the model's line. Without coarse steps, a plan is the measured rate times the time left."""
+    def plan_at(rate: float, **over) -> tuple[TimePlan, TrainConfig]:
+        cfg = make_config("fast", time_budget=100.0, strategy="mcmc", max_gaussians=39_000, coarse_scale=1.0,
+                          time_budget_gaussians=72_000, **over)
+        plan = TimePlan.start(cfg)
+        run = plan.replan(plan.scaled(cfg, 7000), int(rate * 5), 5.0)  # the probe's plan: before RAISE_AT
+        assert plan.cap == 39_000 and run.refine.max_gaussians == 39_000
+        return plan, plan.replan(run, int(rate * 10), 10.0) or run
+
+    for rate, cap in ((20.0, 72_000), (14.0, 55_000), (8.0, 39_000)):  # 2,000, 1,400 and 800 steps planned
+        plan, run = plan_at(rate)
+        steps = plan.history[-1]["iterations"]
+        assert plan.history[-1]["raised"] == {"from": 39_000, "to": cap, "steps": steps}, rate
+        assert plan.cap == run.refine.max_gaussians == cap and abs(steps - int(rate * 100)) <= 1
+        later = plan.replan(run, int(rate * 30), 30.0)
+        assert plan.cap == later.refine.max_gaussians == cap and "raised" not in plan.history[-1]
+        assert TimePlan.from_record(json.loads(json.dumps(plan.record()))).record() == plan.record()
+        said = TrainSummary(1, 1.0, cap, 3, 1, "cpu", 0.0, plan=plan.record()).model_line()
+        assert (f"raised max-gaussians from 39,000 to {cap:,}" if cap > 39_000 else "kept max-gaussians at 39,000") in said
+    plan, run = plan_at(20.0, compact=True)
+    assert plan.cap == 39_000 and "raised" not in plan.history[-1]
+    cfg = make_config("fast", time_budget=100.0, strategy="mcmc", max_gaussians=39_000)
+    assert TimePlan.start(cfg).up_to is None
 
 
 def test_a_plan_with_compact_fits_the_fine_tune_into_the_budget():

@@ -36,6 +36,7 @@ from ..gaussians import kept_count
 from ..project import Project
 from ..sfm.colmap import read_project_scene
 from ..train.config import TrainConfig, preset_config
+from ..train.plan import RAISE_STEPS
 
 BUDGET_S = 600.0  # training seconds of a default CPU run: with loading and the last evaluation, ends within 15 min
 MAX_SIZE = 480  # px, the longest side a default CPU run trains at
@@ -53,7 +54,10 @@ GAUSSIANS_PER_POINT = 3
 # (docs/benchmarks.md, "Model size").
 # A run shorter than the default budget has no time to cut and fine-tune: it trains and keeps 2k times the per-pixel
 # model (k at most MAX_GROWTH), the count that reached the highest PSNR in 90 s and 300 s (fox at 300 s: 58k 31.63 dB,
-# 30k 31.38; lego at 90 s: 39k 34.15, 36k 34.09).
+# 30k 31.38; lego at 90 s: 39k 34.15, 36k 34.09). A capture seen all round may have up to 2 min(MAX_GROWTH, k^2)
+# times the per-pixel model where the CPU trains the steps for it: the plan raises the count by what the steps it
+# measures afford (train/plan.py, RAISE_STEPS), since a budget buys 2.3x the steps on one 2-core CPU that it buys on
+# another, and more Gaussians pay only where enough steps train them.
 COVERAGE_SEEN, MAX_GROWTH = 9.0, 4.0
 COMPACT_FROM = 1.5  # compacted only where the model grown is at least this many times the one kept
 # Captures of more training views train longer, so that each photo is still seen often enough: the
@@ -119,6 +123,7 @@ class Chosen:
     appearance: str | None = None
     strategy: str | None = None
     max_gaussians: int | None = None  # MCMC's budget (chosen with --strategy mcmc alone)
+    time_budget_gaussians: int | None = None  # what the plan may raise max_gaussians to (chosen with it)
     compact_keep: float | None = None  # --compact chosen, keeping this share of max_gaussians
     threads: int | None = None  # torch threads of each process
     choices: list[Choice] = field(default_factory=list)
@@ -133,6 +138,8 @@ class Chosen:
             cfg = replace(cfg, appearance=self.appearance)
         if self.max_gaussians is not None:
             cfg = replace(cfg, mcmc=replace(cfg.mcmc, max_gaussians=self.max_gaussians))
+        if self.time_budget_gaussians is not None:
+            cfg = replace(cfg, time_budget_gaussians=self.time_budget_gaussians)
         if self.compact_keep is not None:
             cfg = replace(cfg, compact=replace(cfg.compact, enabled=True, keep=self.compact_keep))
         return cfg
@@ -288,16 +295,16 @@ def choose(project: Project, given: options.Given, nproc: int | None, device: to
     if default_run and photos and len(cams) >= 8:  # (a --time-budget run keeps the appearance it was measured with)
         out.appearance = pick(asked.appearance, "appearance", "exposure", "photographs: their exposure and white "
                               "balance vary from shot to shot")
-    max_size = out.max_size or asked.max_size or TrainConfig().max_size
-    trained = [c.at_resolution(asked.downscale, max_size) for c in cams]
+    trained = [c.at_resolution(asked.downscale, out.max_size or asked.max_size or TrainConfig().max_size) for c in cams]
     train_px = sorted(c.width * c.height for c in trained)[len(cams) // 2]
     if asked.strategy in (None, "mcmc") and asked.mcmc_fits:
         out.strategy = pick(asked.strategy, "strategy", "mcmc", "a fixed Gaussian budget, grown on a curve planned "
                             "to the time")
         size = _budget(train_px, scene, short=budget < BUDGET_S)
-        compact = size.grown >= COMPACT_FROM * size.kept
         out.max_gaussians = pick(asked.max_gaussians, "max_gaussians", size.grown, size.why)
-        if compact and out.max_gaussians is not None and asked.compact is None and asked.compact_keep is None:
+        out.time_budget_gaussians = size.up_to if out.max_gaussians is not None else None
+        compact = size.grown >= COMPACT_FROM * size.kept and out.max_gaussians is not None
+        if compact and asked.compact is None and asked.compact_keep is None:
             out.compact_keep = pick(None, "compact_keep", round(size.kept / size.grown, 6),
                                     f"grown to find the detail, then {size.kept:,} kept, those with the most "
                                     "blending weight (--no-compact keeps all)")
@@ -314,6 +321,7 @@ class Budget:
     grown: int
     kept: int
     why: str
+    up_to: int | None = None  # a short run's: what its plan may raise `grown` to (None: it keeps `grown`)
 
 
 def _budget(train_px: int, scene: SceneData, short: bool) -> Budget:
@@ -329,6 +337,7 @@ def _budget(train_px: int, scene: SceneData, short: bool) -> Budget:
 
     grown = count(max(by_px * growth, by_pts))
     kept = grown if short else count(max(by_px, by_pts))
+    up_to = count(by_px * 2 * min(MAX_GROWTH, k * k)) if short else 0
     px = f"{GAUSSIANS_PER_PIXEL} per pixel of a {train_px:,}-pixel training view"
     why = px if by_px >= by_pts else f"{GAUSSIANS_PER_POINT} per SfM point ({len(scene.points):,})"
     seen = f"each SfM point is seen by {t:.1f} of {n} views, so the capture shows about {k:.1f} views' worth of surface"
@@ -336,7 +345,11 @@ def _budget(train_px: int, scene: SceneData, short: bool) -> Budget:
         why = (f"{px} x {growth:.1f}: " + ("a run shorter than 10 min keeps twice the pixels' count (it has no time "
                                             "to cut), times the views' worth of surface; " if short else
                                             "to grow into; ") + seen)
-    return Budget(grown=grown, kept=kept, why=why)
+    if up_to <= grown:
+        return Budget(grown=grown, kept=kept, why=why)
+    why += (f"; up to {up_to:,} where this CPU trains the steps for more: x1 for each {RAISE_STEPS:,} steps the "
+            "budget affords, set at a tenth of it (train.json: plan)")
+    return Budget(grown=grown, kept=kept, why=why, up_to=up_to)
 
 
 def _resumed_processes(out: Chosen, project: Project) -> None:

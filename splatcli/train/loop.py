@@ -118,7 +118,10 @@ def _check_fits(project: Project, cfg: TrainConfig, ck: Checkpoint | None, comm:
     cams = [c.at_resolution(cfg.downscale, cfg.max_size) for c in read_project_scene(project).cameras]
     facts = project.manifest().get("scene") or {}
     init = len(ck.gaussians) if ck is not None else int(facts.get("num_points") or cfg.init_random_points)
-    check_memory(plan_memory(cams, init, cfg.refine.max_gaussians, copies=comm.local_world), cfg.max_size)
+    cap = cfg.refine.max_gaussians
+    if cap is not None and cfg.time_budget is not None and cfg.time_budget_gaussians:  # (the plan may raise it)
+        cap = max(cap, cfg.time_budget_gaussians)
+    check_memory(plan_memory(cams, init, cap, copies=comm.local_world), cfg.max_size)
 
 
 def _compile(cfg: TrainConfig, device: torch.device, on_event: EventSink | None) -> dict[str, Any]:

@@ -24,7 +24,12 @@ What a plan sets:
 * the Gaussian count on a curve tied to the resolution schedule (as DashGaussian does):
   the strategy's budget is cap x (scale at the next plan)^2, where scale is the
   coarse-to-fine resolution, so that cheap coarse steps are not slowed by Gaussians
-  only the full resolution can use, and the full budget arrives with the full size.
+  only the full resolution can use, and the full budget arrives with the full size;
+* once, at the first plan from RAISE_AT of the budget, where the config allows it
+  (`time_budget_gaussians`), that cap raised by as much as the steps planned then afford: x1 per
+  RAISE_STEPS of them, up to the allowed count. More Gaussians pay only where the run still
+  trains enough steps to fit them, and a budget buys 2.3x the steps on one 2-core CPU that it
+  buys on another (docs/benchmarks.md, "Model size").
 
 Counts are in views seen (one process's steps): with K data-parallel processes each
 step trains K views, every rank plans from the same (averaged) clock, and the config
@@ -59,6 +64,15 @@ OVERHEAD = 0.07
 # Zen 1 EPYC: 0.25 s a view, a step 0.49-0.59 s). The main steps leave that time for the cuts: unpriced, lego
 # grown to 207,000 spent a fifth of a 10-minute budget scoring, and a loaded host ran 43% past it.
 SCORE_COST = 0.5
+# A Gaussian budget that may rise (`time_budget_gaussians`) is raised at the first plan from this share of the
+# budget (the speed measured on the steps after the probe, the model still growing), by x1 for every RAISE_STEPS
+# steps of one process that plan affords at the budget given. Lego at 200 px, 2 processes, a Zen 1 EPYC: given 200 s
+# (about 2,000 steps at 39,000 Gaussians) 72,000 reached 34.29-34.30 dB against 33.99-34.14 (60,000: 34.24, 100,000:
+# 34.22); in 90 s (about 800 steps) 39,000 reached 32.90-33.06 dB and 70,000-72,000 32.59-32.96; a Zen 4 in 90 s
+# (2,072 steps at 40,000) 60,000 34.37 dB against 34.17; a Xeon in 90 s (1,254 steps at 39,000) 60,000 33.57 dB
+# against 33.69.
+RAISE_AT = 0.1
+RAISE_STEPS = 1000
 
 
 def step_costs(cfg: TrainConfig, iterations: int, start: int, stop: int) -> np.ndarray:
@@ -139,11 +153,13 @@ class TimePlan:
     cap: int | None = None  # the strategy's Gaussian budget at the end (None: no curve)
     history: list[dict[str, Any]] = field(default_factory=list)  # one entry per plan
     scored: int = 0  # views a process scores at each --compact cut (the largest share of the training views)
+    up_to: int | None = None  # the Gaussian budget `cap` may be raised to, once (None: it is not)
 
     @staticmethod
     def start(cfg: TrainConfig, scored: int = 0) -> TimePlan:
         return TimePlan(budget_s=float(cfg.time_budget), template=Schedule.of(cfg),
-                        probe_s=min(5.0, 0.05 * float(cfg.time_budget)), cap=cfg.refine.max_gaussians, scored=scored)
+                        probe_s=min(5.0, 0.05 * float(cfg.time_budget)), cap=cfg.refine.max_gaussians, scored=scored,
+                        up_to=cfg.time_budget_gaussians if cfg.strategy == "mcmc" else None)
 
     def scoring(self, cfg: TrainConfig, views: int) -> float:
         """What --compact's cuts after view `views` will spend scoring (all of them, before the main
@@ -259,14 +275,27 @@ class TimePlan:
             else:
                 hi = mid - 1
         iterations = max(lo, min(MIN_ITERATIONS, self.template.iterations))
+        raised = self._raise(cfg, iterations, elapsed)
         # The budget until the next plan: where the run will be then, at the planned speeds.
         until_next = self.replan_every * self.budget_s / unit
         ahead = views + int(np.searchsorted(np.cumsum(step_costs(cfg, iterations, views, iterations)), until_next))
         ahead = min(iterations, ahead)
         planned = self.scaled(cfg, iterations, ahead)
         self._record(views, elapsed, stalled, steps_per_s=round(rate, 3), iterations=iterations,
-                     **({"max_gaussians": planned.refine.max_gaussians} if self.cap is not None else {}))
+                     **({"max_gaussians": planned.refine.max_gaussians} if self.cap is not None else {}),
+                     **({"raised": raised} if raised is not None else {}))
         return planned
+
+    def _raise(self, cfg: TrainConfig, iterations: int, elapsed: float) -> dict[str, int] | None:
+        """At the first plan from RAISE_AT of the budget, once: the Gaussian budget `cap` raised to
+        cap x (`iterations` / RAISE_STEPS), in thousands, at most `up_to` and at least as it was; what
+        was decided (from, to, the steps it was decided on), or None where nothing is decided now. Not
+        with --compact, whose cuts keep a share of the budget."""
+        if (self.up_to is None or self.cap is None or self.up_to <= self.cap or cfg.compact.enabled
+                or elapsed < RAISE_AT * self.budget_s or any("raised" in h for h in self.history)):
+            return None
+        was, self.cap = self.cap, min(self.up_to, max(self.cap, int(round(self.cap * iterations / RAISE_STEPS, -3))))
+        return {"from": was, "to": self.cap, "steps": iterations}
 
     def _record(self, views: int, elapsed: float, stalled: float, **what: Any) -> None:
         """One entry of the plan's history (train.json): where the run was, and what was planned."""
@@ -307,10 +336,10 @@ class TimePlan:
 
     def record(self) -> dict[str, Any]:
         return {"budget_s": self.budget_s, "template": self.template.record(), "probe_s": self.probe_s, "cap": self.cap,
-                "scored": self.scored, "history": list(self.history)}
+                "scored": self.scored, "up_to": self.up_to, "history": list(self.history)}
 
     @staticmethod
     def from_record(d: dict[str, Any]) -> TimePlan:
         return TimePlan(budget_s=float(d["budget_s"]), template=Schedule.from_record(d["template"]),
                         probe_s=float(d["probe_s"]), cap=d.get("cap"), history=list(d["history"]),
-                        scored=int(d.get("scored", 0)))
+                        scored=int(d.get("scored", 0)), up_to=d.get("up_to"))
