@@ -34,7 +34,7 @@ from splatcli.train import log
 from splatcli.train.config import TrainConfig, TrainSummary
 from splatcli.train.log import read_log
 from splatcli.train.loop import train
-from splatcli.train.plan import LR_HOLD, LR_SCALE, OVERHEAD, SCORE_COST, SHN_DIV, TimePlan, step_costs
+from splatcli.train.plan import LR_HOLD, LR_SCALE, OVERHEAD, RAISE_AT, SCORE_COST, SHN_DIV, TimePlan, step_costs
 from splatcli.train.state import learning_rates, time_plan
 from support.tiny_project import make_tiny_project
 
@@ -384,15 +384,16 @@ def test_a_plan_raises_the_gaussian_budget_by_the_steps_it_affords():
                           time_budget_gaussians=72_000, **over)
         plan = TimePlan.start(cfg)
         run = plan.replan(plan.scaled(cfg, 7000), int(rate * 5), 5.0)  # the probe's plan: before RAISE_AT
-        assert plan.cap == 39_000 and run.refine.max_gaussians == 39_000
-        return plan, plan.replan(run, int(rate * 10), 10.0) or run
+        assert plan.cap == 39_000 and run.refine.max_gaussians == 39_000 and plan.budget_s * RAISE_AT == 20.0
+        assert plan.replan(run, int(rate * 15), 15.0).refine.max_gaussians == 39_000  # (nor a plan before RAISE_AT)
+        return plan, plan.replan(run, int(rate * 20), 20.0) or run
 
     for rate, cap in ((20.0, 72_000), (14.0, 55_000), (8.0, 39_000)):  # 2,000, 1,400 and 800 steps planned
         plan, run = plan_at(rate)
         steps = plan.history[-1]["iterations"]
         assert plan.history[-1]["raised"] == {"from": 39_000, "to": cap, "steps": steps}, rate
         assert plan.cap == run.refine.max_gaussians == cap and abs(steps - int(rate * 100)) <= 1
-        later = plan.replan(run, int(rate * 30), 30.0)
+        later = plan.replan(run, int(rate * 40), 40.0)
         assert plan.cap == later.refine.max_gaussians == cap and "raised" not in plan.history[-1]
         assert TimePlan.from_record(json.loads(json.dumps(plan.record()))).record() == plan.record()
         said = TrainSummary(1, 1.0, cap, 3, 1, "cpu", 0.0, plan=plan.record()).model_line()

@@ -348,7 +348,7 @@ def _budget(train_px: int, scene: SceneData, short: bool) -> Budget:
     if up_to <= grown:
         return Budget(grown=grown, kept=kept, why=why)
     why += (f"; up to {up_to:,} where this CPU trains the steps for more: x1 for each {RAISE_STEPS:,} steps the "
-            "budget affords, set at a tenth of it (train.json: plan)")
+            "budget affords, set at a fifth of it (train.json: plan)")
     return Budget(grown=grown, kept=kept, why=why, up_to=up_to)
 
 

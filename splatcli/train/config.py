@@ -75,7 +75,7 @@ class TrainConfig:
                                     group=SCHEDULE, more_than=0, metavar="SECONDS")
     time_budget_gaussians: int | None = opt(None, "With --time-budget and --strategy mcmc: the plan may raise "
                                             "max_gaussians up to this, by as much as the steps it finds the budget "
-                                            "affords (train/plan.py, RAISE_STEPS), once, at a tenth of the budget.",
+                                            "affords (train/plan.py, RAISE_STEPS), once, at a fifth of the budget.",
                                             at_least=1)
     sh_degree: int | str = opt(3, "0-3, or auto: train at 3, keep the lowest degree within sh_auto_tol_db of it on "
                                "training views.", group=SCHEDULE, parse=parse_sh_degree, at_least=0,
@@ -418,7 +418,7 @@ class TrainSummary:
         if raised is not None:  # the plan's decision on the count (train/plan.py, TimePlan._raise)
             line += ("; the plan " + (f"raised max-gaussians from {raised['from']:,} to {raised['to']:,}"
                                       if raised["to"] > raised["from"] else f"kept max-gaussians at {raised['from']:,}")
-                     + f" (time for {raised['steps']:,} steps, at a tenth of the budget)")
+                     + f" (time for {raised['steps']:,} steps, at a fifth of the budget)")
         c = self.compact
         if c is not None:
             psnr = f", {c.before_psnr:.2f} dB held out" if c.before_psnr is not None else ""
