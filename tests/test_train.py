@@ -8,6 +8,7 @@ import json
 import math
 import os
 import signal
+import time
 from dataclasses import replace
 from types import SimpleNamespace
 
@@ -398,6 +399,7 @@ def test_a_plan_raises_the_gaussian_budget_by_the_steps_it_affords():
         assert TimePlan.from_record(json.loads(json.dumps(plan.record()))).record() == plan.record()
         said = TrainSummary(1, 1.0, cap, 3, 1, "cpu", 0.0, plan=plan.record()).model_line()
         assert (f"raised max-gaussians from 39,000 to {cap:,}" if cap > 39_000 else "kept max-gaussians at 39,000") in said
+        assert said.endswith(f"(time for {steps:,} steps, planned at 20 s of 100)"), said
     plan, run = plan_at(20.0, compact=True)
     assert plan.cap == 39_000 and "raised" not in plan.history[-1]
     cfg = make_config("fast", time_budget=100.0, strategy="mcmc", max_gaussians=39_000)
@@ -556,6 +558,29 @@ def test_the_progress_eta_is_the_plans_time_left_or_the_priced_steps_left():
     left = 20.0 * step_costs(fast, 7000, 100, 7000).sum() / step_costs(fast, 7000, 0, 100).sum()
     assert eta.left(_at(100, 20.0)) == pytest.approx(left)
     assert eta.left(_at(200, 20.5)) == pytest.approx(left)  # (within the second)
+
+
+def test_the_eta_is_measured_from_the_end_of_the_first_step(tmp_path, monkeypatch):
+    """A run's first step carries one-off costs (kernels loaded from the cache, first allocations:
+    11 s of the full preset's first 20 on lego, where its first note then said 17 h and a minute
+    later 12 h). The ETA measures the steps after it."""
+    from splatcli.train.trainer import Trainer
+
+    step = Trainer.step
+
+    def slow_first(self, i, *a, **kw):
+        if i == 1:
+            time.sleep(1.0)
+        return step(self, i, *a, **kw)
+
+    monkeypatch.setattr(Trainer, "step", slow_first)
+    monkeypatch.setattr(log, "ETA_AFTER_S", 0.3)
+    notes = []
+    train(tiny(tmp_path).root, make_config(**dict(SMALL, eval_every=0, iterations=60)), CPU,
+          on_event=lambda e: notes.append(e.message) if isinstance(e, Note) else None)
+    said = next(m for m in notes if m.startswith("at least"))
+    rate = float(said.split(" steps/s")[0].split(" at ")[-1])
+    assert rate > 3.0, said  # measured from the start, about 1 step a second
 
 
 def test_a_second_eta_comes_once_the_model_has_stopped_growing():

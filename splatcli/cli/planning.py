@@ -36,7 +36,7 @@ from ..gaussians import kept_count
 from ..project import Project
 from ..sfm.colmap import read_project_scene
 from ..train.config import TrainConfig, preset_config
-from ..train.plan import RAISE_STEPS
+from ..train.plan import RAISE_AT, RAISE_STEPS
 
 BUDGET_S = 600.0  # training seconds of a default CPU run: with loading and the last evaluation, ends within 15 min
 MAX_SIZE = 480  # px, the longest side a default CPU run trains at
@@ -348,7 +348,7 @@ def _budget(train_px: int, scene: SceneData, short: bool) -> Budget:
     if up_to <= grown:
         return Budget(grown=grown, kept=kept, why=why)
     why += (f"; up to {up_to:,} where this CPU trains the steps for more: x1 for each {RAISE_STEPS:,} steps the "
-            "budget affords, set at a fifth of it (train.json: plan)")
+            f"budget affords, set at {RAISE_AT:.0%} of it (train.json: plan)")
     return Budget(grown=grown, kept=kept, why=why, up_to=up_to)
 
 

@@ -75,7 +75,7 @@ class TrainConfig:
                                     group=SCHEDULE, more_than=0, metavar="SECONDS")
     time_budget_gaussians: int | None = opt(None, "With --time-budget and --strategy mcmc: the plan may raise "
                                             "max_gaussians up to this, by as much as the steps it finds the budget "
-                                            "affords (train/plan.py, RAISE_STEPS), once, at a fifth of the budget.",
+                                            "affords, once (train/plan.py: RAISE_STEPS, RAISE_AT).",
                                             at_least=1)
     sh_degree: int | str = opt(3, "0-3, or auto: train at 3, keep the lowest degree within sh_auto_tol_db of it on "
                                "training views.", group=SCHEDULE, parse=parse_sh_degree, at_least=0,
@@ -414,11 +414,14 @@ class TrainSummary:
     def model_line(self) -> str:
         """The model in one line: its count, SH degree and .ply size (and what --compact cut)."""
         line = f"{self.num_gaussians:,} Gaussians, SH degree {self.sh_degree}, .ply {self.ply_bytes / 1e6:.2f} MB"
-        raised = next((h["raised"] for h in (self.plan or {}).get("history", []) if "raised" in h), None)
-        if raised is not None:  # the plan's decision on the count (train/plan.py, TimePlan._raise)
+        plan = self.plan or {}
+        at = next((h for h in plan.get("history", []) if "raised" in h), None)
+        if at is not None:  # the plan's decision on the count (train/plan.py, TimePlan._raise)
+            raised = at["raised"]
             line += ("; the plan " + (f"raised max-gaussians from {raised['from']:,} to {raised['to']:,}"
                                       if raised["to"] > raised["from"] else f"kept max-gaussians at {raised['from']:,}")
-                     + f" (time for {raised['steps']:,} steps, at a fifth of the budget)")
+                     + f" (time for {raised['steps']:,} steps, planned at {at['elapsed_s']:.0f} s of "
+                       f"{plan['budget_s']:.0f})")
         c = self.compact
         if c is not None:
             psnr = f", {c.before_psnr:.2f} dB held out" if c.before_psnr is not None else ""

@@ -40,6 +40,7 @@ from .data import TrainData, TrainView, load_train_data, subset, views_seeing
 from .distributed import Comm
 from .init import initial_gaussians
 from .memory import check_memory, is_out_of_memory, plan_memory
+from .plan import ceiling
 from .profile import StepProfile
 from .state import RenderSettings, TrainState, new_state, save_state, state_from_checkpoint, time_plan
 from .trainer import Trainer, render_view
@@ -119,8 +120,8 @@ def _check_fits(project: Project, cfg: TrainConfig, ck: Checkpoint | None, comm:
     facts = project.manifest().get("scene") or {}
     init = len(ck.gaussians) if ck is not None else int(facts.get("num_points") or cfg.init_random_points)
     cap = cfg.refine.max_gaussians
-    if cap is not None and cfg.time_budget is not None and cfg.time_budget_gaussians:  # (the plan may raise it)
-        cap = max(cap, cfg.time_budget_gaussians)
+    if cap is not None:
+        cap = max(cap, ceiling(cfg) or 0)  # (the plan may raise it)
     check_memory(plan_memory(cams, init, cap, copies=comm.local_world), cfg.max_size)
 
 
@@ -158,7 +159,7 @@ class _Run:
 
     trainer: Trainer  # (start)
     writer: log.LogWriter  # (loop)
-    eta: log.Eta  # (loop)
+    eta: log.Eta | None  # (loop; from its first step's report)
 
     def __init__(self, project: Project, base: TrainConfig, data: TrainData, comm: Comm, stop: threading.Event,
                  on_event: EventSink | None) -> None:
@@ -209,7 +210,7 @@ class _Run:
         t, comm = self.trainer, self.comm
         emit(self.on_event, Stage(STAGE, t.cfg.total_steps * comm.world))
         self.writer = log.LogWriter(self.project.train_log_path, t.state, enabled=comm.main)
-        self.eta = log.Eta(t.state.counts, t.cfg)
+        self.eta = None
         for stats in t.catch_up():  # a resumed run: what is due now
             self.writer.refined(stats)
         if _agreed_stop(comm, self.stop):  # signalled during setup: keep what there is (a resume starts here)
@@ -287,6 +288,8 @@ class _Run:
             fitted = _measure_fit(t.cfg, self.data, state, step, comm) if evaluated is not None else None
         self.writer.line(step, state, evaluated, fitted, t.cfg.log_every, force=step == total)
         c = state.counts
+        if self.eta is None:  # measured from the end of the first step: its one-off costs (kernels loaded from the cache,
+            self.eta = log.Eta(c, t.cfg)  # first allocations: 11 s of the full preset's first 20 on lego) said 17 h, not 12
         eta = (state.plan.seconds_left(c.images, total * comm.world, c.elapsed_s) if state.plan is not None
                else self.eta.left(c, t.cfg))
         emit(self.on_event, Progress(STAGE, c.images, total * comm.world, self.writer.info(state), eta))

@@ -64,18 +64,22 @@ OVERHEAD = 0.07
 # Zen 1 EPYC: 0.25 s a view, a step 0.49-0.59 s). The main steps leave that time for the cuts: unpriced, lego
 # grown to 207,000 spent a fifth of a 10-minute budget scoring, and a loaded host ran 43% past it.
 SCORE_COST = 0.5
-# A Gaussian budget that may rise (`time_budget_gaussians`) is raised at the first plan from this share of the
-# budget, by x1 for every RAISE_STEPS
-# steps of one process that plan affords at the budget given. Lego at 200 px, 2 processes, a Zen 1 EPYC: given 200 s
-# (about 2,000 steps at 39,000 Gaussians) 72,000 reached 34.29-34.30 dB against 33.99-34.14 (60,000: 34.24, 100,000:
-# 34.22); in 90 s (about 800 steps) 39,000 reached 32.90-33.06 dB and 70,000-72,000 32.59-32.96; a Zen 4 in 90 s
-# (2,072 steps at 40,000) 60,000 34.37 dB against 34.17; a Xeon in 90 s (1,254 steps at 39,000) 60,000 33.57 dB
-# against 33.69. Not sooner: the plans of a tenth of the budget foresaw lego's steps at 200 px within 7% (1,335-2,307
-# against 1,376-2,168 trained) but 1.5x too many at 480 px (880 against 586 trained, a Zen 1, 300 s), where a fifth's
-# foresaw 630; a raise from such a count would have cost steps the run did not have (400,000 at 480 px: 0.6 dB below
-# 222,000 in 300 s there).
+# A Gaussian budget that may rise (`time_budget_gaussians`) is raised at the first plan from this share of the budget,
+# by x1 for every RAISE_STEPS steps of one process that plan affords at the budget given. Lego at 200 px, 2 processes, a
+# Zen 1 EPYC: given 200 s (about 2,000 steps at 39,000 Gaussians) 72,000 reached 34.29-34.30 dB against 33.99-34.14
+# (60,000: 34.24, 100,000: 34.22); in 90 s (about 800 steps) 39,000 reached 32.90-33.06 dB and 70,000-72,000
+# 32.59-32.96; a Zen 4 in 90 s (2,072 steps at 40,000) 60,000 34.37 dB against 34.17; a Xeon in 90 s (1,254 steps at
+# 39,000) 60,000 33.57 dB against 33.69. Not sooner: the plans of a tenth of the budget foresaw lego's steps at 200 px
+# within 7% (1,335-2,307 against 1,376-2,168 trained) but 1.5x too many at 480 px (880 against 586 trained, a Zen 1,
+# 300 s), where a fifth's foresaw 630; a raise from such a count would have cost steps the run did not have (400,000 at
+# 480 px: 0.6 dB below 222,000 in 300 s there).
 RAISE_AT = 0.2
 RAISE_STEPS = 1000
+
+
+def ceiling(cfg: TrainConfig) -> int | None:
+    """The count a time plan of `cfg` may raise its Gaussian budget to, once (None: it may not)."""
+    return cfg.time_budget_gaussians if cfg.time_budget is not None and cfg.strategy == "mcmc" else None
 
 
 def step_costs(cfg: TrainConfig, iterations: int, start: int, stop: int) -> np.ndarray:
@@ -162,7 +166,7 @@ class TimePlan:
     def start(cfg: TrainConfig, scored: int = 0) -> TimePlan:
         return TimePlan(budget_s=float(cfg.time_budget), template=Schedule.of(cfg),
                         probe_s=min(5.0, 0.05 * float(cfg.time_budget)), cap=cfg.refine.max_gaussians, scored=scored,
-                        up_to=cfg.time_budget_gaussians if cfg.strategy == "mcmc" else None)
+                        up_to=ceiling(cfg))
 
     def scoring(self, cfg: TrainConfig, views: int) -> float:
         """What --compact's cuts after view `views` will spend scoring (all of them, before the main
