@@ -47,7 +47,7 @@ SETTINGS = (
     "about 3.5 KB per Gaussian", "SH degree +1 every 1000 steps", "again 2 s later", "at most 1,050 s",
     "830 px for 30 min", "the run has 10 minutes or more", "at least every 25 steps", "at 1.5× the preset's learning rate", "for the first 60% of the run",
     "until 60% of the run", "every 100 steps and at once",
-    "at least 5% per refinement", "by 40% of the refinement window", "until 95% of the run",
+    "at least 5% per refinement", "by 40% of the refinement window", "by 40% of what is left of it", "until 95% of the run",
     "within 0.05 dB of degree 3", "a sphere 5× the cameras' extent", "0.8 × `grow_grad2d`",
     "a `--time-budget` of 1,800 s or more", "900 s once kernels are cached", "10,000 steps or more",
     # eval, and gsplat's kernels

@@ -82,14 +82,16 @@ def test_grows_by_the_fraction_up_to_the_cap_and_never_past_it():
         assert sp.optimizers[k].state[v]["exp_avg"].shape == v.shape
 
 
-def test_a_cap_raised_after_the_growth_target_is_reached_by_the_windows_end():
+def test_a_cap_raised_after_the_growth_target_is_reached_within_what_is_left_of_the_window():
     """--time-budget raises the cap on its curve; one raised after grow_until's target step is
-    reached by the end of the refinement window, not at the 5% floor (fox from its photos,
-    180 s: 17.0k Gaussians and 29.25 dB before, 30.0k and 29.80 dB after, in one run)."""
+    reached by grow_until of the window left, not at the 5% floor (fox from its photos, 180 s:
+    17.0k Gaussians and 29.25 dB before, 30.0k and 29.80 dB after, in one run), nor only by the
+    window's end, which a plan that shrinks the run brings forward."""
     s = MCMCStrategy(MCMCStrategyConfig(max_gaussians=4000, refine_start=0, refine_stop=1000, refine_every=100))
     assert s.growth_rate(1000, 300) == pytest.approx(4.0 ** (1 / 2) - 1)  # before the target (step 400): 300 and 400
-    rate = s.growth_rate(1000, 600)  # past the target: the refinements at 600, 700, 800, 900 remain
-    assert rate == pytest.approx(4.0 ** (1 / 4) - 1) and rate > s.config.growth
+    rate = s.growth_rate(1000, 600)  # past the target: 0.4 of the 400 steps left, the refinements at 600 and 700
+    assert rate == pytest.approx(4.0 ** (1 / 2) - 1) and rate > s.config.growth
+    assert s.growth_rate(1000, 900) == pytest.approx(3.0)  # the last refinement of the window: all at once
     assert s.growth_rate(4000, 600) == s.config.growth  # at the cap: nothing to reach
 
 
