@@ -26,13 +26,16 @@ class Progress:
     """`done` units of the current stage are finished; `info` holds live figures
     (e.g. loss, PSNR, Gaussian count) for the progress bar; `eta_s` the seconds left where
     the stage knows them better than the count does (training: its time plan, or its steps
-    priced by their resolution), None: the displays extrapolate from the count."""
+    priced by their resolution), None: the displays extrapolate from the count, unless `eta_own`:
+    the stage gives its own once it has measured, and until then the displays show none (training's
+    first step loads kernels and memory, which the count's extrapolation would price into every step)."""
 
     name: str
     done: int
     total: int | None = None
     info: dict[str, Any] = field(default_factory=dict)
     eta_s: float | None = None
+    eta_own: bool = False
 
 
 @dataclass(frozen=True)

@@ -222,3 +222,24 @@ def test_a_stage_that_knows_its_time_left_prints_it_rather_than_the_counts_extra
         sink(StageDone("train", 20.0))
     logged = [line for line in capsys.readouterr().err.splitlines() if line.startswith("train: ")]
     assert logged[0] == "train: 100/1,000 (10%), 0:10 elapsed, ETA 9:50", logged  # not 1:30
+
+
+def test_a_stage_that_gives_its_own_time_left_prints_none_until_it_has_measured_it(capsys, monkeypatch):
+    """Training's first step loads kernels and memory; the count's extrapolation would price that into
+    every step left (the full preset's first line: hours too many), so a stage that gives its own ETA
+    (Progress.eta_own) prints none until it has measured one."""
+    from splatcli.cli import common
+    from splatcli.events import Progress, Stage, StageDone
+
+    now = [1000.0]
+    monkeypatch.setattr(common.time, "monotonic", lambda: now[0])
+    with common.Ui().progress() as sink:
+        sink(Stage("train", total=1000))
+        for step in range(1, 301):
+            now[0] += 0.1
+            eta = None if step < 150 else 100.0
+            sink(Progress("train", step, 1000, {}, eta_s=eta, eta_own=True))
+        sink(StageDone("train", 30.0))
+    logged = [line for line in capsys.readouterr().err.splitlines() if line.startswith("train: ")]
+    assert logged[0] == "train: 100/1,000 (10%), 0:10 elapsed", logged  # not "ETA 1:30"
+    assert logged[1] == "train: 200/1,000 (20%), 0:20 elapsed, ETA 1:40", logged

@@ -82,11 +82,14 @@ def parse_background(text: str | None, *, auto: bool = False) -> tuple[float, fl
 
 
 class _Remaining(TimeRemainingColumn):
-    """Time left: the stage's own estimate where its events carry one (Progress.eta_s), else rich's
-    extrapolation from the count."""
+    """Time left: the stage's own estimate where its events carry one (Progress.eta_s), none while
+    a stage that gives its own has not measured it yet (Progress.eta_own), else rich's extrapolation
+    from the count."""
 
     def render(self, task: Any) -> Any:
         eta = task.fields.get("eta")
+        if eta is None and task.fields.get("eta_own") and not task.finished:
+            return Text("-:--:--", style="progress.remaining")
         if eta is None or task.finished:
             return super().render(task)
         return Text(_clock(eta), style="progress.remaining")
@@ -140,7 +143,7 @@ class _LogLines:
             eta = ""
             if ev.eta_s is not None and (not ev.total or ev.done < ev.total):
                 eta = f", ETA {_clock(ev.eta_s)}"
-            elif ev.total and 0 < ev.done < ev.total:
+            elif ev.total and 0 < ev.done < ev.total and not ev.eta_own:
                 eta = f", ETA {_clock(elapsed / ev.done * (ev.total - ev.done))}"
             info = "  ".join(f"{k} {_fmt(v)}" for k, v in ev.info.items())
             self.console.print(escape(f"{ev.name}: {count}, {_clock(elapsed)} elapsed{eta}" + (f"  {info}" if info else "")))
@@ -173,7 +176,8 @@ class _BarSink:
             if ev.name not in tasks:
                 tasks[ev.name] = bars.add_task(ev.name, total=ev.total, info="")
             info = "  ".join(f"{k} {_fmt(v)}" for k, v in ev.info.items())
-            bars.update(tasks[ev.name], completed=ev.done, total=ev.total, info=info, counted=True, eta=ev.eta_s)
+            bars.update(tasks[ev.name], completed=ev.done, total=ev.total, info=info, counted=True, eta=ev.eta_s,
+                        eta_own=ev.eta_own)
         elif isinstance(ev, StageDone):
             tid = tasks.get(ev.name)
             if tid is not None:
