@@ -42,13 +42,14 @@ BUDGET_S = 600.0  # training seconds of a default CPU run: with loading and the 
 MAX_SIZE = 480  # px, the longest side a default CPU run trains at
 GAUSSIANS_PER_PIXEL = 0.225  # the model kept, per training pixel (fox at 480 px: 29k; lego 52k)
 # A capture's own content: the model keeps at least this many Gaussians per SfM point (a scene seen all round,
-# background and all, holds far more than one view's pixels suggest: 250 video frames, 101k; cut to 1.5 per point,
-# 51k, they ended 0.35 dB lower, docs/benchmarks.md "Model size").
-GAUSSIANS_PER_POINT = 3
+# background and all, holds far more than one view's pixels suggest: 250 video frames, 98k; cut to 1.5 per point,
+# 51k, they ended 0.35 dB lower, docs/benchmarks.md "Model size"). Not 3: fox's 9,998 points then outbid its pixels
+# (30k against 29k), and 30k ended 0.01 dB below 29k (31.72 against 31.73 dB, a Xeon, one run each).
+GAUSSIANS_PER_POINT = 2.9
 # What one view's pixels miss: photos whose SfM points are each seen by t of n show about k = (n / t) / COVERAGE_SEEN
 # views' worth of surface (at least 1). Such a capture grows to k^2 times the per-pixel model (at most
 # MAX_GROWTH times) to find its detail, then keeps the Gaussians with the most blending weight (--compact), where
-# the run is long enough to fine-tune what it keeps. Fox (50 photos facing one way, t = 5.6: k = 1) trains its 30k
+# the run is long enough to fine-tune what it keeps. Fox (50 photos facing one way, t = 5.6: k = 1) trains its 29k
 # directly (58k cut to half in the same 10 minutes ended 0.16 dB lower); lego (100 all round, t = 5.2: k = 2.1)
 # trained at 52k ends 1.28 dB below a 222k budget, and grown to 207k then cut to a quarter ends 0.36 dB above it
 # (docs/benchmarks.md, "Model size").
