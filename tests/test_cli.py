@@ -206,21 +206,29 @@ def test_off_a_terminal_a_long_stage_prints_a_line_now_and_then_with_its_eta(cap
     assert not any(line.startswith("quick: ") for line in err)
 
 
-def test_a_stage_that_knows_its_time_left_prints_it_rather_than_the_counts_extrapolation(capsys, monkeypatch):
-    """Training's steps slow down as the model grows and the resolution rises: its events carry the
-    time left (Progress.eta_s: the time plan's), which the log line prints instead of elapsed / done x left."""
+def _train_log_lines(capsys, monkeypatch, steps: int, progress) -> list[str]:
+    """The `train: ` log lines of a 1,000-step stage whose step i (0.1 s each) sends progress(i, now)."""
     from splatcli.cli import common
-    from splatcli.events import Progress, Stage, StageDone
+    from splatcli.events import Stage, StageDone
 
     now = [1000.0]
     monkeypatch.setattr(common.time, "monotonic", lambda: now[0])
     with common.Ui().progress() as sink:
         sink(Stage("train", total=1000))
-        for step in range(1, 201):
+        for step in range(1, steps + 1):
             now[0] += 0.1
-            sink(Progress("train", step, 1000, {}, eta_s=600.0 - now[0] + 1000.0))
-        sink(StageDone("train", 20.0))
-    logged = [line for line in capsys.readouterr().err.splitlines() if line.startswith("train: ")]
+            sink(progress(step, now[0]))
+        sink(StageDone("train", steps / 10))
+    return [line for line in capsys.readouterr().err.splitlines() if line.startswith("train: ")]
+
+
+def test_a_stage_that_knows_its_time_left_prints_it_rather_than_the_counts_extrapolation(capsys, monkeypatch):
+    """Training's steps slow down as the model grows and the resolution rises: its events carry the
+    time left (Progress.eta_s: the time plan's), which the log line prints instead of elapsed / done x left."""
+    from splatcli.events import Progress
+
+    logged = _train_log_lines(capsys, monkeypatch, 200,
+                              lambda step, now: Progress("train", step, 1000, {}, eta_s=600.0 - now + 1000.0))
     assert logged[0] == "train: 100/1,000 (10%), 0:10 elapsed, ETA 9:50", logged  # not 1:30
 
 
@@ -228,18 +236,9 @@ def test_a_stage_that_gives_its_own_time_left_prints_none_until_it_has_measured_
     """Training's first step loads kernels and memory; the count's extrapolation would price that into
     every step left (the full preset's first line: hours too many), so a stage that gives its own ETA
     (Progress.eta_own) prints none until it has measured one."""
-    from splatcli.cli import common
-    from splatcli.events import Progress, Stage, StageDone
+    from splatcli.events import Progress
 
-    now = [1000.0]
-    monkeypatch.setattr(common.time, "monotonic", lambda: now[0])
-    with common.Ui().progress() as sink:
-        sink(Stage("train", total=1000))
-        for step in range(1, 301):
-            now[0] += 0.1
-            eta = None if step < 150 else 100.0
-            sink(Progress("train", step, 1000, {}, eta_s=eta, eta_own=True))
-        sink(StageDone("train", 30.0))
-    logged = [line for line in capsys.readouterr().err.splitlines() if line.startswith("train: ")]
+    logged = _train_log_lines(capsys, monkeypatch, 300, lambda step, now: Progress(
+        "train", step, 1000, {}, eta_s=None if step < 150 else 100.0, eta_own=True))
     assert logged[0] == "train: 100/1,000 (10%), 0:10 elapsed", logged  # not "ETA 1:30"
     assert logged[1] == "train: 200/1,000 (20%), 0:20 elapsed, ETA 1:40", logged
