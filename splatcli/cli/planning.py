@@ -44,7 +44,7 @@ GAUSSIANS_PER_PIXEL = 0.225  # the model kept, per training pixel (fox at 480 px
 # A capture's own content: the model keeps at least this many Gaussians per SfM point (a scene seen all round,
 # background and all, holds far more than one view's pixels suggest: 250 video frames, 98k; cut to 1.5 per point,
 # 51k, they ended 0.35 dB lower, docs/benchmarks.md "Model size"). Not 3: fox's 9,998 points then outbid its pixels
-# (30k against 29k), and 30k ended 0.01 dB below 29k (31.72 against 31.73 dB, a Xeon, one run each).
+# (30k against 29k), and 30k ended within 29k's runs (31.72 against 31.73 and 31.41 dB, a Xeon: fox's spread).
 GAUSSIANS_PER_POINT = 2.9
 # What one view's pixels miss: photos whose SfM points are each seen by t of n show about k = (n / t) / COVERAGE_SEEN
 # views' worth of surface (at least 1). Such a capture grows to k^2 times the per-pixel model (at most
