@@ -31,7 +31,7 @@ from torch import Tensor
 
 from . import kernels
 
-# 2 px blocks are not offered: they halve the slots below alpha 1/255 but make twice the pairs, and a tuner
+# 2 px blocks are not offered: they halve the slots below alpha 1/255 but make 2-3x the pairs, and a tuner
 # given them on a Xeon (lego at 200 px, where they come nearest) drew 28 of 582 renders with them
 # (docs/benchmarks.md, "Slots that count").
 BLOCKS = (4, 8, 16)

@@ -611,8 +611,9 @@ class _Composite(torch.autograd.Function):
 class _Pending:
     """Per-slot gradients not yet added into dg [10, N + 1]: segments write theirs into one buffer
     of SCATTER_SLOTS slots (no concatenation), added in one call when it is full and at the end. index_add_
-    along dim 1 of [10, N + 1] was the fastest form measured (a Xeon, 550,000 slots: 6.7 ms; scatter_add_ the
-    same; index_add_ on a transposed [N + 1, 10], ten 1-D index_add_ or ten weighted bincounts 10-13 ms)."""
+    along dim 1 of [10, N + 1] was the fastest form timed (a Xeon, 550,000 random slots into 29,000 Gaussians:
+    6.7 ms; scatter_add_ the same; index_add_ on a transposed [N + 1, 10], ten 1-D index_add_ or ten weighted
+    bincounts 10-13 ms)."""
 
     def __init__(self, dg: Tensor, slots: int):  # slots: how many the backward will write, at most
         self.dg, self.n, self.cap = dg, 0, max(1, min(SCATTER_SLOTS, slots))
