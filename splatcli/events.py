@@ -28,7 +28,9 @@ class Progress:
     the stage knows them better than the count does (training: its time plan, or its steps
     priced by their resolution), None: the displays extrapolate from the count, unless `eta_own`:
     the stage gives its own once it has measured, and until then the displays show none (training's
-    first step loads kernels and memory, which the count's extrapolation would price into every step)."""
+    first step loads kernels and memory, which the count's extrapolation would price into every step).
+    `share`: the fraction of the stage done where the stage knows it better than done / total (a
+    planned run: its clock); `total` is then an estimate, which may move as the stage plans again."""
 
     name: str
     done: int
@@ -36,6 +38,7 @@ class Progress:
     info: dict[str, Any] = field(default_factory=dict)
     eta_s: float | None = None
     eta_own: bool = False
+    share: float | None = None
 
 
 @dataclass(frozen=True)

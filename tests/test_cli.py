@@ -232,6 +232,33 @@ def test_a_stage_that_knows_its_time_left_prints_it_rather_than_the_counts_extra
     assert logged[0] == "train: 100/1,000 (10%), 0:10 elapsed, ETA 9:50", logged  # not 1:30
 
 
+def test_a_planned_stage_prints_its_clocks_share_and_its_total_as_an_estimate(capsys, monkeypatch):
+    """A planned run's step total moves each time it plans again (fox: 4,120, 5,540, 4,480 ...); its
+    share of the budget does not. The line gives the total as an estimate and the share of the clock,
+    and the bar fills by that share, never backwards."""
+    from rich.console import Console
+
+    from splatcli.cli import common
+    from splatcli.events import Progress
+
+    total = lambda step: 1000 if step < 150 else 1400  # noqa: E731 (a plan at step 150 finds time for more)
+    logged = _train_log_lines(capsys, monkeypatch, 250, lambda step, now: Progress(
+        "train", step, total(step), {}, eta_s=200.0 - (now - 1000.0), eta_own=True, share=(now - 1000.0) / 200.0))
+    assert logged[0] == "train: 100/~1,000 (5%), 0:10 elapsed, ETA 3:10", logged
+    assert logged[1] == "train: 200/~1,400 (10%), 0:20 elapsed, ETA 3:00", logged
+
+    bars = common.RichProgress(common._Bar(), common._Count(), console=Console(file=None, width=80))
+    task = bars.add_task("train", total=1000)
+    bars.update(task, completed=100, share=0.05)
+    assert str(common._Count().render(bars.tasks[0])) == " 100/~1000"
+    assert common._Bar().render(bars.tasks[0]).completed == 0.05
+    bars.update(task, completed=200, total=1400, share=0.10)  # the total moved; the bar goes on
+    assert common._Bar().render(bars.tasks[0]).completed == 0.10
+    bars.update(task, completed=300, share=None)  # no share: the count's own fraction, as before
+    assert common._Bar().render(bars.tasks[0]).completed == 300
+    assert str(common._Count().render(bars.tasks[0])) == " 300/1400"
+
+
 def test_a_stage_that_gives_its_own_time_left_prints_none_until_it_has_measured_it(capsys, monkeypatch):
     """Training's first step loads kernels and memory; the count's extrapolation would price that into
     every step left (the full preset's first line: hours too many), so a stage that gives its own ETA

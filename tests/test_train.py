@@ -311,6 +311,11 @@ def test_time_budget_plans_a_compressed_schedule(tmp_path):
     etas = [e.eta_s for e in events if isinstance(e, Progress) and e.name == "train"]
     assert etas and all(e is not None and 0.0 <= e <= budget for e in etas)  # the plan's time left
     assert etas[0] > etas[-1] and etas[-1] <= 0.25 * budget
+    # The share of the clock, for the bar and the log lines: rising, below 1, and with it the ETA's budget
+    shares = [(e.share, e.eta_s) for e in events if isinstance(e, Progress) and e.name == "train" and e.share is not None]
+    assert shares and all(0.0 <= sh < 1.0 for sh, _ in shares)
+    assert all(a[0] <= b[0] for a, b in zip(shares, shares[1:]))
+    assert all(sh * budget + left == pytest.approx(budget) for sh, left in shares)
     assert len(plan["history"]) >= 2 and all(h["steps_per_s"] > 0 for h in plan["history"])
     assert s.steps == plan["history"][-1]["iterations"] < 3000
     assert s.train_seconds <= 1.25 * budget  # a tiny scene: plans are coarse at this scale

@@ -28,6 +28,7 @@ from rich.progress import (
     TimeElapsedColumn,
     TimeRemainingColumn,
 )
+from rich.progress_bar import ProgressBar
 from rich.text import Text
 
 from ..device import resolve_device
@@ -96,10 +97,30 @@ class _Remaining(TimeRemainingColumn):
 
 
 class _Count(MofNCompleteColumn):
-    """`done/total`, left blank for a stage that has no count (a spinner and a time)."""
+    """`done/total`, left blank for a stage that has no count (a spinner and a time); `done/~total`
+    where the total is an estimate (Progress.share)."""
 
     def render(self, task: Any) -> Any:
-        return super().render(task) if task.fields.get("counted", True) else Text("")
+        if not task.fields.get("counted", True):
+            return Text("")
+        if task.fields.get("share") is None or task.finished or task.total is None:
+            return super().render(task)
+        total = int(task.total)
+        return Text(f"{int(task.completed):{len(str(total))}d}/~{total}", style="progress.download")
+
+
+class _Bar(BarColumn):
+    """The bar filled to the stage's own share where its events carry one (Progress.share: a planned
+    run fills with its clock, not with a step total that moves as it plans again)."""
+
+    def render(self, task: Any) -> Any:
+        share = task.fields.get("share")
+        if share is None or task.finished:
+            return super().render(task)
+        return ProgressBar(total=1.0, completed=min(max(share, 0.0), 1.0), width=None if self.bar_width is None
+                           else max(1, self.bar_width), pulse=False, animation_time=task.get_time(),
+                           style=self.style, complete_style=self.complete_style,
+                           finished_style=self.finished_style, pulse_style=self.pulse_style)
 
 
 def _fmt(v: Any) -> str:
@@ -139,7 +160,10 @@ class _LogLines:
                 return
             self.last[ev.name] = now
             elapsed = now - t0
-            count = f"{ev.done:,}" + (f"/{ev.total:,} ({100 * ev.done / ev.total:.0f}%)" if ev.total else "")
+            if ev.total and ev.share is not None:  # the total is an estimate; the share is the stage's own
+                count = f"{ev.done:,}/~{ev.total:,} ({100 * ev.share:.0f}%)"
+            else:
+                count = f"{ev.done:,}" + (f"/{ev.total:,} ({100 * ev.done / ev.total:.0f}%)" if ev.total else "")
             eta = ""
             if ev.eta_s is not None and (not ev.total or ev.done < ev.total):
                 eta = f", ETA {_clock(ev.eta_s)}"
@@ -177,7 +201,7 @@ class _BarSink:
                 tasks[ev.name] = bars.add_task(ev.name, total=ev.total, info="")
             info = "  ".join(f"{k} {_fmt(v)}" for k, v in ev.info.items())
             bars.update(tasks[ev.name], completed=ev.done, total=ev.total, info=info, counted=True, eta=ev.eta_s,
-                        eta_own=ev.eta_own)
+                        eta_own=ev.eta_own, share=ev.share)
         elif isinstance(ev, StageDone):
             tid = tasks.get(ev.name)
             if tid is not None:
@@ -207,7 +231,7 @@ class Ui:
     @contextlib.contextmanager
     def progress(self) -> Iterator[EventSink]:
         """An EventSink that draws rich progress bars (spinners when the total is unknown)."""
-        bars = RichProgress(SpinnerColumn(), TextColumn("[bold]{task.description}"), BarColumn(), _Count(),
+        bars = RichProgress(SpinnerColumn(), TextColumn("[bold]{task.description}"), _Bar(), _Count(),
                             TimeElapsedColumn(), _Remaining(), TextColumn("{task.fields[info]}"),
                             console=self.err, disable=self.quiet)
         sink = _BarSink(bars, self.note, _LogLines(self.err) if not self.err.is_terminal and not self.quiet else None)

@@ -292,7 +292,11 @@ class _Run:
             self.eta = log.Eta(c, t.cfg)  # first allocations: 11 s of the full preset's first 20 on lego) said 17 h, not 12
         eta = (state.plan.seconds_left(c.images, total * comm.world, c.elapsed_s) if state.plan is not None
                else self.eta.left(c, t.cfg))
-        emit(self.on_event, Progress(STAGE, c.images, total * comm.world, self.writer.info(state), eta, eta_own=True))
+        # A planned run's step total moves each time it plans again; its clock does not.
+        share = (c.elapsed_s / state.plan.budget_s if state.plan is not None and c.elapsed_s < state.plan.budget_s
+                 and c.images < total * comm.world else None)
+        emit(self.on_event, Progress(STAGE, c.images, total * comm.world, self.writer.info(state), eta, eta_own=True,
+                                     share=share))
         if comm.main and state.plan is None:
             self.eta.tell(c, state.num_gaussians, self.on_event)
         if comm.main:
