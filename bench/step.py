@@ -57,7 +57,7 @@ def step_times(p: dict, view, bg, block: str = "model") -> tuple[dict, int]:
     pr = project(*p.values(), view.viewmat, view.K, W, H, math.isqrt(p["sh"].shape[1]) - 1)
     lap("project")
     fp = pr.footprint
-    ext = extents(fp.cov2d, fp.opacities)
+    ext = extents(fp.cov2d, fp.opacities, fp.means2d, fp.rect)
     block = choose_block(ext, W, H) if block == "model" else int(block)
     estimate_pairs(ext, block)  # rasterize's check for banding
     plan = make_plan(fp, W, H, block)

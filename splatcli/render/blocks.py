@@ -30,6 +30,7 @@ import torch
 from torch import Tensor
 
 from . import kernels
+from .projection import TILE
 
 # 2 px blocks are not offered: they halve the slots below alpha 1/255 but make 2-3x the pairs, and a tuner
 # given them on a Xeon (lego at 200 px, where they come nearest) drew 28 of 582 renders with them
@@ -55,27 +56,54 @@ class Extents:
 
     w: Tensor  # [D]
     h: Tensor  # [D]
+    lo: Tensor | None = None  # [D, 2] (x, y) of each box's low corner, within its tiles; None: positions unknown
+    hi: Tensor | None = None  # [D, 2] the high corner
 
 
 @torch.no_grad()
 def extents(
     cov2d: Tensor,  # [S, 3] px^2, of the Gaussians that may be drawn (a Footprint's)
     opacities: Tensor,  # [S]
+    means2d: Tensor | None = None,  # [S, 2] px: with rect, each box is clipped to its tiles (as the planner clips)
+    rect: Tensor | None = None,  # [S, 4] tile rect (tx0, ty0, tx1, ty1), exclusive ends
 ) -> Extents:
     o = opacities.detach().double()
     cv = cov2d.detach().double()
     t2 = 2.0 * torch.log(torch.clamp_min(o * 255.0, 1e-30))
     ok = t2 > 0
     cv, t2 = cv[ok], t2[ok]
-    return Extents(2 * torch.sqrt(t2 * cv[:, 0]), 2 * torch.sqrt(t2 * cv[:, 2]))
+    w, h = 2 * torch.sqrt(t2 * cv[:, 0]), 2 * torch.sqrt(t2 * cv[:, 2])
+    if means2d is None or rect is None:
+        return Extents(w, h)
+    m, r = means2d.detach().double()[ok], rect[ok].double() * TILE
+    half = torch.stack([w, h], 1) / 2
+    return Extents(w, h, torch.maximum(m - half, r[:, :2]), torch.minimum(m + half, r[:, 2:]))
+
+
+def _boxes(ext: Extents, width: int, height: int) -> tuple[Tensor, Tensor]:  # -> w, h [D] px, 0 where off the image
+    """Each box's width and height within the image (and its tiles, where the positions are known).
+    A photo capture's background Gaussians reach far past the frame: fox's boxes, unclipped, held
+    1.9x the pairs its 4 px plan made and 1.7x its 8 px plan's, which tipped the model to 8 px
+    blocks that drew its training views 1.15x slower (docs/benchmarks.md, "Slots that count")."""
+    if ext.lo is None or ext.hi is None:
+        return ext.w.clamp_max(width), ext.h.clamp_max(height)
+    size = torch.tensor([width, height], dtype=ext.hi.dtype, device=ext.hi.device)
+    d = torch.minimum(ext.hi, size) - ext.lo.clamp_min(0)
+    d = torch.where((d > 0).all(1, keepdim=True), d, torch.zeros_like(d))
+    return d[:, 0], d[:, 1]
+
+
+def _pairs(w: Tensor, h: Tensor, block: int) -> float:
+    """About how many blocks boxes of w x h px touch (none for an empty box)."""
+    return float(torch.where(w > 0, (w / block + 1) * (h / block + 1), torch.zeros_like(w)).sum())
 
 
 def block_costs(ext: Extents, width: int, height: int) -> dict[int, float]:
     """The cost model's prediction for each block size (arbitrary units; empty when nothing is drawn)."""
     if ext.w.numel() == 0:
         return {}
-    w, h = ext.w.clamp_max(width), ext.h.clamp_max(height)
-    pairs = {b: float(((w / b + 1) * (h / b + 1)).sum()) for b in BLOCKS}
+    w, h = _boxes(ext, width, height)
+    pairs = {b: _pairs(w, h, b) for b in BLOCKS}
     return {b: m * (_COST_SLOT * (1 + m / _PAIRS_CACHE) + _COST_ELEM * b * b) for b, m in pairs.items()}
 
 
