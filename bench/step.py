@@ -33,7 +33,7 @@ from splatcli.device import tune_allocator
 from splatcli.files.checkpoint import load_checkpoint
 from splatcli.project import Project
 from splatcli.render import kernels, timing
-from splatcli.render.blocks import choose_block, estimate_pairs, extents
+from splatcli.render.blocks import choose_block, estimate_pairs, footprint_extents
 from splatcli.render.composite import composite, make_plan
 from splatcli.render.projection import project
 from splatcli.train.data import load_train_data
@@ -57,7 +57,7 @@ def step_times(p: dict, view, bg, block: str = "model") -> tuple[dict, int]:
     pr = project(*p.values(), view.viewmat, view.K, W, H, math.isqrt(p["sh"].shape[1]) - 1)
     lap("project")
     fp = pr.footprint
-    ext = extents(fp.cov2d, fp.opacities, fp.means2d, fp.rect)
+    ext = footprint_extents(fp)
     block = choose_block(ext, W, H) if block == "model" else int(block)
     estimate_pairs(ext, block)  # rasterize's check for banding
     plan = make_plan(fp, W, H, block)

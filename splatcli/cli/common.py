@@ -28,7 +28,6 @@ from rich.progress import (
     TimeElapsedColumn,
     TimeRemainingColumn,
 )
-from rich.progress_bar import ProgressBar
 from rich.text import Text
 
 from ..device import resolve_device
@@ -114,13 +113,11 @@ class _Bar(BarColumn):
     run fills with its clock, not with a step total that moves as it plans again)."""
 
     def render(self, task: Any) -> Any:
+        bar = super().render(task)
         share = task.fields.get("share")
-        if share is None or task.finished:
-            return super().render(task)
-        return ProgressBar(total=1.0, completed=min(max(share, 0.0), 1.0), width=None if self.bar_width is None
-                           else max(1, self.bar_width), pulse=False, animation_time=task.get_time(),
-                           style=self.style, complete_style=self.complete_style,
-                           finished_style=self.finished_style, pulse_style=self.pulse_style)
+        if share is not None and not task.finished:
+            bar.total, bar.completed = 1.0, min(max(share, 0.0), 1.0)
+        return bar
 
 
 def _fmt(v: Any) -> str:

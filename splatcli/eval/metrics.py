@@ -50,9 +50,9 @@ def _window(n: int, dtype: torch.dtype, device: torch.device) -> tuple[Tensor, T
 
 
 def _filter(maps: Tensor) -> Tensor:  # [n, H, W] -> [n, H-10, W-10]: the window over the valid region
-    # On the CPU, the separable window as matrix products (`_valid`); elsewhere (CUDA), two depthwise
+    # On the CPU, the separable window as matrix products (`_Valid`); elsewhere (CUDA), two depthwise
     # convolutions.
-    return _valid(maps) if maps.device.type == "cpu" else _conv(maps)
+    return _Valid.apply(maps) if maps.device.type == "cpu" else _conv(maps)
 
 
 def _filter_t(maps: Tensor) -> Tensor:  # [n, H-10, W-10] -> [n, H, W]: the transpose of _filter
@@ -61,7 +61,7 @@ def _filter_t(maps: Tensor) -> Tensor:  # [n, H-10, W-10] -> [n, H, W]: the tran
     if maps.device.type != "cpu":
         return _conv_t(maps)
     e = SSIM_WINDOW - 1
-    return _valid(F.pad(maps, (e, e, e, e)))
+    return _Valid.apply(F.pad(maps, (e, e, e, e)))
 
 
 # The CPU's window: each axis as products with a banded matrix of the 11 taps, a block of output rows
@@ -79,13 +79,10 @@ def _band(b: int, dtype: torch.dtype, device: torch.device) -> Tensor:  # [b, b 
     return band.scatter_(1, idx, _gauss_1d(dtype, device).expand(b, -1))
 
 
-def _valid(maps: Tensor) -> Tensor:  # [n, H, W] -> [n, H-10, W-10]
-    """The window over the valid region (`_products`), differentiable: it is linear, and its
-    adjoint is itself over the padded maps (`_filter_t`)."""
-    return _Valid.apply(maps) if torch.is_grad_enabled() and maps.requires_grad else _products(maps)
-
-
 class _Valid(torch.autograd.Function):
+    """The CPU's window over the valid region (`_products`), differentiable: it is linear, and its
+    adjoint is `_filter_t`."""
+
     @staticmethod
     def forward(ctx, maps):
         return _products(maps)
@@ -93,8 +90,7 @@ class _Valid(torch.autograd.Function):
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, g):
-        e = SSIM_WINDOW - 1
-        return _products(F.pad(g, (e, e, e, e)))
+        return _filter_t(g)
 
 
 def _products(maps: Tensor) -> Tensor:  # [n, H, W] -> [n, H-10, W-10]

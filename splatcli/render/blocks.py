@@ -30,7 +30,7 @@ import torch
 from torch import Tensor
 
 from . import kernels
-from .projection import TILE
+from .projection import TILE, Footprint
 
 # 2 px blocks are not offered: they halve the slots below alpha 1/255 but make 2-3x the pairs, and a tuner
 # given them on a Xeon (lego at 200 px, where they come nearest) drew 28 of 582 renders with them
@@ -78,6 +78,11 @@ def extents(
     m, r = means2d.detach().double()[ok], rect[ok].double() * TILE
     half = torch.stack([w, h], 1) / 2
     return Extents(w, h, torch.maximum(m - half, r[:, :2]), torch.minimum(m + half, r[:, 2:]))
+
+
+def footprint_extents(fp: Footprint) -> Extents:
+    """`extents` of a footprint's Gaussians, each box clipped to its tiles."""
+    return extents(fp.cov2d, fp.opacities, fp.means2d, fp.rect)
 
 
 def _boxes(ext: Extents, width: int, height: int) -> tuple[Tensor, Tensor]:  # -> w, h [D] px, 0 where off the image

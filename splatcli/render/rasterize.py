@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 
 from . import timing
-from .blocks import BlockTuner, Meter, choose_block, estimate_pairs, extents
+from .blocks import BlockTuner, Meter, choose_block, estimate_pairs, footprint_extents
 from .composite import composite, make_plan, median_depth, weight_sums
 from .output import RenderOutput
 from .projection import NEAR, TILE, Projection, project
@@ -120,7 +120,7 @@ def rasterize(
     pr = project(means, quats, log_scales, opacity_logits, sh, viewmat, K, width, height, sh_degree, near, antialiased)
     t1 = time.perf_counter()
     timing.add("projection", t1 - t0)
-    meter, ext, chunk = None, extents(pr.footprint.cov2d, pr.footprint.opacities, pr.footprint.means2d, pr.footprint.rect), None
+    meter, ext, chunk = None, footprint_extents(pr.footprint), None
     if tuner is not None and means.device.type == "cpu":  # timing CUDA work would need syncs
         timed = not tuner.backward or torch.is_grad_enabled()  # else nothing will report a backward
         (block, chunk), meter = tuner.choose(ext, width, height, measure=timed)
@@ -182,7 +182,7 @@ def _planned_bands(pr: Projection, width: int, height: int):
     """A forward-only render's plans, one per band (rasterize's bands, the cost model's block), each
     with the projected means in its band's coordinates [N, 2]."""
     fp = pr.footprint
-    ext = extents(fp.cov2d, fp.opacities, fp.means2d, fp.rect)
+    ext = footprint_extents(fp)
     block = choose_block(ext, width, height)
     for y0, y1 in _bands(height, estimate_pairs(ext, block)):
         yield make_plan(fp, width, height, block, (y0, y1)), _shift(pr, y0)
