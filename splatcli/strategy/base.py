@@ -185,6 +185,10 @@ class Strategy:
         parameters, unless the strategy filters the model (--mip-filter)."""
         return log_scales, opacity_logits
 
+    def finish(self, splats: Splats, state: Any) -> None:
+        """After the run's last step, before its final measurement and checkpoint."""
+        return None
+
     def catch_up(self, splats: Splats, state: Any, step: int) -> RefineStats | None:
         """On resume at `step`: do what an uninterrupted run would already have done
         by now but this checkpoint has not (a finished run resumed with --compact)."""

@@ -4,7 +4,7 @@ Growing, pruning or resetting rows must edit the Adam moments (`exp_avg`,
 `exp_avg_sq`) the same way, or the optimiser would apply stale momentum to the
 wrong Gaussian, and every strategy's per-Gaussian rows (`RowState.ROWS`) too.
 `_edit` is the one function that replaces parameters and moments; `keep`, `append`
-and `replace_rows` also edit the strategy rows; `nudge` moves a parameter in place;
+and `replace_rows` also edit the strategy rows; `nudge` and `assign` move parameters in place;
 nothing else in splatcli touches any of them.
 """
 
@@ -139,6 +139,14 @@ def replace_rows(splats: Splats, idx: Tensor, rows: dict[str, Tensor]) -> None: 
 def nudge(splats: Splats, name: str, delta: Tensor) -> None:
     """Add `delta` to one parameter in place (moments kept: a small move, not a new Gaussian)."""
     splats.params[name].add_(delta.to(splats.params[name]))
+
+
+@torch.no_grad()
+def assign(splats: Splats, values: dict[str, Tensor]) -> None:
+    """Overwrite parameters in place with `values[name]` (same shapes), moments kept: the same
+    Gaussians, moved to values near their own (strategy/average.py)."""
+    for name, v in values.items():
+        splats.params[name].copy_(v)
 
 
 def set_rows(splats: Splats, name: str, fn: Callable[[Tensor], Tensor]) -> None:

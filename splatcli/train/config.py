@@ -111,6 +111,10 @@ class TrainConfig:
     support: SupportConfig = section(SupportConfig, "--prune-views")
     sh_auto: ShAutoConfig = section(ShAutoConfig, "--sh-degree auto", prefix="sh_auto_")
     compact: CompactConfig = section(CompactConfig, "--compact", prefix="compact_")
+    average: float = opt(0.02, "The run ends with each Gaussian's parameters averaged over its last steps (an "
+                         "exponential moving average whose time constant is this share of the steps), not the last "
+                         "step's values: the last views and MCMC's noise pull the model about less (0: off).",
+                         group=MODEL, at_least=0, less_than=0.25)
     mip_filter: bool = opt(False, "Mip-Splatting's filters (Yu et al. 2024): no Gaussian finer than the training "
                            "views sample it (a 3D filter, folded into the exported scales and opacities), drawn with "
                            "the 2D antialiasing filter: renders at other resolutions keep their look.", group=MODEL)

@@ -239,6 +239,8 @@ class _Run:
         fitted = self._measure_update(step, stats.info)
         self._refine(step, stats.info)
         self._replan()
+        if step == t.cfg.total_steps:  # (a planned run knows its last step only once it has planned again)
+            t.finish()
         self._report(step, stats.info.heldout, fitted)
         if stats.stopping or (self.comm.world == 1 and self.stop.is_set()):
             self._interrupt()

@@ -24,8 +24,9 @@ from ..render.composite import WORK_BYTES  # what a render holds for its backwar
 # Bytes per Gaussian over a run: parameters (59 floats), their gradients and two Adam
 # moments (4 x 236 B), strategy rows, and the per-step projection and compositing
 # buffers that grow with the count: a little above what RSS grew by per Gaussian while
-# lego and fox densified at the full presets.
-BYTES_PER_GAUSSIAN = 3584
+# lego and fox densified at the full presets; then the averages of the run's last steps
+# (--average: the parameters again and a count, 240 B).
+BYTES_PER_GAUSSIAN = 3584 + 240
 # A cached training image is uint8 RGB; a coarse-to-fine level adds at most 0.77x.
 IMAGE_FACTOR = 1.8
 # Without --max-gaussians, densification is assumed to reach this many Gaussians per

@@ -23,6 +23,7 @@ from ..render import rasterize
 from ..render.backends import Rasterizer
 from ..render.blocks import BlockTuner
 from ..strategy import (
+    AverageStep,
     CompactStep,
     Context,
     DefaultStrategy,
@@ -183,6 +184,8 @@ def make_strategies(cfg: TrainConfig, extent: float, ctx: Context) -> list[Strat
         out.append(RegularizeStep(cfg.default.opacity_reg, cfg.default.scale_reg))  # mcmc applies its own
     if cfg.support.prune_views:
         out.append(SupportPrune(cfg.support, r.refine_start, stop, r.refine_every, ctx))
+    if cfg.average > 0:  # before the model steps: --sh-degree auto then scores the averaged model
+        out.append(AverageStep(cfg.average, cfg.total_steps))
     if cfg.sh_degree == "auto":
         out.append(ShAutoStep(cfg.sh_auto, cfg.iterations, ctx))
     if cfg.compact.enabled:

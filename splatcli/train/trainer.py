@@ -130,6 +130,13 @@ class Trainer:
             return [strategy.step_post_backward(s.splats, st, step, info)
                     for strategy, st in zip(s.strategies, s.splats.states)]
 
+    def finish(self) -> None:
+        """The strategies' last word on the model, after the run's last step (parameter averaging)."""
+        s = self.state
+        with self.prof.stage("densification"):
+            for strategy, st in zip(s.strategies, s.splats.states):
+                strategy.finish(s.splats, st)
+
 
 def _optimise(state: TrainState, finite: bool) -> None:
     """Adam's step on every parameter when the loss and gradients are finite (else the step is
