@@ -11,6 +11,7 @@ from torch import nn
 
 from splatcli.cli.train_config import make_config
 from splatcli.files.checkpoint import load_checkpoint
+from splatcli.project import Project
 from splatcli.strategy import AverageStep, Splats, StepInfo, ops
 from splatcli.strategy.average import WINDOW
 from splatcli.train.state import make_strategies
@@ -108,6 +109,31 @@ def test_cut_bands_start_the_average_again():
     torch.testing.assert_close(splats.params["shN"].detach(), want)
 
 
+def test_bands_cut_at_the_last_step_keep_their_averages():
+    """--sh-degree auto cuts the bands at the last step, after that step's average: the bands kept
+    end at their averages, as every other parameter does."""
+    splats = _splats(2)
+    avg = AverageStep(0.1, 20)
+    st = avg.initial_state(2, torch.device("cpu"))
+    splats.states = [st]
+    _run(avg, splats, st, range(1, 21))
+    want = dict(zip([k for k, _ in st.layout], st.values.clone().split([w for _, w in st.layout], 1)))
+    ops.truncate_bands(splats, "shN", 3)  # degree 1: bands 1-3 of 15 kept
+    avg.finish(splats, st)
+    assert torch.equal(splats.params["shN"].detach(), want["shN"][:, :9].reshape(2, 3, 3))
+    assert torch.equal(splats.params["means"].detach(), want["means"])
+    # degree 0: shN leaves the parameters, and the others still end at their averages
+    splats = _splats(2)
+    st = avg.initial_state(2, torch.device("cpu"))
+    splats.states = [st]
+    _run(avg, splats, st, range(1, 21))
+    want = dict(zip([k for k, _ in st.layout], st.values.clone().split([w for _, w in st.layout], 1)))
+    ops.truncate_bands(splats, "shN", 0)
+    avg.finish(splats, st)
+    assert "shN" not in splats.params
+    assert torch.equal(splats.params["sh0"].detach(), want["sh0"].reshape(2, 1, 3))
+
+
 def test_made_by_default_before_the_model_steps():
     cfg = make_config(sh_degree="auto", compact=True, iterations=1000)
     names = [s.name for s in make_strategies(cfg, 1.0, context())]
@@ -119,14 +145,25 @@ def test_made_by_default_before_the_model_steps():
 
 def test_train_ends_with_the_average(tmp_path):
     """Through the CLI, the same seeded run with and without averaging: the checkpoints differ, and
-    the averaged run's holds no averages (they became its parameters)."""
+    the averaged run's last holds no averages (they became its parameters). A run resumed from a
+    checkpoint inside the window (its averages saved with it) ends as the uninterrupted one."""
     outs = {}
     for a in ("0", "0.2"):
         proj = make_tiny_project(tmp_path / a, trained=False)
-        run_ok("train", proj.root, "--preset", "demo", "--iterations", "40", "--average", a, "--device", "cpu")
+        run_ok("train", proj.root, "--preset", "demo", "--iterations", "40", "--average", a, "--device", "cpu",
+               "--block", "model", "--checkpoint-every", "30", "--keep-checkpoints", "3")
         outs[a] = load_checkpoint(proj.latest_checkpoint(), torch.device("cpu"))
     g0, g1 = outs["0"].gaussians, outs["0.2"].gaussians
     assert g0.means.shape == g1.means.shape and outs["0"].step == outs["0.2"].step == 40
     assert not torch.equal(g0.means, g1.means)
     assert "average" not in outs["0"].strategy
     assert outs["0.2"].strategy["average"]["values"].shape[1] == 0
+
+    proj = Project.open(tmp_path / "0.2")
+    mid = load_checkpoint(proj.checkpoint_path(30), torch.device("cpu"))  # the window: steps 8-40
+    assert mid.strategy["average"]["values"].shape == (len(mid.gaussians.means), 59)
+    proj.checkpoint_path(40).unlink()
+    run_ok("train", proj.root, "--resume", "--device", "cpu")
+    resumed = load_checkpoint(proj.latest_checkpoint(), torch.device("cpu"))
+    assert resumed.step == 40
+    assert torch.equal(resumed.gaussians.means, g1.means) and torch.equal(resumed.gaussians.sh, g1.sh)

@@ -40,6 +40,7 @@ class AverageState(RowState):
 
     values: Tensor  # [N, D] every parameter of a row, flattened in `params` order; [N, 0] outside the window
     count: Tensor  # [N] steps averaged into the row (0: new or moved; ops adds and moves rows at 0)
+    layout: tuple[tuple[str, int], ...] = ()  # (parameter, its share of D), in `params` order
 
 
 class AverageStep(Strategy):
@@ -62,9 +63,10 @@ class AverageStep(Strategy):
             return None
         params = splats.params
         n = len(splats)
-        widths = [p[0].numel() for p in params.values()]
-        if state.values.shape[1] != sum(widths):  # the window opens (or the SH bands were cut): start again
-            state.values = params["means"].new_zeros(n, sum(widths))
+        layout = tuple((k, p[0].numel()) for k, p in params.items())
+        widths = [w for _, w in layout]
+        if state.layout != layout or state.values.shape[1] != sum(widths):  # the window opens (or bands were cut)
+            state.values, state.layout = params["means"].new_zeros(n, sum(widths)), layout
             state.count.zero_()
         state.count += 1
         w = (1.0 / state.count.clamp(max=self.tau))[:, None]  # [N, 1]: 1 at a row's first step
@@ -74,9 +76,11 @@ class AverageStep(Strategy):
 
     @torch.no_grad()
     def finish(self, splats: Splats, state: AverageState) -> None:
-        params = splats.params
-        widths = [p[0].numel() for p in params.values()]
-        if state.values.shape[1] != sum(widths):  # the window never opened
+        if state.values.shape[1] == 0:  # the window never opened
             return
-        ops.assign(splats, {k: v.reshape(p.shape) for (k, p), v in zip(params.items(), state.values.split(widths, 1))})
-        state.values = state.values.new_zeros(len(splats), 0)  # (not kept in the last checkpoint)
+        # Each parameter's leading values: --sh-degree auto may have cut SH bands since the last average
+        # (the first bands lead each row, and a degree of 0 drops shN); one that grew keeps its own.
+        parts = dict(zip([k for k, _ in state.layout], state.values.split([w for _, w in state.layout], 1)))
+        ops.assign(splats, {k: parts[k][:, :p[0].numel()].reshape(p.shape) for k, p in splats.params.items()
+                            if k in parts and p[0].numel() <= parts[k].shape[1]})
+        state.values, state.layout = state.values.new_zeros(len(splats), 0), ()  # (not kept in the last checkpoint)
