@@ -44,7 +44,7 @@ SETTINGS = (
     "agree within 5%", "under 90% of what the shared one does", "so far (at least 60 s)", "at least 2 s of matching",
     "grew by 40% rather than 10%", "at least 30% of the inliers", "has run so far, or 2 minutes",
     # train: the memory estimate, the recipe, the planner, mcmc, options
-    "about 3.5 KB per Gaussian", "SH degree +1 every 1000 steps", "again 2 s later", "at most 1,050 s",
+    "about 3.8 KB per Gaussian", "SH degree +1 every 1000 steps", "again 2 s later", "at most 1,050 s",
     "830 px for 30 min", "the run has 10 minutes or more", "at least every 25 steps", "at 1.5× the preset's learning rate", "for the first 60% of the run",
     "until 60% of the run", "every 100 steps and at once",
     "at least 5% per refinement", "by 40% of the refinement window", "by 40% of what is left of it", "until 95% of the run",
