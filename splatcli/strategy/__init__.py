@@ -10,8 +10,8 @@ from .mip import MipFilter, MipFilterState
 from .regularize import RegularizeStep
 from .support import SupportConfig, SupportPrune
 
-__all__ = ["AverageState", "AverageStep", "CompactConfig", "CompactReport", "CompactStep", "Context", "DefaultStrategy", "DefaultStrategyConfig",
-           "DefaultStrategyState", "Evaluator", "MCMCStrategy", "MCMCStrategyConfig", "MCMCStrategyState", "MipFilter",
-           "MipFilterState", "RefineConfig", "RefineStats", "RegularizeStep", "RowState", "ShAutoConfig",
-           "ShAutoStep", "Splats", "StepInfo", "Strategy", "SupportConfig", "SupportPrune", "TrainViews", "cut_steps",
-           "sh_degree_of"]
+__all__ = ["AverageState", "AverageStep", "CompactConfig", "CompactReport", "CompactStep", "Context",
+           "DefaultStrategy", "DefaultStrategyConfig", "DefaultStrategyState", "Evaluator", "MCMCStrategy",
+           "MCMCStrategyConfig", "MCMCStrategyState", "MipFilter", "MipFilterState", "RefineConfig", "RefineStats",
+           "RegularizeStep", "RowState", "ShAutoConfig", "ShAutoStep", "Splats", "StepInfo", "Strategy",
+           "SupportConfig", "SupportPrune", "TrainViews", "cut_steps", "sh_degree_of"]

@@ -65,7 +65,7 @@ class AverageStep(Strategy):
         n = len(splats)
         layout = tuple((k, p[0].numel()) for k, p in params.items())
         widths = [w for _, w in layout]
-        if state.layout != layout or state.values.shape[1] != sum(widths):  # the window opens (or bands were cut)
+        if state.layout != layout:  # the window opens (or bands were cut): start again
             state.values, state.layout = params["means"].new_zeros(n, sum(widths)), layout
             state.count.zero_()
         state.count += 1

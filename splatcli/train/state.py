@@ -184,7 +184,7 @@ def make_strategies(cfg: TrainConfig, extent: float, ctx: Context) -> list[Strat
         out.append(RegularizeStep(cfg.default.opacity_reg, cfg.default.scale_reg))  # mcmc applies its own
     if cfg.support.prune_views:
         out.append(SupportPrune(cfg.support, r.refine_start, stop, r.refine_every, ctx))
-    if cfg.average > 0:  # before the model steps: --sh-degree auto then scores the averaged model
+    if cfg.average > 0:  # (its `finish` keeps the averages of the bands --sh-degree auto leaves)
         out.append(AverageStep(cfg.average, cfg.total_steps))
     if cfg.sh_degree == "auto":
         out.append(ShAutoStep(cfg.sh_auto, cfg.iterations, ctx))
