@@ -405,6 +405,10 @@ def test_a_plan_raises_the_gaussian_budget_by_the_steps_it_affords():
         said = TrainSummary(1, 1.0, cap, 3, 1, "cpu", 0.0, plan=plan.record()).model_line()
         assert (f"raised max-gaussians from 39,000 to {cap:,}" if cap > 39_000 else "kept max-gaussians at 39,000") in said
         assert said.endswith(f"(time for {steps:,} steps, planned at 20 s of 100)"), said
+        if cap > 39_000:  # growth ends at a share of the steps: a run that trained fewer grew short of the cap
+            short = TrainSummary(steps - 300, 1.0, cap - 6_000, 3, 1, "cpu", 0.0, plan=plan.record()).model_line()
+            assert short.endswith(f", and growth ended at {(cap - 6_000) / cap:.0%} of it: the run trained "
+                                  f"{steps - 300:,} steps"), short
     plan, run = plan_at(20.0, compact=True)
     assert plan.cap == 39_000 and "raised" not in plan.history[-1]
     cfg = make_config("fast", time_budget=100.0, strategy="mcmc", max_gaussians=39_000)

@@ -426,6 +426,10 @@ class TrainSummary:
                                       if raised["to"] > raised["from"] else f"kept max-gaussians at {raised['from']:,}")
                      + f" (time for {raised['steps']:,} steps, planned at {at['elapsed_s']:.0f} s of "
                        f"{plan['budget_s']:.0f})")
+            if self.num_gaussians < raised["to"] and self.compact is None and self.steps < raised["steps"]:
+                # MCMC grows to the cap by a share of the steps planned; a run that trains fewer ends that share sooner
+                line += (f", and growth ended at {self.num_gaussians / raised['to']:.0%} of it: the run trained "
+                         f"{self.steps:,} steps")
         c = self.compact
         if c is not None:
             psnr = f", {c.before_psnr:.2f} dB held out" if c.before_psnr is not None else ""
