@@ -51,7 +51,6 @@ class AverageStep(Strategy):
 
     def __init__(self, share: float, total: int) -> None:
         self.tau = max(1.0, share * total)  # steps
-        self.total = total
         self.start = total - WINDOW * self.tau
 
     def initial_state(self, n: int, device: torch.device, seed: int = 0) -> AverageState:
