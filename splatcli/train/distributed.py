@@ -82,13 +82,20 @@ class _Slots:
         self.total = torch.empty(self.cap)
         return True
 
-    def sum(self, parts: list[Tensor]) -> Tensor | None:  # parts: 1-D float32 -> [n] the sum over ranks
-        """The sum over ranks, or None (on every rank) when the shared memory has no room."""
+    def sum(self, parts: list[Tensor], scale: float = 1.0) -> Tensor | None:  # parts: 1-D float32 -> [n]
+        """The sum over ranks of the parts times `scale` (each rank writes its parts scaled), or None
+        (on every rank) when the shared memory has no room."""
         n = sum(int(p.numel()) for p in parts)
         if not self.reserve(n):
             return None
         bufs, self.turn = self.bufs[self.turn], 1 - self.turn
-        torch.cat(parts, out=bufs[self.rank][:n])
+        if scale == 1.0:
+            torch.cat(parts, out=bufs[self.rank][:n])
+        else:
+            o = 0
+            for p in parts:
+                torch.mul(p, scale, out=bufs[self.rank][o:o + p.numel()])
+                o += p.numel()
         _agree(True)  # every rank's gradients are written
         out = torch.add(bufs[0][:n], bufs[1][:n], out=self.total[:n])  # the same order on every rank: the same bits
         for b in bufs[2:]:
@@ -153,14 +160,19 @@ class Comm:
             if self._slots is None:
                 self._slots = _Slots(self.rank, self.world)
             t0 = time.perf_counter()
-            flat = self._slots.sum(parts)
+            # 1/world folded into each rank's write where it is a power of two: exact, so the mean has the bits of
+            # gloo's sum / world below, and the division's pass over the gradients is saved
+            pow2 = self.world & (self.world - 1) == 0
+            flat = self._slots.sum(parts, 1.0 / self.world if pow2 else 1.0)
             self.seconds += time.perf_counter() - t0
             self.calls += 1
             if flat is None:  # no room in shared memory for this model: gloo from now on
                 self.shared, self._slots = False, None
+            elif not pow2:
+                flat /= self.world
         if flat is None:
             flat = self._all_reduce(torch.cat(parts))
-        flat /= self.world
+            flat /= self.world
         o = 0
         for p in ps:
             n = p.numel()
