@@ -201,19 +201,20 @@ def means_lr(cfg: TrainConfig, step: int, extent: float) -> float:
     decay to lr_means_final at the end; held there afterwards. Times the scene extent."""
     t = min(max(step / max(cfg.iterations, 1), 0.0), 1.0)
     t = max(0.0, t - cfg.lr_hold) / (1.0 - cfg.lr_hold)
-    return math.exp(math.log(cfg.lr_means) * (1 - t) + math.log(cfg.lr_means_final) * t) * extent * cfg.lr_means_scale
+    return math.exp(math.log(cfg.lr_means) * (1 - t) + math.log(cfg.lr_means_final) * t) * extent * cfg.lr_scale
 
 
 def learning_rates(cfg: TrainConfig, extent: float) -> dict[str, float]:
     """Each parameter's learning rate (the means' at step 0: `means_lr` sets it every step)."""
     lrs = {
+        "means": cfg.lr_means * extent,
         "quats": cfg.lr_quats,
         "log_scales": cfg.lr_scales,
         "opacity_logits": cfg.lr_opacity,
         "sh0": cfg.lr_sh0,
         "shN": cfg.lr_sh0 / cfg.lr_shN_div,
     }
-    return {"means": cfg.lr_means * extent * cfg.lr_means_scale} | {k: v * cfg.lr_scale for k, v in lrs.items()}
+    return {k: v * cfg.lr_scale for k, v in lrs.items()}
 
 
 def _make_optimizers(params: dict[str, nn.Parameter], cfg: TrainConfig, extent: float) -> dict[str, torch.optim.Optimizer]:
