@@ -160,8 +160,8 @@ class Comm:
             if self._slots is None:
                 self._slots = _Slots(self.rank, self.world)
             t0 = time.perf_counter()
-            # 1/world folded into each rank's write where it is a power of two: exact, so the mean has the bits of
-            # gloo's sum / world below, and the division's pass over the gradients is saved
+            # 1/world folded into each rank's write where it is a power of two: exact (but for subnormal gradients,
+            # below 1e-38), so the mean has the bits of gloo's sum / world below, and the division's pass is saved
             pow2 = self.world & (self.world - 1) == 0
             flat = self._slots.sum(parts, 1.0 / self.world if pow2 else 1.0)
             self.seconds += time.perf_counter() - t0
