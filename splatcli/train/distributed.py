@@ -89,13 +89,10 @@ class _Slots:
         if not self.reserve(n):
             return None
         bufs, self.turn = self.bufs[self.turn], 1 - self.turn
-        if scale == 1.0:
-            torch.cat(parts, out=bufs[self.rank][:n])
-        else:
-            o = 0
-            for p in parts:
-                torch.mul(p, scale, out=bufs[self.rank][o:o + p.numel()])
-                o += p.numel()
+        o = 0
+        for p in parts:  # one pass each, as a copy would be (x 1.0 is one)
+            torch.mul(p, scale, out=bufs[self.rank][o:o + p.numel()])
+            o += p.numel()
         _agree(True)  # every rank's gradients are written
         out = torch.add(bufs[0][:n], bufs[1][:n], out=self.total[:n])  # the same order on every rank: the same bits
         for b in bufs[2:]:
@@ -156,22 +153,21 @@ class Comm:
         parts = [(p.grad if p.grad is not None else torch.zeros_like(p)).reshape(-1) for p in ps]
         parts += [loss.detach().reshape(1).to(ps[0].dtype), torch.tensor([float(stop)], device=ps[0].device)]
         flat: Tensor | None = None
+        # 1/world folded into each rank's shared-memory write where it is a power of two: exact (but for subnormal
+        # gradients, below 1e-38), so the mean has the bits of gloo's sum / world, and the division's pass is saved
+        folded = 1.0 / self.world if self.world & (self.world - 1) == 0 else 1.0
         if self.shared and ps[0].device.type == "cpu" and ps[0].dtype == torch.float32:
             if self._slots is None:
                 self._slots = _Slots(self.rank, self.world)
             t0 = time.perf_counter()
-            # 1/world folded into each rank's write where it is a power of two: exact (but for subnormal gradients,
-            # below 1e-38), so the mean has the bits of gloo's sum / world below, and the division's pass is saved
-            pow2 = self.world & (self.world - 1) == 0
-            flat = self._slots.sum(parts, 1.0 / self.world if pow2 else 1.0)
+            flat = self._slots.sum(parts, folded)
             self.seconds += time.perf_counter() - t0
             self.calls += 1
             if flat is None:  # no room in shared memory for this model: gloo from now on
                 self.shared, self._slots = False, None
-            elif not pow2:
-                flat /= self.world
         if flat is None:
-            flat = self._all_reduce(torch.cat(parts))
+            flat, folded = self._all_reduce(torch.cat(parts)), 1.0
+        if folded == 1.0:
             flat /= self.world
         o = 0
         for p in ps:
