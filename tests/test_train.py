@@ -35,8 +35,18 @@ from splatcli.train import log
 from splatcli.train.config import TrainConfig, TrainSummary
 from splatcli.train.log import read_log
 from splatcli.train.loop import train
-from splatcli.train.plan import LR_HOLD, LR_SCALE, OVERHEAD, RAISE_AT, SCORE_COST, SHN_DIV, TimePlan, step_costs
-from splatcli.train.state import learning_rates, time_plan
+from splatcli.train.plan import (
+    LR_HOLD,
+    LR_SCALE,
+    MEANS_LR,
+    OVERHEAD,
+    RAISE_AT,
+    SCORE_COST,
+    SHN_DIV,
+    TimePlan,
+    step_costs,
+)
+from splatcli.train.state import learning_rates, means_lr, time_plan
 from support.tiny_project import make_tiny_project
 
 CPU = torch.device("cpu")
@@ -331,18 +341,20 @@ def test_time_budget_plans_a_compressed_schedule(tmp_path):
 
 
 def test_a_planned_run_learns_at_the_planned_rates_and_a_replan_keeps_them():
-    """A budget buys a few thousand steps: every rate x LR_SCALE, the higher SH bands at 1/SHN_DIV
-    of the DC's. Tuning is idempotent (plans re-plan their own configs) and leaves a user's
-    higher setting alone."""
+    """A budget buys a few thousand steps: every rate x LR_SCALE, the means' x MEANS_LR as well, the
+    higher SH bands at 1/SHN_DIV of the DC's. Tuning is idempotent (plans re-plan their own configs)
+    and leaves a user's higher setting alone (and a lower means' share)."""
     cfg = make_config("fast", time_budget=60.0)
     tuned = TimePlan.tuned(cfg)
     assert TimePlan.tuned(tuned) == tuned and TimePlan.start(cfg).scaled(tuned, 700).lr_scale == LR_SCALE
     assert (tuned.lr_hold, tuned.lr_scale, tuned.lr_shN_div) == (LR_HOLD, LR_SCALE, SHN_DIV)
     base, fast = learning_rates(cfg, 2.0), learning_rates(tuned, 2.0)
-    assert all(fast[k] == pytest.approx(LR_SCALE * base[k]) for k in base if k != "shN")
+    assert all(fast[k] == pytest.approx(LR_SCALE * base[k]) for k in base if k not in ("shN", "means"))
+    assert fast["means"] == pytest.approx(LR_SCALE * MEANS_LR * base["means"]) and tuned.lr_means_scale == MEANS_LR
+    assert means_lr(tuned, 0, 2.0) == pytest.approx(fast["means"])  # the schedule starts where Adam does
     assert fast["shN"] == pytest.approx(fast["sh0"] / SHN_DIV) and fast["shN"] > 2 * base["shN"]
-    own = TimePlan.tuned(make_config("fast", time_budget=60.0, lr_scale=2.0, lr_shN_div=5.0))
-    assert (own.lr_scale, own.lr_shN_div) == (2.0, 5.0)
+    own = TimePlan.tuned(make_config("fast", time_budget=60.0, lr_scale=2.0, lr_shN_div=5.0, lr_means_scale=0.25))
+    assert (own.lr_scale, own.lr_shN_div, own.lr_means_scale) == (2.0, 5.0, 0.25)
 
 
 def test_a_finished_planned_run_resumed_with_more_time_trains_on_to_the_new_budget(tmp_path):

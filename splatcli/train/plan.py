@@ -19,8 +19,8 @@ What a plan sets:
   (the cuts make its steps faster);
 * the means' learning rate held at its initial value for the first LR_HOLD of the run
   (`lr_hold`), then decaying: a compressed exponential decay leaves a short run's last
-  half at a tenth of the rate, before the model has its shape; and every rate higher than
-  the preset's (`tuned`, from the first step);
+  half at a tenth of the rate, before the model has its shape; the means' rate below the
+  preset's and every other rate higher (`tuned`, from the first step);
 * the Gaussian count on a curve tied to the resolution schedule (as DashGaussian does):
   the strategy's budget is cap x (scale at the next plan)^2, where scale is the
   coarse-to-fine resolution, so that cheap coarse steps are not slowed by Gaussians
@@ -56,6 +56,11 @@ LR_HOLD = 0.6  # the fraction of a planned run the means' learning rate stays at
 # 1/SHN_DIV of the DC's rate, not 1/20 (docs/benchmarks.md, "Time budgets").
 LR_SCALE = 1.5
 SHN_DIV = 10.0
+# ... but the means learn at MEANS_LR x that, 0.75x the preset's rate. Lego at 200 px in 90 s, taking turns: a Xeon
+# (family 6 model 207, 1,100-1,200 steps of 2 processes) reached 33.89 / 34.09 dB at 0.75x, 33.80-33.99 (four runs) at 1.0x and
+# 32.75 / 33.12 at 3.0x, against 33.60-33.80 (median 33.74, eight runs) at 1.5x; a Zen 4 EPYC (1,500-1,700 steps)
+# 34.71-34.77 dB (three runs) against 34.32-34.48 (docs/benchmarks.md, "Time budgets").
+MEANS_LR = 0.5
 # A step's cost that does not grow with its pixels, as a share of a full-size step's: fitted so that
 # (a + 1) / (a + 1/16) is fox's speed at 1/4 of the size over its speed at full (480 px, 2 processes).
 OVERHEAD = 0.07
@@ -180,10 +185,10 @@ class TimePlan:
 
     @staticmethod
     def tuned(cfg: TrainConfig) -> TrainConfig:
-        """`cfg` with a planned run's learning rates (LR_HOLD, LR_SCALE, SHN_DIV); the same
+        """`cfg` with a planned run's learning rates (LR_HOLD, LR_SCALE, SHN_DIV, MEANS_LR); the same
         config again leaves it as it is."""
         return replace(cfg, lr_hold=max(cfg.lr_hold, LR_HOLD), lr_scale=max(cfg.lr_scale, LR_SCALE),
-                       lr_shN_div=min(cfg.lr_shN_div, SHN_DIV))
+                       lr_shN_div=min(cfg.lr_shN_div, SHN_DIV), lr_means_scale=min(cfg.lr_means_scale, MEANS_LR))
 
     def scaled(self, cfg: TrainConfig, iterations: int, at: int = 0) -> TrainConfig:
         """`cfg` with the template schedule scaled to `iterations` main steps, the learning

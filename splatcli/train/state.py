@@ -201,13 +201,14 @@ def means_lr(cfg: TrainConfig, step: int, extent: float) -> float:
     decay to lr_means_final at the end; held there afterwards. Times the scene extent."""
     t = min(max(step / max(cfg.iterations, 1), 0.0), 1.0)
     t = max(0.0, t - cfg.lr_hold) / (1.0 - cfg.lr_hold)
-    return math.exp(math.log(cfg.lr_means) * (1 - t) + math.log(cfg.lr_means_final) * t) * extent * cfg.lr_scale
+    lr = math.exp(math.log(cfg.lr_means) * (1 - t) + math.log(cfg.lr_means_final) * t)
+    return lr * extent * cfg.lr_scale * cfg.lr_means_scale
 
 
 def learning_rates(cfg: TrainConfig, extent: float) -> dict[str, float]:
     """Each parameter's learning rate (the means' at step 0: `means_lr` sets it every step)."""
     lrs = {
-        "means": cfg.lr_means * extent,
+        "means": cfg.lr_means * extent * cfg.lr_means_scale,
         "quats": cfg.lr_quats,
         "log_scales": cfg.lr_scales,
         "opacity_logits": cfg.lr_opacity,
