@@ -56,10 +56,11 @@ LR_HOLD = 0.6  # the fraction of a planned run the means' learning rate stays at
 # 1/SHN_DIV of the DC's rate, not 1/20 (docs/benchmarks.md, "Time budgets").
 LR_SCALE = 1.5
 SHN_DIV = 10.0
-# ... but the means learn at MEANS_LR x that, 0.75x the preset's rate. Lego at 200 px in 90 s, taking turns: a Xeon
-# (family 6 model 207, 1,100-1,200 steps of 2 processes) reached 33.89 / 34.09 dB at 0.75x, 33.80-33.99 (four runs) at 1.0x and
-# 32.75 / 33.12 at 3.0x, against 33.60-33.80 (median 33.74, eight runs) at 1.5x; a Zen 4 EPYC (1,500-1,700 steps)
-# 34.70-34.77 dB (five runs; 0.5x: 34.41 / 34.45) against 34.32-34.48 (docs/benchmarks.md, "Time budgets").
+# ... but the means learn at MEANS_LR x that, 0.75x the preset's rate. Lego at 200 px in 90 s, taking turns: a
+# Xeon (family 6 model 207, 1,100-1,200 steps of 2 processes) reached 33.89 / 34.09 dB at 0.75x, 33.80-33.99 (four
+# runs) at 1.0x and 32.75 / 33.12 at 3.0x, against 33.60-33.80 (median 33.74, eight runs) at 1.5x; a Zen 4 EPYC
+# (1,500-1,700 steps) 34.70-34.77 dB (five runs; 0.5x: 34.41 / 34.45) against 34.32-34.48 (docs/benchmarks.md,
+# "Time budgets").
 MEANS_LR = 0.5
 # A step's cost that does not grow with its pixels, as a share of a full-size step's: fitted so that
 # (a + 1) / (a + 1/16) is fox's speed at 1/4 of the size over its speed at full (480 px, 2 processes).
