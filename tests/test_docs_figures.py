@@ -45,7 +45,9 @@ SETTINGS = (
     "grew by 40% rather than 10%", "at least 30% of the inliers", "has run so far, or 2 minutes",
     # train: the memory estimate, the recipe, the planner, mcmc, options
     "about 3.8 KB per Gaussian", "SH degree +1 every 1000 steps", "again 2 s later", "at most 1,050 s",
-    "830 px for 30 min", "the run has 10 minutes or more", "at least every 25 steps", "at 1.5× the preset's learning rate", "for the first 60% of the run",
+    "830 px for 30 min", "the run has 10 minutes or more", "at least every 25 steps",
+    "the positions at 0.75× the preset's learning rate, every other parameter at 1.5×",
+    "for the first 60% of the run",
     "until 60% of the run", "every 100 steps and at once",
     "at least 5% per refinement", "by 40% of the refinement window", "by 40% of what is left of it", "until 95% of the run",
     "within 0.05 dB of degree 3", "a sphere 5× the cameras' extent", "0.8 × `grow_grad2d`",
