@@ -208,14 +208,13 @@ def means_lr(cfg: TrainConfig, step: int, extent: float) -> float:
 def learning_rates(cfg: TrainConfig, extent: float) -> dict[str, float]:
     """Each parameter's learning rate (the means' at step 0: `means_lr` sets it every step)."""
     lrs = {
-        "means": cfg.lr_means * extent * cfg.lr_means_scale,
         "quats": cfg.lr_quats,
         "log_scales": cfg.lr_scales,
         "opacity_logits": cfg.lr_opacity,
         "sh0": cfg.lr_sh0,
         "shN": cfg.lr_sh0 / cfg.lr_shN_div,
     }
-    return {k: v * cfg.lr_scale for k, v in lrs.items()}
+    return {"means": means_lr(cfg, 0, extent)} | {k: v * cfg.lr_scale for k, v in lrs.items()}
 
 
 def _make_optimizers(params: dict[str, nn.Parameter], cfg: TrainConfig, extent: float) -> dict[str, torch.optim.Optimizer]:
