@@ -155,7 +155,7 @@ class TrainConfig:
     lr_means_scale: float = opt(1.0, "The means' learning rate x this as well (--time-budget: 0.5, so 0.75x lr_means).",
                                 more_than=0)
     lr_sh0: float = opt(2.5e-3, "Learning rate of the SH DC.", more_than=0)
-    lr_shN_div: float = opt(20.0, "Higher SH bands learn this many times slower (--time-budget: 5).", more_than=0)
+    lr_shN_div: float = opt(20.0, "Higher SH bands learn this many times slower (--time-budget: 10).", more_than=0)
     lr_opacity: float = opt(0.05, "Learning rate of the opacity logits (the reference code's and the paper's).",
                             more_than=0)
     lr_scales: float = opt(5e-3, "Learning rate of the log scales.", more_than=0)

@@ -53,11 +53,9 @@ MIN_REFINE_EVERY = 25  # steps between refinements, at least (or the template's,
 LR_HOLD = 0.6  # the fraction of a planned run the means' learning rate stays at its initial value
 # A planned run's learning rates: a budget buys a few thousand steps, where the presets' rates are
 # the paper's for 30,000, so every rate is LR_SCALE x the preset's and the higher SH bands learn at
-# 1/SHN_DIV of the DC's rate, not 1/20. A Zen 4 EPYC, taking turns from 8a7b7a8: at 1/5, lego at 200 px in 90 s
-# 34.63-34.95 dB (median 34.75, five runs) against 34.47-34.66 at 1/10, fox at 480 px in 300 s 31.85-32.16 (median
-# 31.90, three runs) against 31.62-31.83; 1/3 no better on lego (34.61 / 34.83). (docs/benchmarks.md, "Time budgets")
+# 1/SHN_DIV of the DC's rate, not 1/20 (docs/benchmarks.md, "Time budgets").
 LR_SCALE = 1.5
-SHN_DIV = 5.0
+SHN_DIV = 10.0
 # ... but the means learn at MEANS_LR x that, 0.75x the preset's rate. Lego at 200 px in 90 s, taking turns: a
 # Xeon (family 6 model 207, 1,100-1,200 steps of 2 processes) reached 33.89 / 34.09 dB at 0.75x, 33.80-33.99 (four
 # runs) at 1.0x and 32.75 / 33.12 at 3.0x, against 33.60-33.80 (median 33.74, eight runs) at 1.5x; a Zen 4 EPYC
