@@ -194,6 +194,15 @@ def test_view_of_a_file_and_a_warning_for_other_hosts(proj, tmp_path):
     assert p.returncode == 0 and "warning:" in err and "other machines" in err
 
 
+def test_view_ctrl_c_as_soon_as_the_url_is_printed_exits_0(tmp_path):
+    write_ply(tmp_path / "s.ply", tiny_gaussians(10))
+    for _ in range(3):  # the window between printing the URL and waiting for Ctrl-C is small: knock thrice
+        p, _ = _start_view(str(tmp_path / "s.ply"), "--port", "0")
+        p.send_signal(signal.SIGINT)
+        _, err = p.communicate(timeout=20)
+        assert p.returncode == 0, err
+
+
 def test_view_bad_sources_are_one_line_errors(tmp_path):
     assert_user_error(run_cli("view", tmp_path / "nothing.ply"), "nothing.ply")
     (tmp_path / "junk.spz").write_bytes(b"junk")

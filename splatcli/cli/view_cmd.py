@@ -59,15 +59,16 @@ def view(
     store = open_scene(source, appearance_of)
     warn_host(ui, host)
     with ViewerServer(store, host, port) as server:
-        s = store.state()
-        ui.summary({"url": server.url, "num_gaussians": s["num_gaussians"], "sh_degree": s["sh_degree"],
-                    "cameras": len(s["cameras"])},
-                   title=f"viewer at {server.url}",
-                   lines=[f"{s['num_gaussians']} Gaussians, SH degree {s['sh_degree']}, {len(s['cameras'])} cameras; "
-                          "Ctrl-C stops it"])
-        if open_browser:
-            webbrowser.open(server.url)
+        # The try opens before the URL is printed: whoever reads it may press Ctrl-C at once.
         try:
+            s = store.state()
+            ui.summary({"url": server.url, "num_gaussians": s["num_gaussians"], "sh_degree": s["sh_degree"],
+                        "cameras": len(s["cameras"])},
+                       title=f"viewer at {server.url}",
+                       lines=[f"{s['num_gaussians']} Gaussians, SH degree {s['sh_degree']}, "
+                              f"{len(s['cameras'])} cameras; Ctrl-C stops it"])
+            if open_browser:
+                webbrowser.open(server.url)
             while True:
                 time.sleep(0.5)
         except KeyboardInterrupt:  # Ctrl-C is how a viewer ends: exit 0, also when pressed again while it closes
