@@ -43,6 +43,7 @@ from splatcli.train.plan import (
     RAISE_AT,
     SCORE_COST,
     SHN_DIV,
+    SHN_DIV_FLAT,
     TimePlan,
     step_costs,
 )
@@ -334,25 +335,29 @@ def test_time_budget_plans_a_compressed_schedule(tmp_path):
     assert cfg["default"]["refine_every"] == max(25, round(100 * ratio))  # never below 25 steps
     assert cfg["default"]["refine_stop"] == max(1, round(2000 * ratio))
     assert cfg["sh_degree_interval"] == max(1, round(600 * ratio))
-    assert cfg["lr_scale"] == LR_SCALE and cfg["lr_shN_div"] == SHN_DIV  # a planned run's rates, recorded
+    assert cfg["appearance"] == "none"  # a --time-budget run keeps none
+    assert cfg["lr_scale"] == LR_SCALE and cfg["lr_shN_div"] == SHN_DIV_FLAT  # a planned run's rates, recorded
     groups = {k: o["param_groups"][0]["lr"] for k, o in load_checkpoint(proj.latest_checkpoint()).optimizer.items()}
     assert groups["sh0"] == pytest.approx(LR_SCALE * cfg["lr_sh0"])  # ... and the ones its optimisers ran
-    assert groups["shN"] == pytest.approx(groups["sh0"] / SHN_DIV)
+    assert groups["shN"] == pytest.approx(groups["sh0"] / SHN_DIV_FLAT)
 
 
 def test_a_planned_run_learns_at_the_planned_rates_and_a_replan_keeps_them():
     """A budget buys a few thousand steps: every rate x LR_SCALE, the means' x MEANS_LR as well, the
-    higher SH bands at 1/SHN_DIV of the DC's. Tuning is idempotent (plans re-plan their own configs)
-    and leaves a user's higher setting alone (and a lower means' share)."""
+    higher SH bands at 1/SHN_DIV_FLAT of the DC's, or 1/SHN_DIV with an appearance model. Tuning is
+    idempotent (plans re-plan their own configs) and leaves a user's higher setting alone (and a lower
+    means' share)."""
     cfg = make_config("fast", time_budget=60.0)
     tuned = TimePlan.tuned(cfg)
     assert TimePlan.tuned(tuned) == tuned and TimePlan.start(cfg).scaled(tuned, 700).lr_scale == LR_SCALE
-    assert (tuned.lr_hold, tuned.lr_scale, tuned.lr_shN_div) == (LR_HOLD, LR_SCALE, SHN_DIV)
+    assert (tuned.lr_hold, tuned.lr_scale, tuned.lr_shN_div) == (LR_HOLD, LR_SCALE, SHN_DIV_FLAT)
+    lit = TimePlan.tuned(make_config("fast", time_budget=60.0, appearance="exposure"))
+    assert TimePlan.tuned(lit) == lit and lit.lr_shN_div == SHN_DIV > SHN_DIV_FLAT
     base, fast = learning_rates(cfg, 2.0), learning_rates(tuned, 2.0)
     assert all(fast[k] == pytest.approx(LR_SCALE * base[k]) for k in base if k not in ("shN", "means"))
     assert fast["means"] == pytest.approx(LR_SCALE * MEANS_LR * base["means"]) and tuned.lr_means_scale == MEANS_LR
     assert means_lr(tuned, 0, 2.0) == pytest.approx(fast["means"])  # the schedule starts where Adam does
-    assert fast["shN"] == pytest.approx(fast["sh0"] / SHN_DIV) and fast["shN"] > 2 * base["shN"]
+    assert fast["shN"] == pytest.approx(fast["sh0"] / SHN_DIV_FLAT) and fast["shN"] > 2 * base["shN"]
     own = TimePlan.tuned(make_config("fast", time_budget=60.0, lr_scale=2.0, lr_shN_div=5.0, lr_means_scale=0.25))
     assert (own.lr_scale, own.lr_shN_div, own.lr_means_scale) == (2.0, 5.0, 0.25)
 

@@ -53,9 +53,14 @@ MIN_REFINE_EVERY = 25  # steps between refinements, at least (or the template's,
 LR_HOLD = 0.6  # the fraction of a planned run the means' learning rate stays at its initial value
 # A planned run's learning rates: a budget buys a few thousand steps, where the presets' rates are
 # the paper's for 30,000, so every rate is LR_SCALE x the preset's and the higher SH bands learn at
-# 1/SHN_DIV of the DC's rate, not 1/20 (docs/benchmarks.md, "Time budgets").
+# 1/SHN_DIV of the DC's rate, not 1/20 (docs/benchmarks.md, "Time budgets") ...
 LR_SCALE = 1.5
 SHN_DIV = 10.0
+# ... or at 1/SHN_DIV_FLAT where no appearance model learns each photo's light. On a Zen 4 EPYC, taking turns
+# over two days: fox's 300 s run 31.74-32.16 dB (median 31.91, seven runs) against 31.62-31.97 (median 31.82,
+# eight), lego's 90 s run 34.63-35.05 (median 34.82, six) against 34.47-34.66; but fox with no options
+# (exposure on) lost 0.2-0.3 dB compensated at 1/5, so runs with an appearance model keep 1/SHN_DIV.
+SHN_DIV_FLAT = 5.0
 # ... but the means learn at MEANS_LR x that, 0.75x the preset's rate. Lego at 200 px in 90 s, taking turns: a
 # Xeon (family 6 model 207, 1,100-1,200 steps of 2 processes) reached 33.89 / 34.09 dB at 0.75x, 33.80-33.99 (four
 # runs) at 1.0x and 32.75 / 33.12 at 3.0x, against 33.60-33.80 (median 33.74, eight runs) at 1.5x; a Zen 4 EPYC
@@ -81,6 +86,11 @@ SCORE_COST = 0.5
 # 480 px: 0.6 dB below 222,000 in 300 s there).
 RAISE_AT = 0.2
 RAISE_STEPS = 1000
+
+
+def shN_div(cfg: TrainConfig) -> float:
+    """A planned run's ratio of the DC's learning rate to the higher SH bands'."""
+    return SHN_DIV if cfg.appearance != "none" else SHN_DIV_FLAT
 
 
 def ceiling(cfg: TrainConfig) -> int | None:
@@ -186,10 +196,10 @@ class TimePlan:
 
     @staticmethod
     def tuned(cfg: TrainConfig) -> TrainConfig:
-        """`cfg` with a planned run's learning rates (LR_HOLD, LR_SCALE, SHN_DIV, MEANS_LR); the same
+        """`cfg` with a planned run's learning rates (LR_HOLD, LR_SCALE, shN_div, MEANS_LR); the same
         config again leaves it as it is."""
         return replace(cfg, lr_hold=max(cfg.lr_hold, LR_HOLD), lr_scale=max(cfg.lr_scale, LR_SCALE),
-                       lr_shN_div=min(cfg.lr_shN_div, SHN_DIV), lr_means_scale=min(cfg.lr_means_scale, MEANS_LR))
+                       lr_shN_div=min(cfg.lr_shN_div, shN_div(cfg)), lr_means_scale=min(cfg.lr_means_scale, MEANS_LR))
 
     def scaled(self, cfg: TrainConfig, iterations: int, at: int = 0) -> TrainConfig:
         """`cfg` with the template schedule scaled to `iterations` main steps, the learning
