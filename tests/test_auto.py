@@ -212,6 +212,14 @@ def test_cores_left_over_become_threads_of_the_processes(proj, monkeypatch):
     assert "threads" not in _chosen(_choose(proj, {}, 3))  # --nproc given: its processes as asked
     monkeypatch.setattr(planning.torch, "get_num_threads", lambda: 3)  # OMP_NUM_THREADS=3 given
     assert "threads" not in _chosen(_choose(proj, {}))
+    # Busy cores leave one process, and the line says so (a run that takes twice as long, explained)
+    monkeypatch.setattr(planning, "free_cores", lambda: 1)
+    monkeypatch.setattr(planning, "usable_cores", lambda: 4)
+    c = _choose(proj, {})
+    assert c.nproc is None and _chosen(c)["nproc"] == 1
+    assert "nproc 1 (3 of 4 cores busy: one training process; --nproc 4 to use more)" in planning.summary_line(c, 600.0)
+    monkeypatch.setattr(planning, "usable_cores", lambda: 1)  # a one-core machine: nothing to say
+    assert "nproc" not in _chosen(_choose(proj, {}))
 
 
 def test_free_cores_leave_busy_cores_alone(monkeypatch):

@@ -171,6 +171,14 @@ def inherited() -> tuple[Chosen, TrainConfig | None]:
     return Chosen(choices=choices), cfg
 
 
+def usable_cores() -> int:
+    """The cores this process's affinity mask allows."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
 def free_cores(window_s: float = 0.5, settle_s: float = 2.0) -> int:
     """Cores this process may use that are idle now (never fewer than 1): the affinity
     mask's size times the idle share of the CPUs over `window_s` (/proc/stat; the load
@@ -178,10 +186,7 @@ def free_cores(window_s: float = 0.5, settle_s: float = 2.0) -> int:
     one-minute load average where /proc/stat is not there. Where a core is busy, a second
     window `settle_s` later decides with the first (the idler of the two): a burst of a few
     seconds (a test, a compile, a job ending) would otherwise cost a 10-minute run a process."""
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        cores = os.cpu_count() or 1
+    cores = usable_cores()
     cpus = os.cpu_count() or cores  # /proc/stat's shares are of every CPU, not only ours
     idle = _idle_share(window_s)
     if idle is not None and settle_s > 0 and round((1.0 - idle) * cpus) >= 1:
@@ -369,6 +374,10 @@ def _processes(out: Chosen, views: int) -> None:
     free = free_cores() if cap > 1 else 1  # one process whatever is free: not sampled
     k = min(free, cap)
     if k <= 1:
+        cores = usable_cores()
+        if cap > 1 and cores > 1:  # said, or a run that takes twice as long would go unexplained
+            out.choices.append(Choice("nproc", 1, f"{cores - free} of {cores} cores busy: one training process; "
+                                      f"--nproc {min(cores, cap)} to use more"))
         return
     out.nproc = k
     out.choices.append(Choice("nproc", k, f"{free} free cores: {k} training processes (--nproc 1 for one)"))
@@ -392,8 +401,10 @@ def summary_line(chosen: Chosen, budget_s: float | None, resume: bool = False, k
     was, `keep`: the share --compact keeps of it), the time it will take, and what to change for
     more quality or more speed."""
     listed = [c for c in chosen.choices if resume or c.option != "compact_keep"]  # (else said with `keep`)
-    what = ", ".join(f"{c.option.replace('_', '-')} {c.value}" + (f" ({c.why})" if resume or c.option == "max_gaussians"
-                                                                   else "") for c in listed)
+    said = ("max_gaussians", ("nproc", 1))  # why, beside the value: the count's reasons, and cores found busy
+    what = ", ".join(f"{c.option.replace('_', '-')} {c.value}" + (f" ({c.why})" if resume or c.option in said
+                                                                   or (c.option, c.value) in said else "")
+                     for c in listed)
     if resume:
         return f"resumes with {what}"
     if budget_s is None:
