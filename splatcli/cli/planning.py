@@ -401,10 +401,10 @@ def summary_line(chosen: Chosen, budget_s: float | None, resume: bool = False, k
     was, `keep`: the share --compact keeps of it), the time it will take, and what to change for
     more quality or more speed."""
     listed = [c for c in chosen.choices if resume or c.option != "compact_keep"]  # (else said with `keep`)
-    said = ("max_gaussians", ("nproc", 1))  # why, beside the value: the count's reasons, and cores found busy
-    what = ", ".join(f"{c.option.replace('_', '-')} {c.value}" + (f" ({c.why})" if resume or c.option in said
-                                                                   or (c.option, c.value) in said else "")
-                     for c in listed)
+    def why(c: Choice) -> bool:  # beside the value: the count's reasons, and cores found busy
+        return resume or c.option == "max_gaussians" or (c.option == "nproc" and c.value == 1)
+
+    what = ", ".join(f"{c.option.replace('_', '-')} {c.value}" + (f" ({c.why})" if why(c) else "") for c in listed)
     if resume:
         return f"resumes with {what}"
     if budget_s is None:

@@ -56,10 +56,10 @@ LR_HOLD = 0.6  # the fraction of a planned run the means' learning rate stays at
 # 1/SHN_DIV of the DC's rate, not 1/20 (docs/benchmarks.md, "Time budgets") ...
 LR_SCALE = 1.5
 SHN_DIV = 10.0
-# ... or at 1/SHN_DIV_FLAT where no appearance model learns each photo's light. On a Zen 4 EPYC, taking turns
-# over two days: fox's 300 s run 31.74-32.16 dB (median 31.91, seven runs) against 31.62-31.97 (median 31.82,
-# eight), lego's 90 s run 34.63-35.05 (median 34.82, six) against 34.47-34.66; but fox with no options
-# (exposure on) lost 0.2-0.3 dB compensated at 1/5, so runs with an appearance model keep 1/SHN_DIV.
+# ... or at 1/SHN_DIV_FLAT where no appearance model learns each photo's light. On a Zen 4 EPYC, taking turns:
+# fox's 300 s run 31.74-32.16 dB (median 31.91, seven runs) against 31.62-31.97 (median 31.82, eight), lego's
+# 90 s run 34.63-35.05 (median 34.91, eight) against 34.47-34.69 (five); but fox with no options (exposure on)
+# lost 0.2-0.3 dB compensated at 1/5, so runs with an appearance model keep 1/SHN_DIV.
 SHN_DIV_FLAT = 5.0
 # ... but the means learn at MEANS_LR x that, 0.75x the preset's rate. Lego at 200 px in 90 s, taking turns: a
 # Xeon (family 6 model 207, 1,100-1,200 steps of 2 processes) reached 33.89 / 34.09 dB at 0.75x, 33.80-33.99 (four
