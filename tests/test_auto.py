@@ -223,30 +223,51 @@ def test_cores_left_over_become_threads_of_the_processes(proj, monkeypatch):
 
 
 def test_free_cores_leave_busy_cores_alone(monkeypatch):
-    assert 0 <= planning._idle_share(0.05) <= 1  # this machine's, a share
+    assert 0 <= planning._busy_cores(0.05) <= planning.usable_cores()  # this machine's, a count of its CPUs
     monkeypatch.setattr(planning.os, "sched_getaffinity", lambda pid: {0, 1, 2, 3})
-    monkeypatch.setattr(planning.os, "cpu_count", lambda: 4)
     monkeypatch.setattr(planning.time, "sleep", lambda s: None)
-    for idle, free in ((0.35, 1), (0.0, 1), (0.98, 4), (0.5, 2)):  # never fewer than one
-        monkeypatch.setattr(planning, "_idle_share", lambda w, idle=idle: idle)
-        assert planning.free_cores() == free, idle
-    monkeypatch.setattr(planning, "_idle_share", lambda w: None)  # no /proc/stat: the load average
+    for busy, free in ((2.6, 1), (4.0, 1), (0.08, 4), (2.0, 2)):  # never fewer than one
+        monkeypatch.setattr(planning, "_busy_cores", lambda w, busy=busy: busy)
+        assert planning.free_cores() == free, busy
+    monkeypatch.setattr(planning, "_busy_cores", lambda w: None)  # no /proc/stat: the load average
     monkeypatch.setattr(planning.os, "getloadavg", lambda: (2.6, 0.0, 0.0))
     assert planning.free_cores() == 1
 
 
+def _stat(path, busy_cpus, ticks, per_cpu=True):
+    """A /proc/stat of 4 CPUs after `ticks` ticks each, `busy_cpus` busy all the while."""
+    rows = {c: (ticks, 0, 0, 0, 0) if c in busy_cpus else (0, 0, 0, ticks, 0) for c in range(4)}
+    total = [sum(r[i] for r in rows.values()) for i in range(5)]
+    lines = ["cpu  " + " ".join(map(str, total)) + " 0 0 0 0 0"]
+    lines += [f"cpu{c} " + " ".join(map(str, r)) + " 0 0 0 0 0" for c, r in rows.items()] if per_cpu else []
+    path.write_text("\n".join(lines + ["intr 1 2 3", "ctxt 4"]) + "\n")
+
+
+def test_busy_cpus_outside_the_affinity_mask_leave_its_cores_free(monkeypatch, tmp_path):
+    stat = tmp_path / "stat"
+    monkeypatch.setattr(planning, "PROC_STAT", str(stat))
+    monkeypatch.setattr(planning.os, "cpu_count", lambda: 4)
+    for mask, per_cpu, free in (({0, 1}, True, 2),  # CPUs 2 and 3 busy with another job: ours are idle
+                                ({2, 3}, True, 1),  # ours are the busy ones
+                                ({0, 2}, True, 1),
+                                ({0, 1}, False, 1)):  # no per-CPU lines: the machine's share (2 of 4 busy)
+        monkeypatch.setattr(planning.os, "sched_getaffinity", lambda pid, mask=mask: mask)
+        _stat(stat, {2, 3}, 100, per_cpu)
+        monkeypatch.setattr(planning.time, "sleep", lambda s: _stat(stat, {2, 3}, 200, per_cpu))
+        assert planning.free_cores(settle_s=0) == free, (mask, per_cpu)
+
+
 def test_a_burst_of_load_at_the_start_does_not_take_a_process(monkeypatch):
     monkeypatch.setattr(planning.os, "sched_getaffinity", lambda pid: {0, 1})
-    monkeypatch.setattr(planning.os, "cpu_count", lambda: 2)
     slept = []
     monkeypatch.setattr(planning.time, "sleep", slept.append)
-    for shares, free, waits in (([0.5, 0.97], 2, 1),  # one core busy for a moment: both are free
-                                ([0.5, 0.5], 1, 1),  # busy in both windows: it stays busy
-                                ([0.97], 2, 0)):  # all idle: no second window
-        seq, slept[:] = iter(shares), []
-        monkeypatch.setattr(planning, "_idle_share", lambda w, seq=seq: next(seq))
-        assert planning.free_cores() == free, shares
-        assert len(slept) == waits, shares  # the gap before a second window (the mocked windows do not sleep)
+    for counts, free, waits in (([1.0, 0.06], 2, 1),  # one core busy for a moment: both are free
+                                ([1.0, 1.0], 1, 1),  # busy in both windows: it stays busy
+                                ([0.06], 2, 0)):  # all idle: no second window
+        seq, slept[:] = iter(counts), []
+        monkeypatch.setattr(planning, "_busy_cores", lambda w, seq=seq: next(seq))
+        assert planning.free_cores() == free, counts
+        assert len(slept) == waits, counts  # the gap before a second window (the mocked windows do not sleep)
 
 
 def test_train_with_no_options_says_what_it_chose_and_records_it(proj, monkeypatch):

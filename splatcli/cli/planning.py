@@ -181,41 +181,63 @@ def usable_cores() -> int:
 
 def free_cores(window_s: float = 0.5, settle_s: float = 2.0) -> int:
     """Cores this process may use that are idle now (never fewer than 1): the affinity
-    mask's size times the idle share of the CPUs over `window_s` (/proc/stat; the load
-    average lags by minutes, both after a job ends and after one starts), or less the
-    one-minute load average where /proc/stat is not there. Where a core is busy, a second
-    window `settle_s` later decides with the first (the idler of the two): a burst of a few
-    seconds (a test, a compile, a job ending) would otherwise cost a 10-minute run a process."""
+    mask's size less its busy CPUs over `window_s` (`_busy_cores`; the load average lags
+    by minutes, both after a job ends and after one starts, and is used only where
+    /proc/stat is not there). Where a core is busy, a second window `settle_s` later
+    decides with the first (the idler of the two): a burst of a few seconds (a test, a
+    compile, a job ending) would otherwise cost a 10-minute run a process."""
     cores = usable_cores()
-    cpus = os.cpu_count() or cores  # /proc/stat's shares are of every CPU, not only ours
-    idle = _idle_share(window_s)
-    if idle is not None and settle_s > 0 and round((1.0 - idle) * cpus) >= 1:
+    busy = _busy_cores(window_s)
+    if busy is not None and settle_s > 0 and round(busy) >= 1:
         time.sleep(settle_s)
-        again = _idle_share(window_s)
-        idle = idle if again is None else max(idle, again)
-    if idle is None:
+        again = _busy_cores(window_s)
+        busy = busy if again is None else min(busy, again)
+    if busy is None:
         try:
             busy = os.getloadavg()[0]
         except OSError:
             busy = 0.0
-    else:
-        busy = (1.0 - idle) * cpus
     return max(1, min(cores, cores - int(round(busy))))
 
 
-def _idle_share(window_s: float) -> float | None:
-    def sample() -> tuple[int, int]:
-        with open("/proc/stat") as f:
-            v = [int(x) for x in f.readline().split()[1:]]
-        return v[3] + (v[4] if len(v) > 4 else 0), sum(v[:8])  # idle + iowait, all but guest time
+PROC_STAT = "/proc/stat"
+
+
+def _busy_cores(window_s: float) -> float | None:
+    """How many CPUs were busy over `window_s` among those this process may use: from each
+    allowed CPU's own line of /proc/stat, so a job pinned to other CPUs of a large machine
+    (`taskset`, a scheduler's CPU set) takes nothing from this one; where those lines are
+    missing, the whole machine's busy share times its CPUs. None where /proc/stat cannot
+    be read."""
+    def sample() -> dict[str, tuple[int, int]]:
+        out = {}
+        with open(PROC_STAT) as f:
+            for line in f:
+                if not line.startswith("cpu"):
+                    break
+                name, *v = line.split()
+                n = [int(x) for x in v[:8]]  # all but guest time (counted in user time too)
+                out[name] = (n[3] + (n[4] if len(n) > 4 else 0), sum(n))  # idle + iowait, all
+        return out
 
     try:
-        i0, t0 = sample()
+        s0 = sample()
         time.sleep(window_s)
-        i1, t1 = sample()
+        s1 = sample()
+        allowed = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
     except (OSError, ValueError, IndexError):
         return None
-    return (i1 - i0) / (t1 - t0) if t1 > t0 else None
+
+    def busy(name: str) -> float:  # this line's busy share of its time
+        di, dt = s1[name][0] - s0[name][0], s1[name][1] - s0[name][1]
+        return 1.0 - di / dt if dt > 0 else 0.0
+
+    own = [f"cpu{c}" for c in allowed]
+    if own and all(n in s0 and n in s1 for n in own):
+        return sum(busy(n) for n in own)
+    if "cpu" in s0 and "cpu" in s1:
+        return busy("cpu") * (os.cpu_count() or len(own) or 1)
+    return None
 
 
 def default_budget(train_views: int) -> float:
