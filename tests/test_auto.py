@@ -253,7 +253,7 @@ def test_busy_cpus_outside_the_affinity_mask_leave_its_cores_free(monkeypatch, t
                                 ({0, 1}, False, 1)):  # no per-CPU lines: the machine's share (2 of 4 busy)
         monkeypatch.setattr(planning.os, "sched_getaffinity", lambda pid, mask=mask: mask)
         _stat(stat, {2, 3}, 100, per_cpu)
-        monkeypatch.setattr(planning.time, "sleep", lambda s: _stat(stat, {2, 3}, 200, per_cpu))
+        monkeypatch.setattr(planning.time, "sleep", lambda s, per_cpu=per_cpu: _stat(stat, {2, 3}, 200, per_cpu))
         assert planning.free_cores(settle_s=0) == free, (mask, per_cpu)
 
 
