@@ -171,12 +171,17 @@ def inherited() -> tuple[Chosen, TrainConfig | None]:
     return Chosen(choices=choices), cfg
 
 
+def _allowed_cpus() -> set[int]:
+    """The CPUs this process's affinity mask allows (empty where the platform cannot say)."""
+    try:
+        return os.sched_getaffinity(0)
+    except (AttributeError, OSError):
+        return set()
+
+
 def usable_cores() -> int:
     """The cores this process's affinity mask allows."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        return os.cpu_count() or 1
+    return len(_allowed_cpus()) or os.cpu_count() or 1
 
 
 def free_cores(window_s: float = 0.5, settle_s: float = 2.0) -> int:
@@ -224,7 +229,6 @@ def _busy_cores(window_s: float) -> float | None:
         s0 = sample()
         time.sleep(window_s)
         s1 = sample()
-        allowed = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
     except (OSError, ValueError, IndexError):
         return None
 
@@ -232,7 +236,7 @@ def _busy_cores(window_s: float) -> float | None:
         di, dt = s1[name][0] - s0[name][0], s1[name][1] - s0[name][1]
         return 1.0 - di / dt if dt > 0 else 0.0
 
-    own = [f"cpu{c}" for c in allowed]
+    own = [f"cpu{c}" for c in sorted(_allowed_cpus())]
     if own and all(n in s0 and n in s1 for n in own):
         return sum(busy(n) for n in own)
     if "cpu" in s0 and "cpu" in s1:
