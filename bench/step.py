@@ -94,7 +94,10 @@ def main() -> None:
     torch.set_num_threads(1)
     proj, cpu = Project.open(args.project), torch.device("cpu")
     data = load_train_data(proj, 1.0, args.max_size, cpu, 0)  # the training views at --max-size
-    full = load_checkpoint(proj.latest_checkpoint(), cpu).gaussians.detach().as_dict()
+    ckpt = proj.latest_checkpoint()
+    if ckpt is None:
+        raise SystemExit(f"{args.project}: no checkpoint; train it first (splatcli train {args.project})")
+    full = load_checkpoint(ckpt, cpu).gaussians.detach().as_dict()
     n_all = len(full["means"])
     load0 = os.getloadavg()[0]
     rows = []
