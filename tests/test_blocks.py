@@ -171,3 +171,28 @@ def test_the_model_counts_only_the_part_of_each_box_inside_the_image():
     assert blocks.choose_block(blocks.extents(cov2d, opac, means, rect), 640, 480) == 4
     inside = blocks.block_costs(blocks.extents(*_with_wide_ones_past_the_edge(0, 0.0)), 640, 480)
     assert blocks.block_costs(blocks.extents(*_with_wide_ones_past_the_edge(50, -500.0)), 640, 480) == inside
+
+
+def test_extents_drop_only_the_rows_below_1_255_and_costs_sum_each_box():
+    """A faint row (255 o <= 1) gets no box, the others the same boxes as without it; the cost
+    model's pair counts, taken from three sums, equal the per-box (w / b + 1)(h / b + 1) summed."""
+    g = torch.Generator().manual_seed(3)
+    n = 300
+    cov2d = torch.stack([torch.rand(n, generator=g) * 40 + 0.3, torch.zeros(n), torch.rand(n, generator=g) * 40 + 0.3], 1)
+    opac = torch.rand(n, generator=g) * 0.9 + 0.05
+    means = torch.rand(n, 2, generator=g) * torch.tensor([640.0, 480.0])
+    rect = torch.cat([(means // 16 - 2).clamp_min(0), (means // 16 + 3)], 1).long()
+    full = blocks.extents(cov2d.double(), opac.double(), means.double(), rect)
+    faint = opac.clone()
+    faint[7] = 0.5 / 255
+    part = blocks.extents(cov2d.double(), faint.double(), means.double(), rect)
+    keep = torch.arange(n) != 7
+    assert part.w.numel() == n - 1
+    for a, b in ((part.w, full.w[keep]), (part.h, full.h[keep]), (part.lo, full.lo[keep]), (part.hi, full.hi[keep])):
+        assert torch.equal(a, b)
+    w, h = blocks._boxes(full, 640, 480)
+    cost = blocks.block_costs(full, 640, 480)
+    for b in blocks.BLOCKS:
+        pairs = float(torch.where(w > 0, (w / b + 1) * (h / b + 1), torch.zeros_like(w)).sum())
+        model = pairs * (blocks._COST_SLOT * (1 + pairs / blocks._PAIRS_CACHE) + blocks._COST_ELEM * b * b)
+        assert cost[b] == pytest.approx(model, rel=1e-12)  # the sums' order differs: float64 rounding only
