@@ -137,6 +137,20 @@ def test_sh_basis_backward_matches_autograd():
         torch.testing.assert_close(got, torch.autograd.grad((sh_basis(d, deg) * g).sum(), d)[0])
 
 
+@pytest.mark.parametrize("inverse", [False, True], ids=["R", "R-transposed"])
+def test_quat_rotate_is_quat_to_rotmat_applied(inverse):
+    g = torch.Generator().manual_seed(3)
+    q = torch.randn(64, 4, generator=g, dtype=torch.float64) * torch.rand(64, 1, generator=g, dtype=torch.float64) * 10
+    q[0] = 0.0  # the identity
+    q[1] = torch.tensor([1e300, 0.0, 2e300, 0.0], dtype=torch.float64)  # finite only through the max-abs scaling
+    v = torch.randn(64, 3, generator=g, dtype=torch.float64)
+    R = P.quat_to_rotmat(q)
+    want = torch.einsum("mji,mj->mi" if inverse else "mij,mj->mi", R, v)
+    got = torch.stack(P.quat_rotate(P.unit_quat(q), v.unbind(1), inverse=inverse), 1)
+    torch.testing.assert_close(got, want, rtol=0, atol=1e-14)  # float64 rounding of a few products
+    assert torch.equal(got[0], v[0])
+
+
 def render_with_grads(args, **kw):
     xs = [a.detach().clone().requires_grad_(True) for a in args[:5]]
     out = rasterize(*xs, *args[5:], 48, 40, **kw)

@@ -122,6 +122,34 @@ def quat_to_rotmat(quats: Tensor) -> Tensor:  # [N, 4] w,x,y,z (any norm) -> [N,
     ).reshape(quats.shape[:-1] + (3, 3))
 
 
+def unit_quat(quats: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:  # [M, 4] any norm -> 4 x [M]
+    """The normalised quaternion's w, x, y, z as separate [M] tensors (0 for the zero quaternion),
+    scaled by the largest component first, as in quat_to_rotmat, so that huge ones stay finite."""
+    w, x, y, z = quats.unbind(-1)
+    a = quats.abs()
+    s = torch.maximum(torch.maximum(a[:, 0], a[:, 1]), torch.maximum(a[:, 2], a[:, 3]))
+    s = s.clamp_min_(torch.finfo(quats.dtype).tiny)
+    w, x, y, z = w / s, x / s, y / s, z / s
+    n = torch.sqrt(w * w + x * x + y * y + z * z).clamp_min_(1e-12)
+    return w / n, x / n, y / n, z / n
+
+
+def quat_rotate(q: tuple[Tensor, ...], v: tuple[Tensor, ...], inverse: bool = False) -> tuple[Tensor, Tensor, Tensor]:
+    """R v, or R^T v when `inverse`, for the rotation of the unit quaternion q = `unit_quat(...)`
+    and vectors given by their components v = (vx, vy, vz), each [M]; the same as quat_to_rotmat's R,
+    without forming it: with q = (w, u), R v = v + w t + u x t, t = 2 u x v (the conjugate's, -u,
+    for R^T). One [M] tensor per component: batched 3x3 products, or transposing [M, 3] rows to
+    [3, M], cost 3-4x as much for M in the tens of thousands."""
+    w, x, y, z = q
+    if inverse:
+        x, y, z = -x, -y, -z
+    v0, v1, v2 = v
+    t0, t1, t2 = 2 * (y * v2 - z * v1), 2 * (z * v0 - x * v2), 2 * (x * v1 - y * v0)
+    return (torch.addcmul(v0, w, t0).addcmul_(y, t2).addcmul_(z, t1, value=-1.0),
+            torch.addcmul(v1, w, t1).addcmul_(z, t0).addcmul_(x, t2, value=-1.0),
+            torch.addcmul(v2, w, t2).addcmul_(x, t1).addcmul_(y, t0, value=-1.0))
+
+
 def _cross(a: Tensor, b: Tensor) -> Tensor:  # [3, S] x [3, S] -> [3, S]
     """a x b of each column, written out: linalg.cross along the first axis took 3x as long."""
     a0, a1, a2 = a
@@ -499,7 +527,9 @@ class _Project(torch.autograd.Function):
         g_v = None
         if deg > 0 and (need[0] or need[5]):
             shr = sh[:, :nk] if idx is None else sh[:, :nk].index_select(0, idx)
-            g_basis = torch.bmm(g_raw[:, None, :], shr.transpose(1, 2))[:, 0]  # [S, nk] (faster than shr @ g_raw)
+            # [S, nk], a colour channel at a time: 1.7x faster than the batched 1x3 @ 3xnk products
+            g_basis = shr[:, :, 0] * g_raw[:, 0:1]
+            g_basis.addcmul_(shr[:, :, 1], g_raw[:, 1:2]).addcmul_(shr[:, :, 2], g_raw[:, 2:3])
             g_dir = sh_basis_rows_backward(ctx.dirs, g_basis.T, deg)
             dirs, dn = ctx.dirs, ctx.dn
             g_v = torch.where(dn >= 1e-12, (g_dir - dirs * (dirs * g_dir).sum(0)) / dn, g_dir / 1e-12)

@@ -37,7 +37,7 @@ import torch
 from torch import Tensor
 
 from ..options import opt, override
-from ..render.projection import quat_to_rotmat
+from ..render.projection import quat_rotate, unit_quat
 from . import ops
 from .base import RefineConfig, RefineStats, RowState, Splats, StepInfo, Strategy
 from .regularize import regularize
@@ -246,10 +246,11 @@ class MCMCStrategy(Strategy):
         z = torch.randn(p["means"].shape, generator=state.generator, device=p["means"].device,
                         dtype=p["means"].dtype)  # drawn for every row: the stream does not depend on opacities
         idx = (gate > 1e-6).nonzero().squeeze(1)  # the nearly transparent: elsewhere the noise is below 1e-6 of it
-        rot = quat_to_rotmat(p["quats"][idx])  # [M, 3, 3]
-        var = p["log_scales"][idx].exp() ** 2  # [M, 3]
-        # covariance x z = R diag(var) R^T z, without forming the covariance
-        w = torch.einsum("mji,mj->mi", rot, z[idx] * (gate[idx] * cfg.noise_lr * lr)[:, None])
+        q = unit_quat(p["quats"].index_select(0, idx))  # 4 x [M]
+        var = p["log_scales"].index_select(0, idx).exp_().square_()  # [M, 3]
+        # covariance x z = R diag(var) R^T z, a component at a time, without forming the covariance or R
+        w = quat_rotate(q, (z.index_select(0, idx) * (gate.index_select(0, idx) * (cfg.noise_lr * lr))[:, None]).unbind(1),
+                        inverse=True)
         delta = torch.zeros_like(p["means"])
-        delta[idx] = torch.einsum("mij,mj->mi", rot, var * w)
+        delta.index_copy_(0, idx, torch.stack(quat_rotate(q, [vi * wi for vi, wi in zip(var.unbind(1), w)]), 1))
         ops.nudge(splats, "means", delta)
