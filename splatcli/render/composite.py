@@ -197,13 +197,14 @@ def _expand(by: Tensor, bx0: Tensor, ncol: Tensor, row_gid: Tensor, nbx: int, nb
             M: int) -> tuple[Tensor, Tensor, Tensor]:
     """The block rows expanded to their M (Gaussian, block) pairs: pair_gid [M] sorted by (block,
     depth), and each block's start [nblocks] and count [nblocks] in it."""
-    bid = torch.repeat_interleave(by * nbx + bx0 - (torch.cumsum(ncol, 0) - ncol), ncol, output_size=M)
+    row = torch.repeat_interleave(ncol, output_size=M)  # [M] each pair's block row (built once, gathered twice)
+    bid = (by * nbx + bx0 - (torch.cumsum(ncol, 0) - ncol)).index_select(0, row)
     bid += torch.arange(M, device=bid.device)
     # Pairs were generated in depth order: a stable sort by block alone gives
     # (block, depth) order; small integer keys sort fastest.
     kdt = torch.int16 if nblocks < 2**15 else (torch.int32 if nblocks < 2**31 else torch.int64)
     perm = torch.sort(bid.to(kdt), stable=True).indices
-    pair_gid = torch.repeat_interleave(row_gid, ncol, output_size=M).index_select(0, perm)
+    pair_gid = row_gid.index_select(0, row).index_select(0, perm)
     count = torch.bincount(bid, minlength=nblocks)
     return pair_gid, torch.cumsum(count, 0) - count, count
 
