@@ -248,6 +248,21 @@ def _cull(
     return (z > near) & ~((uv + rad <= 0) | (uv - rad >= grid)).any(0)
 
 
+def _rotation_rows(qn: Tensor) -> Tensor:  # [4, S] unit (w, x, y, z) -> R [3, 3, S]
+    """quat_to_rotmat's R in the row layout, each entry written in place from the products it needs
+    (forming q q^T and gathering its entries cost 4x as much)."""
+    w, x, y, z = qn
+    q2 = qn[1:] * qn[1:]  # xx, yy, zz
+    xy, xz, yz, wx, wy, wz = x * y, x * z, y * z, w * x, w * y, w * z
+    R = qn.new_empty(3, 3, qn.shape[1])
+    for (i, j), (a, b, sign) in {(0, 1): (xy, wz, -1), (0, 2): (xz, wy, 1), (1, 0): (xy, wz, 1),
+                                 (1, 2): (yz, wx, -1), (2, 0): (xz, wy, -1), (2, 1): (yz, wx, 1)}.items():
+        torch.add(a, b, alpha=sign, out=R[i, j]).mul_(2)
+    for i, (a, b) in enumerate(((1, 2), (0, 2), (0, 1))):  # 1 - 2 (yy + zz), ...
+        torch.add(q2[a], q2[b], out=R[i, i]).mul_(-2).add_(1)
+    return R
+
+
 def _cov2d(tc: Tensor, zs: Tensor, quats: Tensor, scales: Tensor, cam: _Camera) -> dict:
     """The screen-space covariance of S Gaussians in the row layout: tc [2, S] (see
     `_mean2d`), zs [S], quats [4, S], scales [3, S]. Sigma' = M M^T + BLUR I with
@@ -261,10 +276,7 @@ def _cov2d(tc: Tensor, zs: Tensor, quats: Tensor, scales: Tensor, cam: _Camera) 
     q = quats / qs
     qnorm = torch.sqrt((q * q).sum(0))
     qn = q / qnorm.clamp_min(1e-12)
-    P = (qn[:, None] * qn[None]).reshape(16, -1)  # q q^T, flattened
-    diag = 1 - 2 * (P[[10, 5, 5]] + P[[15, 15, 10]])  # R00, R11, R22: 1 - 2 (yy + zz), ...
-    U, V = P[[6, 7, 11]], P[[3, 2, 1]]  # (xy, xz, yz), (wz, wy, wx)
-    R = torch.cat([diag, 2 * (U - V), 2 * (U + V)])[[0, 3, 7, 6, 1, 5, 4, 8, 2]].reshape(3, 3, -1)
+    R = _rotation_rows(qn)
     M = (T[:, :, None] * R[None]).sum(1) * scales  # [2, 3, S]
     m1, m2 = M
     a, b, c = (m1 * m1).sum(0), (m1 * m2).sum(0), (m2 * m2).sum(0)
