@@ -249,8 +249,8 @@ class MCMCStrategy(Strategy):
         q = unit_quat(p["quats"].index_select(0, idx))  # 4 x [M]
         var = p["log_scales"].index_select(0, idx).exp_().square_()  # [M, 3]
         # covariance x z = R diag(var) R^T z, a component at a time, without forming the covariance or R
-        w = quat_rotate(q, (z.index_select(0, idx) * (gate.index_select(0, idx) * (cfg.noise_lr * lr))[:, None]).unbind(1),
-                        inverse=True)
+        zg = z.index_select(0, idx) * (gate.index_select(0, idx) * (cfg.noise_lr * lr))[:, None]  # [M, 3]
+        w = quat_rotate(q, zg.unbind(1), inverse=True)
         delta = torch.zeros_like(p["means"])
         delta.index_copy_(0, idx, torch.stack(quat_rotate(q, [vi * wi for vi, wi in zip(var.unbind(1), w)]), 1))
         ops.nudge(splats, "means", delta)
