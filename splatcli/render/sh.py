@@ -37,43 +37,8 @@ SH_C3 = (
 assert math.isclose(SH_C0, 0.5 / math.sqrt(math.pi))
 
 
-def sh_basis(dirs: Tensor, degree: int) -> Tensor:  # dirs [N, 3] unit -> [N, (degree+1)^2]
-    """The (degree+1)^2 real SH basis functions at unit directions `dirs` (fastest when
-    dirs is the transpose of a contiguous [3, N]: each component is then contiguous)."""
-    return torch.stack(_terms(*dirs.unbind(-1), degree), dim=-1)
-
-
-def _terms(x: Tensor, y: Tensor, z: Tensor, degree: int) -> list[Tensor]:
-    if not 0 <= degree <= 3:
-        raise ValueError(f"sh degree {degree} is not supported (0..3)")
-    cols = [torch.full_like(x, SH_C0)]
-    if degree >= 1:
-        cols += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
-    if degree >= 2:
-        xx, yy, zz = x * x, y * y, z * z
-        xy, yz, xz = x * y, y * z, x * z
-        cols += [
-            SH_C2[0] * xy,
-            SH_C2[1] * yz,
-            SH_C2[2] * (2.0 * zz - xx - yy),
-            SH_C2[3] * xz,
-            SH_C2[4] * (xx - yy),
-        ]
-    if degree >= 3:
-        cols += [
-            SH_C3[0] * y * (3.0 * xx - yy),
-            SH_C3[1] * xy * z,
-            SH_C3[2] * y * (4.0 * zz - xx - yy),
-            SH_C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy),
-            SH_C3[4] * x * (4.0 * zz - xx - yy),
-            SH_C3[5] * z * (xx - yy),
-            SH_C3[6] * x * (xx - 3.0 * yy),
-        ]
-    return cols
-
-
-# The same basis as polynomials, term by term: Y_k = sum coef x^i y^j z^l over (coef, (i, j, l)).
-# `sh_basis_rows_backward` differentiates these; the tests hold them to `_terms`.
+# The basis as polynomials, term by term: Y_k = sum coef x^i y^j z^l over (coef, (i, j, l)). `sh_basis`
+# evaluates them and `sh_basis_rows_backward` differentiates them; the tests hold them to the closed forms.
 _POLY = (
     ((SH_C0, (0, 0, 0)),),
     ((-SH_C1, (0, 1, 0)),),
@@ -92,6 +57,37 @@ _POLY = (
     ((SH_C3[5], (2, 0, 1)), (-SH_C3[5], (0, 2, 1))),
     ((SH_C3[6], (3, 0, 0)), (-3 * SH_C3[6], (1, 2, 0))),
 )
+# The monomials of degree <= 3 the basis is made of, lowest degree first (so a degree's basis uses a prefix).
+_MONO3 = tuple(sorted({e for poly in _POLY for _, e in poly}, key=lambda e: (sum(e), tuple(-i for i in e))))
+
+
+def _basis_matrix(degree: int) -> list[list[float]]:  # [monomials of degree <= `degree`, (degree+1)^2]
+    mono = [e for e in _MONO3 if sum(e) <= degree]
+    C = [[0.0] * (degree + 1) ** 2 for _ in mono]
+    for k, poly in enumerate(_POLY[: (degree + 1) ** 2]):
+        for coef, e in poly:
+            C[mono.index(e)][k] += coef
+    return C
+
+
+def sh_basis(dirs: Tensor, degree: int) -> Tensor:  # dirs [N, 3] unit -> [N, (degree+1)^2]
+    """The (degree+1)^2 real SH basis functions at unit directions `dirs`: the monomials of the
+    direction as rows [m, N], then one matrix product with the polynomials' coefficients, which
+    writes the [N, k] result row by row (stacking k columns into it wrote each with a stride: 3x
+    the time at degree 3). Fastest when dirs is the transpose of a contiguous [3, N]."""
+    if not 0 <= degree <= 3:
+        raise ValueError(f"sh degree {degree} is not supported (0..3)")
+    x, y, z = dirs.unbind(-1)
+    pw = {(0, 0, 0): torch.ones_like(x)}
+    for e in _MONO3[1:]:
+        if sum(e) > degree:
+            break
+        i = next(j for j in range(3) if e[j])  # x^i y^j z^l = (the monomial one lower) * one variable
+        pw[e] = pw[tuple(p - (j == i) for j, p in enumerate(e))] * (x, y, z)[i]
+    mono = torch.stack(list(pw.values()))  # [m, N]
+    return torch.mm(mono.T, torch.tensor(_basis_matrix(degree), dtype=dirs.dtype, device=dirs.device))
+
+
 # The monomials of degree <= 2 that the derivatives are made of, in `_monomials2`'s order.
 _MONO2 = ((0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1), (2, 0, 0), (0, 2, 0), (0, 0, 2), (1, 1, 0), (1, 0, 1), (0, 1, 1))
 
