@@ -467,7 +467,11 @@ class _Project(torch.autograd.Function):
         gcon = torch.where(valid, rows(g_conics, 3), zero)
         gop = torch.where(valid, rows(g_opac, 0), zero)
         gz = rows(g_depths, 0) if keep is None else torch.where(keep, rows(g_depths, 0), zero)
-        gcol = rows(g_colors, 3).T if keep is None else torch.where(keep[:, None], rows(g_colors, 3).T, zero)
+        if g_colors is None:
+            gcol = ctx.zs.new_zeros(S, 3)
+        else:  # [S, 3], in the outputs' own layout (rows() would transpose it to [3, S])
+            gcol = g_colors if idx is None else g_colors.index_select(0, idx)
+            gcol = gcol if keep is None else torch.where(keep[:, None], gcol, zero)
         grads = [None] * 7
 
         # --- opacity ---------------------------------------------------------------------
