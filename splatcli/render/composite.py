@@ -253,13 +253,9 @@ class _Consts:
     def __init__(self, dtype: torch.dtype):
         self.a_min = _below(ALPHA_MIN, dtype)
         self.t_min = _below(T_MIN, dtype)
-        # Indicator scales: U >= 1e-4 (or 0) times 2e4 is >= 2 (or 0). r = alpha / (1 - alpha) is
-        # r_max exactly where alpha was clamped to 0.99, and at most r_below (alpha one ulp under
-        # 0.99) elsewhere (1 - alpha is exact there, and the quotient grows with alpha), so
-        # (r_max - r) times r_scale is 0 where clamped and >= 2 elsewhere.
-        self.u_scale = 2.0 / T_MIN
+        # r = alpha / (1 - alpha) is r_max exactly where alpha was clamped to 0.99, and below it
+        # elsewhere (1 - alpha is exact there, and the quotient grows with alpha).
         self.r_max = _ratio(ALPHA_MAX, dtype)
-        self.r_scale = 2.0 / (self.r_max - _ratio(_below(ALPHA_MAX, dtype), dtype))
 
 
 def _ratio(alpha: float, dtype: torch.dtype) -> float:
@@ -429,10 +425,11 @@ def _seg_backward(rows: Tensor, gid: Tensor, centre: Tensor, feats: Tensor, feat
     # blended, unclamped alpha; 0 otherwise (indicators built without branches).
     t.addcmul_(U, v)
     Tlast = U[:, :, -1].clone()
-    t.mul_(r)
-    ind = torch.minimum(U.mul_(c.u_scale), r.sub_(c.r_max).mul_(-c.r_scale), out=U).clamp_(max=1.0)
-    dpow = t.mul_(ind)
-    Rs = torch.matmul(feats, dpow)  # [na, 6, k]: sums of dpow * pixel features
+    # -r where alpha was not clamped (r < r_max, r_max exactly where it was), else 0: one pass, where a
+    # product of indicators took three; the sign is undone on the small sums below (exactly).
+    t.mul_(F.threshold_(r.neg_(), -c.r_max, 0.0))
+    dneg = t.mul_(U.sign_())  # -dpow: 0 where the slot was not blended (U is 0 from there on, else >= 1e-4)
+    Rs = torch.matmul(feats, dneg).neg_()  # [na, 6, k]: sums of dpow * pixel features
     return _slot_grads(q, Rs, ds, out), Tlast, pc
 
 
