@@ -106,12 +106,7 @@ class Projection:
 def quat_to_rotmat(quats: Tensor) -> Tensor:  # [N, 4] w,x,y,z (any norm) -> [N, 3, 3]
     """Rotation of the normalised quaternion. The zero quaternion maps to the identity
     (its normalised value is taken as 0, and the formula below gives I at q = 0)."""
-    # Normalising is scale invariant, so divide by a detached max-abs first: keeps
-    # |q|^2 finite for huge quaternions without changing the value or the gradient.
-    s = quats.detach().abs().amax(dim=-1, keepdim=True).clamp_min(torch.finfo(quats.dtype).tiny)
-    q = quats / s
-    q = q / torch.linalg.vector_norm(q, dim=-1, keepdim=True).clamp_min(1e-12)
-    w, x, y, z = q.unbind(-1)
+    w, x, y, z = unit_quat(quats)
     return torch.stack(
         [
             1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
@@ -122,16 +117,13 @@ def quat_to_rotmat(quats: Tensor) -> Tensor:  # [N, 4] w,x,y,z (any norm) -> [N,
     ).reshape(quats.shape[:-1] + (3, 3))
 
 
-def unit_quat(quats: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:  # [M, 4] any norm -> 4 x [M]
-    """The normalised quaternion's w, x, y, z as separate [M] tensors (0 for the zero quaternion),
-    scaled by the largest component first, as in quat_to_rotmat, so that huge ones stay finite."""
-    w, x, y, z = quats.unbind(-1)
-    a = quats.abs()
-    s = torch.maximum(torch.maximum(a[:, 0], a[:, 1]), torch.maximum(a[:, 2], a[:, 3]))
-    s = s.clamp_min_(torch.finfo(quats.dtype).tiny)
-    w, x, y, z = w / s, x / s, y / s, z / s
-    n = torch.sqrt(w * w + x * x + y * y + z * z).clamp_min_(1e-12)
-    return w / n, x / n, y / n, z / n
+def unit_quat(quats: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:  # [..., 4] any norm -> 4 x [...]
+    """The normalised quaternion's w, x, y, z (each 0 for the zero quaternion). Normalising is scale
+    invariant, so it divides by a detached max-abs first: keeps |q|^2 finite for huge quaternions
+    without changing the value or the gradient."""
+    s = quats.detach().abs().amax(dim=-1, keepdim=True).clamp_min(torch.finfo(quats.dtype).tiny)
+    q = quats / s
+    return (q / torch.linalg.vector_norm(q, dim=-1, keepdim=True).clamp_min(1e-12)).unbind(-1)
 
 
 def quat_rotate(q: tuple[Tensor, ...], v: tuple[Tensor, ...], inverse: bool = False) -> tuple[Tensor, Tensor, Tensor]:

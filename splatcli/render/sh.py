@@ -70,6 +70,20 @@ def _basis_matrix(degree: int) -> list[list[float]]:  # [monomials of degree <= 
     return C
 
 
+_BASIS = [_basis_matrix(d) for d in range(4)]
+
+
+def _monomials(x: Tensor, y: Tensor, z: Tensor, degree: int) -> Tensor:  # 3 x [N] -> [m, N]
+    """The monomials of `_MONO3` up to `degree`, in its order: each one lower times one variable."""
+    pw = {(0, 0, 0): torch.ones_like(x)}
+    for e in _MONO3[1:]:
+        if sum(e) > degree:
+            break
+        i = next(j for j in range(3) if e[j])
+        pw[e] = pw[tuple(p - (j == i) for j, p in enumerate(e))] * (x, y, z)[i]
+    return torch.stack(list(pw.values()))
+
+
 def sh_basis(dirs: Tensor, degree: int) -> Tensor:  # dirs [N, 3] unit -> [N, (degree+1)^2]
     """The (degree+1)^2 real SH basis functions at unit directions `dirs`: the monomials of the
     direction as rows [m, N], then one matrix product with the polynomials' coefficients, which
@@ -77,19 +91,12 @@ def sh_basis(dirs: Tensor, degree: int) -> Tensor:  # dirs [N, 3] unit -> [N, (d
     the time at degree 3). Fastest when dirs is the transpose of a contiguous [3, N]."""
     if not 0 <= degree <= 3:
         raise ValueError(f"sh degree {degree} is not supported (0..3)")
-    x, y, z = dirs.unbind(-1)
-    pw = {(0, 0, 0): torch.ones_like(x)}
-    for e in _MONO3[1:]:
-        if sum(e) > degree:
-            break
-        i = next(j for j in range(3) if e[j])  # x^i y^j z^l = (the monomial one lower) * one variable
-        pw[e] = pw[tuple(p - (j == i) for j, p in enumerate(e))] * (x, y, z)[i]
-    mono = torch.stack(list(pw.values()))  # [m, N]
-    return torch.mm(mono.T, torch.tensor(_basis_matrix(degree), dtype=dirs.dtype, device=dirs.device))
+    mono = _monomials(*dirs.unbind(-1), degree)  # [m, N]
+    return torch.mm(mono.T, torch.tensor(_BASIS[degree], dtype=dirs.dtype, device=dirs.device))
 
 
-# The monomials of degree <= 2 that the derivatives are made of, in `_monomials2`'s order.
-_MONO2 = ((0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1), (2, 0, 0), (0, 2, 0), (0, 0, 2), (1, 1, 0), (1, 0, 1), (0, 1, 1))
+# The monomials of degree <= 2 that the derivatives are made of (`_monomials(..., 2)`'s rows).
+_MONO2 = tuple(e for e in _MONO3 if sum(e) <= 2)
 
 
 def _gradient_matrix() -> list[list[list[float]]]:  # [3 * 10, 16]: d Y_k / d x_i in monomials
@@ -115,7 +122,7 @@ def sh_basis_rows_backward(
     combination of the monomials of degree <= 2 (one matrix product, then one weighted sum)."""
     k = (degree + 1) ** 2
     x, y, z = dirs
-    mono = torch.stack([torch.ones_like(x), x, y, z, x * x, y * y, z * z, x * y, x * z, y * z])  # [10, N]
+    mono = _monomials(x, y, z, 2)  # [10, N]
     D = torch.tensor(_DY, dtype=g.dtype, device=g.device)[:, :k]
     coef = torch.mm(D, g).view(3, len(_MONO2), -1)  # [3, 10, N]
     out = coef[:, 0] * mono[0]  # [3, N]; a monomial at a time: (coef * mono).sum(1) wrote a [3, 10, N] product first
