@@ -32,9 +32,9 @@ from torch import Tensor
 from . import kernels
 from .projection import TILE, Footprint
 
-# 2 px blocks are not offered: they halve the slots below alpha 1/255 but make 2-3x the pairs, and a tuner
-# given them on a Xeon (lego at 200 px, where they come nearest) drew 28 of 582 renders with them
-# (docs/benchmarks.md, "Slots that count").
+# 2 px blocks are not offered: they halve the slots below alpha 1/255 but make 2-3x the pairs; at best they
+# tie 4 px in a step (lego at 200 px), and fox at 480 px took 1.5x with them (docs/benchmarks.md, "Slots that
+# count").
 BLOCKS = (4, 8, 16)
 CHUNKS = (1 << 17, 1 << 18, 1 << 19)  # the compositor's chunk sizes a tuner tries (composite.CHUNK_ELEMS is the default)
 
