@@ -15,7 +15,7 @@ from collections.abc import Callable, Iterable
 import torch
 from torch import Tensor, nn
 
-from ..render.projection import quat_to_rotmat
+from ..render.projection import quat_rotate, unit_quat
 from .base import Splats
 
 _MOMENTS = ("exp_avg", "exp_avg_sq")
@@ -82,7 +82,8 @@ def clone_rows(params: dict[str, Tensor], sel: Tensor) -> dict[str, Tensor]:  # 
 def draws(quats: Tensor, log_scales: Tensor, noise: Tensor) -> Tensor:
     """Offsets of points drawn from the Gaussians themselves, R diag(s) z, for standard
     normal `noise` z. quats [M, 4], log_scales [M, 3], noise [..., M, 3] -> [..., M, 3]."""
-    return torch.einsum("mij,...mj->...mi", quat_to_rotmat(quats), noise * log_scales.exp())
+    v = (noise * log_scales.exp()).unbind(-1)  # 3 x [..., M]
+    return torch.stack(quat_rotate(unit_quat(quats), v), -1)  # (the components broadcast over the leading dims)
 
 
 @torch.no_grad()
