@@ -7,7 +7,7 @@ into torch tensors on the caller's device when rendering.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -70,6 +70,7 @@ class SceneData:
     points: np.ndarray  # [P, 3] float64
     colors: np.ndarray  # [P, 3] uint8
     views_per_point: float = 0.0  # the mean SfM track length (0: no points, or no tracks)
+    observed: dict[str, np.ndarray] = field(default_factory=dict)  # image name -> [M] int64 rows of `points` it saw
 
 
 def scene_extent(cameras: list[Camera]) -> tuple[np.ndarray, float]:

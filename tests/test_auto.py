@@ -121,6 +121,23 @@ def test_a_capture_of_many_views_and_points_gets_more_time_and_gaussians(proj, m
         assert (grown, grown > 99_000) in got, got
 
 
+def test_sfm_tracks_choose_the_depth_term(proj, monkeypatch):
+    """Where structure from motion left tracks, a planned run (no options, or a time budget) holds
+    the photos' surfaces at their points' depth; a step schedule, or the option given, does not."""
+    monkeypatch.setattr(planning, "free_cores", lambda: 1)
+    scene = planning.read_project_scene(proj)
+    assert "depth_weight" not in _chosen(_choose(proj, {}))  # no tracks in the tiny project
+    seen = {c.name: np.arange(3) for c in scene.cameras}
+    monkeypatch.setattr(planning, "read_project_scene", lambda p: replace(scene, observed=seen))
+    for given in ({}, {"time_budget": 30.0}):
+        c = _choose(proj, given)
+        assert _chosen(c)["depth_weight"] == planning.DEPTH_WEIGHT > 0
+        assert make_config(**given, chosen=c).depth_weight == planning.DEPTH_WEIGHT
+    c = _choose(proj, {"depth_weight": 0.0})
+    assert "depth_weight" not in _chosen(c) and make_config(depth_weight=0.0, chosen=c).depth_weight == 0.0
+    assert _choose(proj, {"iterations": 50}).choices == [] and TrainConfig().depth_weight == 0.0
+
+
 def test_a_capture_seen_all_round_grows_then_keeps_what_it_needs(proj, monkeypatch):
     """The model kept is a view's pixels' or the SfM points' worth; a capture that shows k views'
     worth of surface grows to k^2 times the pixels' (at most MAX_GROWTH) first, and where that is at

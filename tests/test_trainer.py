@@ -121,3 +121,15 @@ def test_one_backward_per_step():
              for i, line in enumerate(p.read_text(encoding="utf-8").splitlines(), 1)
              if ".backward(" in line.split("#")[0]]
     assert calls == ["splatcli/train/trainer.py:" + calls[0].rsplit(":", 1)[1]], calls
+
+
+def test_the_depth_term_moves_the_means_only_where_a_view_has_sfm_points(tmp_path):
+    moved = []
+    for i, (weight, points) in enumerate(((0.0, True), (1.0, False), (1.0, True))):
+        t = _trainer(tmp_path / str(i), depth_weight=weight)
+        for v in t.data.train:  # the true Gaussians' centres stand in for the points each photo observed
+            v.sparse = tiny_gaussians(seed=0).means if points else None
+        t.step(1, t.next_batch(1))
+        moved.append(t.state.params["means"].detach().clone())
+    assert torch.equal(moved[0], moved[1])  # off, or no points: the photometric step alone
+    assert not torch.equal(moved[0], moved[2])

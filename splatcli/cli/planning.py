@@ -61,6 +61,9 @@ GAUSSIANS_PER_POINT = 2.9
 # another, and more Gaussians pay only where enough steps train them.
 COVERAGE_SEEN, MAX_GROWTH = 9.0, 4.0
 COMPACT_FROM = 1.5  # compacted only where the model grown is at least this many times the one kept
+# Where structure from motion left tracks, a planned run holds each photo's surfaces at the depth of the points it
+# observed (train/loss.py sparse_depth_loss), at this weight (docs/benchmarks.md, "Time budgets").
+DEPTH_WEIGHT = 0.2
 # Captures of more training views train longer, so that each photo is still seen often enough: the
 # default budget up to VIEWS_AT_BUDGET views, then growing with the square root of the count, to at
 # most MAX_BUDGET_FACTOR times it (about 18 minutes: with loading and evaluation, within 20).
@@ -91,6 +94,7 @@ class Asked:
     max_gaussians: int | None = None
     compact: bool | None = None
     compact_keep: float | None = None
+    depth_weight: float | None = None
     downscale: float = 1.0  # given or the default: the training size is chosen in its units
     mcmc_fits: bool = True  # every option given applies to --strategy mcmc (none is the default strategy's alone)
 
@@ -126,6 +130,7 @@ class Chosen:
     max_gaussians: int | None = None  # MCMC's budget (chosen with --strategy mcmc alone)
     time_budget_gaussians: int | None = None  # what the plan may raise max_gaussians to (chosen with it)
     compact_keep: float | None = None  # --compact chosen, keeping this share of max_gaussians
+    depth_weight: float | None = None  # the SfM points' depth term
     threads: int | None = None  # torch threads of each process
     choices: list[Choice] = field(default_factory=list)
 
@@ -143,6 +148,8 @@ class Chosen:
             cfg = replace(cfg, time_budget_gaussians=self.time_budget_gaussians)
         if self.compact_keep is not None:
             cfg = replace(cfg, compact=replace(cfg.compact, enabled=True, keep=self.compact_keep))
+        if self.depth_weight is not None:
+            cfg = replace(cfg, depth_weight=self.depth_weight)
         return cfg
 
     def record(self) -> list[dict[str, Any]]:
@@ -327,6 +334,9 @@ def choose(project: Project, given: options.Given, nproc: int | None, device: to
     if default_run and photos and len(cams) >= 8:  # (a --time-budget run keeps the appearance it was measured with)
         out.appearance = pick(asked.appearance, "appearance", "exposure", "photographs: their exposure and white "
                               "balance vary from shot to shot")
+    if any(len(seen) for seen in scene.observed.values()):
+        out.depth_weight = pick(asked.depth_weight, "depth_weight", DEPTH_WEIGHT, "structure from motion's points: "
+                                "each photo's hold its surfaces at the depth it saw them")
     trained = [c.at_resolution(asked.downscale, out.max_size or asked.max_size or TrainConfig().max_size) for c in cams]
     train_px = sorted(c.width * c.height for c in trained)[len(cams) // 2]
     if asked.strategy in (None, "mcmc") and asked.mcmc_fits:

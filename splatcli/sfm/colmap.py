@@ -547,6 +547,15 @@ class Model:
         return (np.stack([p.xyz for p in pts.values()]).astype(np.float64),
                 np.stack([p.color for p in pts.values()]).astype(np.uint8))
 
+    def observations(self) -> dict[str, np.ndarray]:  # name -> [M] int64 rows of points()
+        """Registered image name -> the rows of `points()` that image observed (its track entries)."""
+        row = {pid: i for i, pid in enumerate(self._rec.points3D)}
+        out = {}
+        for im in self._rec.images.values():
+            if im.has_pose:
+                out[im.name] = np.fromiter((row[p.point3D_id] for p in im.points2D if p.has_point3D()), np.int64)
+        return out
+
     def views(self) -> dict[str, View]:
         """Registered image name -> its pose and camera (for checking the model against pair geometry)."""
         out = {}
@@ -906,4 +915,5 @@ def read_scene(sparse_dir: str | Path, *, pinhole_only: bool = True, digest: str
             if _model_name(cam) not in ("PINHOLE", "SIMPLE_PINHOLE"):
                 raise SplatError(f"{sparse_dir}: camera {cid} is {_model_name(cam)}, expected PINHOLE (undistorted)")
     points, colors = model.points()
-    return SceneData(cameras=model.cameras(), points=points, colors=colors, views_per_point=model.mean_track_length())
+    return SceneData(cameras=model.cameras(), points=points, colors=colors, views_per_point=model.mean_track_length(),
+                     observed=model.observations())

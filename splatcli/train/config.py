@@ -97,6 +97,9 @@ class TrainConfig:
                          "captures); off = masks unused; auto = background for masks from an alpha channel, ignore "
                          "for mask files.", group=DATA, choices=MASK_MODES, parse=_lower, metavar="MODE")
     lambda_dssim: float = opt(0.2, "loss = (1 - l) L1 + l (1 - SSIM).", at_least=0, at_most=1)
+    depth_weight: float = opt(0.0, "Add this x the mean |log depth error| at the SfM points each training photo "
+                              "observed: the surfaces stay where structure from motion found them (0: off; "
+                              "no effect without SfM tracks).", at_least=0, group=MODEL)
 
     # ---- model and density control (strategy/) ---------------------------------
     strategy: str = opt("default", "Density control: default = 3DGS's clone/split/prune; mcmc = a fixed budget "

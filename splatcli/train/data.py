@@ -40,6 +40,7 @@ class TrainView:
     viewmat: Tensor  # [4, 4] float32
     K: Tensor  # [3, 3] float32
     keep: Tensor | None = None  # [H, W] bool: pixels the loss and the scores see (--mask-mode ignore); None: all
+    sparse: Tensor | None = None  # [M, 3] float32 world points this view observed in SfM (--depth-weight); None: none
 
     _scaled: dict[float, TrainView] = field(default_factory=dict, repr=False, compare=False)
 
@@ -64,7 +65,7 @@ class TrainView:
             if self.keep is not None:  # the same area filter, cut at half
                 keep = F.interpolate(self.keep[None, None].to(torch.float32), size=(cam.height, cam.width),
                                      mode="area")[0, 0] >= 0.5
-            self._scaled[scale] = TrainView(cam, img, vm, K, keep)
+            self._scaled[scale] = TrainView(cam, img, vm, K, keep, self.sparse)
         return self._scaled[scale]
 
 
@@ -126,7 +127,10 @@ def load_train_data(
         rgb, keep = load_target(project, name, (cam.width, cam.height), bg, mode)
         img = torch.from_numpy(np.ascontiguousarray(rgb)).to(device)
         vm, K = cam.torch(device)
-        return TrainView(cam, img, vm, K, torch.from_numpy(keep).to(device) if keep is not None else None)
+        seen = scene.observed.get(name)
+        sparse = (torch.from_numpy(scene.points[seen]).to(device=device, dtype=torch.float32)
+                  if seen is not None and len(seen) else None)
+        return TrainView(cam, img, vm, K, torch.from_numpy(keep).to(device) if keep is not None else None, sparse)
 
     with ThreadPoolExecutor(max_workers=2) as pool:  # cv2 decodes without the GIL
         train = list(pool.map(view, train_names))

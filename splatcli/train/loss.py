@@ -4,6 +4,9 @@ SSIM is `metrics.ssim` itself (the metric's 11-tap sigma 1.5 window, constants
 and valid region), so the loss optimises exactly what `eval` reports. With a mask
 (--mask-mode ignore) L1 is the mean over the kept pixels and SSIM the masked one:
 masked pixels take no part, in value or gradient.
+
+Where structure from motion left tracks, the depth term (--depth-weight) compares the render's
+depth with each point a training photo observed, at the pixel that holds it.
 """
 
 from __future__ import annotations
@@ -22,3 +25,25 @@ def photometric_loss(image: Tensor, target: Tensor, lambda_dssim: float = 0.2,  
     else:
         l1 = ((image - target).abs() * keep[..., None]).sum() / (keep.sum() * image.shape[-1]).clamp_min(1)
     return (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - ssim(image, target, keep))
+
+
+def sparse_depth_loss(depth: Tensor, alpha: Tensor, points: Tensor,  # depth, alpha [H, W]; points [M, 3] world
+                      viewmat: Tensor, K: Tensor) -> Tensor:  # viewmat [4, 4], K [3, 3] -> [] loss
+    """Mean |log(rendered depth) - log(SfM depth)| at the pixels where the view observed its SfM
+    points. The rendered depth is the blending-weighted view depth over the pixel's alpha,
+    taken only where the render covers the pixel (alpha > 0.5): the term moves surfaces along
+    the ray and leaves coverage to the photometric loss. Log depth makes the weight the same at
+    any scene scale and for near and far points alike."""
+    H, W = depth.shape
+    cam = points @ viewmat[:3, :3].T + viewmat[:3, 3]  # [M, 3]
+    z = cam[:, 2]  # [M]
+    uv = cam[:, :2] / z.clamp_min(1e-6)[:, None] * K.diagonal()[:2] + K[:2, 2]  # [M, 2] px
+    col, row = uv[:, 0].floor().long(), uv[:, 1].floor().long()  # the pixel holding the point
+    inside = (z > 1e-3) & (col >= 0) & (col < W) & (row >= 0) & (row < H)  # [M]
+    pix = (row * W + col)[inside]  # [m]
+    a = alpha.reshape(-1)[pix]  # [m]
+    use = a.detach() > 0.5
+    if not bool(use.any()):
+        return depth.sum() * 0.0
+    pred = depth.reshape(-1)[pix][use] / a[use]  # [u] the rendered depth there
+    return (pred.clamp_min(1e-6).log() - z[inside][use].log()).abs().mean()

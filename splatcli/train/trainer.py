@@ -21,7 +21,7 @@ from ..strategy import Context, RefineStats, StepInfo
 from .config import TrainConfig
 from .data import TrainData, TrainView
 from .distributed import Comm
-from .loss import photometric_loss
+from .loss import photometric_loss, sparse_depth_loss
 from .profile import StepProfile
 from .state import TrainState, learning_rates, make_strategies, means_lr
 from .transients import kept_pixels
@@ -102,7 +102,8 @@ class Trainer:
         return StepStats(loss.detach(), info.finite, stopping, info)
 
     def _backward(self, step: int, batch: Batch) -> tuple[StepInfo, Tensor]:  # -> (info, loss [])
-        """Render, the strategies' pre-backward hooks, the image model and the loss, its gradients."""
+        """Render, the strategies' pre-backward hooks, the image model and the loss (with the depth
+        term at the view's SfM points, --depth-weight), its gradients."""
         s, cfg, prof = self.state, self.cfg, self.prof
         with prof.stage("render"):
             out = render_view(s, batch.view, self.data.background, s.active_sh_degree(step, cfg.sh_degree_interval))
@@ -116,9 +117,12 @@ class Trainer:
             if cfg.transients == "ignore" and step > cfg.robust.start * cfg.iterations:
                 keep = kept_pixels(image, batch.target, keep, cfg.robust)
             loss = photometric_loss(image, batch.target, cfg.lambda_dssim, keep) + penalty
+            if cfg.depth_weight > 0 and batch.view.sparse is not None:
+                terms.append(cfg.depth_weight * sparse_depth_loss(out.depth, out.alpha, batch.view.sparse,
+                                                                  batch.view.viewmat, batch.view.K))
         with prof.stage("backward"):
-            # one backward for the whole step: the photometric loss, the image model's penalty and
-            # the strategies' terms; the loss reported is the first two (as the log has always said)
+            # one backward for the whole step: the photometric loss, the image model's penalty, the
+            # SfM points' depth term and the strategies' terms; the loss reported is the first two
             sum((t for t in terms if t is not None), loss).backward()
         return info, loss
 
