@@ -24,6 +24,7 @@ from __future__ import annotations
 import json
 import os
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any, TypeVar
 
@@ -337,22 +338,30 @@ def choose(project: Project, given: options.Given, nproc: int | None, device: to
     if any(len(seen) for seen in scene.observed.values()):
         out.depth_weight = pick(asked.depth_weight, "depth_weight", DEPTH_WEIGHT, "structure from motion's points: "
                                 "each photo's hold its surfaces at the depth it saw them")
-    trained = [c.at_resolution(asked.downscale, out.max_size or asked.max_size or TrainConfig().max_size) for c in cams]
-    train_px = sorted(c.width * c.height for c in trained)[len(cams) // 2]
-    if asked.strategy in (None, "mcmc") and asked.mcmc_fits:
-        out.strategy = pick(asked.strategy, "strategy", "mcmc", "a fixed Gaussian budget, grown on a curve planned "
-                            "to the time")
-        size = _budget(train_px, scene, short=budget < BUDGET_S)
-        out.max_gaussians = pick(asked.max_gaussians, "max_gaussians", size.grown, size.why)
-        out.time_budget_gaussians = size.up_to if out.max_gaussians is not None else None
-        compact = size.grown >= COMPACT_FROM * size.kept and out.max_gaussians is not None
-        if compact and asked.compact is None and asked.compact_keep is None:
-            out.compact_keep = pick(None, "compact_keep", round(size.kept / size.grown, 6),
-                                    f"grown to find the detail, then {size.kept:,} kept, those with the most "
-                                    "blending weight (--no-compact keeps all)")
+    _choose_model(out, asked, pick, scene, budget)
     if nproc is None:
         _processes(out, len(cams))
     return out
+
+
+def _choose_model(out: Chosen, asked: Asked, pick: Callable[..., Any], scene: SceneData, budget: float) -> None:
+    """MCMC and its Gaussian budget sized to the capture (`_budget`), and `--compact` where the model
+    grown is COMPACT_FROM times the one kept, into `out` (`pick`: choose's, each yielding to its option)."""
+    if asked.strategy not in (None, "mcmc") or not asked.mcmc_fits:
+        return
+    cams = scene.cameras
+    trained = [c.at_resolution(asked.downscale, out.max_size or asked.max_size or TrainConfig().max_size) for c in cams]
+    train_px = sorted(c.width * c.height for c in trained)[len(cams) // 2]
+    out.strategy = pick(asked.strategy, "strategy", "mcmc", "a fixed Gaussian budget, grown on a curve planned "
+                        "to the time")
+    size = _budget(train_px, scene, short=budget < BUDGET_S)
+    out.max_gaussians = pick(asked.max_gaussians, "max_gaussians", size.grown, size.why)
+    out.time_budget_gaussians = size.up_to if out.max_gaussians is not None else None
+    compact = size.grown >= COMPACT_FROM * size.kept and out.max_gaussians is not None
+    if compact and asked.compact is None and asked.compact_keep is None:
+        out.compact_keep = pick(None, "compact_keep", round(size.kept / size.grown, 6),
+                                f"grown to find the detail, then {size.kept:,} kept, those with the most "
+                                "blending weight (--no-compact keeps all)")
 
 
 @dataclass(frozen=True)
