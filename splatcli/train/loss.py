@@ -11,10 +11,12 @@ depth with each point a training photo observed, at the pixel that holds it.
 
 from __future__ import annotations
 
+import torch
 import torch.nn.functional as F
 from torch import Tensor
 
 from ..eval.metrics import ssim
+from ..render.projection import NEAR, in_frustum
 
 
 def photometric_loss(image: Tensor, target: Tensor, lambda_dssim: float = 0.2,  # [H, W, 3] each
@@ -35,15 +37,11 @@ def sparse_depth_loss(depth: Tensor, alpha: Tensor, points: Tensor,  # depth, al
     the ray and leaves coverage to the photometric loss. Log depth makes the weight the same at
     any scene scale and for near and far points alike."""
     H, W = depth.shape
-    cam = points @ viewmat[:3, :3].T + viewmat[:3, 3]  # [M, 3]
-    z = cam[:, 2]  # [M]
-    uv = cam[:, :2] / z.clamp_min(1e-6)[:, None] * K.diagonal()[:2] + K[:2, 2]  # [M, 2] px
+    uv, z, inside = in_frustum(points, viewmat, K, W, H)  # [M, 2] px, [M], [M]: the rasterizer's near plane and image
     col, row = uv[:, 0].floor().long(), uv[:, 1].floor().long()  # the pixel holding the point
-    inside = (z > 1e-3) & (col >= 0) & (col < W) & (row >= 0) & (row < H)  # [M]
-    pix = (row * W + col)[inside]  # [m]
-    a = alpha.reshape(-1)[pix]  # [m]
-    use = a.detach() > 0.5
-    if not bool(use.any()):
-        return depth.sum() * 0.0
-    pred = depth.reshape(-1)[pix][use] / a[use]  # [u] the rendered depth there
-    return (pred.clamp_min(1e-6).log() - z[inside][use].log()).abs().mean()
+    pix = torch.where(inside, row * W + col, 0)  # [M] (0 for the points left out)
+    a = alpha.reshape(-1)[pix]  # [M]
+    use = (inside & (a.detach() > 0.5)).to(depth.dtype)  # [M] (a mask, not a selection: no host sync)
+    pred = depth.reshape(-1)[pix] / torch.where(use > 0, a, 1.0)  # [M] the rendered depth there
+    err = (pred.clamp_min(1e-6).log() - z.clamp_min(NEAR).log()).abs()  # finite everywhere, so 0 x err is 0
+    return (err * use).sum() / use.sum().clamp_min(1.0)
