@@ -45,6 +45,9 @@ def test_sparse_depth_loss_is_the_log_depth_error_at_the_observed_pixels():
                         [0.0, 0.0, -1.0]])  # behind the camera: left out
     got = sparse_depth_loss(depth, alpha, pts, vm, K)
     assert float(got) == pytest.approx(0.5 * abs(math.log(5.0 / 2.0)), rel=1e-5)
+    keep = torch.ones(12, 16, dtype=torch.bool)
+    keep[3, 10] = False  # the mask removes the second point's pixel: only the first counts
+    assert float(sparse_depth_loss(depth, alpha, pts, vm, K, keep)) == pytest.approx(0.0, abs=1e-6)
     alpha[3, 10] = 0.3  # an uncovered pixel: the photometric loss's business, not this term's
     assert float(sparse_depth_loss(depth, alpha, pts, vm, K)) == pytest.approx(0.0, abs=1e-6)
 

@@ -113,13 +113,13 @@ class Trainer:
                      for strategy, st in zip(s.strategies, s.splats.states)]
         with prof.stage("loss"):
             image, penalty = s.image_model.shade(out.image, batch.index, step, cfg.iterations)
-            keep = batch.view.keep
+            keep = mask = batch.view.keep
             if cfg.transients == "ignore" and step > cfg.robust.start * cfg.iterations:
                 keep = kept_pixels(image, batch.target, keep, cfg.robust)
             loss = photometric_loss(image, batch.target, cfg.lambda_dssim, keep) + penalty
             if cfg.depth_weight > 0 and batch.view.sparse is not None:
                 terms.append(cfg.depth_weight * sparse_depth_loss(out.depth, out.alpha, batch.view.sparse,
-                                                                  batch.view.viewmat, batch.view.K))
+                                                                  batch.view.viewmat, batch.view.K, mask))
         with prof.stage("backward"):
             # one backward for the whole step: the photometric loss, the image model's penalty, the
             # SfM points' depth term and the strategies' terms; the loss reported is the first two
