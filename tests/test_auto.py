@@ -122,8 +122,9 @@ def test_a_capture_of_many_views_and_points_gets_more_time_and_gaussians(proj, m
 
 
 def test_sfm_tracks_choose_the_depth_term(proj, monkeypatch):
-    """Where structure from motion left tracks, a planned run (no options, or a time budget) holds
-    the photos' surfaces at their points' depth; a step schedule, or the option given, does not."""
+    """Where structure from motion left tracks in photographs, a planned run (no options, or a time
+    budget) holds their surfaces at their points' depth; a step schedule, the option given, or a
+    rendered scene (alpha masks) does not."""
     monkeypatch.setattr(planning, "free_cores", lambda: 1)
     scene = planning.read_project_scene(proj)
     assert "depth_weight" not in _chosen(_choose(proj, {}))  # no tracks in the tiny project
@@ -136,6 +137,8 @@ def test_sfm_tracks_choose_the_depth_term(proj, monkeypatch):
     c = _choose(proj, {"depth_weight": 0.0})
     assert "depth_weight" not in _chosen(c) and make_config(depth_weight=0.0, chosen=c).depth_weight == 0.0
     assert _choose(proj, {"iterations": 50}).choices == [] and TrainConfig().depth_weight == 0.0
+    monkeypatch.setattr(type(proj), "mask_source", lambda self: "alpha")  # a rendered scene: its pixels suffice
+    assert "depth_weight" not in _chosen(_choose(proj, {}))
 
 
 def test_a_capture_seen_all_round_grows_then_keeps_what_it_needs(proj, monkeypatch):

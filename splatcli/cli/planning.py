@@ -62,8 +62,9 @@ GAUSSIANS_PER_POINT = 2.9
 # another, and more Gaussians pay only where enough steps train them.
 COVERAGE_SEEN, MAX_GROWTH = 9.0, 4.0
 COMPACT_FROM = 1.5  # compacted only where the model grown is at least this many times the one kept
-# Where structure from motion left tracks, a planned run holds each photo's surfaces at the depth of the points it
-# observed (train/loss.py sparse_depth_loss), at this weight (docs/benchmarks.md, "Time budgets").
+# Where structure from motion left tracks in photographs, a planned run holds each photo's surfaces at the depth of
+# the points it observed (train/loss.py sparse_depth_loss), at this weight (docs/benchmarks.md, "Time budgets");
+# not in a rendered scene (alpha masks), whose exact pixels placed the surfaces better without it (lego).
 DEPTH_WEIGHT = 0.2
 # Captures of more training views train longer, so that each photo is still seen often enough: the
 # default budget up to VIEWS_AT_BUDGET views, then growing with the square root of the count, to at
@@ -335,7 +336,7 @@ def choose(project: Project, given: options.Given, nproc: int | None, device: to
     if default_run and photos and len(cams) >= 8:  # (a --time-budget run keeps the appearance it was measured with)
         out.appearance = pick(asked.appearance, "appearance", "exposure", "photographs: their exposure and white "
                               "balance vary from shot to shot")
-    if any(len(seen) for seen in scene.observed.values()):
+    if photos and any(len(seen) for seen in scene.observed.values()):  # (a rendered scene's pixels are exact)
         out.depth_weight = pick(asked.depth_weight, "depth_weight", DEPTH_WEIGHT, "structure from motion's points: "
                                 "each photo's hold its surfaces at the depth it saw them")
     _choose_model(out, asked, pick, scene, budget)
