@@ -432,6 +432,16 @@ def test_a_plan_raises_the_gaussian_budget_by_the_steps_it_affords():
     assert TimePlan.start(cfg).up_to is None
 
 
+def test_the_summary_says_why_the_model_has_its_count():
+    """A count `train` chose, neither raised by a plan nor cut by --compact: the summary's model
+    line gives the reason the plan line gave before the first step."""
+    why = "0.225 per pixel of a 129,600-pixel training view"
+    chosen = [{"option": "max_gaussians", "value": 29_000, "why": why}]
+    line = TrainSummary(1, 1.0, 29_000, 3, 1, "cpu", 0.0, chosen=chosen).model_line()
+    assert line.endswith(f"; the count chosen for the capture: {why}"), line
+    assert "chosen" not in TrainSummary(1, 1.0, 29_000, 3, 1, "cpu", 0.0).model_line()  # a count given: nothing to say
+
+
 def test_a_plan_with_compact_fits_the_fine_tune_into_the_budget():
     """--compact in a planned run: the main steps and the fine-tune a run of that length ends with
     (the template's, scaled with it) fit the time left together, the fine-tune's steps priced at

@@ -439,6 +439,9 @@ class TrainSummary:
         if c is not None:
             psnr = f", {c.before_psnr:.2f} dB held out" if c.before_psnr is not None else ""
             line += f"; --compact kept these of {c.before_count:,} ({c.before_bytes / 1e6:.2f} MB{psnr})"
+        why = next((x["why"] for x in self.chosen or () if x["option"] == "max_gaussians"), None)
+        if why and at is None and c is None:  # the count train chose, grown to; say why it is that count
+            line += f"; the count chosen for the capture: {why}"
         return line
 
 
