@@ -11,7 +11,8 @@ compiled by torch's own extension builder against the libtorch inside the pip
 torch wheel (g++ and ninja are needed; no OpenCV: the peer's image I/O is not timed).
 Where the peer cannot be built, the script says why and exits 0.
 
-Both sides render the workloads of bench/workloads.py forward and backward:
+Both sides render the workloads of bench/workloads.py forward and backward, in a process whose
+allocator is set as every splatcli command sets it (`device.tune_allocator`):
 the peer as its model.cpp does on CPU (project, SH degree 0 colours, rasterize);
 ours through `splatcli.render.rasterize`, with the block `train` measures (tuned) and with
 `rasterize()`'s default (model). They alternate, rep by rep, at each
@@ -37,6 +38,7 @@ from pathlib import Path
 import torch
 
 from common import OUT as ALL_OUT, report
+from splatcli.device import tune_allocator
 from splatcli.gaussians import SH_C0
 from splatcli.render import kernels, rasterize
 from splatcli.render.blocks import BLOCKS, BlockTuner
@@ -173,6 +175,7 @@ def main() -> None:
     mod, rev = built
     rev = rev or args.rev or "unknown"
     if args.one:  # a child: one workload at one thread count, one JSON line
+        tune_allocator()  # as every splatcli command does (the peer allocates through the same C library)
         wl = next(w for w in workloads([args.one]))
         torch.set_num_threads(int(args.threads))
         kernels.set_mode(args.compile)
