@@ -36,7 +36,7 @@ from .projection import TILE, Footprint
 # tie 4 px in a step (lego at 200 px), and fox at 480 px took 1.5x with them (docs/benchmarks.md, "Slots that
 # count").
 BLOCKS = (4, 8, 16)
-CHUNKS = (1 << 17, 1 << 18, 1 << 19)  # the compositor's chunk sizes a tuner tries (composite.CHUNK_ELEMS is the default)
+CHUNKS = (1 << 17, 1 << 18, 1 << 19)  # the compositor's chunk sizes a tuner tries, smallest first (the last: composite.CHUNK_ELEMS)
 
 # Cost model (ns per (Gaussian, block) pair and per dense [pixel, pair] element, forward +
 # backward, one CPU thread), fitted to the fastest block of 111 training views on one machine

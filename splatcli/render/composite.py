@@ -50,15 +50,15 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from . import kernels, timing
-from .blocks import Meter
+from .blocks import CHUNKS, Meter
 from .projection import TILE, Footprint
 
 ALPHA_MIN = 1.0 / 255.0  # contributions below this are skipped
 ALPHA_MAX = 0.99  # alpha is clamped to this
 T_MIN = 1e-4  # a Gaussian that would bring transmittance below this is not blended, nor any after it
-# [blocks, pixels, K] elements per chunk: bounds memory; the default where nothing measures it (blocks.CHUNKS).
-# The largest a tuner tries: it was the measured pick on most workloads of bench/peers.py on a Zen 3 EPYC.
-CHUNK_ELEMS = 1 << 19
+# [blocks, pixels, K] elements per chunk: bounds memory; the default where nothing measures it: the largest a
+# tuner tries, its measured pick on most workloads of bench/peers.py on a Zen 3 EPYC (docs/benchmarks.md).
+CHUNK_ELEMS = CHUNKS[-1]
 _DEAD = -1e4  # log-opacity of the padding row: exp() is exactly 0
 _LOG2E = 1.4426950408889634  # exp(x) = exp2(x log2 e); exp2 is the faster vectorised kernel
 SEGMENT = 64  # Gaussians per block processed between early-termination checks
